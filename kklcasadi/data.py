@@ -1,0 +1,288 @@
+"""Training data: Phase-1 (autonomous) latent labels and PDE points, Phase-2 (input-driven) samples.
+
+Phase-1 labels ``z = T(x)`` come from simulating the plant at ``u = 0`` backward and then forward
+together with the latent system ``zdot = A z + B h(x)``, long enough that the initial latent is
+forgotten: the decay bound ``kappa exp(-lam t_b) |z0 - T(x)|`` is below ``tol`` (DESIGN.md
+"Phase-1 labels"; see :func:`phase1`).
+
+The input window convention (shared by training, evaluation, export and C) lives in
+:func:`input_windows`: ``w_k`` holds the last ``window`` input samples up to and including ``u_k``,
+oldest first; before ``t = 0`` it is filled with ``u_0``.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+from dataclasses import dataclass
+from typing import NamedTuple, Sequence
+
+import casadi as ca
+import numpy as np
+
+from . import signals as sig
+from .design import Design
+from .simulate import simulate_batch, time_grid
+from .systems import System
+
+__all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "input_windows"]
+
+log = logging.getLogger(__name__)
+
+
+def input_windows(u: np.ndarray, window: int) -> np.ndarray:
+    """All input windows of a sampled input, as a read-only view.
+
+    Parameters
+    ----------
+    u : numpy.ndarray, shape (N, nu) or (M, N, nu)
+    window : int
+        Window length (number of samples), >= 1.
+
+    Returns
+    -------
+    numpy.ndarray, shape (N, window, nu) or (M, N, window, nu)
+        ``out[k] = [u_{k-window+1}, ..., u_k]`` (oldest first), with ``u_j = u_0`` for ``j < 0``.
+    """
+    if not isinstance(window, (int, np.integer)) or window < 1:
+        raise ValueError(f"window must be a positive integer (samples), got {window!r}")
+    u = np.asarray(u, dtype=float)
+    if u.ndim not in (2, 3):
+        raise ValueError(f"u must have shape (N, nu) or (M, N, nu), got {u.shape}")
+    axis = u.ndim - 2
+    first = np.take(u, [0], axis=axis)
+    padded = np.concatenate([np.repeat(first, window - 1, axis=axis), u], axis=axis)
+    view = np.lib.stride_tricks.sliding_window_view(padded, window, axis=axis)
+    return np.moveaxis(view, -1, -2)
+
+
+class Phase1Data(NamedTuple):
+    """Autonomous samples: states ``x`` (M, nx), their latent labels ``z = T(x)`` (M, nz), outputs ``y`` (M, ny)."""
+
+    x: np.ndarray
+    z: np.ndarray
+    y: np.ndarray
+
+
+class PDEPoints(NamedTuple):
+    """PDE collocation points: ``x`` (M, nx), exact ``f = f(x, 0)`` (M, nx) and ``y = h(x)`` (M, ny)."""
+
+    x: np.ndarray
+    f: np.ndarray
+    y: np.ndarray
+
+
+def _latent_system(system: System, design: Design) -> System:
+    """The plant at ``u = 0``, gated, with the latent system: ``xdot = g f(x, 0)``, ``zdot = A z + B h(x)``.
+
+    The scalar input ``g`` in {0, 1} freezes the plant (``g = 0``) while the latent state settles.
+    """
+    if design.ny != system.ny:
+        raise ValueError(f"design has ny = {design.ny} but system {system.name!r} has ny = {system.ny}")
+    xz = ca.SX.sym("xz", system.nx + design.nz)
+    x, z = xz[:system.nx], xz[system.nx:]
+    gate = ca.SX.sym("g")
+    y = system.h(x)
+    zdot = ca.mtimes(ca.DM(design.A), z) + ca.mtimes(ca.DM(design.B), y)
+    box = np.vstack([system.x0_box, np.tile([-1.0, 1.0], (design.nz, 1))])
+    return System(f"{system.name}_kkl", xz, gate, ca.vertcat(gate * system.f(x, 0), zdot), y, box)
+
+
+def _reversed(system: System) -> System:
+    """The plant at ``u = 0`` in reversed time, ``xdot = -f(x, 0)``."""
+    x = ca.SX.sym("x", system.nx)
+    u = ca.SX.sym("u", system.nu)
+    return System(f"{system.name}_reversed", x, u, -system.f(x, 0), system.h(x), system.x0_box)
+
+
+def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, t_keep: float = 10.0,
+           dt: float = 0.05, tol: float = 1e-7, domain_scale: float = 2.0, box_scale: float = 1.0) -> Phase1Data:
+    """States over the X0 box and their exact latent labels ``z = T(x)`` under ``u = 0``.
+
+    Each trajectory starts at a Latin-hypercube state ``x0``, runs backward in time for ``t_b``
+    (or until it leaves the domain, the X0 box scaled by ``domain_scale``), and then forward from
+    there with the latent system, ``t_keep`` seconds past ``x0``. The forward pass starts from the
+    latent equilibrium ``z = -A^{-1} B h(x_b)``; a trajectory that left the domain is held frozen at
+    its exit state until its remaining backward time has passed. So the labels are those of the
+    plant frozen outside the domain (which makes ``T`` well defined where backward solutions escape,
+    as for FitzHugh-Nagumo or Roessler) and agree with the true map wherever the past stays inside.
+
+    Parameters
+    ----------
+    system : System
+    design : Design
+    n_traj : int
+        Trajectories, started from a Latin hypercube over the (scaled) X0 box.
+    seed : int
+        Seed of the Latin hypercube.
+    t_keep : float
+        Labelled horizon per trajectory, sampled every ``dt``: ``round(t_keep / dt)`` samples each.
+    tol : float
+        Relative label accuracy: the burn-in ``t_b`` makes ``kappa exp(-lam t_b) * 2 <= tol``,
+        2 bounding ``|z0 - T(x_b)|`` relative to the latent bound ``kappa |B| max|y| / lam``.
+    domain_scale : float
+        Size of the domain (scale of the X0 box about its centre) outside which the past is frozen.
+    box_scale : float
+        Scale of the sampling box about its centre.
+
+    Returns
+    -------
+    Phase1Data
+        ``x`` (M, nx), ``z`` (M, nz), ``y`` (M, ny), ``M = n_traj * round(t_keep / dt)`` minus
+        trajectories that failed (reported with a warning).
+    """
+    if not isinstance(design, Design):
+        raise TypeError(f"design must be a kklcasadi.Design, got {type(design).__name__}")
+    if not (np.isfinite(tol) and 0 < tol < 1):
+        raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
+    if not (np.isfinite(domain_scale) and domain_scale >= 1):
+        raise ValueError(f"domain_scale must be >= 1 (the domain contains the X0 box), got {domain_scale!r}")
+    x0 = system.sample_box(n_traj, seed, scale=box_scale)
+    n_keep = time_grid(t_keep, dt).size
+    centre = system.x0_box.mean(axis=1)
+    half = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0]) * domain_scale
+    y_ref = float(np.max(np.abs(np.asarray(system.h.map(n_traj)(x0.T))))) or 1.0
+    growth = 1.0
+    for _attempt in range(6):
+        # |z_b - T(x_b)| <= 2 * latent_bound(max |y| over the past); labels scale like latent_bound(y_ref)
+        n_back = int(np.ceil(design.forgetting_time(2.0 * growth, tol) / dt))
+        # Backward pass: only the starting point is sought, so RK4 is enough; escapes end in inf/NaN.
+        back = simulate_batch(_reversed(system), x0, sig.Zero(system.nu), (n_back + 1) * dt, dt, method="rk",
+                              blowup=np.inf)
+        inside = np.all(np.abs(back.x - centre) <= half, axis=2)           # (n_traj, n_back + 1); NaN -> False
+        n_in = np.where(inside.all(axis=1), n_back + 1, np.argmin(inside, axis=1))  # samples before the exit
+        y_past = float(np.max(np.abs(np.where(inside[..., None], back.y, 0.0))))
+        if y_past <= growth * y_ref:
+            break
+        growth = y_past / y_ref
+    else:
+        raise RuntimeError(f"phase1: outputs keep growing into the past of {system.name!r} (|y| up to {y_past:.3g}); "
+                           "lower domain_scale so that the past is frozen earlier")
+    frozen = n_in <= n_back
+    if frozen.any():
+        log.info("%d of %d backward runs left the domain; their past is frozen at the exit state",
+                 int(frozen.sum()), n_traj)
+    x_b = back.x[np.arange(n_traj), n_in - 1]
+    y_b = np.asarray(system.h.map(n_traj)(x_b.T)).T
+    z_b = -np.linalg.solve(design.A, design.B @ y_b.T).T
+    n_total = n_back + n_keep
+    gates = [np.r_[np.zeros(n_back - (k - 1)), np.ones(n_total - n_back + k - 1)] for k in n_in]
+    fwd = simulate_batch(_latent_system(system, design), np.hstack([x_b, z_b]), gates, n_total * dt, dt)
+    if not fwd.ok.all():
+        warnings.warn(f"phase1: dropped {int((~fwd.ok).sum())} of {n_traj} trajectories whose simulation failed",
+                      RuntimeWarning, stacklevel=2)
+    keep = fwd.x[fwd.ok, -n_keep:, :]
+    xz = keep.reshape(-1, system.nx + design.nz)
+    y = fwd.y[fwd.ok, -n_keep:, :].reshape(-1, system.ny)
+    return Phase1Data(xz[:, :system.nx].copy(), xz[:, system.nx:].copy(), y.copy())
+
+
+def pde_points(system: System, n: int = 10000, seed: int = 1, *, box_scale: float = 1.0) -> PDEPoints:
+    """Latin-hypercube collocation points over the X0 box with exact ``f(x, 0)`` and ``h(x)``."""
+    x = system.sample_box(n, seed, scale=box_scale)
+    f = np.asarray(system.f.map(n)(x.T, np.zeros((system.nu, n)))).T
+    y = np.asarray(system.h.map(n)(x.T)).T
+    return PDEPoints(x, f, y)
+
+
+@dataclass(frozen=True, eq=False)
+class Phase2Data:
+    """Input-driven samples for every (initial state, input signal) pair that stayed bounded.
+
+    Attributes
+    ----------
+    t : (N,) sample times
+    x, xdot : (P, N, nx) states and exact ``f(x_k, u_k)``
+    y : (P, N, ny) noise-free outputs
+    u : (P, N, nu) inputs (zero-order hold)
+    window : int
+        Input window length; windows follow :func:`input_windows`.
+    pairs : (P, 2) int
+        ``(initial-state index, signal index)`` of each kept trajectory.
+    signals : tuple of Signal
+        The sampled input signals.
+    dropped : tuple of (int, int)
+        Pairs whose simulation failed or blew up (reported with a warning, not kept).
+    """
+
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    u: np.ndarray
+    xdot: np.ndarray
+    window: int
+    pairs: np.ndarray
+    signals: tuple
+    dropped: tuple
+
+    @property
+    def dt(self) -> float:
+        return float(self.t[1] - self.t[0])
+
+    @property
+    def n_samples(self) -> int:
+        """Samples with a next window available: ``P * (N - 1)``."""
+        return self.x.shape[0] * (self.x.shape[1] - 1)
+
+    def batch(self, index: np.ndarray) -> dict[str, np.ndarray]:
+        """Gather flat samples ``index`` (< n_samples) into arrays (the paper's eq. (6)).
+
+        Returns
+        -------
+        dict
+            ``x`` (B, nx), ``y`` (B, ny), ``u`` (B, nu), ``xdot`` (B, nx), ``w`` (B, window, nu)
+            the window at ``t_k`` and ``w_next`` (B, window, nu) the window at ``t_k+1``.
+        """
+        index = np.asarray(index)
+        if index.size and (index.min() < 0 or index.max() >= self.n_samples):
+            raise ValueError(f"index must lie in [0, {self.n_samples}), got range [{index.min()}, {index.max()}]")
+        p, k = np.divmod(index, self.x.shape[1] - 1)
+        windows = input_windows(self.u, self.window)
+        return {"x": self.x[p, k], "y": self.y[p, k], "u": self.u[p, k], "xdot": self.xdot[p, k],
+                "w": windows[p, k], "w_next": windows[p, k + 1]}
+
+
+def phase2(system: System, n_traj: int = 20, signals: Sequence[sig.Signal] | int = 20, *, window: int = 100,
+           T: float = 20.0, dt: float = 0.05, seed: int = 0, regime: str = "train",
+           kinds: Sequence[str] = ("constant", "sinusoid", "square"), method: str = "cvodes") -> Phase2Data:
+    """Simulate every pair (initial state, input signal) and collect the paper's eq. (6) samples.
+
+    Parameters
+    ----------
+    system : System
+    n_traj : int
+        Initial states from a Latin hypercube over X0 (seeded by ``seed``).
+    signals : sequence of Signal or int
+        The inputs, or how many to draw from ``kinds`` (cycled) with :func:`kklcasadi.signals.sample`
+        in ``regime`` using ``numpy.random.default_rng(seed)``.
+    window : int
+        Input window length in samples.
+    T, dt : float
+        Horizon and sample period of each simulation.
+
+    Returns
+    -------
+    Phase2Data
+    """
+    rng = np.random.default_rng(seed)
+    if isinstance(signals, (int, np.integer)):
+        if signals < 1:
+            raise ValueError(f"signals must be a positive count or a sequence of signals, got {signals}")
+        if not kinds:
+            raise ValueError("kinds must name at least one signal kind")
+        signals = [sig.sample(kinds[i % len(kinds)], rng, regime, nu=system.nu) for i in range(int(signals))]
+    signals = tuple(signals)
+    for j, s in enumerate(signals):
+        if not callable(s):
+            raise TypeError(f"signals[{j}] must be a signal u(t), got {type(s).__name__}")
+    x0 = system.sample_box(n_traj, seed)
+    pairs = np.array([(i, j) for i in range(n_traj) for j in range(len(signals))])
+    batch = simulate_batch(system, x0[pairs[:, 0]], [signals[j] for j in pairs[:, 1]], T, dt, method=method)
+    dropped = tuple(map(tuple, pairs[~batch.ok].tolist()))
+    if dropped:
+        warnings.warn(f"phase2: dropped {len(dropped)} of {len(pairs)} trajectories that failed or blew up: "
+                      f"(state, signal) pairs {list(dropped)[:10]}", RuntimeWarning, stacklevel=2)
+    x, u, y = batch.x[batch.ok], batch.u[batch.ok], batch.y[batch.ok]
+    p, n = x.shape[:2]
+    xdot = np.asarray(system.f.map(p * n)(x.reshape(-1, system.nx).T, u.reshape(-1, system.nu).T)).T
+    return Phase2Data(batch.t, x, y, u, xdot.reshape(p, n, system.nx), int(window), pairs[batch.ok], signals, dropped)

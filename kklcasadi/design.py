@@ -1,0 +1,100 @@
+"""The latent design ``(A, B)`` of a KKL observer: ``zdot = A z + B y``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import control
+import numpy as np
+
+from .systems import System
+
+__all__ = ["Design"]
+
+
+def _frozen(arr: np.ndarray) -> np.ndarray:
+    out = np.array(arr, dtype=float, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Design:
+    """A validated latent pair: ``A`` (nz, nz) Hurwitz and ``B`` (nz, ny) with ``(A, B)`` controllable.
+
+    Parameters
+    ----------
+    A : array_like, shape (nz, nz)
+    B : array_like, shape (nz, ny)
+
+    Attributes
+    ----------
+    nz, ny : int
+    kappa : float
+        Condition number of the eigenvector matrix of ``A`` (1 for a diagonal ``A``).
+    lam : float
+        Decay rate ``-max Re eig(A)`` (> 0).
+    """
+
+    A: np.ndarray
+    B: np.ndarray
+
+    def __post_init__(self) -> None:
+        A = np.asarray(self.A, dtype=float)
+        B = np.asarray(self.B, dtype=float)
+        if B.ndim == 1:
+            B = B[:, None]
+        if A.ndim != 2 or A.shape[0] != A.shape[1] or A.shape[0] == 0:
+            raise ValueError(f"A must be a non-empty square matrix (nz, nz), got shape {A.shape}")
+        if B.ndim != 2 or B.shape[0] != A.shape[0]:
+            raise ValueError(f"B must have shape (nz, ny) = ({A.shape[0]}, ny), got shape {B.shape}")
+        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
+            raise ValueError("A and B must be finite")
+        eig = np.linalg.eigvals(A)
+        if np.max(eig.real) >= 0:
+            raise ValueError(f"A must be Hurwitz (all eigenvalues with negative real part); max Re eig(A) = "
+                             f"{np.max(eig.real):.6g}")
+        rank = np.linalg.matrix_rank(control.ctrb(A, B))
+        if rank < A.shape[0]:
+            raise ValueError(f"(A, B) must be controllable: rank of the controllability matrix is {rank}, "
+                             f"need nz = {A.shape[0]}; give A distinct eigenvalues or change B")
+        object.__setattr__(self, "A", _frozen(A))
+        object.__setattr__(self, "B", _frozen(B))
+
+    @classmethod
+    def default(cls, system: System) -> "Design":
+        """The paper's choice: ``nz = ny (2 nx + 1)``, ``A = -diag(1..nz)``, ``B = ones((nz, ny))``."""
+        if not isinstance(system, System):
+            raise TypeError(f"system must be a kklcasadi.System, got {type(system).__name__}")
+        nz = system.ny * (2 * system.nx + 1)
+        return cls(-np.diag(np.arange(1.0, nz + 1.0)), np.ones((nz, system.ny)))
+
+    @property
+    def nz(self) -> int:
+        return self.A.shape[0]
+
+    @property
+    def ny(self) -> int:
+        return self.B.shape[1]
+
+    @property
+    def lam(self) -> float:
+        return float(-np.max(np.linalg.eigvals(self.A).real))
+
+    @property
+    def kappa(self) -> float:
+        _, vecs = np.linalg.eig(self.A)
+        return float(np.linalg.cond(vecs))
+
+    def forgetting_time(self, z_gap: float, tol: float = 1e-6) -> float:
+        """Time after which ``kappa * exp(-lam t) * z_gap <= tol`` (the decay of a wrong initial latent)."""
+        if z_gap <= 0:
+            return 0.0
+        return max(0.0, float(np.log(self.kappa * z_gap / tol) / self.lam))
+
+    def latent_bound(self, y_max: float) -> float:
+        """Bound on ``|T(x)|`` when ``|y| <= y_max`` along the past: ``kappa |B| y_max / lam``."""
+        return self.kappa * float(np.linalg.norm(self.B, 2)) * float(y_max) / self.lam
+
+    def __repr__(self) -> str:
+        return f"Design(nz={self.nz}, ny={self.ny}, lam={self.lam:.3g}, kappa={self.kappa:.3g})"

@@ -1,0 +1,94 @@
+"""Accuracy metrics of PROTOCOL.md: SMAPE (the table's number), RMSE, RMSE after a settle time."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["smape", "rmse", "rmse_after", "Summary", "summarize"]
+
+
+def _pair(x_true: object, xhat: object) -> tuple[np.ndarray, np.ndarray]:
+    a = np.asarray(x_true, dtype=float)
+    b = np.asarray(xhat, dtype=float)
+    if a.shape != b.shape:
+        raise ValueError(f"x_true and xhat must have the same shape, got {a.shape} and {b.shape}")
+    if a.ndim < 2:
+        raise ValueError(f"trajectories must have shape (N, nx) or (M, N, nx), got {a.shape}")
+    return a, b
+
+
+def smape(x_true: object, xhat: object) -> np.ndarray | float:
+    """Symmetric mean absolute percentage error per trial, in percent (PROTOCOL.md).
+
+    ``100 / (N nx) * sum_k sum_i 2 |x_ik - xhat_ik| / (|x_ik| + |xhat_ik| + 1e-8)``
+
+    Parameters
+    ----------
+    x_true, xhat : array_like, shape (N, nx) or (M, N, nx)
+
+    Returns
+    -------
+    float or numpy.ndarray, shape (M,)
+        NaN for a trial whose estimate is not finite.
+    """
+    a, b = _pair(x_true, xhat)
+    terms = 2.0 * np.abs(a - b) / (np.abs(a) + np.abs(b) + 1e-8)
+    out = 100.0 * terms.mean(axis=(-2, -1))
+    return float(out) if out.ndim == 0 else out
+
+
+def rmse(x_true: object, xhat: object) -> np.ndarray | float:
+    """Root-mean-square error per trial over all samples and states; shapes as :func:`smape`."""
+    a, b = _pair(x_true, xhat)
+    out = np.sqrt(np.mean((a - b) ** 2, axis=(-2, -1)))
+    return float(out) if out.ndim == 0 else out
+
+
+def rmse_after(t: object, x_true: object, xhat: object, t_settle: float = 5.0) -> np.ndarray | float:
+    """RMSE over the samples with ``t >= t_settle`` (PROTOCOL.md reports ``t_settle = 5`` s).
+
+    Parameters
+    ----------
+    t : array_like, shape (N,)
+    x_true, xhat : array_like, shape (N, nx) or (M, N, nx)
+    """
+    a, b = _pair(x_true, xhat)
+    t = np.asarray(t, dtype=float)
+    if t.shape != (a.shape[-2],):
+        raise ValueError(f"t must have shape (N,) = ({a.shape[-2]},), got {t.shape}")
+    keep = t >= t_settle
+    if not keep.any():
+        raise ValueError(f"t_settle = {t_settle} is after the last sample t = {t[-1]}")
+    return rmse(a[..., keep, :], b[..., keep, :])
+
+
+@dataclass(frozen=True)
+class Summary:
+    """Mean, median and interquartile range of per-trial values (PROTOCOL.md reporting)."""
+
+    mean: float
+    median: float
+    q25: float
+    q75: float
+    n: int
+    n_failed: int
+
+    @property
+    def iqr(self) -> float:
+        return self.q75 - self.q25
+
+    def __str__(self) -> str:
+        failed = f", {self.n_failed} failed" if self.n_failed else ""
+        return f"{self.mean:.2f} (median {self.median:.2f}, IQR {self.q25:.2f}-{self.q75:.2f}, n={self.n}{failed})"
+
+
+def summarize(values: object) -> Summary:
+    """Summarise per-trial values; non-finite trials are counted as failed and excluded."""
+    v = np.asarray(values, dtype=float).ravel()
+    ok = np.isfinite(v)
+    if not ok.any():
+        raise ValueError(f"no finite values to summarise ({v.size} given)")
+    q25, med, q75 = np.percentile(v[ok], [25, 50, 75])
+    return Summary(float(v[ok].mean()), float(med), float(q25), float(q75), int(ok.sum()), int((~ok).sum()))

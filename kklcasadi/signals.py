@@ -1,0 +1,297 @@
+"""Known input signals ``u(t)`` and the seeded sampler of the benchmark's input regimes.
+
+Every signal is an immutable callable: ``u(t)`` returns shape (nu,) for a scalar ``t`` and
+(N, nu) for a time array of shape (N,). Simulation applies them zero-order hold, ``u_k = u(t_k)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+__all__ = ["Signal", "Zero", "Constant", "Sinusoid", "Square", "Step", "Chirp", "RandomSteps",
+           "make", "kinds", "sample", "RANGES", "REGIMES", "BENCHMARK_KINDS"]
+
+
+def _vector(value: Any, arg: str) -> np.ndarray:
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    if arr.ndim != 1 or arr.size == 0:
+        raise ValueError(f"{arg} must be a scalar or a 1-D vector (one entry per input), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{arg} must be finite, got {arr.tolist()}")
+    arr.setflags(write=False)
+    return arr
+
+
+def _positive(value: Any, arg: str) -> float:
+    v = float(value)
+    if not np.isfinite(v) or v <= 0:
+        raise ValueError(f"{arg} must be a finite number > 0, got {value!r}")
+    return v
+
+
+def _times(t: Any) -> tuple[np.ndarray, bool]:
+    arr = np.asarray(t, dtype=float)
+    if arr.ndim > 1:
+        raise ValueError(f"t must be a scalar or a 1-D array of times, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("t must be finite")
+    return np.atleast_1d(arr), arr.ndim == 0
+
+
+@dataclass(frozen=True)
+class Signal:
+    """Base class of input signals; subclasses implement ``_eval(t (N,)) -> (N, nu)``."""
+
+    def __call__(self, t: Any) -> np.ndarray:
+        times, scalar = _times(t)
+        out = self._eval(times)
+        return out[0] if scalar else out
+
+    @property
+    def nu(self) -> int:
+        raise NotImplementedError
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Zero(Signal):
+    """``u(t) = 0`` with ``size`` inputs."""
+
+    size: int = 1
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.size, (int, np.integer)) or self.size < 1:
+            raise ValueError(f"size must be a positive integer (number of inputs), got {self.size!r}")
+
+    @property
+    def nu(self) -> int:
+        return int(self.size)
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        return np.zeros((t.size, self.nu))
+
+
+@dataclass(frozen=True)
+class Constant(Signal):
+    """``u(t) = value``."""
+
+    value: Any = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "value", _vector(self.value, "value"))
+
+    @property
+    def nu(self) -> int:
+        return self.value.size
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(self.value, (t.size, self.nu)).copy()
+
+
+@dataclass(frozen=True)
+class _Periodic(Signal):
+    amplitude: Any = 1.0
+    omega: float = 1.0
+    phase: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "amplitude", _vector(self.amplitude, "amplitude"))
+        object.__setattr__(self, "omega", _positive(self.omega, "omega (rad/s)"))
+        phase = float(self.phase)
+        if not np.isfinite(phase):
+            raise ValueError(f"phase must be finite, got {self.phase!r}")
+        object.__setattr__(self, "phase", phase)
+
+    @property
+    def nu(self) -> int:
+        return self.amplitude.size
+
+    def _angle(self, t: np.ndarray) -> np.ndarray:
+        return np.sin(self.omega * t + self.phase)[:, None]
+
+
+@dataclass(frozen=True)
+class Sinusoid(_Periodic):
+    """``u(t) = amplitude sin(omega t + phase)``, omega in rad/s."""
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        return self.amplitude * self._angle(t)
+
+
+@dataclass(frozen=True)
+class Square(_Periodic):
+    """``u(t) = amplitude sign(sin(omega t + phase))``, omega in rad/s."""
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        return self.amplitude * np.sign(self._angle(t))
+
+
+@dataclass(frozen=True)
+class Step(Signal):
+    """``u(t) = before`` for ``t < time`` and ``after`` from then on."""
+
+    time: float = 0.0
+    before: Any = 0.0
+    after: Any = 1.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "before", _vector(self.before, "before"))
+        object.__setattr__(self, "after", _vector(self.after, "after"))
+        if self.before.size != self.after.size:
+            raise ValueError(f"before and after must have the same size, got {self.before.size} and {self.after.size}")
+        if not np.isfinite(float(self.time)):
+            raise ValueError(f"time must be finite, got {self.time!r}")
+
+    @property
+    def nu(self) -> int:
+        return self.after.size
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        return np.where((t >= self.time)[:, None], self.after, self.before)
+
+
+@dataclass(frozen=True)
+class Chirp(Signal):
+    """Linear chirp ``amplitude sin(phase + omega0 t + (omega1 - omega0) t^2 / (2 duration))``.
+
+    The instantaneous frequency sweeps from ``omega0`` to ``omega1`` (rad/s) over ``duration`` seconds
+    and stays at ``omega1`` afterwards.
+    """
+
+    amplitude: Any = 1.0
+    omega0: float = 0.5
+    omega1: float = 3.0
+    duration: float = 50.0
+    phase: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "amplitude", _vector(self.amplitude, "amplitude"))
+        _positive(self.omega0, "omega0 (rad/s)")
+        _positive(self.omega1, "omega1 (rad/s)")
+        _positive(self.duration, "duration")
+
+    @property
+    def nu(self) -> int:
+        return self.amplitude.size
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        tc = np.clip(t, 0.0, self.duration)
+        rate = (self.omega1 - self.omega0) / self.duration
+        angle = self.phase + self.omega0 * tc + 0.5 * rate * tc ** 2 + self.omega1 * (t - tc)
+        return self.amplitude * np.sin(angle)[:, None]
+
+
+@dataclass(frozen=True)
+class RandomSteps(Signal):
+    """Seeded random piecewise-constant signal: a new level ``U[-amplitude, amplitude]`` every ``hold`` s.
+
+    Levels are drawn once from ``numpy.random.default_rng(seed)`` for ``[0, horizon]``; the last level
+    is held after ``horizon`` and the first before 0.
+    """
+
+    amplitude: Any = 1.0
+    hold: float = 1.0
+    seed: int = 0
+    horizon: float = 50.0
+    levels: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "amplitude", _vector(self.amplitude, "amplitude"))
+        _positive(self.hold, "hold")
+        _positive(self.horizon, "horizon")
+        n = int(np.ceil(self.horizon / self.hold)) + 1
+        levels = np.random.default_rng(self.seed).uniform(-1.0, 1.0, (n, self.nu)) * self.amplitude
+        levels.setflags(write=False)
+        object.__setattr__(self, "levels", levels)
+
+    @property
+    def nu(self) -> int:
+        return self.amplitude.size
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        idx = np.clip(np.floor(t / self.hold).astype(int), 0, len(self.levels) - 1)
+        return self.levels[idx]
+
+
+_KINDS: dict[str, type[Signal]] = {
+    "zero": Zero, "constant": Constant, "sinusoid": Sinusoid, "square": Square,
+    "step": Step, "chirp": Chirp, "random": RandomSteps,
+}
+
+
+def kinds() -> list[str]:
+    """Names accepted by :func:`make`."""
+    return list(_KINDS)
+
+
+def make(kind: str, **params: Any) -> Signal:
+    """Build a signal by name, e.g. ``make("square", amplitude=0.5, omega=1.0, phase=0.0)``.
+
+    Known kinds: ``zero`` (size), ``constant`` (value), ``sinusoid`` and ``square`` (amplitude, omega,
+    phase), ``step`` (time, before, after), ``chirp`` (amplitude, omega0, omega1, duration, phase),
+    ``random`` (amplitude, hold, seed, horizon).
+    """
+    if kind not in _KINDS:
+        raise ValueError(f"unknown signal kind {kind!r}; known kinds: {', '.join(_KINDS)}")
+    cls = _KINDS[kind]
+    try:
+        return cls(**params)
+    except TypeError as err:
+        fields = [f for f in cls.__dataclass_fields__ if f != "levels"]
+        raise TypeError(f"signal {kind!r} takes parameters {fields}; got {sorted(params)} ({err})") from err
+
+
+_ID_RANGES = {
+    "constant": {"value": (-1.0, 1.0)},
+    "sinusoid": {"amplitude": (0.1, 1.0), "omega": (0.5, 3.0)},
+    "square": {"amplitude": (0.1, 1.0), "omega": (0.5, 2.0)},
+}
+#: Per-trial parameter ranges of PROTOCOL.md. ``train`` (the training distribution) equals ``id``.
+RANGES: Mapping[str, Mapping[str, Mapping[str, tuple[float, float]]]] = {
+    "train": _ID_RANGES,
+    "id": _ID_RANGES,
+    "ood": {
+        "constant": {"value": (-2.0, 2.0)},
+        "sinusoid": {"amplitude": (1.0, 2.0), "omega": (3.0, 6.0)},
+        "square": {"amplitude": (1.0, 2.0), "omega": (2.0, 4.0)},
+    },
+}
+REGIMES = tuple(RANGES)
+#: The input regimes of the benchmark table, in column order.
+BENCHMARK_KINDS = ("zero", "constant", "sinusoid", "square")
+
+
+def sample(kind: str, rng: np.random.Generator, regime: str = "id", *, nu: int = 1) -> Signal:
+    """Draw one signal of ``kind`` with parameters from the PROTOCOL.md ranges of ``regime``.
+
+    Parameters
+    ----------
+    kind : {"zero", "constant", "sinusoid", "square"}
+    rng : numpy.random.Generator
+        Source of randomness (the caller seeds it).
+    regime : {"train", "id", "ood"}
+    nu : int
+        Number of inputs; each input gets independent parameters for constant signals and
+        independent amplitudes for periodic ones.
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), got {type(rng).__name__}")
+    if regime not in RANGES:
+        raise ValueError(f"unknown regime {regime!r}; known regimes: {', '.join(REGIMES)}")
+    if kind == "zero":
+        return Zero(nu)
+    ranges = RANGES[regime]
+    if kind not in ranges:
+        raise ValueError(f"cannot sample kind {kind!r}; sampled kinds: zero, {', '.join(ranges)}")
+    r = ranges[kind]
+    if kind == "constant":
+        return Constant(rng.uniform(*r["value"], size=nu))
+    amplitude = rng.uniform(*r["amplitude"], size=nu)
+    omega = rng.uniform(*r["omega"])
+    phase = rng.uniform(0.0, 2.0 * np.pi)
+    return _KINDS[kind](amplitude=amplitude, omega=omega, phase=phase)

@@ -1,0 +1,226 @@
+"""Plants written symbolically in CasADi, and the registry of benchmark systems.
+
+A :class:`System` holds the exact right-hand side ``f(x, u)``, the output map ``h(x)`` and their
+Jacobians as :class:`casadi.Function` objects, built once from SX symbols. The registry
+(:func:`get`, :func:`names`) provides the four systems of the HyperKKL paper exactly as in
+``PROTOCOL.md``, plus Lorenz and a linear test plant with a known KKL map.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Sequence
+
+import casadi as ca
+import numpy as np
+
+__all__ = ["System", "get", "names", "register"]
+
+
+def _column_symbol(value: object, arg: str) -> ca.SX:
+    """Check that ``value`` is a column vector of purely symbolic SX entries."""
+    if not isinstance(value, ca.SX):
+        raise TypeError(f"{arg} must be a casadi.SX symbol (e.g. ca.SX.sym('{arg}', n)); got {type(value).__name__}")
+    if value.size2() != 1 or value.numel() == 0:
+        raise ValueError(f"{arg} must be a non-empty column vector, got shape {value.shape}")
+    if not value.is_valid_input():
+        raise ValueError(f"{arg} must consist of distinct purely symbolic entries (ca.SX.sym), not expressions")
+    return value
+
+
+def _column_expr(value: object, arg: str, n: int | None = None) -> ca.SX:
+    if isinstance(value, (list, tuple)):
+        value = ca.vertcat(*value)
+    if not isinstance(value, ca.SX):
+        raise TypeError(f"{arg} must be a casadi.SX expression or a list of them; got {type(value).__name__}")
+    if value.size2() != 1:
+        raise ValueError(f"{arg} must be a column expression, got shape {value.shape}")
+    if n is not None and value.size1() != n:
+        raise ValueError(f"{arg} must have {n} entries (one per state), got {value.size1()}")
+    return value
+
+
+def _box(x0_box: object, nx: int) -> np.ndarray:
+    box = np.asarray(x0_box, dtype=float)
+    if box.shape != (nx, 2):
+        raise ValueError(f"x0_box must have shape (nx, 2) = ({nx}, 2) as [[lo, hi], ...], got shape {box.shape}")
+    if not np.all(np.isfinite(box)):
+        raise ValueError(f"x0_box must be finite, got {box.tolist()}")
+    if np.any(box[:, 1] <= box[:, 0]):
+        bad = np.nonzero(box[:, 1] <= box[:, 0])[0].tolist()
+        raise ValueError(f"x0_box rows {bad} are empty or inverted (need lo < hi), got {box.tolist()}")
+    box.setflags(write=False)
+    return box
+
+
+class System:
+    """A controlled plant ``xdot = f(x, u)``, ``y = h(x)`` written with CasADi SX symbols.
+
+    Parameters
+    ----------
+    name : str
+        Identifier used in model cards and file names.
+    x : casadi.SX, shape (nx, 1)
+        State symbols.
+    u : casadi.SX, shape (nu, 1)
+        Input symbols.
+    xdot : casadi.SX or list, shape (nx, 1)
+        Right-hand side ``f(x, u)``.
+    y : casadi.SX or list, shape (ny, 1)
+        Output map ``h(x)``; must not depend on ``u``.
+    x0_box : array_like, shape (nx, 2)
+        Box ``[[lo, hi], ...]`` of initial states (the operating domain of the observer).
+    description : str, optional
+        One line shown by ``kklcasadi`` listings.
+
+    Attributes
+    ----------
+    f : casadi.Function
+        ``f(x, u) -> xdot``.
+    h : casadi.Function
+        ``h(x) -> y``.
+    f_jac : casadi.Function
+        ``f_jac(x, u) -> (df_dx (nx, nx), df_du (nx, nu))``, exact.
+    h_jac : casadi.Function
+        ``h_jac(x) -> dh_dx (ny, nx)``, exact.
+
+    Examples
+    --------
+    >>> import casadi as ca, kklcasadi as kc
+    >>> x = ca.SX.sym("x", 2); u = ca.SX.sym("u")
+    >>> pend = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], x0_box=[[-1, 1], [-2, 2]])
+    >>> pend.nx, pend.nu, pend.ny
+    (2, 1, 1)
+    """
+
+    def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
+                 x0_box: object, *, description: str = "") -> None:
+        if not isinstance(name, str) or not name.isidentifier():
+            raise ValueError(f"name must be a Python identifier such as 'duffing', got {name!r}")
+        x = _column_symbol(x, "x")
+        u = _column_symbol(u, "u")
+        xdot = _column_expr(xdot, "xdot", x.size1())
+        y = _column_expr(y, "y")
+        if y.size1() == 0:
+            raise ValueError("y must have at least one output")
+        if ca.depends_on(y, u):
+            raise ValueError("y = h(x) must not depend on the input u (direct feedthrough is not supported)")
+        free = ca.symvar(ca.vertcat(xdot, y))
+        known = set(ca.symvar(ca.vertcat(x, u)))
+        extra = [str(s) for s in free if s not in known]
+        if extra:
+            raise ValueError(f"xdot and y may only use the symbols of x and u; found free symbols {extra}")
+        self.name = name
+        self.description = description
+        self.nx, self.nu, self.ny = x.size1(), u.size1(), y.size1()
+        self.x0_box = _box(x0_box, self.nx)
+        self.x_sym, self.u_sym = x, u
+        self.xdot_expr, self.y_expr = xdot, y
+        self.f = ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"])
+        self.h = ca.Function("h", [x], [y], ["x"], ["y"])
+        self.f_jac = ca.Function("f_jac", [x, u], [ca.jacobian(xdot, x), ca.jacobian(xdot, u)],
+                                 ["x", "u"], ["df_dx", "df_du"])
+        self.h_jac = ca.Function("h_jac", [x], [ca.jacobian(y, x)], ["x"], ["dh_dx"])
+
+    def __repr__(self) -> str:
+        return f"System({self.name!r}, nx={self.nx}, nu={self.nu}, ny={self.ny})"
+
+    def check_state(self, x: object, arg: str = "x0") -> np.ndarray:
+        """Return ``x`` as a float array of shape (nx,), or raise a ValueError naming ``arg``."""
+        arr = np.asarray(x, dtype=float)
+        if arr.shape not in ((self.nx,), (self.nx, 1)):
+            raise ValueError(f"{arg} must have shape ({self.nx},) for system {self.name!r}, got {arr.shape}")
+        if not np.all(np.isfinite(arr)):
+            raise ValueError(f"{arg} must be finite, got {arr.ravel().tolist()}")
+        return arr.reshape(self.nx)
+
+    def sample_box(self, n: int, seed: int | np.random.Generator | None = 0, *, scale: float = 1.0) -> np.ndarray:
+        """Latin-hypercube sample of ``n`` states over the X0 box (optionally scaled about its centre).
+
+        Returns
+        -------
+        numpy.ndarray, shape (n, nx)
+        """
+        from scipy.stats import qmc
+
+        if not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"n must be a positive integer, got {n!r}")
+        centre = self.x0_box.mean(axis=1)
+        half = 0.5 * (self.x0_box[:, 1] - self.x0_box[:, 0]) * scale
+        unit = qmc.LatinHypercube(d=self.nx, seed=seed).random(int(n))
+        return centre + (2.0 * unit - 1.0) * half
+
+
+_REGISTRY: dict[str, Callable[[], System]] = {}
+
+
+def register(name: str, factory: Callable[[], System]) -> None:
+    """Add a plant factory to the registry used by :func:`get` and the CLI."""
+    if not callable(factory):
+        raise TypeError(f"factory must be callable returning a System, got {type(factory).__name__}")
+    _REGISTRY[name] = factory
+
+
+def names() -> list[str]:
+    """Names of the registered systems, sorted."""
+    return sorted(_REGISTRY)
+
+
+def get(name: str) -> System:
+    """Build the registered system ``name`` (e.g. ``"duffing"``)."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown system {name!r}; known systems: {', '.join(names())}")
+    return _REGISTRY[name]()
+
+
+def _symbols(nx: int) -> tuple[ca.SX, ca.SX]:
+    return ca.SX.sym("x", nx), ca.SX.sym("u", 1)
+
+
+def duffing() -> System:
+    x, u = _symbols(2)
+    return System("duffing", x, u, [x[1], -x[0] - x[0] ** 3 + u], x[0], [[-1, 1], [-1, 1]],
+                  description="Duffing oscillator, y = x1")
+
+
+def vdp() -> System:
+    x, u = _symbols(2)
+    return System("vdp", x, u, [x[1], (1 - x[0] ** 2) * x[1] - x[0] + u], x[0], [[-3, 3], [-3, 3]],
+                  description="Van der Pol oscillator (mu = 1), y = x1")
+
+
+def rossler() -> System:
+    x, u = _symbols(3)
+    xdot = [-(x[1] + x[2]), x[0] + 0.1 * x[1] + u, 0.1 + x[2] * (x[0] - 14)]
+    return System("rossler", x, u, xdot, x[1], [[-10, 10]] * 3, description="Roessler (a=0.1, b=0.1, c=14), y = x2")
+
+
+def fhn() -> System:
+    x, u = _symbols(2)
+    xdot = [10 * (x[0] - x[0] ** 3 - x[1]) + u, 1.5 * x[0] - x[1] + 0.8]
+    return System("fhn", x, u, xdot, x[0], [[-2.5, 2.5], [-1.5, 1.5]],
+                  description="FitzHugh-Nagumo as in the HyperKKL paper, y = x1")
+
+
+def lorenz() -> System:
+    x, u = _symbols(3)
+    sigma, rho, beta = 10.0, 28.0, 8.0 / 3.0
+    xdot = [sigma * (x[1] - x[0]), x[0] * (rho - x[2]) - x[1] + u, x[0] * x[1] - beta * x[2]]
+    return System("lorenz", x, u, xdot, x[1], [[-15, 15], [-20, 20], [5, 40]],
+                  description="Lorenz (sigma 10, rho 28, beta 8/3), u on x2, y = x2")
+
+
+LINEAR_F = np.array([[0.0, 1.0], [-2.0, -0.5]])
+LINEAR_G = np.array([[0.0], [1.0]])
+LINEAR_H = np.array([[1.0, 0.0]])
+
+
+def linear() -> System:
+    """Damped linear oscillator ``xdot = F x + G u``, ``y = H x``: its KKL map solves a Sylvester equation."""
+    x, u = _symbols(2)
+    xdot = ca.mtimes(ca.DM(LINEAR_F), x) + ca.mtimes(ca.DM(LINEAR_G), u)
+    return System("linear", x, u, xdot, ca.mtimes(ca.DM(LINEAR_H), x), [[-1, 1], [-1, 1]],
+                  description="damped linear oscillator (test plant with an exact KKL map)")
+
+
+for _factory in (duffing, vdp, rossler, fhn, lorenz, linear):
+    register(_factory.__name__, _factory)

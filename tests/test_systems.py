@@ -1,0 +1,109 @@
+import casadi as ca
+import numpy as np
+import pytest
+
+import kklcasadi as kc
+
+PAPER = {  # PROTOCOL.md table: (nx, nz, y index, box)
+    "duffing": (2, 5, 0, [[-1, 1], [-1, 1]]),
+    "vdp": (2, 5, 0, [[-3, 3], [-3, 3]]),
+    "rossler": (3, 7, 1, [[-10, 10]] * 3),
+    "fhn": (2, 5, 0, [[-2.5, 2.5], [-1.5, 1.5]]),
+}
+
+
+def reference_f(name, x, u):
+    x1, x2 = x[0], x[1]
+    if name == "duffing":
+        return [x2, -x1 - x1 ** 3 + u]
+    if name == "vdp":
+        return [x2, (1 - x1 ** 2) * x2 - x1 + u]
+    if name == "rossler":
+        return [-(x[1] + x[2]), x[0] + 0.1 * x[1] + u, 0.1 + x[2] * (x[0] - 14)]
+    if name == "fhn":
+        return [10 * (x1 - x1 ** 3 - x2) + u, 1.5 * x1 - x2 + 0.8]
+    if name == "lorenz":
+        return [10 * (x[1] - x[0]), x[0] * (28 - x[2]) - x[1] + u, x[0] * x[1] - 8 / 3 * x[2]]
+    raise KeyError(name)
+
+
+@pytest.mark.parametrize("name", ["duffing", "vdp", "rossler", "fhn", "lorenz"])
+def test_registry_matches_protocol_equations(name, rng):
+    s = kc.systems.get(name)
+    for _ in range(5):
+        x = rng.uniform(-2, 2, s.nx)
+        u = rng.uniform(-1, 1)
+        np.testing.assert_allclose(np.asarray(s.f(x, u)).ravel(), reference_f(name, x, u), rtol=1e-14, atol=1e-14)
+    if name in PAPER:
+        nx, nz, iy, box = PAPER[name]
+        assert (s.nx, s.nu, s.ny) == (nx, 1, 1)
+        assert kc.Design.default(s).nz == nz
+        np.testing.assert_array_equal(s.x0_box, box)
+        x = rng.uniform(-2, 2, s.nx)
+        assert float(s.h(x)) == x[iy]
+
+
+@pytest.mark.parametrize("name", ["duffing", "vdp", "rossler", "fhn", "lorenz", "linear"])
+def test_exact_jacobians_match_finite_differences(name, rng):
+    s = kc.systems.get(name)
+    x = rng.uniform(-1, 1, s.nx)
+    u = rng.uniform(-1, 1, s.nu)
+    dfdx, dfdu = (np.asarray(a) for a in s.f_jac(x, u))
+    eps = 1e-6
+    fd = np.column_stack([(np.asarray(s.f(x + eps * e, u)) - np.asarray(s.f(x - eps * e, u))).ravel() / (2 * eps)
+                          for e in np.eye(s.nx)])
+    np.testing.assert_allclose(dfdx, fd, rtol=1e-6, atol=1e-6)
+    fdu = (np.asarray(s.f(x, u + eps)) - np.asarray(s.f(x, u - eps))).ravel() / (2 * eps)
+    np.testing.assert_allclose(dfdu.ravel(), fdu, rtol=1e-6, atol=1e-6)
+    assert np.asarray(s.h_jac(x)).shape == (s.ny, s.nx)
+
+
+def test_user_plant_in_a_few_lines():
+    x = ca.SX.sym("x", 2)
+    u = ca.SX.sym("u")
+    pend = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) - 0.1 * x[1] + u], x[0], x0_box=[[-1, 1], [-2, 2]])
+    assert (pend.nx, pend.nu, pend.ny) == (2, 1, 1)
+    np.testing.assert_allclose(np.asarray(pend.f([0.3, 0.1], 0.5)).ravel(), [0.1, -np.sin(0.3) - 0.01 + 0.5])
+    kc.systems.register("pend_test", lambda: pend)
+    assert "pend_test" in kc.systems.names()
+    assert kc.systems.get("pend_test") is pend
+
+
+def test_bad_plants_are_rejected():
+    x = ca.SX.sym("x", 2)
+    u = ca.SX.sym("u")
+    with pytest.raises(ValueError, match="x0_box"):
+        kc.System("p", x, u, [x[1], -x[0]], x[0], x0_box=[[1, -1], [0, 1]])
+    with pytest.raises(ValueError, match="x0_box"):
+        kc.System("p", x, u, [x[1], -x[0]], x[0], x0_box=[[0, 0], [0, 1]])
+    with pytest.raises(ValueError, match=r"x0_box must have shape \(nx, 2\)"):
+        kc.System("p", x, u, [x[1], -x[0]], x[0], x0_box=[[-1, 1]])
+    with pytest.raises(ValueError, match="must not depend on the input"):
+        kc.System("p", x, u, [x[1], -x[0]], x[0] + u, x0_box=[[-1, 1], [-1, 1]])
+    with pytest.raises(ValueError, match="2 entries"):
+        kc.System("p", x, u, [x[1]], x[0], x0_box=[[-1, 1], [-1, 1]])
+    with pytest.raises(TypeError, match="casadi.SX"):
+        kc.System("p", np.zeros(2), u, [x[1], -x[0]], x[0], x0_box=[[-1, 1], [-1, 1]])
+    with pytest.raises(ValueError, match="free symbols"):
+        kc.System("p", x, u, [x[1], -ca.SX.sym("k") * x[0]], x[0], x0_box=[[-1, 1], [-1, 1]])
+    with pytest.raises(ValueError, match="known systems: duffing"):
+        kc.systems.get("dufing")
+
+
+def test_check_state_names_the_argument():
+    s = kc.systems.get("duffing")
+    with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
+        s.check_state([1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="finite"):
+        s.check_state([np.nan, 0.0])
+
+
+def test_sample_box_is_seeded_and_inside():
+    s = kc.systems.get("fhn")
+    a = s.sample_box(64, 3)
+    np.testing.assert_array_equal(a, s.sample_box(64, 3))
+    assert np.all(a >= s.x0_box[:, 0]) and np.all(a <= s.x0_box[:, 1])
+    # Latin hypercube: one sample per stratum in every coordinate
+    strata = np.floor((a - s.x0_box[:, 0]) / (s.x0_box[:, 1] - s.x0_box[:, 0]) * 64).astype(int)
+    for i in range(s.nx):
+        assert sorted(strata[:, i]) == list(range(64))
