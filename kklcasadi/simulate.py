@@ -15,6 +15,7 @@ from typing import Any, Callable, Sequence, Union
 import casadi as ca
 import numpy as np
 
+from .rk4 import rk4_step
 from .systems import System
 
 __all__ = ["Trajectory", "TrajectoryBatch", "simulate", "simulate_batch", "time_grid", "input_samples",
@@ -117,7 +118,7 @@ def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: fl
     ----------
     method : {"cvodes", "rk"}
         ``"cvodes"``: adaptive BDF with tolerances ``rtol``/``atol`` (PROTOCOL.md: 1e-8 / 1e-10).
-        ``"rk"``: RK4 with ``substeps`` fixed steps per interval.
+        ``"rk"``: RK4 (:func:`kklcasadi.rk4.rk4_step`, SX) with ``substeps`` fixed steps per interval.
     """
     if method not in INTEGRATORS:
         raise ValueError(f"unknown integrator method {method!r}; known methods: {', '.join(INTEGRATORS)}")
@@ -126,14 +127,12 @@ def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: fl
     x = ca.SX.sym("x", system.nx)
     p = ca.SX.sym("p", system.nu + system.nx)
     ode = system.f(x, p[:system.nu]) + p[system.nu:]
-    dae = {"x": x, "p": p, "ode": ode}
-    if method == "cvodes":
-        opts = {"abstol": float(atol), "reltol": float(rtol), "max_num_steps": 100000,
-                "disable_internal_warnings": True}
-    else:
-        opts = {"number_of_finite_elements": int(substeps)}
-    opts["show_eval_warnings"] = False
-    integ = ca.integrator(f"{system.name}_plant", method, dae, 0.0, float(dt), opts)
+    if method == "rk":
+        x_next = rk4_step(lambda _s, xx: system.f(xx, p[:system.nu]) + p[system.nu:], x, float(dt), int(substeps))
+        return ca.Function("step", [x, p], [x_next], ["x", "p"], ["x_next"])
+    opts = {"abstol": float(atol), "reltol": float(rtol), "max_num_steps": 100000, "disable_internal_warnings": True,
+            "show_eval_warnings": False}
+    integ = ca.integrator(f"{system.name}_plant", "cvodes", {"x": x, "p": p, "ode": ode}, 0.0, float(dt), opts)
     xs = ca.MX.sym("x", system.nx)
     ps = ca.MX.sym("p", system.nu + system.nx)
     return ca.Function("step", [xs, ps], [integ(x0=xs, p=ps)["xf"]], ["x", "p"], ["x_next"])
