@@ -214,8 +214,15 @@ def mlp_forward_lora(mlp: MLP, x: Tensor, factors: Sequence[tuple[Tensor, Tensor
 class GRUContext(nn.Module):
     """Bias-free single-layer GRU over an input window; returns the final hidden state.
 
-    ``h_0 = 0``; torch gate order (r, z, n): ``n = tanh(W_in x + r * (W_hn h))``,
+    ``h_0 = 0``; torch gate order (r, z, n): ``r = sigmoid(W_ir x + W_hr h)``,
+    ``z = sigmoid(W_iz x + W_hz h)``, ``n = tanh(W_in x + r * (W_hn h))``,
     ``h' = (1 - z) * n + z * h``. A zero window gives exactly ``h = 0``.
+
+    The weights live in a bias-free ``nn.GRU(nu, hidden, bias=False, batch_first=True)``
+    (``gru.weight_ih_l0``, ``gru.weight_hh_l0``, torch's initialisation), but the forward pass
+    is written out with elementary ops: torch's fused GRU kernels (cuDNN, ``_thnn_fused_gru_cell``)
+    have no forward-mode derivative on CUDA and no ``vmap`` batching rule, and HyperKKL_dyn
+    training takes JVPs along the window.
 
     Parameters
     ----------
@@ -239,22 +246,28 @@ class GRUContext(nn.Module):
 
         Parameters
         ----------
-        w : Tensor, shape (batch, window, nu) or (window, nu)
-            Oldest sample first.
+        w : Tensor, shape (..., window, nu)
+            Oldest sample first; any leading batch shape (also none, and under ``vmap``).
 
         Returns
         -------
-        Tensor, shape (batch, H) or (H,)
-
-        Notes
-        -----
-        Supports ``torch.func.jvp`` and autograd, not ``torch.func.vmap`` (torch has no batching
-        rule for its GRU kernel): pass batches instead.
+        Tensor, shape (..., H)
+            The final hidden state.
         """
-        if w.dim() not in (2, 3) or w.shape[-1] != self.nu:
-            raise ValueError(f"w: expected shape (batch, window, {self.nu}) or "
-                             f"(window, {self.nu}), found {tuple(w.shape)}.")
-        return self.gru(w)[1][0]
+        if w.dim() < 2 or w.shape[-1] != self.nu:
+            raise ValueError(f"w: expected shape (..., window, {self.nu}), "
+                             f"found {tuple(w.shape)}.")
+        n_hidden = self.hidden
+        gates_in = nn.functional.linear(w, self.gru.weight_ih_l0)
+        h = torch.zeros_like(gates_in[..., 0, :n_hidden])
+        for k in range(w.shape[-2]):
+            gi = gates_in[..., k, :]
+            gh = nn.functional.linear(h, self.gru.weight_hh_l0)
+            r = torch.sigmoid(gi[..., :n_hidden] + gh[..., :n_hidden])
+            z = torch.sigmoid(gi[..., n_hidden:2 * n_hidden] + gh[..., n_hidden:2 * n_hidden])
+            n = torch.tanh(gi[..., 2 * n_hidden:] + r * gh[..., 2 * n_hidden:])
+            h = (1 - z) * n + z * h
+        return h
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
         """Float64 arrays ``P/W_ih`` (3H, nu) and ``P/W_hh`` (3H, H)."""

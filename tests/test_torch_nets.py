@@ -99,6 +99,17 @@ def test_gru_is_the_bias_free_torch_cell_with_gate_order_r_z_n():
     assert {name: a.shape for name, a in arrays.items()} == {"g/W_ih": (12, 2), "g/W_hh": (12, 4)}
 
 
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
+def test_gru_equals_torch_nn_gru_and_supports_jvp_and_vmap():
+    gru = GRUContext(2, 5)
+    w, dw = torch.randn(3, 11, 2), torch.randn(3, 11, 2)
+    torch.testing.assert_close(gru(w), gru.gru(w)[1][0], rtol=1e-13, atol=1e-15)
+    torch.testing.assert_close(torch.func.vmap(gru)(w), gru(w), rtol=1e-14, atol=1e-15)
+    _, tangent = torch.func.jvp(gru, (w,), (dw,))
+    _, expected = torch.func.jvp(lambda w: gru.gru(w)[1][0], (w,), (dw,))
+    torch.testing.assert_close(tangent, expected, rtol=1e-12, atol=1e-14)
+
+
 def test_gru_state_stays_exactly_zero_for_a_zero_window():
     assert torch.equal(GRUContext(2, 5)(torch.zeros(3, 40, 2)), torch.zeros(3, 5))
 
