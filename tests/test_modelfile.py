@@ -7,6 +7,9 @@ import io
 import json
 import os
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -67,6 +70,13 @@ def rewrite_weights(directory, arrays):
     (directory / WEIGHTS_FILE).write_bytes(buffer.getvalue())
     digest = hashlib.sha256(buffer.getvalue()).hexdigest()
     rewrite_card(directory, lambda card: card.update(weights_sha256=digest))
+
+
+def test_reading_and_exporting_need_no_torch():
+    code = ("import sys; sys.modules['torch'] = None; "
+            "import kklcasadi.modelfile, kklcasadi.export")
+    subprocess.run([sys.executable, "-c", code], check=True,
+                   cwd=Path(__file__).resolve().parents[1])
 
 
 # ----------------------------------------------------------------------------- round trips
