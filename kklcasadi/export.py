@@ -1,0 +1,291 @@
+"""Export model-file arrays to CasADi Functions (no torch needed).
+
+* :func:`mlp_function` -- an MLP, ``x -> y``, layers as MX ``mtimes`` with DM constants, the
+  input/output normalisation folded into the first and last layers.
+* :func:`gru_function` -- the bias-free GRU, ``w (window, nu) -> h (H, 1)``: one cell Function
+  folded over the window (``Function.fold``), never unrolled.
+* :func:`obs_gain_function`, :func:`obs_injection_function` -- HyperKKL_obs
+  ``(z, w) -> G`` and ``(z, w, u) -> G u``.
+* :func:`lora_mlp_function` -- HyperKKL_dyn: the decoder (or encoder) modulated by the
+  hypernetwork, ``(z, w) -> xhat``, each layer evaluated as ``W v + b + s a (b^T v)``.
+
+All returned Functions have named inputs and outputs and accept SX or MX arguments. The array
+names and shapes are those of :mod:`kklcasadi.modelfile` (see ``docs/model-format.md``).
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any, Callable, Mapping, Optional
+
+import casadi as ca
+import numpy as np
+
+from kklcasadi.modelfile import (
+    DECODER,
+    ENCODER,
+    HYPER,
+    OBS_GAIN,
+    OBS_GRU,
+    OBS_PROJ,
+    HyperSpec,
+    MLPSpec,
+    ObsSpec,
+    check_arrays,
+    gru_array_shapes,
+    lora_target_shapes,
+)
+
+Arrays = Mapping[str, Any]
+_NAME = re.compile(r"^[A-Za-z](?:_?[A-Za-z0-9])*$")
+
+_CASADI_ACTIVATIONS: dict[str, Callable[[ca.MX], ca.MX]] = {
+    "tanh": ca.tanh,
+    "relu": lambda x: ca.fmax(x, 0),
+    # Overflow-free log(1 + exp(x)); the torch side uses the same formula.
+    "softplus": lambda x: ca.fmax(x, 0) + ca.log1p(ca.exp(-ca.fabs(x))),
+    "identity": lambda x: x,
+}
+
+
+def _check_name(name: Any) -> str:
+    if not isinstance(name, str) or not _NAME.match(name) or name in ("null", "jac", "hess"):
+        raise ValueError(f"name: expected a CasADi function name (a letter, then letters, digits "
+                         f"and single underscores; not null, jac or hess), found {name!r}.")
+    return name
+
+
+def _check_count(value: Any, argument: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{argument}: expected a positive int, found {type(value).__name__}.")
+    if value < 1:
+        raise ValueError(f"{argument}: expected a positive int, found {value}.")
+    return int(value)
+
+
+def _array(arrays: Arrays, name: str) -> np.ndarray:
+    return np.asarray(arrays[name], dtype=np.float64)
+
+
+def _folded_layers(arrays: Arrays, prefix: str, spec: MLPSpec) -> list[tuple[ca.DM, ca.DM]]:
+    """Return the MLP's layers as DM ``(W, b)`` pairs with the normalisation folded in.
+
+    ``(x - in_mean) / in_std`` goes into the first layer, ``v * out_std + out_mean`` into the last.
+    """
+    weights = [_array(arrays, f"{prefix}/W{i}") for i in range(len(spec.layer_shapes))]
+    biases = [_array(arrays, f"{prefix}/b{i}") for i in range(len(spec.layer_shapes))]
+    in_mean, in_std = _array(arrays, f"{prefix}/in_mean"), _array(arrays, f"{prefix}/in_std")
+    out_mean, out_std = _array(arrays, f"{prefix}/out_mean"), _array(arrays, f"{prefix}/out_std")
+    biases[0] = biases[0] - weights[0] @ (in_mean / in_std)
+    weights[0] = weights[0] / in_std[None, :]
+    weights[-1] = out_std[:, None] * weights[-1]
+    biases[-1] = out_std * biases[-1] + out_mean
+    return [(ca.DM(w), ca.DM(b)) for w, b in zip(weights, biases)]
+
+
+def _mlp_expr(layers: list[tuple[ca.DM, ca.DM]], activation: str, x: ca.MX,
+              delta: Optional[Callable[[int, ca.MX], ca.MX]] = None) -> ca.MX:
+    """Apply folded layers to ``x``; ``delta(i, v)`` adds a term to layer ``i``'s pre-activation."""
+    act = _CASADI_ACTIVATIONS[activation]
+    v = x
+    for i, (weight, bias) in enumerate(layers):
+        y = ca.mtimes(weight, v) + bias
+        if delta is not None:
+            y = y + delta(i, v)
+        v = y if i == len(layers) - 1 else act(y)
+    return v
+
+
+def mlp_function(arrays: Arrays, prefix: str, arch: Mapping[str, Any],
+                 name: Optional[str] = None) -> ca.Function:
+    """Export an MLP.
+
+    Parameters
+    ----------
+    arrays : Mapping[str, array_like]
+        Holds ``P/in_mean, P/in_std, P/out_mean, P/out_std, P/W{i}, P/b{i}`` for ``P = prefix``.
+    prefix : str
+        E.g. ``"decoder"``.
+    arch : Mapping
+        The card entry ``{"sizes": [d0, ..., dL], "activation": ...}``.
+    name : str, optional
+        Function name; defaults to ``prefix`` with ``/`` replaced by ``_``.
+
+    Returns
+    -------
+    ca.Function
+        ``y = f(x)``, ``x`` (d0, 1), ``y`` (dL, 1).
+    """
+    spec = MLPSpec.from_card(arch, "arch", prefix)
+    check_arrays(arrays, spec.array_shapes(prefix), "arrays")
+    name = _check_name(prefix.replace("/", "_") if name is None else name)
+    x = ca.MX.sym("x", spec.n_in)
+    y = _mlp_expr(_folded_layers(arrays, prefix, spec), spec.activation, x)
+    return ca.Function(name, [x], [y], ["x"], ["y"])
+
+
+def _gru_cell(arrays: Arrays, prefix: str, nu: int, hidden: int, name: str) -> ca.Function:
+    """One GRU step ``(h, x) -> h'`` in torch's gate order (r, z, n), bias-free."""
+    w_ih, w_hh = ca.DM(_array(arrays, f"{prefix}/W_ih")), ca.DM(_array(arrays, f"{prefix}/W_hh"))
+    h, x = ca.MX.sym("h", hidden), ca.MX.sym("x", nu)
+    gi, gh = ca.mtimes(w_ih, x), ca.mtimes(w_hh, h)
+    r = 1 / (1 + ca.exp(-(gi[:hidden] + gh[:hidden])))
+    z = 1 / (1 + ca.exp(-(gi[hidden:2 * hidden] + gh[hidden:2 * hidden])))
+    n = ca.tanh(gi[2 * hidden:] + r * gh[2 * hidden:])
+    return ca.Function(name, [h, x], [(1 - z) * n + z * h], ["h", "x"], ["h_next"])
+
+
+def gru_function(arrays: Arrays, prefix: str, nu: int, H: int, window: int,
+                 name: Optional[str] = None) -> ca.Function:
+    """Export the bias-free GRU context over a window.
+
+    Parameters
+    ----------
+    arrays : Mapping[str, array_like]
+        Holds ``P/W_ih`` (3H, nu) and ``P/W_hh`` (3H, H).
+    prefix : str
+        E.g. ``"context/gru"``.
+    nu, H : int
+        Input and hidden sizes.
+    window : int
+        Window length in samples.
+    name : str, optional
+        Function name; defaults to ``prefix`` with ``/`` replaced by ``_``.
+
+    Returns
+    -------
+    ca.Function
+        ``h = f(w)``, ``w`` (window, nu) oldest sample first, ``h`` (H, 1) the final hidden
+        state from ``h_0 = 0``. The cell is one Function folded ``window`` times.
+    """
+    nu, H, window = _check_count(nu, "nu"), _check_count(H, "H"), _check_count(window, "window")
+    check_arrays(arrays, gru_array_shapes(prefix, nu, H), "arrays")
+    name = _check_name(prefix.replace("/", "_") if name is None else name)
+    folded = _gru_cell(arrays, prefix, nu, H, f"{name}_cell").fold(window)
+    w = ca.MX.sym("w", window, nu)
+    return ca.Function(name, [w], [folded(ca.DM.zeros(H, 1), w.T)], ["w"], ["h"])
+
+
+def obs_gain_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,
+                      name: str = "obs_gain") -> ca.Function:
+    """Export the HyperKKL_obs input gain ``G(z, P GRU(w))``.
+
+    Parameters
+    ----------
+    arrays : Mapping[str, array_like]
+        Holds ``context/gru/*``, ``context/proj/W`` and ``gain/*``.
+    architecture : Mapping
+        Holds the card entries ``context`` and ``gain`` (a card's ``architecture`` will do).
+    window : int
+        Window length in samples.
+    name : str
+
+    Returns
+    -------
+    ca.Function
+        ``G = f(z, w)``, ``z`` (nz, 1), ``w`` (window, nu), ``G`` (nz, nu) (the gain MLP's
+        output reshaped row-major).
+    """
+    spec = ObsSpec.from_card(architecture, "architecture")
+    window = _check_count(window, "window")
+    check_arrays(arrays, spec.array_shapes(), "arrays")
+    name = _check_name(name)
+    gru = gru_function(arrays, OBS_GRU, spec.nu, spec.hidden, window, f"{name}_gru")
+    gain = mlp_function(arrays, OBS_GAIN, spec.gain.to_card(), f"{name}_mlp")
+    z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", window, spec.nu)
+    context = ca.mtimes(ca.DM(_array(arrays, OBS_PROJ)), gru(w))
+    gain_matrix = ca.reshape(gain(ca.vertcat(z, context)), spec.nu, spec.nz).T
+    return ca.Function(name, [z, w], [gain_matrix], ["z", "w"], ["G"])
+
+
+def obs_injection_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,
+                           name: str = "obs_injection") -> ca.Function:
+    """Export the HyperKKL_obs injection ``phi = G(z, w) u``, exactly zero at ``u = 0``.
+
+    Parameters are those of :func:`obs_gain_function`.
+
+    Returns
+    -------
+    ca.Function
+        ``phi = f(z, w, u)``, ``z`` (nz, 1), ``w`` (window, nu), ``u`` (nu, 1), ``phi`` (nz, 1).
+    """
+    name = _check_name(name)
+    gain = obs_gain_function(arrays, architecture, window, f"{name}_gain")
+    z = ca.MX.sym("z", gain.size1_in(0))
+    w = ca.MX.sym("w", *gain.size_in(1))
+    u = ca.MX.sym("u", gain.size2_out(0))
+    return ca.Function(name, [z, w, u], [ca.mtimes(gain(z, w), u)], ["z", "w", "u"], ["phi"])
+
+
+def lora_mlp_function(arrays: Arrays, architecture: Mapping[str, Any], nu: int, window: int,
+                      target: str = DECODER, name: Optional[str] = None) -> ca.Function:
+    """Export the HyperKKL_dyn decoder (or encoder) modulated by the LoRA hypernetwork.
+
+    Layer ``i`` (target ``j``) computes ``W_i v + b_i + s * a_j (b_j^T v)`` with
+    ``f_j = backbone([GRU(w); e_j]) - backbone([0; e_j])``, ``a_j = reshape(Wa_j f_j)``,
+    ``b_j = reshape(Wb_j f_j)``; both backbone evaluations use the same CasADi Function, so at
+    ``w = 0`` the output equals the unmodulated network's exactly.
+
+    Parameters
+    ----------
+    arrays : Mapping[str, array_like]
+        Holds the ``encoder/*``, ``decoder/*`` and ``hyper/*`` arrays.
+    architecture : Mapping
+        A card's ``architecture`` with ``encoder``, ``decoder`` and ``hyper`` entries.
+    nu : int
+        Input size.
+    window : int
+        Window length in samples.
+    target : {"decoder", "encoder"}
+        Which network to modulate.
+    name : str, optional
+        Function name; defaults to ``target + "_dyn"``.
+
+    Returns
+    -------
+    ca.Function
+        Decoder: ``xhat = f(z, w)``; encoder: ``z = f(x, w)``; ``w`` is (window, nu).
+    """
+    if target not in (ENCODER, DECODER):
+        raise ValueError(f"target: expected {ENCODER!r} or {DECODER!r}, found {target!r}.")
+    nu, window = _check_count(nu, "nu"), _check_count(window, "window")
+    name = _check_name(f"{target}_dyn" if name is None else name)
+    if not isinstance(architecture, Mapping):
+        raise TypeError(f"architecture: expected a mapping, found {type(architecture).__name__}.")
+    hyper = HyperSpec.from_card(architecture, "architecture")
+    encoder = MLPSpec.from_card(architecture.get(ENCODER), "architecture", ENCODER)
+    decoder = MLPSpec.from_card(architecture.get(DECODER), "architecture", DECODER)
+    spec = decoder if target == DECODER else encoder
+    check_arrays(arrays, {**spec.array_shapes(target), **hyper.array_shapes(
+        HYPER, nu, lora_target_shapes(encoder, decoder))}, "arrays")
+
+    n_layers = len(spec.layer_shapes)
+    offset = 0 if target == ENCODER else len(encoder.layer_shapes)
+    gru = gru_function(arrays, f"{HYPER}/gru", nu, hyper.hidden, window, f"{name}_gru")
+    backbone = mlp_function(arrays, f"{HYPER}/backbone", hyper.backbone_spec.to_card(),
+                            f"{name}_backbone").map(n_layers)
+    embed = ca.DM(_array(arrays, f"{HYPER}/embed")[offset:offset + n_layers].T)
+    in_name, out_name = ("z", "xhat") if target == DECODER else ("x", "z")
+    x, w = ca.MX.sym(in_name, spec.n_in), ca.MX.sym("w", window, nu)
+    features = (backbone(ca.vertcat(ca.repmat(gru(w), 1, n_layers), embed))
+                - backbone(ca.vertcat(ca.DM.zeros(hyper.hidden, n_layers), embed)))
+    scale = float(_array(arrays, f"{HYPER}/scale"))
+    in_mean, in_std = _array(arrays, f"{target}/in_mean"), _array(arrays, f"{target}/in_std")
+    out_std = ca.DM(_array(arrays, f"{target}/out_std"))
+
+    def delta(i: int, v: ca.MX) -> ca.MX:
+        # The factors act on the normalised coordinates of the torch network: undo the folding
+        # for the first layer's input and scale the last layer's output like its weights.
+        if i == 0:
+            v = (v - ca.DM(in_mean)) / ca.DM(in_std)
+        d_out, d_in = spec.layer_shapes[i]
+        j = offset + i
+        a_t = ca.reshape(ca.mtimes(ca.DM(_array(arrays, f"{HYPER}/head{j}/Wa")), features[:, i]),
+                         hyper.rank, d_out)
+        b_t = ca.reshape(ca.mtimes(ca.DM(_array(arrays, f"{HYPER}/head{j}/Wb")), features[:, i]),
+                         hyper.rank, d_in)
+        term = scale * ca.mtimes(a_t.T, ca.mtimes(b_t, v))
+        return term * out_std if i == n_layers - 1 else term
+
+    y = _mlp_expr(_folded_layers(arrays, target, spec), spec.activation, x, delta)
+    return ca.Function(name, [x, w], [y], [in_name, "w"], [out_name])
