@@ -25,7 +25,7 @@ from .design import Design
 from .simulate import simulate_batch, time_grid
 from .systems import System
 
-__all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "input_windows"]
+__all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "driven_labels", "input_windows"]
 
 log = logging.getLogger(__name__)
 
@@ -286,3 +286,48 @@ def phase2(system: System, n_traj: int = 20, signals: Sequence[sig.Signal] | int
     p, n = x.shape[:2]
     xdot = np.asarray(system.f.map(p * n)(x.reshape(-1, system.nx).T, u.reshape(-1, system.nu).T)).T
     return Phase2Data(batch.t, x, y, u, xdot.reshape(p, n, system.nx), int(window), pairs[batch.ok], signals, dropped)
+
+
+def _driven_latent_system(system: System, design: Design) -> System:
+    """The plant under its input with the latent system: ``xdot = f(x, u)``, ``zdot = A z + B h(x)``."""
+    xz = ca.SX.sym("xz", system.nx + design.nz)
+    x, z = xz[:system.nx], xz[system.nx:]
+    u = ca.SX.sym("u", system.nu)
+    y = system.h(x)
+    zdot = ca.mtimes(ca.DM(design.A), z) + ca.mtimes(ca.DM(design.B), y)
+    box = np.vstack([system.x0_box, np.tile([-1.0, 1.0], (design.nz, 1))])
+    return System(f"{system.name}_driven_kkl", xz, u, ca.vertcat(system.f(x, u), zdot), y, box)
+
+
+def driven_labels(system: System, design: Design, signals: Sequence[sig.Signal], n_traj: int = 50, seed: int = 0,
+                  *, t_keep: float = 10.0, dt: float = 0.05, tol: float = 1e-7) -> Phase1Data:
+    """Input-driven states and the latent state the observer converges to, ``z = T(x, t)``.
+
+    Every pair (initial state, signal) is simulated with ``zdot = A z + B h(x)`` from
+    ``z = -A^{-1} B h(x0)`` for a burn-in ``t_b`` (``2 kappa exp(-lam t_b) <= tol``) plus ``t_keep``
+    seconds; the last ``t_keep`` seconds are kept. The signals are shifted in time by ``t_b`` so
+    that the kept part sees them from ``t = 0``. These are the labels of the curriculum baseline.
+
+    Returns
+    -------
+    Phase1Data
+        ``x`` (M, nx), ``z`` (M, nz), ``y`` (M, ny); ``M = n_traj * len(signals) * round(t_keep / dt)``
+        minus failed trajectories (reported with a warning).
+    """
+    n_keep = time_grid(t_keep, dt).size
+    n_burn = int(np.ceil(design.forgetting_time(2.0, tol) / dt))
+    x0 = system.sample_box(n_traj, seed)
+    pairs = [(i, j) for i in range(n_traj) for j in range(len(signals))]
+    starts = x0[[i for i, _ in pairs]]
+    y0 = np.asarray(system.h.map(len(pairs))(starts.T)).T
+    z0 = -np.linalg.solve(design.A, design.B @ y0.T).T
+    t = time_grid((n_burn + n_keep) * dt, dt) - n_burn * dt
+    inputs = [signals[j](np.maximum(t, 0.0)) for _, j in pairs]
+    batch = simulate_batch(_driven_latent_system(system, design), np.hstack([starts, z0]), inputs,
+                           (n_burn + n_keep) * dt, dt)
+    if not batch.ok.all():
+        warnings.warn(f"driven_labels: dropped {int((~batch.ok).sum())} of {len(pairs)} trajectories that failed",
+                      RuntimeWarning, stacklevel=2)
+    keep = batch.x[batch.ok, -n_keep:].reshape(-1, system.nx + design.nz)
+    y = batch.y[batch.ok, -n_keep:].reshape(-1, system.ny)
+    return Phase1Data(keep[:, :system.nx].copy(), keep[:, system.nx:].copy(), y.copy())

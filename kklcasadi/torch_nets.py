@@ -59,7 +59,7 @@ def _to_numpy(tensor: Tensor) -> np.ndarray:
 
 def _load_into(param: Tensor, value: Any) -> None:
     with torch.no_grad():
-        param.copy_(torch.as_tensor(np.asarray(value, dtype=np.float64)))
+        param.copy_(torch.as_tensor(np.array(value, dtype=np.float64)))
 
 
 class MLP(nn.Module):

@@ -1,0 +1,167 @@
+"""Training configurations: small immutable dataclasses with the paper's settings as defaults."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+__all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig", "default_config",
+           "PAPER_WIDTH"]
+
+#: Hidden width of the encoder/decoder per system in the paper (150 or 350 units).
+PAPER_WIDTH = {"duffing": 150, "vdp": 150, "rossler": 350, "fhn": 350}
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """One optimisation stage: Adam, gradient clipping, a learning-rate schedule, a validation split.
+
+    Attributes
+    ----------
+    epochs : int
+    batch_size : int
+    lr : float
+    clip : float
+        Gradient-norm clipping (the paper's 1).
+    schedule : {"plateau", "cosine"}
+        ReduceLROnPlateau on the validation loss (Phase 1) or cosine annealing (Phase 2).
+    val_fraction : float
+        Share of the samples held out for validation; the best validation epoch is kept.
+    samples_per_epoch : int or None
+        Draw this many training samples per epoch (without replacement) instead of all of them.
+    """
+
+    epochs: int = 100
+    batch_size: int = 256
+    lr: float = 1e-3
+    clip: float = 1.0
+    schedule: str = "plateau"
+    val_fraction: float = 0.1
+    samples_per_epoch: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not (self.lr > 0 and self.clip > 0):
+            raise ValueError(f"lr and clip must be > 0, got lr={self.lr!r}, clip={self.clip!r}")
+        if self.schedule not in ("plateau", "cosine"):
+            raise ValueError(f"schedule must be 'plateau' or 'cosine', got {self.schedule!r}")
+        if not 0 < self.val_fraction < 0.5:
+            raise ValueError(f"val_fraction must lie in (0, 0.5), got {self.val_fraction!r}")
+        if self.samples_per_epoch is not None and self.samples_per_epoch < self.batch_size:
+            raise ValueError(f"samples_per_epoch must be >= batch_size ({self.batch_size}), "
+                             f"got {self.samples_per_epoch!r}")
+
+
+@dataclass(frozen=True)
+class Phase1Config:
+    """Phase 1 (autonomous maps): data, architecture, encoder stage A and decoder stage B.
+
+    Attributes
+    ----------
+    width, depth, activation
+        Hidden width and number of hidden layers of T and T*.
+    n_traj, t_keep, box_scale
+        Phase-1 data: trajectories from a Latin hypercube over the X0 box (scaled by ``box_scale``),
+        each labelled over ``t_keep`` seconds (:func:`kklcasadi.data.phase1`).
+    n_pde : int
+        Extra PDE collocation points over the (scaled) box.
+    nu_pde : float
+        Weight of the PDE residual, warmed up linearly over ``warmup_epochs``.
+    measurement_std : float
+        Noise level the decoder is trained for (0: plain decoder). The decoder then sees
+        ``T(x) + e``, ``e ~ N(0, S)``, ``A S + S A^T + B R B^T dt = 0``, ``R = measurement_std^2``.
+    spectral_norm : bool
+        Spectrally normalise the decoder layers (bounds its Lipschitz constant).
+    dtype : {"float32", "float64"}
+        Training precision (model files are always float64).
+    """
+
+    width: int = 150
+    depth: int = 3
+    activation: str = "tanh"
+    n_traj: int = 400
+    t_keep: float = 10.0
+    box_scale: float = 1.0
+    n_pde: int = 20000
+    nu_pde: float = 0.1
+    warmup_epochs: int = 5
+    measurement_std: float = 0.0
+    spectral_norm: bool = False
+    dtype: str = "float32"
+    encoder: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=1024, lr=2e-3))
+    decoder: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=1024, lr=2e-3))
+
+
+@dataclass(frozen=True)
+class Phase2DataConfig:
+    """Phase-2 data: every pair of ``n_traj`` initial states and ``n_signals`` training inputs."""
+
+    n_traj: int = 40
+    n_signals: int = 30
+    T: float = 20.0
+    window: int = 100
+    kinds: tuple = ("constant", "sinusoid", "square")
+
+
+@dataclass(frozen=True)
+class ObsConfig:
+    """HyperKKL_obs: GRU context, bias-free projection, input-gain MLP; T and T* frozen.
+
+    ``model_based_injection``: learn the residual on top of the exact model-based injection.
+    """
+
+    hidden: int = 64
+    proj: int = 16
+    gain_hidden: tuple = (64, 64)
+    model_based_injection: bool = False
+    data: Phase2DataConfig = field(default_factory=Phase2DataConfig)
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=512, lr=1e-3,
+                                                                schedule="cosine", samples_per_epoch=100000))
+
+
+@dataclass(frozen=True)
+class DynConfig:
+    """HyperKKL_dyn: LoRA hypernetwork for T and T*; loss reconstruction + ``nu_pde`` PDE residual."""
+
+    hidden: int = 64
+    embed: int = 16
+    backbone: tuple = (64, 64)
+    rank: int = 4
+    scale_init: float = 0.01
+    nu_pde: float = 0.1
+    data: Phase2DataConfig = field(default_factory=Phase2DataConfig)
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=512, lr=1e-3,
+                                                                schedule="cosine", samples_per_epoch=100000))
+
+
+@dataclass(frozen=True)
+class CurriculumConfig:
+    """Curriculum baseline: T and T* fine-tuned on input-driven data of growing variety, run as autonomous."""
+
+    stages: tuple = (("constant",), ("constant", "sinusoid"), ("constant", "sinusoid", "square"))
+    n_traj: int = 100
+    n_signals_per_stage: int = 4
+    t_keep: float = 10.0
+    nu_pde: float = 0.1
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=10, batch_size=256, lr=1e-4))
+
+
+_CONFIGS = {"autonomous": Phase1Config, "obs": ObsConfig, "dyn": DynConfig, "curriculum": CurriculumConfig}
+
+
+def default_config(system: str, method: str, **overrides: Any) -> Any:
+    """The default configuration of ``method`` for ``system`` (the paper's widths), with overrides."""
+    if method not in _CONFIGS:
+        raise ValueError(f"unknown method {method!r}; trainable methods: {', '.join(_CONFIGS)}")
+    cls = _CONFIGS[method]
+    names = {f.name for f in fields(cls)}
+    unknown = sorted(set(overrides) - names)
+    if unknown:
+        raise TypeError(f"{cls.__name__} has no field(s) {unknown}; fields: {sorted(names)}")
+    config = cls()
+    if method == "autonomous" and system in PAPER_WIDTH:
+        config = replace(config, width=PAPER_WIDTH[system])
+    return replace(config, **overrides)

@@ -1,0 +1,134 @@
+"""Phase 1 (the paper's Algorithm 1): the autonomous encoder ``T`` and decoder ``T*``.
+
+Stage A fits ``T`` to the latent labels plus the PDE residual ``dT/dx f(x, 0) - A T(x) - B y``
+(a JVP through the encoder, so it carries gradients into ``T``), with a linear warm-up of its
+weight. Stage B fits ``T*`` to ``(T(x), x)``, optionally on ``T(x) + e`` with ``e`` the stationary
+latent noise of the expected measurement noise (a minimum-mean-square decoder).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.linalg import solve_continuous_lyapunov
+
+from .. import data as kdata
+from ..design import Design
+from ..systems import System
+from ..torch_nets import MLP
+from .config import Phase1Config
+from .loop import ArrayDataset, FitResult, fit, torch_dtype
+
+__all__ = ["Phase1Result", "train_phase1", "pde_residual", "latent_noise_covariance"]
+
+Tensor = torch.Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class Phase1Result:
+    encoder: MLP
+    decoder: MLP
+    encoder_fit: FitResult
+    decoder_fit: FitResult
+    n_labelled: int
+    n_pde: int
+
+
+def latent_noise_covariance(design: Design, measurement_std: float, dt: float) -> np.ndarray:
+    """Stationary covariance ``S`` of the latent error driven by sampled measurement noise.
+
+    Solves ``A S + S A^T + B R B^T dt = 0`` with ``R = measurement_std^2 I``.
+    """
+    R = measurement_std ** 2 * np.eye(design.ny)
+    return solve_continuous_lyapunov(design.A, -design.B @ R @ design.B.T * dt)
+
+
+def pde_residual(encoder: torch.nn.Module, x: Tensor, xdot: Tensor, y: Tensor, A: Tensor, B: Tensor
+                 ) -> tuple[Tensor, Tensor]:
+    """``(T(x), dT/dx xdot - A T(x) - B y)`` with the directional derivative as a forward-mode JVP.
+
+    Gradients flow into the encoder's parameters through both outputs.
+    """
+    z, dz = torch.func.jvp(encoder, (x,), (xdot,))
+    return z, dz - z @ A.T - y @ B.T
+
+
+def _f(system: System, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
+    u = np.zeros((len(x), system.nu)) if u is None else u
+    return np.asarray(system.f.map(len(x))(x.T, u.T)).T
+
+
+def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: float = 0.05, seed: int = 0,
+                 device: str = "cpu", progress: bool = True, workdir: str | Path | None = None,
+                 resume: bool = False) -> Phase1Result:
+    """Generate the Phase-1 data and train the encoder (stage A) and the decoder (stage B).
+
+    Returns
+    -------
+    Phase1Result
+        The trained float64 networks (on the CPU) and the fits' histories.
+    """
+    dtype = torch_dtype(config.dtype)
+    labelled = kdata.phase1(system, design, config.n_traj, seed, t_keep=config.t_keep, dt=dt,
+                            box_scale=config.box_scale)
+    pde = kdata.pde_points(system, config.n_pde, seed + 1, box_scale=config.box_scale)
+    n_lab, n_pde = len(labelled.x), len(pde.x)
+    x = np.vstack([labelled.x, pde.x])
+    arrays = {"x": x, "z": np.vstack([labelled.z, np.zeros((n_pde, design.nz))]),
+              "y": np.vstack([labelled.y, pde.y]), "f": np.vstack([_f(system, labelled.x), pde.f]),
+              "labelled": np.r_[np.ones(n_lab), np.zeros(n_pde)][:, None]}
+    sizes = [system.nx] + [config.width] * config.depth + [design.nz]
+    encoder = MLP(sizes, config.activation).to(dtype)
+    encoder.set_normalisation(x.mean(0), x.std(0), labelled.z.mean(0), labelled.z.std(0))
+    encoder.to(device)
+    A = torch.tensor(design.A, dtype=dtype, device=device)
+    B = torch.tensor(design.B, dtype=dtype, device=device)
+    z_scale = torch.as_tensor(labelled.z.std(0), dtype=dtype, device=device)
+    x_scale = torch.as_tensor(x.std(0), dtype=dtype, device=device)
+
+    def encoder_loss(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        z, res = pde_residual(encoder, batch["x"], batch["f"], batch["y"], A, B)
+        mask = batch["labelled"]
+        mse = (((z - batch["z"]) / z_scale) ** 2 * mask).sum() / (mask.sum() * design.nz).clamp_min(1.0)
+        pde_loss = ((res / z_scale) ** 2).mean()
+        nu = config.nu_pde * min(1.0, (epoch + 1) / max(config.warmup_epochs, 1))
+        return mse + nu * pde_loss, {"mse": mse.item(), "pde": pde_loss.item()}
+
+    ckpt = Path(workdir) if workdir is not None else None
+    enc_fit = fit(list(encoder.parameters()), encoder_loss, ArrayDataset(arrays, dtype=dtype, device=device),
+                  config.encoder, name="phase1/encoder", seed=seed, progress=progress, resume=resume,
+                  checkpoint=ckpt / "encoder.ckpt.npz" if ckpt else None)
+    encoder.requires_grad_(False)
+
+    with torch.no_grad():
+        z_all = encoder(torch.as_tensor(x, dtype=dtype, device=device)).cpu().numpy()
+    decoder = MLP(sizes[::-1], config.activation).to(dtype)
+    decoder.set_normalisation(z_all.mean(0), z_all.std(0), x.mean(0), x.std(0))
+    decoder.to(device)
+    if config.spectral_norm:
+        for layer in decoder.layers:
+            torch.nn.utils.parametrizations.spectral_norm(layer)
+    chol = None
+    if config.measurement_std > 0:
+        S = latent_noise_covariance(design, config.measurement_std, dt)
+        chol = torch.as_tensor(np.linalg.cholesky(S + 1e-15 * np.eye(design.nz)), dtype=dtype, device=device)
+
+    def decoder_loss(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        z = batch["z"]
+        if chol is not None:
+            z = z + torch.randn_like(z) @ chol.T
+        loss = (((decoder(z) - batch["x"]) / x_scale) ** 2).mean()
+        return loss, {}
+
+    dec_fit = fit(list(decoder.parameters()), decoder_loss,
+                  ArrayDataset({"x": x, "z": z_all}, dtype=dtype, device=device), config.decoder,
+                  name="phase1/decoder", seed=seed + 1, progress=progress, resume=resume,
+                  checkpoint=ckpt / "decoder.ckpt.npz" if ckpt else None)
+    if config.spectral_norm:
+        for layer in decoder.layers:
+            torch.nn.utils.parametrize.remove_parametrizations(layer, "weight", leave_parametrized=True)
+    decoder.requires_grad_(False)
+    return Phase1Result(encoder.cpu().double(), decoder.cpu().double(), enc_fit, dec_fit, n_lab, n_pde)

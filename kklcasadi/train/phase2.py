@@ -1,0 +1,250 @@
+"""Phase 2 on a frozen Phase-1 model: HyperKKL_obs (Algorithm 2), HyperKKL_dyn (Algorithm 3),
+the curriculum baseline, and the training-free model-based ``inject`` observer.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .. import data as kdata
+from .. import signals as sig
+from ..design import Design
+from ..modelfile import Model, lora_target_shapes
+from ..systems import System
+from ..torch_nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
+from .config import CurriculumConfig, DynConfig, ObsConfig
+from .loop import ArrayDataset, fit, torch_dtype
+from .phase1 import pde_residual
+
+__all__ = ["train_method", "Phase2Dataset", "model_based_injection"]
+
+Tensor = torch.Tensor
+
+
+class Phase2Dataset:
+    """Flat samples of :class:`kklcasadi.data.Phase2Data` (windows gathered per batch) plus extra arrays.
+
+    ``extra`` arrays have one row per flat sample (``Phase2Data.n_samples``).
+    """
+
+    def __init__(self, p2: kdata.Phase2Data, extra: dict[str, np.ndarray] | None = None, *,
+                 keys: tuple = ("x", "y", "u", "xdot", "w", "w_next"), dtype: torch.dtype = torch.float64,
+                 device: str = "cpu") -> None:
+        self.p2, self.keys, self.dtype, self.device = p2, keys, dtype, device
+        self.extra = {k: torch.as_tensor(v, dtype=dtype, device=device) for k, v in (extra or {}).items()}
+        for k, v in self.extra.items():
+            if len(v) != p2.n_samples:
+                raise ValueError(f"extra array {k!r} has {len(v)} rows, expected {p2.n_samples}")
+
+    def __len__(self) -> int:
+        return self.p2.n_samples
+
+    def get(self, index: np.ndarray) -> dict[str, Tensor]:
+        raw = self.p2.batch(np.asarray(index))
+        out = {k: torch.as_tensor(np.ascontiguousarray(raw[k]), dtype=self.dtype, device=self.device)
+               for k in self.keys}
+        idx = torch.as_tensor(np.asarray(index), device=self.device)
+        out.update({k: v[idx] for k, v in self.extra.items()})
+        return out
+
+
+def _flat(p2: kdata.Phase2Data, name: str) -> np.ndarray:
+    """Per-sample rows of a (P, N, d) array of ``p2`` in the flat order of ``Phase2Data.batch``."""
+    arr = getattr(p2, name)
+    return arr[:, :-1].reshape(-1, arr.shape[-1])
+
+
+def _base_nets(base: Model, dtype: torch.dtype, device: str) -> tuple[MLP, MLP]:
+    arch = base.card["architecture"]
+    nets = tuple(MLP.from_arrays(base.arrays, k, arch[k]).to(dtype=dtype, device=device).requires_grad_(False)
+                 for k in ("encoder", "decoder"))
+    return nets  # type: ignore[return-value]
+
+
+def _in_chunks(fn: Any, n: int, size: int = 65536) -> np.ndarray:
+    return np.concatenate([fn(slice(i, min(i + size, n))) for i in range(0, n, size)])
+
+
+def model_based_injection(system: System, encoder: MLP, decoder: MLP, z: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``dT/dx(xhat) (f(xhat, u) - f(xhat, 0))`` at ``xhat = T*(z)``, per row (torch JVP, exact ``f``).
+
+    The same term the ``inject`` observer builds symbolically in CasADi.
+    """
+    dtype = encoder.layers[0].weight.dtype
+    device = encoder.layers[0].weight.device
+
+    def chunk(rows: slice) -> np.ndarray:
+        with torch.no_grad():
+            xhat = decoder(torch.as_tensor(z[rows], dtype=dtype, device=device))
+            xh = xhat.double().cpu().numpy()
+            m = len(xh)
+            df = (np.asarray(system.f.map(m)(xh.T, u[rows].T)) - np.asarray(system.f.map(m)(xh.T, 0 * u[rows].T))).T
+            _, jv = torch.func.jvp(encoder, (xhat,), (torch.as_tensor(df, dtype=dtype, device=device),))
+        return jv.double().cpu().numpy()
+
+    return _in_chunks(chunk, len(z))
+
+
+def _phase2_data(system: System, cfg: Any, dt: float, seed: int) -> kdata.Phase2Data:
+    return kdata.phase2(system, cfg.n_traj, cfg.n_signals, window=cfg.window, T=cfg.T, dt=dt, seed=seed + 101,
+                        kinds=cfg.kinds)
+
+
+def _train_obs(system: System, design: Design, base: Model, config: ObsConfig, *, dt: float, seed: int,
+               device: str, progress: bool, workdir: Path | None, resume: bool) -> tuple:
+    dtype = torch.float32
+    encoder, decoder = _base_nets(base, dtype, device)
+    p2 = _phase2_data(system, config.data, dt, seed)
+    x, y, u, xdot = (_flat(p2, k) for k in ("x", "y", "u", "xdot"))
+
+    def targets(rows: slice) -> np.ndarray:
+        with torch.no_grad():
+            xt = torch.as_tensor(x[rows], dtype=dtype, device=device)
+            z, zdot = torch.func.jvp(encoder, (xt,), (torch.as_tensor(xdot[rows], dtype=dtype, device=device),))
+        return np.hstack([z.double().cpu().numpy(), zdot.double().cpu().numpy()])
+
+    zz = _in_chunks(targets, len(x))
+    z, zdot_true = zz[:, :design.nz], zz[:, design.nz:]
+    residual = zdot_true - z @ design.A.T - y @ design.B.T
+    if config.model_based_injection:
+        residual = residual - model_based_injection(system, encoder, decoder, z, u)
+    scale = torch.as_tensor(residual.std(0) + 1e-8, dtype=dtype, device=device)
+    net = ObsInjection(design.nz, system.nu, config.hidden, config.proj, config.gain_hidden).to(dtype)
+    # the gain MLP sees [z; l]: normalise z by its statistics, l is O(1); outputs are in residual units
+    in_mean = np.r_[z.mean(0), np.zeros(config.proj)]
+    in_std = np.r_[z.std(0), np.ones(config.proj)]
+    u_std = max(float(u.std()), 1e-3)
+    out_std = np.repeat(residual.std(0) / u_std, system.nu)
+    net.gain_net.set_normalisation(in_mean, in_std, np.zeros(design.nz * system.nu), out_std)
+    net.to(device)
+    dataset = Phase2Dataset(p2, {"z": z, "r": residual}, keys=("u", "w"), dtype=dtype, device=device)
+
+    def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        return (((net(batch["z"], batch["w"], batch["u"]) - batch["r"]) / scale) ** 2).mean(), {}
+
+    baseline = float((((residual / (residual.std(0) + 1e-8)) ** 2).mean()))
+    result = fit(list(net.parameters()), loss_fn, dataset, config.loop, name="obs", seed=seed, progress=progress,
+                 resume=resume, checkpoint=workdir / "obs.ckpt.npz" if workdir else None)
+    net = net.cpu().double()
+    arrays = {**base.arrays, **net.to_arrays()}
+    arch = {**base.card["architecture"], **net.architecture(), "_window": config.data.window}
+    training = {"config": config, "data": {"trajectories": int(p2.x.shape[0]), "samples": p2.n_samples,
+                                           "dropped": len(p2.dropped)},
+                "obs": result.summary(), "loss_without_injection": baseline}
+    extra = {"model_based_injection": bool(config.model_based_injection)}
+    return arrays, arch, training, {"obs": result.history}, extra
+
+
+def _train_dyn(system: System, design: Design, base: Model, config: DynConfig, *, dt: float, seed: int,
+               device: str, progress: bool, workdir: Path | None, resume: bool) -> tuple:
+    dtype = torch.float32
+    encoder, decoder = _base_nets(base, dtype, device)
+    p2 = _phase2_data(system, config.data, dt, seed)
+    n_enc = len(encoder.layers)
+    targets = lora_target_shapes(encoder.spec, decoder.spec)
+    hyper = LoRAHyperNet(targets, system.nu, config.hidden, config.embed, config.backbone, config.rank,
+                         config.scale_init).to(dtype=dtype, device=device)
+    A = torch.tensor(design.A, dtype=dtype, device=device)
+    B = torch.tensor(design.B, dtype=dtype, device=device)
+    x_scale = torch.as_tensor(p2.x.reshape(-1, system.nx).std(0), dtype=dtype, device=device)
+    z_scale = torch.as_tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
+
+    def maps(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+        factors = hyper(w)
+        z = mlp_forward_lora(encoder, x, factors[:n_enc], hyper.scale)
+        return z, mlp_forward_lora(decoder, z, factors[n_enc:], hyper.scale)
+
+    def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        wdot = (batch["w_next"] - batch["w"]) / dt
+        (z, xhat), (dz, _) = torch.func.jvp(maps, (batch["x"], batch["w"]), (batch["xdot"], wdot))
+        res = dz - z @ A.T - batch["y"] @ B.T
+        recon = (((xhat - batch["x"]) / x_scale) ** 2).mean()
+        pde = ((res / z_scale) ** 2).mean()
+        return recon + config.nu_pde * pde, {"recon": recon.item(), "pde": pde.item()}
+
+    result = fit(list(hyper.parameters()), loss_fn, Phase2Dataset(p2, dtype=dtype, device=device), config.loop,
+                 name="dyn", seed=seed, progress=progress, resume=resume,
+                 checkpoint=workdir / "dyn.ckpt.npz" if workdir else None)
+    hyper = hyper.cpu().double()
+    arrays = {**base.arrays, **hyper.to_arrays()}
+    arch = {**base.card["architecture"], **hyper.architecture(), "_window": config.data.window}
+    training = {"config": config, "data": {"trajectories": int(p2.x.shape[0]), "samples": p2.n_samples,
+                                           "dropped": len(p2.dropped)}, "dyn": result.summary()}
+    return arrays, arch, training, {"dyn": result.history}, {}
+
+
+def _train_curriculum(system: System, design: Design, base: Model, config: CurriculumConfig, *, dt: float,
+                      seed: int, device: str, progress: bool, workdir: Path | None, resume: bool) -> tuple:
+    dtype = torch_dtype("float32")
+    encoder, decoder = _base_nets(base, dtype, device)
+    A = torch.tensor(design.A, dtype=dtype, device=device)
+    B = torch.tensor(design.B, dtype=dtype, device=device)
+    z_scale = torch.as_tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
+    x_scale = torch.as_tensor(base.arrays["decoder/out_std"], dtype=dtype, device=device)
+    rng = np.random.default_rng(seed + 7)
+    histories, summaries = {}, {}
+    for s, kinds in enumerate(config.stages):
+        signals = [sig.sample(kinds[j % len(kinds)], rng, "train", nu=system.nu)
+                   for j in range(config.n_signals_per_stage * len(kinds))]
+        lab = kdata.driven_labels(system, design, signals, config.n_traj, seed + 11 * s, t_keep=config.t_keep, dt=dt)
+        # the PDE term keeps the autonomous field f(x, 0): a static map is fine-tuned, run as autonomous
+        f0 = np.asarray(system.f.map(len(lab.x))(lab.x.T, np.zeros((system.nu, len(lab.x))))).T
+        enc_data = ArrayDataset({"x": lab.x, "z": lab.z, "y": lab.y, "f": f0}, dtype=dtype, device=device)
+        encoder.requires_grad_(True)
+
+        def enc_loss(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+            z, res = pde_residual(encoder, batch["x"], batch["f"], batch["y"], A, B)
+            mse = (((z - batch["z"]) / z_scale) ** 2).mean()
+            pde = ((res / z_scale) ** 2).mean()
+            return mse + config.nu_pde * pde, {"mse": mse.item(), "pde": pde.item()}
+
+        enc_fit = fit(list(encoder.parameters()), enc_loss, enc_data, config.loop, name=f"curriculum/{s}/encoder",
+                      seed=seed + s, progress=progress, resume=resume,
+                      checkpoint=workdir / f"curriculum{s}_encoder.ckpt.npz" if workdir else None)
+        encoder.requires_grad_(False)
+        with torch.no_grad():
+            z_all = encoder(torch.as_tensor(lab.x, dtype=dtype, device=device))
+        decoder.requires_grad_(True)
+        dec_data = ArrayDataset({"x": lab.x, "z": z_all.cpu().numpy()}, dtype=dtype, device=device)
+
+        def dec_loss(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+            return (((decoder(batch["z"]) - batch["x"]) / x_scale) ** 2).mean(), {}
+
+        dec_fit = fit(list(decoder.parameters()), dec_loss, dec_data, config.loop, name=f"curriculum/{s}/decoder",
+                      seed=seed + s, progress=progress, resume=resume,
+                      checkpoint=workdir / f"curriculum{s}_decoder.ckpt.npz" if workdir else None)
+        decoder.requires_grad_(False)
+        histories[f"stage{s}/encoder"] = enc_fit.history
+        histories[f"stage{s}/decoder"] = dec_fit.history
+        summaries[f"stage{s}"] = {"kinds": list(kinds), "samples": len(lab.x), "encoder": enc_fit.summary(),
+                                  "decoder": dec_fit.summary()}
+    encoder, decoder = encoder.cpu().double(), decoder.cpu().double()
+    arrays = {**encoder.to_arrays("encoder"), **decoder.to_arrays("decoder")}
+    arch = {"encoder": encoder.architecture(), "decoder": decoder.architecture(), "_window": 1}
+    return arrays, arch, {"config": config, "stages": summaries}, histories, {}
+
+
+def train_method(system: System, design: Design, base: Model, method: str, config: Any, **kwargs: Any) -> tuple:
+    """Train ``method`` on the frozen Phase-1 model ``base``.
+
+    Returns
+    -------
+    tuple
+        ``(arrays, architecture, training, histories, extra_card_fields)``; ``architecture["_window"]``
+        is the window length for the card.
+    """
+    if base.card["method"] != "autonomous":
+        raise ValueError(f"base model {base.path} has method {base.card['method']!r}; "
+                         "Phase 2 starts from an 'autonomous' (Phase-1) model")
+    if method == "inject":
+        arrays = {k: v for k, v in base.arrays.items() if k.split("/")[0] in ("encoder", "decoder")}
+        return arrays, {**base.card["architecture"], "_window": 1}, {"note": "model-based, no training"}, {}, {}
+    expected = {"obs": ObsConfig, "dyn": DynConfig, "curriculum": CurriculumConfig}[method]
+    if not isinstance(config, expected):
+        raise TypeError(f"config for {method!r} must be a {expected.__name__}, got {type(config).__name__}")
+    trainer = {"obs": _train_obs, "dyn": _train_dyn, "curriculum": _train_curriculum}[method]
+    return trainer(system, design, base, config, **kwargs)
