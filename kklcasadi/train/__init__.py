@@ -128,6 +128,7 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     if method != "inject" and config is None:
         config = default_config(plant.name, "autonomous" if method == "autonomous" else method)
     workdir = out / ".train"
+    torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
     t0 = time.perf_counter()
     if method == "autonomous":
         if not isinstance(config, Phase1Config):

@@ -1,0 +1,185 @@
+"""Training side: gradients, exactness, determinism, resumability and the model files it writes."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import kklcasadi as kc  # noqa: E402
+from kklcasadi.modelfile import load_model  # noqa: E402
+from kklcasadi.torch_nets import MLP, LoRAHyperNet, ObsInjection  # noqa: E402
+from kklcasadi.train import LoopConfig, Phase2DataConfig, default_config, train_observer  # noqa: E402
+from kklcasadi.train.loop import ArrayDataset, fit  # noqa: E402
+from kklcasadi.train.phase1 import latent_noise_covariance, pde_residual  # noqa: E402
+
+TINY_LOOP = LoopConfig(epochs=3, batch_size=64, lr=3e-3)
+
+
+def tiny_phase1(**overrides):
+    return default_config("duffing", "autonomous", width=16, depth=2, n_traj=12, t_keep=2.0, n_pde=200,
+                          dtype="float64", encoder=TINY_LOOP, decoder=TINY_LOOP, **overrides)
+
+
+@pytest.fixture(scope="module")
+def phase1_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("models") / "duffing" / "autonomous"
+    train_observer("duffing", "autonomous", out, config=tiny_phase1(), progress=False)
+    return out
+
+
+def test_pde_residual_gradient_flows_and_matches_finite_differences():
+    torch.manual_seed(0)
+    enc = MLP([2, 8, 8, 5]).double()
+    d = kc.Design.default(kc.systems.get("duffing"))
+    A, B = torch.tensor(d.A), torch.tensor(d.B)
+    x = torch.randn(32, 2, dtype=torch.float64)
+    f = torch.randn(32, 2, dtype=torch.float64)
+    y = x[:, :1]
+
+    def loss():
+        return (pde_residual(enc, x, f, y, A, B)[1] ** 2).mean()
+
+    w = enc.layers[0].weight
+    loss().backward()
+    grad = w.grad[1, 0].item()
+    assert grad != 0.0
+    eps = 1e-6
+    with torch.no_grad():
+        w[1, 0] += eps
+        up = loss().item()
+        w[1, 0] -= 2 * eps
+        down = loss().item()
+        w[1, 0] += eps
+    assert grad == pytest.approx((up - down) / (2 * eps), rel=1e-6)
+    # and the directional derivative is the Jacobian times f
+    J = torch.autograd.functional.jacobian(lambda v: enc(v[None])[0], x[3])
+    z, res = pde_residual(enc, x[3:4], f[3:4], y[3:4], A, B)
+    np.testing.assert_allclose((res + z @ A.T + y[3:4] @ B.T).detach().numpy()[0], (J @ f[3]).detach().numpy(),
+                               rtol=1e-12)
+
+
+def test_latent_noise_covariance_solves_the_lyapunov_equation():
+    d = kc.Design.default(kc.systems.get("vdp"))
+    S = latent_noise_covariance(d, 0.1, 0.05)
+    np.testing.assert_allclose(d.A @ S + S @ d.A.T + d.B @ d.B.T * 0.01 * 0.05, 0, atol=1e-15)
+    assert np.all(np.linalg.eigvalsh(S) > 0)
+
+
+def test_fit_stops_on_a_non_finite_loss():
+    p = torch.zeros(3, requires_grad=True)
+    data = ArrayDataset({"x": np.ones((200, 1))})
+    with pytest.raises(FloatingPointError, match="stage-x: the loss became nan at epoch 0, batch 0"):
+        fit([p], lambda b, e: ((p.sum() * np.nan), {}), data, TINY_LOOP, name="stage-x", progress=False)
+
+
+def _regression_problem():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(400, 3))
+    data = ArrayDataset({"x": x, "y": x @ np.array([1.0, -2.0, 0.5])[:, None]})
+    return data
+
+
+def test_resume_continues_exactly(tmp_path):
+    data = _regression_problem()
+    cfg = LoopConfig(epochs=6, batch_size=32, lr=0.1)
+
+    def run(epochs, ckpt, resume):
+        torch.manual_seed(0)
+        w = torch.zeros(3, 1, dtype=torch.float64, requires_grad=True)
+        res = fit([w], lambda b, e: (((b["x"] @ w - b["y"]) ** 2).mean(), {}), data, replace(cfg, epochs=epochs),
+                  name="reg", checkpoint=ckpt, resume=resume, progress=False)
+        return w.detach().clone(), res
+
+    straight, res = run(6, None, False)
+    assert res.history["train"][-1] < res.history["train"][0] / 10
+    run(3, tmp_path / "reg.ckpt.npz", False)
+    resumed, res2 = run(6, tmp_path / "reg.ckpt.npz", True)
+    assert torch.equal(straight, resumed)
+    assert len(res2.history["val"]) == 6
+
+
+def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
+    model = load_model(phase1_dir)
+    card = model.card
+    assert card["method"] == "autonomous" and card["window"] == 1
+    assert card["training"]["data"]["labelled"] == 12 * 40
+    enc = card["training"]["encoder"]
+    assert enc["epochs"] == 3 and enc["best_val"] <= enc["final_train"] * 10
+    assert (phase1_dir / "history.png").stat().st_size > 1000
+    # losses fall
+    import json
+
+    hist = json.loads((phase1_dir / "history.json").read_text())
+    assert hist["encoder"]["val"][-1] < hist["encoder"]["val"][0]
+    assert hist["decoder"]["val"][-1] < hist["decoder"]["val"][0]
+    # the saved arrays rebuild the same network bitwise
+    net = MLP.from_arrays(model.arrays, "encoder", card["architecture"]["encoder"])
+    again = {k: v for k, v in net.to_arrays("encoder").items()}
+    for k, v in again.items():
+        np.testing.assert_array_equal(v, model.arrays[k])
+
+
+def test_training_is_deterministic(tmp_path, phase1_dir):
+    out = tmp_path / "again"
+    train_observer("duffing", "autonomous", out, config=tiny_phase1(), progress=False)
+    a, b = load_model(out), load_model(phase1_dir)
+    assert a.card["weights_sha256"] == b.card["weights_sha256"]
+
+
+def test_noise_aware_decoder_records_its_noise_level(tmp_path):
+    out = tmp_path / "noisy"
+    train_observer("duffing", "autonomous", out, config=tiny_phase1(measurement_std=0.1), progress=False)
+    assert load_model(out).card["noise"]["measurement_std"] == 0.1
+
+
+SMALL = Phase2DataConfig(n_traj=3, n_signals=3, T=3.0, window=10)
+P2_LOOP = LoopConfig(epochs=2, batch_size=32, lr=1e-3, schedule="cosine", samples_per_epoch=128)
+
+
+@pytest.mark.parametrize("method, config", [
+    ("obs", default_config("duffing", "obs", data=SMALL, loop=P2_LOOP, hidden=8, proj=4, gain_hidden=(8,))),
+    ("obs", default_config("duffing", "obs", data=SMALL, loop=P2_LOOP, hidden=8, proj=4, gain_hidden=(8,),
+                           model_based_injection=True)),
+    ("dyn", default_config("duffing", "dyn", data=SMALL, loop=P2_LOOP, hidden=8, embed=4, backbone=(8,), rank=2)),
+    ("curriculum", default_config("duffing", "curriculum", n_traj=2, n_signals_per_stage=1, t_keep=2.0,
+                                  loop=LoopConfig(epochs=1, batch_size=32))),
+    ("inject", None),
+])
+def test_phase2_methods_write_models_that_refer_to_their_base(tmp_path, phase1_dir, method, config):
+    out = tmp_path / method
+    train_observer("duffing", method, out, config=config, base=phase1_dir, progress=False)
+    model = load_model(out)
+    assert model.method == method
+    assert model.base is not None and model.base.card["weights_sha256"] == load_model(phase1_dir).card["weights_sha256"]
+    if method in ("obs", "dyn"):
+        assert model.window == 10
+        # the frozen maps are the base's, bitwise
+        for k in ("encoder/W0", "decoder/W1"):
+            np.testing.assert_array_equal(model.arrays[k], model.base.arrays[k])
+    if method == "obs":
+        assert model.card["model_based_injection"] is config.model_based_injection
+        net = ObsInjection.from_arrays(model.arrays, "", model.card["architecture"])
+        z = torch.randn(5, 5, dtype=torch.float64)
+        w = torch.randn(5, 10, 1, dtype=torch.float64)
+        assert torch.equal(net(z, w, torch.zeros(5, 1, dtype=torch.float64)), torch.zeros(5, 5, dtype=torch.float64))
+    if method == "dyn":
+        hyper = LoRAHyperNet.from_arrays(model.arrays, "hyper", model.card["architecture"], nu=1)
+        for a, b in hyper(torch.zeros(2, 10, 1, dtype=torch.float64)):
+            assert torch.count_nonzero(a) == 0 and torch.count_nonzero(b) == 0
+
+
+def test_train_observer_rejects_bad_arguments(tmp_path, phase1_dir):
+    with pytest.raises(ValueError, match="known methods: autonomous, obs"):
+        train_observer("duffing", "lstm", tmp_path / "x")
+    with pytest.raises(ValueError, match="known systems"):
+        train_observer("dufing", "autonomous", tmp_path / "x")
+    with pytest.raises(FileExistsError, match="overwrite"):
+        train_observer("duffing", "autonomous", phase1_dir, config=tiny_phase1(), progress=False)
+    with pytest.raises(ValueError, match="is for system 'duffing', not 'vdp'"):
+        train_observer("vdp", "inject", tmp_path / "y", base=phase1_dir)
+    with pytest.raises(TypeError, match="must be a ObsConfig"):
+        train_observer("duffing", "obs", tmp_path / "z", base=phase1_dir, config=tiny_phase1())
+    with pytest.raises(TypeError, match="no field"):
+        default_config("duffing", "obs", epochs=3)
