@@ -37,7 +37,8 @@ def model_dir_factory(tmp_path_factory):
     """Write a random-weight model directory for any method; returns its path.
 
     ``make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
-    card_extra=None, dt=0.05)``: encoder/decoder MLPs ``[nx, *hidden, nz]`` / ``[nz, *hidden,
+    card_extra=None, dt=0.05)``; ``system`` is a registered name or a ``kklcasadi.System`` (then
+    pass it to ``load_observer(path, system=...)``). Encoder/decoder MLPs ``[nx, *hidden, nz]`` / ``[nz, *hidden,
     nx]`` (tanh), ``A = -diag(1..nz)``, ``B = ones``; obs: GRU 4, projection 3, gain ``[nz + 3,
     6, nz*nu]``; dyn: hypernetwork GRU 4, embeddings 3, backbone ``[5, 5]``, rank 2, scale 1.
     With ``base=True`` an autonomous model with the same encoder/decoder is written first and
@@ -50,7 +51,7 @@ def model_dir_factory(tmp_path_factory):
 
     def make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
              card_extra=None, dt=0.05):
-        plant = kklcasadi.systems.get(system)
+        plant = kklcasadi.systems.get(system) if isinstance(system, str) else system
         nx, nu, ny = plant.nx, plant.nu, plant.ny
         nz = ny * (2 * nx + 1)
         arch = {"encoder": {"sizes": [nx, *hidden, nz], "activation": "tanh"},
@@ -60,7 +61,7 @@ def model_dir_factory(tmp_path_factory):
                          "gain": {"sizes": [nz + 3, 6, nz * nu], "activation": "tanh"}})
         if method == "dyn":
             arch["hyper"] = {"hidden": 4, "embed": 3, "backbone": [5, 5], "rank": 2}
-        card = {"method": method, "system": {"name": system, "nx": nx, "nu": nu, "ny": ny},
+        card = {"method": method, "system": {"name": plant.name, "nx": nx, "nu": nu, "ny": ny},
                 "design": {"A": (-np.diag(np.arange(1.0, nz + 1))).tolist(),
                            "B": np.ones((nz, ny)).tolist()},
                 "dt": dt, "window": window, "architecture": arch, "base": None,
@@ -79,3 +80,15 @@ def model_dir_factory(tmp_path_factory):
         return save_model(root / method, _random_model_arrays(card, seed), card)
 
     return make
+
+
+@pytest.fixture
+def mimo_plant():
+    """A plant with two inputs and two outputs (nx = 2, nz = 10), not in the registry."""
+    import casadi as ca
+
+    import kklcasadi
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 2)
+    return kklcasadi.System("mimo", x, u, [x[1] + 0.5 * u[0], -x[0] - x[0] ** 3 + u[1]],
+                            [x[0], x[0] + x[1] ** 2], [[-1, 1], [-1, 1]])
