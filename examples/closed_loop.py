@@ -106,8 +106,8 @@ def main(argv: list[str] | None = None) -> Path:
     result = run(observer, args.T, measurement_std=args.measurement_std, seed=args.seed)
     error = np.sqrt(np.mean((result["x"] - result["xhat"]) ** 2, axis=0))
     tracking = np.sqrt(np.mean((result["x"][:, 0] - result["r"]) ** 2))
-    title = (f"Duffing, {observer.method} observer in the loop: estimation RMSE "
-             f"{error[0]:.3g} / {error[1]:.3g}, tracking RMSE {tracking:.3g}")
+    title = (f"Duffing, {observer.method} observer in the loop\nestimation RMSE x1 {error[0]:.3g}, "
+             f"x2 {error[1]:.3g}; tracking RMSE {tracking:.3g}")
     out = Path(args.out)
     plot(result, title, out)
     print(f"{title}\nwrote {out}")

@@ -297,11 +297,12 @@ class KKLObserver:
         return ca.integrator(f"{self.method}_latent", solver, {"x": z, "p": p, "t": t, "ode": ode},
                              0.0, self.dt, opts)
 
-    def simulate(self, t: Any, y: Any, u: Any, *, n_threads: Optional[int] = None) -> Estimate:
+    def simulate(self, t: Any, y: Any, u: Any, *, z0: Any = None,
+                 n_threads: Optional[int] = None) -> Estimate:
         """Run the observer on sampled measurements and inputs.
 
-        ``z_0 = 0``, ``w_0`` filled with ``u_0``, ``xhat_0 = decode(0, w_0)``; then
-        :attr:`step` over every interval, as one ``mapaccum`` call per trajectory and one
+        ``z_0 = 0`` (or ``z0``), ``w_0`` filled with ``u_0``, ``xhat_0 = decode(z_0, w_0)``;
+        then :attr:`step` over every interval, as one ``mapaccum`` call per trajectory and one
         ``map(M, "thread")`` over trials.
 
         Parameters
@@ -312,6 +313,8 @@ class KKLObserver:
             Measurements (``(N,)`` is accepted when ny = 1).
         u : array_like, shape (N, nu) or (M, N, nu)
             Inputs, held over ``[t_k, t_k+1)`` (``(N,)`` is accepted when nu = 1).
+        z0 : array_like, shape (nz,) or (M, nz), optional
+            Initial latent state; default 0 (PROTOCOL.md). ``(nz,)`` is used for every trial.
         n_threads : int, optional
             Worker threads for M trials (default: the CPU count).
 
@@ -324,8 +327,11 @@ class KKLObserver:
         ------
         ValueError
             Wrong shapes (naming the argument, the expected and the received shape), ``t`` not
-            spaced by ``dt``, or a NaN/inf in ``y`` or ``u`` (naming the trial and sample).
+            spaced by ``dt``, or a NaN/inf in ``y`` or ``u`` (naming the trial and sample) or
+            in ``z0``.
         """
+        if n_threads is not None:
+            _positive_int(n_threads, "n_threads")
         t = _check_time(t, self.dt)
         n = t.size
         ys, batched_y = _check_samples(y, "y", n, self.ny)
@@ -336,22 +342,22 @@ class KKLObserver:
         for name, values in (("y", ys), ("u", us)):
             _check_finite(values, name, t, batched_y)
         m, nz, nu, window = ys.shape[0], self.nz, self.nu, self.window
+        z_start = _check_initial(z0, m, nz, batched_y)                          # (nz, M)
 
         w0 = np.ascontiguousarray(input_windows(us, window)[:, 0])           # (M, window, nu)
         w0_cols = w0.transpose(1, 0, 2).reshape(window, m * nu)
-        xhat0 = np.asarray(self.decode.map(m)(np.zeros((nz, m)), w0_cols)).T    # (M, nx)
         xhat = np.empty((m, n, self.nx))
-        z = np.zeros((m, n, nz))
-        xhat[:, 0] = xhat0
+        z = np.empty((m, n, nz))
+        xhat[:, 0] = np.asarray(self.decode.map(m)(z_start, w0_cols)).T
+        z[:, 0] = z_start.T
         if n > 1:
             trajectory = self.step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
             if m > 1:
-                threads = n_threads or os.cpu_count() or 1
-                trajectory = trajectory.map(m, "thread", min(_positive_int(threads, "n_threads"),
-                                                             m))
+                threads = (os.cpu_count() or 1) if n_threads is None else n_threads
+                trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
             z_out, _, xhat_out = trajectory(
-                np.zeros((nz, m)), w0_cols,
+                z_start, w0_cols,
                 ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
                 us[:, 1:].reshape(columns, nu).T)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)
@@ -392,6 +398,12 @@ class Estimator:
     Parameters
     ----------
     observer : KKLObserver
+
+    Attributes
+    ----------
+    observer : KKLObserver
+    k : int
+        Samples taken since the start or the last :meth:`reset`.
     """
 
     def __init__(self, observer: KKLObserver) -> None:
@@ -520,6 +532,21 @@ def _check_finite(values: np.ndarray, argument: str, t: np.ndarray, batched: boo
         raise ValueError(f"{argument}: expected finite values, received "
                          f"{values[trial, k].tolist()} at {at} (t = {t[k]:.6g}). Remove or "
                          "repair the bad samples before running the observer.")
+
+
+def _check_initial(z0: Any, m: int, nz: int, batched: bool) -> np.ndarray:
+    """The initial latent states as columns (nz, M); 0 by default."""
+    if z0 is None:
+        return np.zeros((nz, m))
+    array = np.asarray(z0, dtype=float)
+    if array.shape == (nz,):
+        array = np.repeat(array[None], m, axis=0)
+    elif not (batched and array.shape == (m, nz)):
+        expected = f"({nz},) or (M, {nz}) = ({m}, {nz})" if batched else f"({nz},)"
+        raise ValueError(f"z0: expected shape {expected}, received {array.shape}.")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"z0: expected finite values, received {array.tolist()}.")
+    return np.ascontiguousarray(array.T)
 
 
 def _check_sample(value: Any, argument: str, dim: int, k: int) -> np.ndarray:

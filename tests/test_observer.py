@@ -265,10 +265,35 @@ def test_simulate_maps_trials_and_accepts_one_sample(model_dir_factory, rng):
     for i in range(3):
         single = obs.simulate(t, y[i], u[i])
         assert np.array_equal(batch.xhat[i], single.xhat) and np.array_equal(batch.z[i], single.z)
+    assert np.array_equal(obs.simulate(t, y, u, n_threads=1).xhat, batch.xhat)
+    with pytest.raises(ValueError, match="n_threads: expected a positive int, received 0"):
+        obs.simulate(t, y, u, n_threads=0)
     one = obs.simulate(t[:1], y[0, :1], u[0, :1])
     assert one.xhat.shape == (1, 2) and np.array_equal(one.xhat[0], batch.xhat[0, 0])
     flat = obs.simulate(t, y[0, :, 0], u[0, :, 0])               # (N,) allowed for ny = nu = 1
     assert np.array_equal(flat.xhat, batch.xhat[0])
+
+
+def test_simulate_from_a_given_latent_state(model_dir_factory, rng):
+    obs = load_observer(model_dir_factory("inject"))
+    t, y, u = np.arange(12) * DT, rng.normal(size=(2, 12, 1)), rng.normal(size=(2, 12, 1))
+    z0 = rng.normal(size=(2, 5))
+    batch = obs.simulate(t, y, u, z0=z0)
+    assert np.array_equal(batch.z[:, 0], z0)
+    for i in range(2):
+        single = obs.simulate(t, y[i], u[i], z0=z0[i])
+        assert np.array_equal(single.xhat, batch.xhat[i])
+        w0 = np.repeat(u[i, :1], 3, axis=0)
+        assert np.array_equal(single.xhat[0], np.array(obs.decode(z0[i], w0)).ravel())
+    shared = obs.simulate(t, y, u, z0=z0[1])
+    assert np.array_equal(shared.xhat[1], batch.xhat[1])
+    with pytest.raises(ValueError, match=r"z0: expected shape \(5,\) or \(M, 5\) = \(2, 5\), "
+                                         r"received \(3, 5\)"):
+        obs.simulate(t, y, u, z0=np.zeros((3, 5)))
+    with pytest.raises(ValueError, match=r"z0: expected shape \(5,\), received \(1, 5\)"):
+        obs.simulate(t, y[0], u[0], z0=np.zeros((1, 5)))
+    with pytest.raises(ValueError, match="z0: expected finite values"):
+        obs.simulate(t, y[0], u[0], z0=[0, 0, np.inf, 0, 0])
 
 
 def test_simulate_rejects_bad_shapes_and_times(model_dir_factory):
