@@ -222,7 +222,7 @@ def test_simulate_is_the_step_repeated_from_zero(model_dir_factory, method):
     obs = load_observer(model_dir_factory(method, window=4))
     tr = plant_run(T=1.0)
     est = obs.simulate(tr.t, tr.y, tr.u)
-    assert est.t is not None and est.xhat.shape == (20, 2) and est.z.shape == (20, 5)
+    assert np.array_equal(est.t, tr.t) and est.xhat.shape == (20, 2) and est.z.shape == (20, 5)
     z, w = np.zeros(5), np.repeat(tr.u[:1], 4, axis=0)
     assert np.array_equal(est.z[0], z)
     assert np.array_equal(est.xhat[0], np.array(obs.decode(z, w)).ravel())
