@@ -5,7 +5,8 @@
 * :func:`gru_function` -- the bias-free GRU, ``w (window, nu) -> h (H, 1)``: one cell Function
   folded over the window (``Function.fold``), never unrolled.
 * :func:`obs_gain_function`, :func:`obs_injection_function` -- HyperKKL_obs
-  ``(z, w) -> G`` and ``(z, w, u) -> G u``.
+  ``(z, w) -> G`` and ``(z, w, u) -> G u``; their parts :func:`obs_context_function`
+  ``w -> l`` and :func:`obs_context_gain_function` ``(z, l) -> G``.
 * :func:`lora_mlp_function` -- HyperKKL_dyn: the decoder (or encoder) modulated by the
   hypernetwork, ``(z, w) -> xhat``, each layer evaluated as ``W v + b + s a (b^T v)``.
 
@@ -166,6 +167,65 @@ def gru_function(arrays: Arrays, prefix: str, nu: int, H: int, window: int,
     return ca.Function(name, [w], [folded(ca.DM.zeros(H, 1), w.T)], ["w"], ["h"])
 
 
+def obs_context_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,
+                         name: str = "obs_context") -> ca.Function:
+    """Export the HyperKKL_obs context ``l = P GRU(w)``.
+
+    It depends on the window only, so an observer step evaluates it once and reuses it at every
+    Runge-Kutta stage (see :func:`obs_context_gain_function`).
+
+    Parameters
+    ----------
+    arrays : Mapping[str, array_like]
+        Holds ``context/gru/*`` and ``context/proj/W``.
+    architecture : Mapping
+        Holds the card entries ``context`` and ``gain`` (a card's ``architecture`` will do).
+    window : int
+        Window length in samples.
+    name : str
+
+    Returns
+    -------
+    ca.Function
+        ``l = f(w)``, ``w`` (window, nu), ``l`` (n_l, 1); exactly 0 for a zero window.
+    """
+    spec = ObsSpec.from_card(architecture, "architecture")
+    window = _check_count(window, "window")
+    check_arrays(arrays, spec.array_shapes(), "arrays")
+    name = _check_name(name)
+    gru = gru_function(arrays, OBS_GRU, spec.nu, spec.hidden, window, f"{name}_gru")
+    w = ca.MX.sym("w", window, spec.nu)
+    return ca.Function(name, [w], [ca.mtimes(ca.DM(_array(arrays, OBS_PROJ)), gru(w))], ["w"],
+                       ["l"])
+
+
+def obs_context_gain_function(arrays: Arrays, architecture: Mapping[str, Any],
+                              name: str = "obs_context_gain") -> ca.Function:
+    """Export the HyperKKL_obs input gain as a function of the context, ``G(z, l)``.
+
+    Parameters
+    ----------
+    arrays : Mapping[str, array_like]
+        Holds ``gain/*``.
+    architecture : Mapping
+        Holds the card entries ``context`` and ``gain``.
+    name : str
+
+    Returns
+    -------
+    ca.Function
+        ``G = f(z, l)``, ``z`` (nz, 1), ``l`` (n_l, 1), ``G`` (nz, nu) (the gain MLP's output
+        reshaped row-major).
+    """
+    spec = ObsSpec.from_card(architecture, "architecture")
+    check_arrays(arrays, spec.gain.array_shapes(OBS_GAIN), "arrays")
+    name = _check_name(name)
+    gain = mlp_function(arrays, OBS_GAIN, spec.gain.to_card(), f"{name}_mlp")
+    z, context = ca.MX.sym("z", spec.nz), ca.MX.sym("l", spec.proj)
+    gain_matrix = ca.reshape(gain(ca.vertcat(z, context)), spec.nu, spec.nz).T
+    return ca.Function(name, [z, context], [gain_matrix], ["z", "l"], ["G"])
+
+
 def obs_gain_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,
                       name: str = "obs_gain") -> ca.Function:
     """Export the HyperKKL_obs input gain ``G(z, P GRU(w))``.
@@ -184,18 +244,15 @@ def obs_gain_function(arrays: Arrays, architecture: Mapping[str, Any], window: i
     -------
     ca.Function
         ``G = f(z, w)``, ``z`` (nz, 1), ``w`` (window, nu), ``G`` (nz, nu) (the gain MLP's
-        output reshaped row-major).
+        output reshaped row-major): :func:`obs_context_gain_function` of
+        :func:`obs_context_function`.
     """
-    spec = ObsSpec.from_card(architecture, "architecture")
-    window = _check_count(window, "window")
-    check_arrays(arrays, spec.array_shapes(), "arrays")
     name = _check_name(name)
-    gru = gru_function(arrays, OBS_GRU, spec.nu, spec.hidden, window, f"{name}_gru")
-    gain = mlp_function(arrays, OBS_GAIN, spec.gain.to_card(), f"{name}_mlp")
-    z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", window, spec.nu)
-    context = ca.mtimes(ca.DM(_array(arrays, OBS_PROJ)), gru(w))
-    gain_matrix = ca.reshape(gain(ca.vertcat(z, context)), spec.nu, spec.nz).T
-    return ca.Function(name, [z, w], [gain_matrix], ["z", "w"], ["G"])
+    context = obs_context_function(arrays, architecture, window, f"{name}_context")
+    gain = obs_context_gain_function(arrays, architecture, f"{name}_of_l")
+    z = ca.MX.sym("z", gain.size1_in(0))
+    w = ca.MX.sym("w", *context.size_in(0))
+    return ca.Function(name, [z, w], [gain(z, context(w))], ["z", "w"], ["G"])
 
 
 def obs_injection_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,

@@ -5,3 +5,90 @@ import pytest
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+def _random_model_arrays(card, seed):
+    """Random float64 arrays for every array the card names (kklcasadi.modelfile shapes).
+
+    Each array is drawn from its own stream keyed by ``(seed, name)``, so two cards with the same
+    encoder/decoder architecture get bitwise-identical encoder/decoder arrays for the same seed.
+    Weights are scaled by 1/sqrt(fan_in); normalisation scales lie in [0.5, 2].
+    """
+    import zlib
+
+    from kklcasadi.modelfile import model_array_shapes
+
+    arrays = {}
+    for name, shape in model_array_shapes(card).items():
+        rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
+        if name.endswith("_std"):
+            arrays[name] = rng.uniform(0.5, 2.0, shape)
+        elif name.endswith("/scale"):
+            arrays[name] = np.array(1.0)                 # make the LoRA modulation visible
+        elif len(shape) == 2:
+            arrays[name] = rng.normal(size=shape) / np.sqrt(shape[1])
+        else:
+            arrays[name] = 0.3 * rng.normal(size=shape)
+    return arrays
+
+
+@pytest.fixture
+def model_dir_factory(tmp_path_factory):
+    """Write a random-weight model directory for any method; returns its path.
+
+    ``make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
+    card_extra=None, dt=0.05)``; ``system`` is a registered name or a ``kklcasadi.System`` (then
+    pass it to ``load_observer(path, system=...)``). Encoder/decoder MLPs ``[nx, *hidden, nz]`` / ``[nz, *hidden,
+    nx]`` (tanh), ``A = -diag(1..nz)``, ``B = ones``; obs: GRU 4, projection 3, gain ``[nz + 3,
+    6, nz*nu]``; dyn: hypernetwork GRU 4, embeddings 3, backbone ``[5, 5]``, rank 2, scale 1.
+    With ``base=True`` an autonomous model with the same encoder/decoder is written first and
+    named as ``card["base"]``. ``card_extra`` adds top-level card fields.
+    """
+    import kklcasadi
+    from kklcasadi.modelfile import save_model
+
+    counter = iter(range(10**6))
+
+    def make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
+             card_extra=None, dt=0.05):
+        plant = kklcasadi.systems.get(system) if isinstance(system, str) else system
+        nx, nu, ny = plant.nx, plant.nu, plant.ny
+        nz = ny * (2 * nx + 1)
+        arch = {"encoder": {"sizes": [nx, *hidden, nz], "activation": "tanh"},
+                "decoder": {"sizes": [nz, *hidden, nx], "activation": "tanh"}}
+        if method == "obs":
+            arch.update({"context": {"hidden": 4, "proj": 3},
+                         "gain": {"sizes": [nz + 3, 6, nz * nu], "activation": "tanh"}})
+        if method == "dyn":
+            arch["hyper"] = {"hidden": 4, "embed": 3, "backbone": [5, 5], "rank": 2}
+        card = {"method": method, "system": {"name": plant.name, "nx": nx, "nu": nu, "ny": ny},
+                "design": {"A": (-np.diag(np.arange(1.0, nz + 1))).tolist(),
+                           "B": np.ones((nz, ny)).tolist()},
+                "dt": dt, "window": window, "architecture": arch, "base": None,
+                "noise": {"measurement_std": 0.0}, "training": {"seed": seed},
+                **(card_extra or {})}
+        root = tmp_path_factory.mktemp(f"model{next(counter)}")
+        if base:
+            base_card = {**card, "method": "autonomous",
+                         "architecture": {k: arch[k] for k in ("encoder", "decoder")}}
+            for key in card_extra or {}:
+                base_card.pop(key)
+            base_dir = save_model(root / "autonomous", _random_model_arrays(base_card, seed),
+                                  base_card)
+            sha = kklcasadi.modelfile.load_model(base_dir).card["weights_sha256"]
+            card["base"] = {"path": "../autonomous", "weights_sha256": sha}
+        return save_model(root / method, _random_model_arrays(card, seed), card)
+
+    return make
+
+
+@pytest.fixture
+def mimo_plant():
+    """A plant with two inputs and two outputs (nx = 2, nz = 10), not in the registry."""
+    import casadi as ca
+
+    import kklcasadi
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 2)
+    return kklcasadi.System("mimo", x, u, [x[1] + 0.5 * u[0], -x[0] - x[0] ** 3 + u[1]],
+                            [x[0], x[0] + x[1] ** 2], [[-1, 1], [-1, 1]])
