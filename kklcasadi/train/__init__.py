@@ -92,8 +92,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     system : System or str
         The plant (or a registered name).
     method : {"autonomous", "obs", "dyn", "curriculum", "inject"}
-        ``autonomous``: Phase 1. ``obs``/``dyn``/``curriculum``/``inject`` start from the Phase-1
-        model ``base`` (default ``out_dir/../autonomous``); ``inject`` only writes its card.
+        ``autonomous``: Phase 1 (with ``base``: keep the base's encoder and train only a new decoder,
+        e.g. for another noise level). ``obs``/``dyn``/``curriculum``/``inject`` start from the
+        Phase-1 model ``base`` (default ``out_dir/../autonomous``); ``inject`` only writes its card.
     out_dir : path
         The model directory to write.
     config : dataclass, optional
@@ -133,16 +134,23 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     if method == "autonomous":
         if not isinstance(config, Phase1Config):
             raise TypeError(f"config for 'autonomous' must be a Phase1Config, got {type(config).__name__}")
+        encoder, base_ref = None, None
+        if base is not None:       # keep the base's encoder, train a new decoder (e.g. for a noise level)
+            base_model = load_model(base)
+            design = Design(base_model.A, base_model.B)
+            encoder = MLP.from_arrays(base_model.arrays, "encoder", base_model.card["architecture"]["encoder"])
+            base_ref = _base_reference(out, Path(base))
         result = train_phase1(plant, design, config, dt=dt, seed=seed, device=device, progress=progress,
-                              workdir=workdir, resume=resume)
+                              workdir=workdir, resume=resume, encoder=encoder)
         arrays = {**result.encoder.to_arrays("encoder"), **result.decoder.to_arrays("decoder")}
-        histories = {"encoder": result.encoder_fit.history, "decoder": result.decoder_fit.history}
+        fits = {"encoder": result.encoder_fit, "decoder": result.decoder_fit}
+        histories = {k: f.history for k, f in fits.items() if f is not None}
         training = {"config": config, "seed": seed, "data": {"labelled": result.n_labelled, "pde": result.n_pde},
-                    "encoder": result.encoder_fit.summary(), "decoder": result.decoder_fit.summary(),
+                    **{k: (f.summary() if f is not None else "kept from the base model") for k, f in fits.items()},
                     "wall_time_s": round(time.perf_counter() - t0, 1), "device": device}
         card = _card(plant, design, "autonomous", dt, 1,
                      {"encoder": result.encoder.architecture(), "decoder": result.decoder.architecture()},
-                     training, measurement_std=config.measurement_std)
+                     training, base=base_ref, measurement_std=config.measurement_std)
     else:
         from .phase2 import train_method
 

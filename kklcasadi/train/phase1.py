@@ -31,7 +31,7 @@ Tensor = torch.Tensor
 class Phase1Result:
     encoder: MLP
     decoder: MLP
-    encoder_fit: FitResult
+    encoder_fit: FitResult | None
     decoder_fit: FitResult
     n_labelled: int
     n_pde: int
@@ -63,8 +63,11 @@ def _f(system: System, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray
 
 def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: float = 0.05, seed: int = 0,
                  device: str = "cpu", progress: bool = True, workdir: str | Path | None = None,
-                 resume: bool = False) -> Phase1Result:
+                 resume: bool = False, encoder: MLP | None = None) -> Phase1Result:
     """Generate the Phase-1 data and train the encoder (stage A) and the decoder (stage B).
+
+    With ``encoder`` given (a trained ``T``), stage A is skipped: only a new decoder is trained,
+    e.g. for another measurement-noise level.
 
     Returns
     -------
@@ -81,9 +84,11 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
               "y": np.vstack([labelled.y, pde.y]), "f": np.vstack([_f(system, labelled.x), pde.f]),
               "labelled": np.r_[np.ones(n_lab), np.zeros(n_pde)][:, None]}
     sizes = [system.nx] + [config.width] * config.depth + [design.nz]
-    encoder = MLP(sizes, config.activation).to(dtype)
-    encoder.set_normalisation(x.mean(0), x.std(0), labelled.z.mean(0), labelled.z.std(0))
-    encoder.to(device)
+    reuse = encoder is not None
+    if encoder is None:
+        encoder = MLP(sizes, config.activation).to(dtype)
+        encoder.set_normalisation(x.mean(0), x.std(0), labelled.z.mean(0), labelled.z.std(0))
+    encoder.to(device=device, dtype=dtype)
     A = torch.tensor(design.A, dtype=dtype, device=device)
     B = torch.tensor(design.B, dtype=dtype, device=device)
     z_scale = torch.as_tensor(labelled.z.std(0), dtype=dtype, device=device)
@@ -98,14 +103,16 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
         return mse + nu * pde_loss, {"mse": mse.item(), "pde": pde_loss.item()}
 
     ckpt = Path(workdir) if workdir is not None else None
-    enc_fit = fit(list(encoder.parameters()), encoder_loss, ArrayDataset(arrays, dtype=dtype, device=device),
-                  config.encoder, name="phase1/encoder", seed=seed, progress=progress, resume=resume,
-                  checkpoint=ckpt / "encoder.ckpt.npz" if ckpt else None)
+    enc_fit = None
+    if not reuse:
+        enc_fit = fit(list(encoder.parameters()), encoder_loss, ArrayDataset(arrays, dtype=dtype, device=device),
+                      config.encoder, name="phase1/encoder", seed=seed, progress=progress, resume=resume,
+                      checkpoint=ckpt / "encoder.ckpt.npz" if ckpt else None)
     encoder.requires_grad_(False)
 
     with torch.no_grad():
         z_all = encoder(torch.as_tensor(x, dtype=dtype, device=device)).cpu().numpy()
-    decoder = MLP(sizes[::-1], config.activation).to(dtype)
+    decoder = MLP(list(encoder.spec.sizes)[::-1], config.activation).to(dtype)
     decoder.set_normalisation(z_all.mean(0), z_all.std(0), x.mean(0), x.std(0))
     decoder.to(device)
     if config.spectral_norm:
