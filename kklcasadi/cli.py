@@ -83,7 +83,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
         config = _with_epochs(config, args.epochs, replace)
     path = train_observer(args.system, args.method, args.out, config=config, base=args.base, seed=args.seed,
-                          device=args.device, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet)
+                          device=args.device, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet,
+                          threads=args.threads)
     print(f"wrote {path}/weights.npz and card.json")
     return 0
 
@@ -201,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--resume", action="store_true", help="continue from the checkpoints in OUT/.train")
     t.add_argument("--overwrite", action="store_true")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
+    t.add_argument("--threads", type=int, help="torch CPU threads (1 per process on a shared machine)")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("evaluate", help="score models on the PROTOCOL.md benchmark (SMAPE table, box plots)")

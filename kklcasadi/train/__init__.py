@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from dataclasses import asdict, is_dataclass, replace
 from pathlib import Path
@@ -18,6 +19,7 @@ import torch
 from .. import __version__, systems
 from ..design import Design
 from ..modelfile import load_model, save_model
+from ..observer import make_inject_model
 from ..systems import System
 from ..torch_nets import MLP
 from .config import (CurriculumConfig, DynConfig, LoopConfig, ObsConfig, Phase1Config, Phase2DataConfig,
@@ -53,14 +55,17 @@ def _card(system: System, design: Design, method: str, dt: float, window: int, a
 
 def _base_reference(out_dir: Path, base_dir: Path) -> dict:
     model = load_model(base_dir)
-    return {"path": str(Path(_relpath(base_dir.resolve(), out_dir.resolve()))),
+    return {"path": os.path.relpath(base_dir.resolve(), out_dir.resolve()),
             "weights_sha256": model.card["weights_sha256"]}
 
 
-def _relpath(target: Path, start: Path) -> str:
-    import os
-
-    return os.path.relpath(target, start)
+def _phase1_base(base: str | Path | None, out: Path, plant: System) -> tuple[Path, Any]:
+    """The Phase-1 model a Phase-2 method starts from (default ``out/../autonomous``), checked."""
+    base_dir = Path(base) if base is not None else out.parent / "autonomous"
+    model = load_model(base_dir)
+    if model.card["system"]["name"] != plant.name:
+        raise ValueError(f"base model {base_dir} is for system {model.card['system']['name']!r}, not {plant.name!r}")
+    return base_dir, model
 
 
 def _history_plot(histories: dict[str, dict], path: Path) -> None:
@@ -84,7 +89,7 @@ def _history_plot(histories: dict[str, dict], path: Path) -> None:
 def train_observer(system: System | str, method: str = "autonomous", out_dir: str | Path = "models/observer", *,
                    config: Any = None, base: str | Path | None = None, design: Design | None = None,
                    dt: float = 0.05, seed: int = 0, device: str = "cpu", resume: bool = False,
-                   overwrite: bool = False, progress: bool = True) -> Path:
+                   overwrite: bool = False, progress: bool = True, threads: int | None = None) -> Path:
     """Train one observer variant and write its model directory.
 
     Parameters
@@ -105,6 +110,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         ``"cuda"`` if available (training only; the model files are device-free float64).
     resume : bool
         Continue interrupted stages from their checkpoints in ``out_dir/.train``.
+    threads : int, optional
+        CPU threads for torch (``torch.set_num_threads``). On a shared or small machine use 1 per
+        training process: oversubscribed threads slowed small matrix products 40x here.
 
     Returns
     -------
@@ -125,9 +133,16 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         raise ValueError(f"out_dir {out} is a file; give a directory")
     if (out / "card.json").exists() and not overwrite and not resume:
         raise FileExistsError(f"{out} already holds a model; pass overwrite=True (CLI: --overwrite) to replace it")
+    if method == "inject":
+        base_dir, _ = _phase1_base(base, out, plant)
+        return make_inject_model(base_dir, out, overwrite=overwrite)
     design = design or Design.default(plant)
-    if method != "inject" and config is None:
+    if config is None:
         config = default_config(plant.name, "autonomous" if method == "autonomous" else method)
+    if threads is not None:
+        if not isinstance(threads, int) or threads < 1:
+            raise ValueError(f"threads must be a positive integer, got {threads!r}")
+        torch.set_num_threads(threads)
     workdir = out / ".train"
     torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
     t0 = time.perf_counter()
@@ -154,11 +169,7 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     else:
         from .phase2 import train_method
 
-        base_dir = Path(base) if base is not None else out.parent / "autonomous"
-        base_model = load_model(base_dir)
-        if base_model.card["system"]["name"] != plant.name:
-            raise ValueError(f"base model {base_dir} is for system {base_model.card['system']['name']!r}, "
-                             f"not {plant.name!r}")
+        base_dir, base_model = _phase1_base(base, out, plant)
         design = Design(base_model.A, base_model.B)
         arrays, architecture, training, histories, extra = train_method(
             plant, design, base_model, method, config, dt=dt, seed=seed, device=device, progress=progress,

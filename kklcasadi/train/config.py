@@ -97,12 +97,17 @@ class Phase1Config:
 
 @dataclass(frozen=True)
 class Phase2DataConfig:
-    """Phase-2 data: every pair of ``n_traj`` initial states and ``n_signals`` training inputs."""
+    """Phase-2 data: every pair of ``n_traj`` initial states and ``n_signals`` training inputs.
+
+    ``window`` is the input-window length in samples. The paper uses 100 (5 s); the default 40 (2 s,
+    twice the slowest latent time constant of the default design) costs 2.5x less in the GRU, which
+    dominates Phase-2 training and the observer step.
+    """
 
     n_traj: int = 40
     n_signals: int = 30
     T: float = 20.0
-    window: int = 100
+    window: int = 40
     kinds: tuple = ("constant", "sinusoid", "square")
 
 
@@ -118,8 +123,8 @@ class ObsConfig:
     gain_hidden: tuple = (64, 64)
     model_based_injection: bool = False
     data: Phase2DataConfig = field(default_factory=Phase2DataConfig)
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=512, lr=1e-3,
-                                                                schedule="cosine", samples_per_epoch=100000))
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=15, batch_size=256, lr=1e-3,
+                                                                schedule="cosine", samples_per_epoch=20000))
 
 
 @dataclass(frozen=True)
@@ -133,8 +138,8 @@ class DynConfig:
     scale_init: float = 0.01
     nu_pde: float = 0.1
     data: Phase2DataConfig = field(default_factory=Phase2DataConfig)
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=512, lr=1e-3,
-                                                                schedule="cosine", samples_per_epoch=100000))
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=15, batch_size=256, lr=1e-3,
+                                                                schedule="cosine", samples_per_epoch=20000))
 
 
 @dataclass(frozen=True)

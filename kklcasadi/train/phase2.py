@@ -1,5 +1,5 @@
-"""Phase 2 on a frozen Phase-1 model: HyperKKL_obs (Algorithm 2), HyperKKL_dyn (Algorithm 3),
-the curriculum baseline, and the training-free model-based ``inject`` observer.
+"""Phase 2 on a frozen Phase-1 model: HyperKKL_obs (Algorithm 2), HyperKKL_dyn (Algorithm 3) and
+the curriculum baseline.
 """
 
 from __future__ import annotations
@@ -240,9 +240,6 @@ def train_method(system: System, design: Design, base: Model, method: str, confi
     if base.card["method"] != "autonomous":
         raise ValueError(f"base model {base.path} has method {base.card['method']!r}; "
                          "Phase 2 starts from an 'autonomous' (Phase-1) model")
-    if method == "inject":
-        arrays = {k: v for k, v in base.arrays.items() if k.split("/")[0] in ("encoder", "decoder")}
-        return arrays, {**base.card["architecture"], "_window": 1}, {"note": "model-based, no training"}, {}, {}
     expected = {"obs": ObsConfig, "dyn": DynConfig, "curriculum": CurriculumConfig}[method]
     if not isinstance(config, expected):
         raise TypeError(f"config for {method!r} must be a {expected.__name__}, got {type(config).__name__}")
