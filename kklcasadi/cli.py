@@ -15,11 +15,16 @@ from . import systems
 
 __all__ = ["main"]
 
-MODELS = Path(__file__).resolve().parent.parent / "models"
+#: Where the shipped observers live: ``models/`` of the working directory, else of the source tree.
+MODEL_ROOTS = (Path.cwd() / "models", Path(__file__).resolve().parent.parent / "models")
 
 
 def _shipped(system: str, method: str) -> Path:
-    return MODELS / system / method
+    for root in MODEL_ROOTS:
+        if (root / system / method / "card.json").exists():
+            return root / system / method
+    raise SystemExit(f"error: no shipped model {system}/{method} under {' or '.join(map(str, MODEL_ROOTS))}; "
+                     "run from the repository root or pass --model DIR")
 
 
 def _observer_estimator(obs):

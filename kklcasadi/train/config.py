@@ -66,6 +66,11 @@ class Phase1Config:
     n_traj, t_keep, box_scale
         Phase-1 data: trajectories from a Latin hypercube over the X0 box (scaled by ``box_scale``),
         each labelled over ``t_keep`` seconds (:func:`kklcasadi.data.phase1`).
+    exact_labels : bool
+        Keep only labels that match the true map to the tolerance (``exact_only`` of
+        :func:`kklcasadi.data.phase1`); False also labels states near X0 whose backward solution escapes,
+        with the map of the plant frozen outside the domain (needed where every solution settles, as
+        FitzHugh-Nagumo's, which would leave no exact label away from the equilibrium).
     n_pde : int
         Extra PDE collocation points over the (scaled) box.
     nu_pde : float
@@ -85,6 +90,7 @@ class Phase1Config:
     n_traj: int = 400
     t_keep: float = 10.0
     box_scale: float = 1.0
+    exact_labels: bool = True
     n_pde: int = 20000
     nu_pde: float = 0.1
     warmup_epochs: int = 5
@@ -168,5 +174,5 @@ def default_config(system: str, method: str, **overrides: Any) -> Any:
         raise TypeError(f"{cls.__name__} has no field(s) {unknown}; fields: {sorted(names)}")
     config = cls()
     if method == "autonomous" and system in PAPER_WIDTH:
-        config = replace(config, width=PAPER_WIDTH[system])
+        config = replace(config, width=PAPER_WIDTH[system], exact_labels=system != "fhn")
     return replace(config, **overrides)
