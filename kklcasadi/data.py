@@ -22,7 +22,7 @@ import numpy as np
 
 from . import signals as sig
 from .design import Design
-from .simulate import simulate_batch, time_grid
+from .simulate import TrajectoryBatch, simulate_batch, time_grid
 from .systems import System
 
 __all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "driven_labels", "input_windows"]
@@ -97,7 +97,7 @@ def _reversed(system: System) -> System:
 
 def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, t_keep: float = 10.0,
            dt: float = 0.05, tol: float = 1e-7, domain_scale: float = 2.0, box_scale: float = 1.0,
-           exact_only: bool = True) -> Phase1Data:
+           labels: str = "exact") -> Phase1Data:
     """States over the X0 box and their exact latent labels ``z = T(x)`` under ``u = 0``.
 
     Each trajectory starts at a Latin-hypercube state ``x0``, runs backward in time for ``t_b``
@@ -107,9 +107,15 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
     its exit state until its remaining backward time has passed. So the labels are those of the
     plant frozen outside the domain (which makes ``T`` well defined where backward solutions escape,
     as for FitzHugh-Nagumo, Van der Pol or Roessler) and agree with the true map wherever the past
-    stays inside. With ``exact_only`` (default) a frozen trajectory is released at once instead, so
-    that its kept samples, ``t_b`` or more after the release, agree with the true map to ``tol``
-    too (they then lie further along the flow than ``x0``).
+    stays inside (``labels="frozen"``). With ``labels="exact"`` (default) a frozen trajectory is
+    released at once instead, so that its kept samples, ``t_b`` or more after the release, agree
+    with the true map to ``tol`` too (they then lie further along the flow than ``x0``).
+
+    ``labels="cold"`` runs no backward pass: each trajectory starts at ``x0`` with ``z = 0`` and all
+    its samples are kept. These are the latents a cold-started observer (z(0) = 0, as in the
+    benchmark) actually sees; use them where backward solutions escape at once and every forward
+    solution settles, so that neither exact nor frozen labels cover the operating region
+    (FitzHugh-Nagumo: the backward flow is stiff and unstable, its frozen labels are noise).
 
     Parameters
     ----------
@@ -128,8 +134,8 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         Size of the domain (scale of the X0 box about its centre) outside which the past is frozen.
     box_scale : float
         Scale of the sampling box about its centre.
-    exact_only : bool
-        Keep no sample whose label remembers a frozen past (see above).
+    labels : {"exact", "frozen", "cold"}
+        How the past is treated (see above).
 
     Returns
     -------
@@ -143,8 +149,14 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
     if not (np.isfinite(domain_scale) and domain_scale >= 1):
         raise ValueError(f"domain_scale must be >= 1 (the domain contains the X0 box), got {domain_scale!r}")
+    if labels not in ("exact", "frozen", "cold"):
+        raise ValueError(f"labels must be 'exact', 'frozen' or 'cold', got {labels!r}")
     x0 = system.sample_box(n_traj, seed, scale=box_scale)
     n_keep = time_grid(t_keep, dt).size
+    if labels == "cold":
+        fwd = simulate_batch(_latent_system(system, design), np.hstack([x0, np.zeros((n_traj, design.nz))]),
+                             [np.ones(n_keep)] * n_traj, n_keep * dt, dt)
+        return _kept(system, design, fwd, n_keep, n_traj)
     centre = system.x0_box.mean(axis=1)
     half = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0]) * domain_scale
     y_ref = float(np.max(np.abs(np.asarray(system.h.map(n_traj)(x0.T))))) or 1.0
@@ -173,14 +185,19 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
     z_b = -np.linalg.solve(design.A, design.B @ y_b.T).T
     n_total = n_back + n_keep
     # A frozen past leaves a label error kappa exp(-lam t) |T_frozen - T| at time t after unfreezing.
-    # exact_only: unfreeze at once, so every kept sample is t_b or more after it (error below tol too);
-    # otherwise hold the exit state until the kept window starts at x0 (labels of the frozen plant).
-    gates = [np.ones(n_total) if exact_only else np.r_[np.zeros(n_back - (k - 1)), np.ones(n_keep + k - 1)]
+    # "exact": unfreeze at once, so every kept sample is t_b or more after it (error below tol too);
+    # "frozen": hold the exit state until the kept window starts at x0 (labels of the frozen plant).
+    gates = [np.ones(n_total) if labels == "exact" else np.r_[np.zeros(n_back - (k - 1)), np.ones(n_keep + k - 1)]
              for k in n_in]
     fwd = simulate_batch(_latent_system(system, design), np.hstack([x_b, z_b]), gates, n_total * dt, dt)
+    return _kept(system, design, fwd, n_keep, n_traj)
+
+
+def _kept(system: System, design: Design, fwd: TrajectoryBatch, n_keep: int, n_traj: int) -> Phase1Data:
+    """The last ``n_keep`` samples of every trajectory that did not fail, as Phase1Data."""
     if not fwd.ok.all():
         warnings.warn(f"phase1: dropped {int((~fwd.ok).sum())} of {n_traj} trajectories whose simulation failed",
-                      RuntimeWarning, stacklevel=2)
+                      RuntimeWarning, stacklevel=3)
     xz = fwd.x[fwd.ok, -n_keep:, :].reshape(-1, system.nx + design.nz)
     y = fwd.y[fwd.ok, -n_keep:, :].reshape(-1, system.ny)
     return Phase1Data(xz[:, :system.nx].copy(), xz[:, system.nx:].copy(), y.copy())

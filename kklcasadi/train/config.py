@@ -10,6 +10,11 @@ __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynCo
 
 #: Hidden width of the encoder/decoder per system in the paper (150 or 350 units).
 PAPER_WIDTH = {"duffing": 150, "vdp": 150, "rossler": 350, "fhn": 350}
+#: Phase-1 sampling box (scale of X0 about its centre) so that the labelled states cover where the
+#: benchmark's inputs drive the plant (Duffing reaches |x| ~ (2.5, 4.9) from the unit box).
+BOX_SCALE = {"duffing": 2.5}
+#: Phase-1 label kind per system (see Phase1Config.labels).
+LABELS = {"fhn": "cold"}
 
 
 @dataclass(frozen=True)
@@ -66,11 +71,11 @@ class Phase1Config:
     n_traj, t_keep, box_scale
         Phase-1 data: trajectories from a Latin hypercube over the X0 box (scaled by ``box_scale``),
         each labelled over ``t_keep`` seconds (:func:`kklcasadi.data.phase1`).
-    exact_labels : bool
-        Keep only labels that match the true map to the tolerance (``exact_only`` of
-        :func:`kklcasadi.data.phase1`); False also labels states near X0 whose backward solution escapes,
-        with the map of the plant frozen outside the domain (needed where every solution settles, as
-        FitzHugh-Nagumo's, which would leave no exact label away from the equilibrium).
+    labels : {"exact", "frozen", "cold"}
+        Phase-1 labels (:func:`kklcasadi.data.phase1`): ``exact`` match the true map to the
+        tolerance; ``cold`` are the latents of a cold-started observer, for plants whose every
+        solution settles and whose backward flow escapes (FitzHugh-Nagumo), where exact labels
+        exist only at the equilibrium. With ``cold`` labels the PDE term is off (they do not solve it).
     n_pde : int
         Extra PDE collocation points over the (scaled) box.
     nu_pde : float
@@ -90,7 +95,7 @@ class Phase1Config:
     n_traj: int = 400
     t_keep: float = 10.0
     box_scale: float = 1.0
-    exact_labels: bool = True
+    labels: str = "exact"
     n_pde: int = 20000
     nu_pde: float = 0.1
     warmup_epochs: int = 5
@@ -174,5 +179,6 @@ def default_config(system: str, method: str, **overrides: Any) -> Any:
         raise TypeError(f"{cls.__name__} has no field(s) {unknown}; fields: {sorted(names)}")
     config = cls()
     if method == "autonomous" and system in PAPER_WIDTH:
-        config = replace(config, width=PAPER_WIDTH[system], exact_labels=system != "fhn")
+        config = replace(config, width=PAPER_WIDTH[system], box_scale=BOX_SCALE.get(system, 1.0),
+                         labels=LABELS.get(system, "exact"))
     return replace(config, **overrides)

@@ -76,7 +76,7 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
     """
     dtype = torch_dtype(config.dtype)
     labelled = kdata.phase1(system, design, config.n_traj, seed, t_keep=config.t_keep, dt=dt,
-                            box_scale=config.box_scale, exact_only=config.exact_labels)
+                            box_scale=config.box_scale, labels=config.labels)
     pde = kdata.pde_points(system, config.n_pde, seed + 1, box_scale=config.box_scale)
     n_lab, n_pde = len(labelled.x), len(pde.x)
     x = np.vstack([labelled.x, pde.x])
@@ -92,14 +92,14 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
     A = torch.tensor(design.A, dtype=dtype, device=device)
     B = torch.tensor(design.B, dtype=dtype, device=device)
     z_scale = torch.as_tensor(labelled.z.std(0), dtype=dtype, device=device)
-    x_scale = torch.as_tensor(x.std(0), dtype=dtype, device=device)
+    x_scale = torch.as_tensor(labelled.x.std(0), dtype=dtype, device=device)
 
     def encoder_loss(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
         z, res = pde_residual(encoder, batch["x"], batch["f"], batch["y"], A, B)
         mask = batch["labelled"]
         mse = (((z - batch["z"]) / z_scale) ** 2 * mask).sum() / (mask.sum() * design.nz).clamp_min(1.0)
         pde_loss = ((res / z_scale) ** 2).mean()
-        nu = config.nu_pde * min(1.0, (epoch + 1) / max(config.warmup_epochs, 1))
+        nu = 0.0 if config.labels == "cold" else config.nu_pde * min(1.0, (epoch + 1) / max(config.warmup_epochs, 1))
         return mse + nu * pde_loss, {"mse": mse.item(), "pde": pde_loss.item()}
 
     ckpt = Path(workdir) if workdir is not None else None
@@ -110,10 +110,13 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
                       checkpoint=ckpt / "encoder.ckpt.npz" if ckpt else None)
     encoder.requires_grad_(False)
 
+    # The decoder inverts T where T is known: on the labelled states. (At unlabelled PDE points the
+    # encoder extrapolates and need not be injective; such pairs would blur the inverse.)
+    x_dec = labelled.x
     with torch.no_grad():
-        z_all = encoder(torch.as_tensor(x, dtype=dtype, device=device)).cpu().numpy()
+        z_all = encoder(torch.as_tensor(x_dec, dtype=dtype, device=device)).cpu().numpy()
     decoder = MLP(list(encoder.spec.sizes)[::-1], config.activation).to(dtype)
-    decoder.set_normalisation(z_all.mean(0), z_all.std(0), x.mean(0), x.std(0))
+    decoder.set_normalisation(z_all.mean(0), z_all.std(0), x_dec.mean(0), x_dec.std(0))
     decoder.to(device)
     if config.spectral_norm:
         for layer in decoder.layers:
@@ -131,7 +134,7 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
         return loss, {}
 
     dec_fit = fit(list(decoder.parameters()), decoder_loss,
-                  ArrayDataset({"x": x, "z": z_all}, dtype=dtype, device=device), config.decoder,
+                  ArrayDataset({"x": x_dec, "z": z_all}, dtype=dtype, device=device), config.decoder,
                   name="phase1/decoder", seed=seed + 1, progress=progress, resume=resume,
                   checkpoint=ckpt / "decoder.ckpt.npz" if ckpt else None)
     if config.spectral_norm:
