@@ -90,3 +90,19 @@ def test_phase2_drops_and_reports_blow_ups():
                          window=5, T=2.0, method="rk")
     assert len(p2.dropped) >= 4 and p2.x.shape[0] == 8 - len(p2.dropped)
     assert all(j == 1 for _, j in p2.dropped)
+
+
+def test_label_modes():
+    s = kc.systems.get("fhn")
+    d = kc.Design.default(s)
+    cold = data.phase1(s, d, n_traj=4, seed=0, t_keep=1.0, labels="cold")
+    z = cold.z.reshape(4, 20, d.nz)
+    np.testing.assert_array_equal(z[:, 0], 0.0)                         # a cold-started observer
+    np.testing.assert_allclose(cold.x.reshape(4, 20, 2)[:, 0], s.sample_box(4, 0))
+    frozen = data.phase1(s, d, n_traj=4, seed=0, t_keep=1.0, labels="frozen")
+    exact = data.phase1(s, d, n_traj=4, seed=0, t_keep=1.0, labels="exact")
+    # frozen labels start at x0 (held exit state), exact ones have run on to the equilibrium
+    assert np.abs(frozen.x.reshape(4, 20, 2)[:, 0] - s.sample_box(4, 0)).max() < 0.5
+    assert np.ptp(exact.x, axis=0).max() < 1e-3
+    with pytest.raises(ValueError, match="labels must be"):
+        data.phase1(s, d, n_traj=2, labels="warm")

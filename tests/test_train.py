@@ -183,3 +183,16 @@ def test_train_observer_rejects_bad_arguments(tmp_path, phase1_dir):
         train_observer("duffing", "obs", tmp_path / "z", base=phase1_dir, config=tiny_phase1())
     with pytest.raises(TypeError, match="no field"):
         default_config("duffing", "obs", epochs=3)
+
+
+def test_decoder_only_retraining_keeps_the_encoder(tmp_path, phase1_dir):
+    out = tmp_path / "dec"
+    train_observer("duffing", "autonomous", out, config=tiny_phase1(measurement_std=0.05), base=phase1_dir,
+                   progress=False)
+    new, old = load_model(out), load_model(phase1_dir)
+    for k in old.arrays:
+        if k.startswith("encoder/"):
+            np.testing.assert_array_equal(new.arrays[k], old.arrays[k])
+    assert not np.array_equal(new.arrays["decoder/W0"], old.arrays["decoder/W0"])
+    assert new.card["training"]["encoder"] == "kept from the base model"
+    assert new.base is not None and new.card["noise"]["measurement_std"] == 0.05
