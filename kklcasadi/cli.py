@@ -82,6 +82,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     overrides = {}
     if args.method == "autonomous" and args.noise is not None:
         overrides["measurement_std"] = args.noise
+    if args.method == "autonomous" and args.width is not None:
+        overrides["width"] = args.width
     config = None if args.method == "inject" else default_config(args.system, args.method, **overrides)
     if args.epochs is not None and config is not None:
         from dataclasses import replace
@@ -201,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--base", help="Phase-1 model (default OUT/../autonomous for Phase-2 methods)")
     t.add_argument("--noise", type=float, help="autonomous: train the decoder for this measurement-noise std")
+    t.add_argument("--width", type=int, help="autonomous: hidden width of T and T* (default 150; the paper "
+                   "uses 350 for rossler and fhn)")
     t.add_argument("--epochs", type=int, help="override the number of epochs of every stage")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
