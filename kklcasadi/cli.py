@@ -84,6 +84,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["measurement_std"] = args.noise
     if args.method == "autonomous" and args.width is not None:
         overrides["width"] = args.width
+    if args.method == "obs" and args.on_inject:
+        overrides["model_based_injection"] = True
     config = None if args.method == "inject" else default_config(args.system, args.method, **overrides)
     if args.epochs is not None and config is not None:
         from dataclasses import replace
@@ -205,6 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--noise", type=float, help="autonomous: train the decoder for this measurement-noise std")
     t.add_argument("--width", type=int, help="autonomous: hidden width of T and T* (default 150; the paper "
                    "uses 350 for rossler and fhn)")
+    t.add_argument("--on-inject", action="store_true",
+                   help="obs: learn the residual on top of the model-based injection of 'inject'")
     t.add_argument("--epochs", type=int, help="override the number of epochs of every stage")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--device", default="cpu", choices=("cpu", "cuda"))

@@ -151,7 +151,7 @@ def _train_dyn(system: System, design: Design, base: Model, config: DynConfig, *
     A = torch.tensor(design.A, dtype=dtype, device=device)
     B = torch.tensor(design.B, dtype=dtype, device=device)
     x_scale = torch.as_tensor(p2.x.reshape(-1, system.nx).std(0), dtype=dtype, device=device)
-    z_scale = torch.as_tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
+    z_scale = torch.tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
 
     def maps(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
         factors = hyper(w)
@@ -183,8 +183,8 @@ def _train_curriculum(system: System, design: Design, base: Model, config: Curri
     encoder, decoder = _base_nets(base, dtype, device)
     A = torch.tensor(design.A, dtype=dtype, device=device)
     B = torch.tensor(design.B, dtype=dtype, device=device)
-    z_scale = torch.as_tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
-    x_scale = torch.as_tensor(base.arrays["decoder/out_std"], dtype=dtype, device=device)
+    z_scale = torch.tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
+    x_scale = torch.tensor(base.arrays["decoder/out_std"], dtype=dtype, device=device)
     rng = np.random.default_rng(seed + 7)
     histories, summaries = {}, {}
     for s, kinds in enumerate(config.stages):
