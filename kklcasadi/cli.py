@@ -88,9 +88,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         overrides["model_based_injection"] = True
     config = None if args.method == "inject" else default_config(args.system, args.method, **overrides)
     if args.epochs is not None and config is not None:
-        from dataclasses import replace
-
-        config = _with_epochs(config, args.epochs, replace)
+        config = _with_epochs(config, args.epochs)
     path = train_observer(args.system, args.method, args.out, config=config, base=args.base, seed=args.seed,
                           device=args.device, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet,
                           threads=args.threads)
@@ -98,7 +96,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _with_epochs(config, epochs: int, replace):
+def _with_epochs(config, epochs: int):
+    """``config`` with every optimisation stage set to ``epochs`` epochs."""
+    from dataclasses import replace
+
     from .train import LoopConfig
 
     changes = {}

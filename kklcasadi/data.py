@@ -72,19 +72,24 @@ class PDEPoints(NamedTuple):
     y: np.ndarray
 
 
-def _latent_system(system: System, design: Design) -> System:
-    """The plant at ``u = 0``, gated, with the latent system: ``xdot = g f(x, 0)``, ``zdot = A z + B h(x)``.
+def _latent_system(system: System, design: Design, *, driven: bool = False) -> System:
+    """The plant with the latent system ``zdot = A z + B h(x)``.
 
-    The scalar input ``g`` in {0, 1} freezes the plant (``g = 0``) while the latent state settles.
+    ``driven``: ``xdot = f(x, u)`` under the plant's input. Otherwise the plant runs at ``u = 0``
+    gated by a scalar input ``g`` in {0, 1}: ``xdot = g f(x, 0)`` (``g = 0`` freezes the plant while
+    the latent state settles).
     """
     if design.ny != system.ny:
         raise ValueError(f"design has ny = {design.ny} but system {system.name!r} has ny = {system.ny}")
     xz = ca.SX.sym("xz", system.nx + design.nz)
     x, z = xz[:system.nx], xz[system.nx:]
-    gate = ca.SX.sym("g")
     y = system.h(x)
     zdot = ca.mtimes(ca.DM(design.A), z) + ca.mtimes(ca.DM(design.B), y)
     box = np.vstack([system.x0_box, np.tile([-1.0, 1.0], (design.nz, 1))])
+    if driven:
+        u = ca.SX.sym("u", system.nu)
+        return System(f"{system.name}_driven_kkl", xz, u, ca.vertcat(system.f(x, u), zdot), y, box)
+    gate = ca.SX.sym("g")
     return System(f"{system.name}_kkl", xz, gate, ca.vertcat(gate * system.f(x, 0), zdot), y, box)
 
 
@@ -314,17 +319,6 @@ def phase2(system: System, n_traj: int = 20, signals: Sequence[sig.Signal] | int
     return Phase2Data(batch.t, x, y, u, xdot.reshape(p, n, system.nx), int(window), pairs[batch.ok], signals, dropped)
 
 
-def _driven_latent_system(system: System, design: Design) -> System:
-    """The plant under its input with the latent system: ``xdot = f(x, u)``, ``zdot = A z + B h(x)``."""
-    xz = ca.SX.sym("xz", system.nx + design.nz)
-    x, z = xz[:system.nx], xz[system.nx:]
-    u = ca.SX.sym("u", system.nu)
-    y = system.h(x)
-    zdot = ca.mtimes(ca.DM(design.A), z) + ca.mtimes(ca.DM(design.B), y)
-    box = np.vstack([system.x0_box, np.tile([-1.0, 1.0], (design.nz, 1))])
-    return System(f"{system.name}_driven_kkl", xz, u, ca.vertcat(system.f(x, u), zdot), y, box)
-
-
 def driven_labels(system: System, design: Design, signals: Sequence[sig.Signal], n_traj: int = 50, seed: int = 0,
                   *, t_keep: float = 10.0, dt: float = 0.05, tol: float = 1e-7) -> Phase1Data:
     """Input-driven states and the latent state the observer converges to, ``z = T(x, t)``.
@@ -349,7 +343,7 @@ def driven_labels(system: System, design: Design, signals: Sequence[sig.Signal],
     z0 = -np.linalg.solve(design.A, design.B @ y0.T).T
     t = time_grid((n_burn + n_keep) * dt, dt) - n_burn * dt
     inputs = [signals[j](np.maximum(t, 0.0)) for _, j in pairs]
-    batch = simulate_batch(_driven_latent_system(system, design), np.hstack([starts, z0]), inputs,
+    batch = simulate_batch(_latent_system(system, design, driven=True), np.hstack([starts, z0]), inputs,
                            (n_burn + n_keep) * dt, dt)
     if not batch.ok.all():
         warnings.warn(f"driven_labels: dropped {int((~batch.ok).sum())} of {len(pairs)} trajectories that failed",
