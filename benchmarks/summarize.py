@@ -26,8 +26,11 @@ def main() -> None:
             out = []
             for kind in KINDS:
                 c = [r for r in cells if r["kind"] == kind and r["noisy"] is noisy and r["method"] not in exclude]
-                r = min(c, key=lambda r: r["smape_mean"])
-                out.append(f"{r['smape_mean']:.1f} ({r['method']})")
+                low = min(r["smape_mean"] for r in c)
+                tied = [r["method"] for r in c if round(r["smape_mean"], 1) == round(low, 1)]
+                # at u = 0 inject, obs and dyn collapse to the autonomous observer
+                name = "autonomous" if "autonomous" in tied else "/".join(tied)
+                out.append(f"{low:.1f} ({name})")
             return out
 
         ekf = [next(r for r in cells if r["kind"] == k and r["noisy"] and r["method"] == "EKF")["smape_mean"]
