@@ -179,7 +179,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from .bench import bench_training
 
         print("== training throughput: samples per second per stage ==")
-        bench_training(args.system)
+        bench_training(args.system, device=args.device)
     return 0
 
 
@@ -244,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--system", default="duffing", choices=systems.names())
     b.add_argument("--model", help="model directory for the observer benchmark")
     b.add_argument("--trials", type=int, default=32)
+    b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
     b.set_defaults(func=cmd_bench)
     return p
 

@@ -170,6 +170,33 @@ def test_phase2_methods_write_models_that_refer_to_their_base(tmp_path, phase1_d
             assert torch.count_nonzero(a) == 0 and torch.count_nonzero(b) == 0
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("method, config", [
+    ("autonomous", tiny_phase1()),
+    ("obs", default_config("duffing", "obs", data=SMALL, loop=P2_LOOP, hidden=8, proj=4, gain_hidden=(8,))),
+    ("dyn", default_config("duffing", "dyn", data=SMALL, loop=P2_LOOP, hidden=8, embed=4, backbone=(8,), rank=2)),
+    ("curriculum", default_config("duffing", "curriculum", n_traj=2, n_signals_per_stage=1, t_keep=2.0,
+                                  loop=LoopConfig(epochs=1, batch_size=32))),
+])
+def test_cuda_training_gives_the_cpu_model(tmp_path, phase1_dir, method, config):
+    """Same seed, float64: the model trained on the GPU equals the CPU one up to reduction order.
+
+    Adam divides each gradient element by its own running scale, so a reduction-order difference
+    in a near-zero gradient can move a weight by up to ~1e-4 of a step (lr 1e-3): atol 1e-6. A
+    device bug (wrong data, a detached term) moves weights by whole steps.
+    """
+    base = None if method == "autonomous" else phase1_dir
+    models = {}
+    for device in ("cpu", "cuda"):
+        train_observer("duffing", method, tmp_path / device, config=config, base=base, device=device, progress=False)
+        models[device] = load_model(tmp_path / device)
+    cpu, gpu = models["cpu"], models["cuda"]
+    assert gpu.card["training"]["device"] == "cuda"
+    assert sorted(cpu.arrays) == sorted(gpu.arrays)
+    for name in cpu.arrays:
+        np.testing.assert_allclose(gpu.arrays[name], cpu.arrays[name], rtol=1e-5, atol=1e-6, err_msg=name)
+
+
 def test_train_observer_rejects_bad_arguments(tmp_path, phase1_dir):
     with pytest.raises(ValueError, match="known methods: autonomous, obs"):
         train_observer("duffing", "lstm", tmp_path / "x")
