@@ -139,7 +139,9 @@ class ObsConfig:
     gain_hidden: tuple = (64, 64)
     model_based_injection: bool = False
     data: Phase2DataConfig = field(default_factory=Phase2DataConfig)
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=15, batch_size=256, lr=1e-3,
+    # 40 epochs (~20 min on one CPU thread): 15 left Duffing's validation loss twice as high and
+    # its SMAPE under constant input at 12.1 % instead of 7.6 %
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=256, lr=1e-3,
                                                                 schedule="cosine", samples_per_epoch=20000))
 
 
