@@ -19,7 +19,7 @@ def _pair(x_true: object, xhat: object) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def smape(x_true: object, xhat: object) -> np.ndarray | float:
+def smape(x_true: object, xhat: object, *, per_state: bool = False) -> np.ndarray | float:
     """Symmetric mean absolute percentage error per trial, in percent (PROTOCOL.md).
 
     ``100 / (N nx) * sum_k sum_i 2 |x_ik - xhat_ik| / (|x_ik| + |xhat_ik| + 1e-8)``
@@ -27,14 +27,19 @@ def smape(x_true: object, xhat: object) -> np.ndarray | float:
     Parameters
     ----------
     x_true, xhat : array_like, shape (N, nx) or (M, N, nx)
+    per_state : bool
+        Average over time only, giving one SMAPE per state component (their mean is the
+        protocol's number): shows which state dominates it.
 
     Returns
     -------
-    float or numpy.ndarray, shape (M,)
+    float or numpy.ndarray, shape (M,); with ``per_state``: shape (nx,) or (M, nx)
         NaN for a trial whose estimate is not finite.
     """
     a, b = _pair(x_true, xhat)
     terms = 2.0 * np.abs(a - b) / (np.abs(a) + np.abs(b) + 1e-8)
+    if per_state:
+        return 100.0 * terms.mean(axis=-2)
     out = 100.0 * terms.mean(axis=(-2, -1))
     return float(out) if out.ndim == 0 else out
 

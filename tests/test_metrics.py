@@ -12,6 +12,18 @@ def test_smape_hand_computed():
     assert metrics.smape(x, xh) == pytest.approx(expected, rel=1e-8)  # the 1e-8 guard shifts it slightly
 
 
+def test_smape_per_state_hand_computed_and_averages_to_the_total():
+    x = np.array([[1.0, 2.0], [-1.0, 0.0]])
+    xh = np.array([[1.0, 1.0], [1.0, 0.0]])
+    # state 0: terms 0 and 2 -> 100 %; state 1: terms 2/3 and 0 -> 100/3 %
+    np.testing.assert_allclose(metrics.smape(x, xh, per_state=True), [100.0, 100.0 / 3], rtol=1e-8)
+    rng = np.random.default_rng(1)
+    xb, xhb = rng.normal(size=(4, 30, 3)), rng.normal(size=(4, 30, 3))
+    per = metrics.smape(xb, xhb, per_state=True)
+    assert per.shape == (4, 3)
+    np.testing.assert_allclose(per.mean(axis=-1), metrics.smape(xb, xhb), rtol=1e-13)
+
+
 def test_smape_batched_and_bounds():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(3, 50, 2))
