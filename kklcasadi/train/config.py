@@ -157,7 +157,7 @@ class DynConfig:
     nu_pde: float = 0.1
     data: Phase2DataConfig = field(default_factory=Phase2DataConfig)
     # a dyn sample costs ~3-6x an obs sample (JVP through the GRU and the hypernetwork): 60 epochs
-    # take ~40 min on one CPU thread, ~5 min on an H100 (--device cuda). 8 epochs left Duffing's
+    # take ~40 min on one CPU thread, ~7 min on an H100 (--device cuda). 8 epochs left Duffing's
     # dyn no better than the autonomous observer (constant input 50.8 % vs 11.3 % after 100).
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=60, batch_size=256, lr=1e-3,
                                                                 schedule="cosine", samples_per_epoch=10000))
