@@ -7,7 +7,7 @@ and decoder) on the same inputs as
   cost) and the shared library through ``ca.external`` (adds the Python call overhead),
 * the CasADi virtual machine (``Function.call``),
 * torch eager (float64, batch 1, no autograd): the same networks from
-  :mod:`kklcasadi.torch_nets` (``from_arrays``) and the same exact/RK4 update written in torch,
+  :mod:`kklcasadi.train.nets` (``from_arrays``) and the same exact/RK4 update written in torch,
 
 checks that every implementation returns the CasADi VM's result, and prints absolute times and
 ratios. Nothing here asserts a speed. Torch is imported inside the function only.
@@ -28,7 +28,7 @@ import numpy as np
 
 from .bench import Timing, time_call
 from .codegen import C_FLAGS
-from .modelfile import DECODER, ENCODER, HYPER
+from .architecture import DECODER, HYPER, lora_target_shapes
 from .observer import KKLObserver, load_observer
 from .rk4 import rk4_step
 from .systems import System
@@ -80,17 +80,18 @@ def _torch_step(observer: KKLObserver) -> Optional[Callable[..., tuple[Any, Any,
     """The observer step in torch eager, or None for a model-based term (the plant is CasADi)."""
     import torch
 
-    from .torch_nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
+    from .train.nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
 
     if observer.model_based_injection:
         return None
     # writable copies: the loaded arrays are read-only, which torch.as_tensor warns about
     arrays = {name: np.array(value) for name, value in observer.model.arrays.items()}
-    arch = observer.model.card["architecture"]
-    decoder = MLP.from_arrays(arrays, DECODER, arch[DECODER])
+    arch = observer.model.spec.architecture
+    decoder = MLP.from_arrays(arrays, DECODER, arch.decoder)
     if observer.method == "dyn":
-        hyper = LoRAHyperNet.from_arrays(arrays, HYPER, arch, nu=observer.nu)
-        n_encoder = len(arch[ENCODER]["sizes"]) - 1
+        hyper = LoRAHyperNet.from_arrays(arrays, HYPER, arch.hyper,
+                                         lora_target_shapes(arch.encoder, arch.decoder), nu=observer.nu)
+        n_encoder = len(arch.encoder.layer_shapes)
 
         def decode(z: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
             factors = hyper(w[None])[n_encoder:]
@@ -106,8 +107,8 @@ def _torch_step(observer: KKLObserver) -> Optional[Callable[..., tuple[Any, Any,
                     y_next: torch.Tensor) -> torch.Tensor:
             return ad @ z + gy @ y + gy_next @ y_next
     else:
-        a, b = torch.as_tensor(observer.A), torch.as_tensor(observer.B)
-        injection = (ObsInjection.from_arrays(arrays, "", arch) if observer.method == "obs"
+        a, b = torch.as_tensor(np.array(observer.A)), torch.as_tensor(np.array(observer.B))
+        injection = (ObsInjection.from_arrays(arrays, "", arch.obs) if observer.method == "obs"
                      else None)
 
         def advance(z: torch.Tensor, w: torch.Tensor, y: torch.Tensor,

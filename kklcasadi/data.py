@@ -24,36 +24,11 @@ from . import signals as sig
 from .design import Design
 from .simulate import TrajectoryBatch, simulate_batch, time_grid
 from .systems import System
+from .windows import input_windows
 
 __all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "driven_labels", "input_windows"]
 
 log = logging.getLogger(__name__)
-
-
-def input_windows(u: np.ndarray, window: int) -> np.ndarray:
-    """All input windows of a sampled input, as a read-only view.
-
-    Parameters
-    ----------
-    u : numpy.ndarray, shape (N, nu) or (M, N, nu)
-    window : int
-        Window length (number of samples), >= 1.
-
-    Returns
-    -------
-    numpy.ndarray, shape (N, window, nu) or (M, N, window, nu)
-        ``out[k] = [u_{k-window+1}, ..., u_k]`` (oldest first), with ``u_j = u_0`` for ``j < 0``.
-    """
-    if not isinstance(window, (int, np.integer)) or window < 1:
-        raise ValueError(f"window must be a positive integer (samples), got {window!r}")
-    u = np.asarray(u, dtype=float)
-    if u.ndim not in (2, 3):
-        raise ValueError(f"u must have shape (N, nu) or (M, N, nu), got {u.shape}")
-    axis = u.ndim - 2
-    first = np.take(u, [0], axis=axis)
-    padded = np.concatenate([np.repeat(first, window - 1, axis=axis), u], axis=axis)
-    view = np.lib.stride_tricks.sliding_window_view(padded, window, axis=axis)
-    return np.moveaxis(view, -1, -2)
 
 
 class Phase1Data(NamedTuple):
@@ -164,7 +139,7 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         return _kept(system, design, fwd, n_keep, n_traj)
     centre = system.x0_box.mean(axis=1)
     half = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0]) * domain_scale
-    y_ref = float(np.max(np.abs(np.asarray(system.h.map(n_traj)(x0.T))))) or 1.0
+    y_ref = float(np.max(np.abs(system.h_batch(x0)))) or 1.0
     growth = 1.0
     for _attempt in range(6):
         # |z_b - T(x_b)| <= 2 * latent_bound(max |y| over the past); labels scale like latent_bound(y_ref)
@@ -186,8 +161,7 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         log.info("%d of %d backward runs left the domain; their past is frozen at the exit state",
                  int(frozen.sum()), n_traj)
     x_b = back.x[np.arange(n_traj), n_in - 1]
-    y_b = np.asarray(system.h.map(n_traj)(x_b.T)).T
-    z_b = -np.linalg.solve(design.A, design.B @ y_b.T).T
+    z_b = design.latent_equilibrium(system.h_batch(x_b))
     n_total = n_back + n_keep
     # A frozen past leaves a label error kappa exp(-lam t) |T_frozen - T| at time t after unfreezing.
     # "exact": unfreeze at once, so every kept sample is t_b or more after it (error below tol too);
@@ -211,8 +185,8 @@ def _kept(system: System, design: Design, fwd: TrajectoryBatch, n_keep: int, n_t
 def pde_points(system: System, n: int = 10000, seed: int = 1, *, box_scale: float = 1.0) -> PDEPoints:
     """Latin-hypercube collocation points over the X0 box with exact ``f(x, 0)`` and ``h(x)``."""
     x = system.sample_box(n, seed, scale=box_scale)
-    f = np.asarray(system.f.map(n)(x.T, np.zeros((system.nu, n)))).T
-    y = np.asarray(system.h.map(n)(x.T)).T
+    f = system.f_batch(x)
+    y = system.h_batch(x)
     return PDEPoints(x, f, y)
 
 
@@ -315,7 +289,7 @@ def phase2(system: System, n_traj: int = 20, signals: Sequence[sig.Signal] | int
                       f"(state, signal) pairs {list(dropped)[:10]}", RuntimeWarning, stacklevel=2)
     x, u, y = batch.x[batch.ok], batch.u[batch.ok], batch.y[batch.ok]
     p, n = x.shape[:2]
-    xdot = np.asarray(system.f.map(p * n)(x.reshape(-1, system.nx).T, u.reshape(-1, system.nu).T)).T
+    xdot = system.f_batch(x.reshape(-1, system.nx), u.reshape(-1, system.nu))
     return Phase2Data(batch.t, x, y, u, xdot.reshape(p, n, system.nx), int(window), pairs[batch.ok], signals, dropped)
 
 
@@ -339,8 +313,7 @@ def driven_labels(system: System, design: Design, signals: Sequence[sig.Signal],
     x0 = system.sample_box(n_traj, seed)
     pairs = [(i, j) for i in range(n_traj) for j in range(len(signals))]
     starts = x0[[i for i, _ in pairs]]
-    y0 = np.asarray(system.h.map(len(pairs))(starts.T)).T
-    z0 = -np.linalg.solve(design.A, design.B @ y0.T).T
+    z0 = design.latent_equilibrium(system.h_batch(starts))
     t = time_grid((n_burn + n_keep) * dt, dt) - n_burn * dt
     inputs = [signals[j](np.maximum(t, 0.0)) for _, j in pairs]
     batch = simulate_batch(_latent_system(system, design, driven=True), np.hstack([starts, z0]), inputs,

@@ -86,6 +86,22 @@ class Design:
         _, vecs = np.linalg.eig(self.A)
         return float(np.linalg.cond(vecs))
 
+    def latent_equilibrium(self, y: object) -> np.ndarray:
+        """The latent equilibrium ``z = -A^{-1} B y`` for constant outputs, row-wise.
+
+        Parameters
+        ----------
+        y : array_like, shape (M, ny)
+
+        Returns
+        -------
+        numpy.ndarray, shape (M, nz)
+        """
+        y = np.asarray(y, dtype=float)
+        if y.ndim != 2 or y.shape[1] != self.ny:
+            raise ValueError(f"y: expected shape (M, {self.ny}), received {y.shape}.")
+        return -np.linalg.solve(self.A, self.B @ y.T).T
+
     def forgetting_time(self, z_gap: float, tol: float = 1e-6) -> float:
         """Time after which ``kappa * exp(-lam t) * z_gap <= tol`` (the decay of a wrong initial latent)."""
         if z_gap <= 0:

@@ -23,7 +23,7 @@ evaluations of the same plant function.
 The observer state is ``(z_k, w_k)`` and the last measurement ``y_k``: over ``[t_k, t_k+1]`` the
 latent ODE sees ``y`` interpolated linearly from ``y_k`` to ``y_k+1`` (first-order hold) and the
 input held at ``u_k``, the newest entry of the window ``w_k`` (PROTOCOL.md "Observer"). The window
-convention is :func:`kklcasadi.data.input_windows`: ``w_k`` holds the last ``window`` input
+convention is :func:`kklcasadi.windows.input_windows`: ``w_k`` holds the last ``window`` input
 samples up to and including ``u_k``, oldest first, filled with ``u_0`` before ``t = 0``.
 """
 
@@ -38,11 +38,13 @@ import casadi as ca
 import numpy as np
 from scipy.linalg import expm
 
-from . import export, systems
-from .data import input_windows
-from .modelfile import CARD_FILE, DECODER, ENCODER, Model, load_model, save_model
+from . import systems, variants
+from .modelfile import CARD_FILE, Model, ModelSpec, derive_model, load_model
 from .rk4 import rk4_step
 from .systems import System
+from .validation import error, positive_int
+from .variants import MODEL_BASED_INJECTION
+from .windows import input_windows
 
 if TYPE_CHECKING:
     import control
@@ -56,9 +58,6 @@ DISCRETIZATIONS = ("exact", "rk4")
 INTEGRATOR_SOLVERS = ("cvodes", "idas", "rk", "collocation")
 #: Top-level card field: add the model-based (``inject``) term under a learned obs injection.
 MODEL_BASED_INJECTION = "model_based_injection"
-
-_LINEAR = ("autonomous", "curriculum", "dyn")
-_NONLINEAR = ("obs", "inject")
 
 PathLike = Union[str, os.PathLike]
 
@@ -80,14 +79,6 @@ class Estimate:
     t: np.ndarray
     xhat: np.ndarray
     z: np.ndarray
-
-
-def _positive_int(value: Any, argument: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{argument}: expected a positive int, received {type(value).__name__}.")
-    if value < 1:
-        raise ValueError(f"{argument}: expected a positive int, received {value}.")
-    return int(value)
 
 
 def _foh_matrices(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
@@ -177,70 +168,45 @@ class KKLObserver:
         if not isinstance(system, System):
             raise TypeError(f"system: expected a kklcasadi.System, received "
                             f"{type(system).__name__}.")
-        card = model.card
-        where = str(model.path / CARD_FILE)
-        _check_system(card, system, where)
+        spec = model.spec
+        _check_system(spec, system, str(model.path / CARD_FILE))
         self.model, self.system = model, system
-        self.method: str = card["method"]
-        if self.method not in _LINEAR + _NONLINEAR:
-            raise ValueError(f"{where}: 'method': expected one of {list(_LINEAR + _NONLINEAR)}, "
-                             f"found {self.method!r}. This kklcasadi version cannot run it; "
-                             "upgrade kklcasadi or export the model with a known method.")
+        self.method: str = spec.method
+        self.variant: variants.Variant = spec.variant
         self.nx, self.nu, self.ny = system.nx, system.nu, system.ny
         self.A, self.B = model.A, model.B
         self.nz = self.A.shape[0]
         self.dt, self.window = model.dt, model.window
-        self.linear = self.method in _LINEAR
-        self.model_based_injection = self.method == "inject" or _card_flag(card, where)
+        self.linear = self.variant.linear
         self.discretization = _check_discretization(discretization, self.linear, self.method)
-        self.substeps = _positive_int(substeps, "substeps")
+        self.substeps = positive_int(substeps, "substeps")
         self.foh_matrices = (_foh_matrices(self.A, self.B, self.dt)
                              if self.discretization == "exact" else None)
 
-        arrays, arch = model.arrays, card["architecture"]
-        self.encoder = export.mlp_function(arrays, ENCODER, arch[ENCODER], "encoder")
-        decoder = export.mlp_function(arrays, DECODER, arch[DECODER], "decoder")
+        nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
+        self.encoder = nets.encoder
+        self._context, self._input_term = nets.context, nets.input_term
+        self.model_injection = nets.model_injection
+        self.model_based_injection = nets.model_injection is not None
         self._A, self._B = ca.sparsify(ca.DM(self.A)), ca.sparsify(ca.DM(self.B))
-        if self.method == "obs":
-            self._context = export.obs_context_function(arrays, arch, self.window)
-            self._gain = export.obs_context_gain_function(arrays, arch)
-        self.model_injection = (self._model_injection(decoder) if self.model_based_injection
-                                else None)
 
         z, w = ca.MX.sym("z", self.nz), ca.MX.sym("w", self.window, self.nu)
         y, u = ca.MX.sym("y", self.ny), ca.MX.sym("u", self.nu)
-        if self.method == "dyn":
-            xhat = export.lora_mlp_function(arrays, arch, self.nu, self.window, DECODER)(z, w)
-        else:
-            xhat = decoder(z)
-        self.decode = ca.Function("decode", [z, w], [xhat], ["z", "w"], ["xhat"])
+        self.decode = ca.Function("decode", [z, w], [nets.decoder(z, w)], ["z", "w"], ["xhat"])
         self.rhs = ca.Function("rhs", [z, y, u, w], [self._field(z, y, u, self._context_of(w))],
                                ["z", "y", "u", "w"], ["zdot"])
         self.step = self._build_step()
 
     # ------------------------------------------------------------------ construction
-    def _model_injection(self, decoder: ca.Function) -> ca.Function:
-        """``dz = dT/dx(xhat) (f(xhat, u) - f(xhat, 0))`` at ``xhat = T*(z)``, exact (a JVP)."""
-        x, v = ca.MX.sym("x", self.nx), ca.MX.sym("v", self.nx)
-        jvp = ca.Function("encoder_jvp", [x, v], [ca.jtimes(self.encoder(x), x, v)],
-                          ["x", "v"], ["dz"])
-        z, u = ca.MX.sym("z", self.nz), ca.MX.sym("u", self.nu)
-        xhat = decoder(z)
-        f = self.system.f
-        dz = jvp(xhat, f(xhat, u) - f(xhat, ca.DM.zeros(self.nu)))
-        return ca.Function("model_injection", [z, u], [dz], ["z", "u"], ["dz"])
-
     def _context_of(self, w: ca.MX) -> Optional[ca.MX]:
         """What the latent field needs from the window, once per step (obs: ``P GRU(w)``)."""
-        return self._context(w) if self.method == "obs" else None
+        return None if self._context is None else self._context(w)
 
     def _field(self, z: ca.MX, y: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
-        """``A z + B y`` plus the method's input terms, each exactly 0 at ``u = 0``."""
+        """``A z + B y`` plus the variant's input term, exactly 0 at ``u = 0``."""
         zdot = ca.mtimes(self._A, z) + ca.mtimes(self._B, y)
-        if self.model_injection is not None:
-            zdot = zdot + self.model_injection(z, u)
-        if context is not None:
-            zdot = zdot + ca.mtimes(self._gain(z, context), u)
+        if self._input_term is not None:
+            zdot = zdot + self._input_term(z, u, context)
         return zdot
 
     def _build_step(self) -> ca.Function:
@@ -331,7 +297,7 @@ class KKLObserver:
             in ``z0``.
         """
         if n_threads is not None:
-            _positive_int(n_threads, "n_threads")
+            positive_int(n_threads, "n_threads")
         t = _check_time(t, self.dt)
         n = t.size
         ys, batched_y = _check_samples(y, "y", n, self.ny)
@@ -344,7 +310,7 @@ class KKLObserver:
         m, nz, nu, window = ys.shape[0], self.nz, self.nu, self.window
         z_start = _check_initial(z0, m, nz, batched_y)                          # (nz, M)
 
-        w0 = np.ascontiguousarray(input_windows(us, window)[:, 0])           # (M, window, nu)
+        w0 = np.ascontiguousarray(input_windows(us[:, :1], window)[:, 0])    # (M, window, nu)
         w0_cols = w0.transpose(1, 0, 2).reshape(window, m * nu)
         xhat = np.empty((m, n, self.nx))
         z = np.empty((m, n, nz))
@@ -457,30 +423,17 @@ class Estimator:
 
 
 # ---------------------------------------------------------------------- checks
-def _check_system(card: dict, system: System, where: str) -> None:
-    expected = card["system"]
-    if system.name != expected["name"]:
-        raise ValueError(f"{where}: 'system.name': the model was trained for {expected['name']!r}, "
+def _check_system(spec: ModelSpec, system: System, where: str) -> None:
+    expected = spec.system
+    if system.name != expected.name:
+        raise ValueError(f"{where}: 'system.name': the model was trained for {expected.name!r}, "
                          f"received the system {system.name!r}. Pass the plant the model was "
                          "trained for, or load the model trained for this plant.")
     for key in ("nx", "nu", "ny"):
-        if getattr(system, key) != expected[key]:
+        if getattr(system, key) != getattr(expected, key):
             raise ValueError(f"{where}: 'system.{key}': the model expects {key} = "
-                             f"{expected[key]}, the system {system.name!r} has {key} = "
+                             f"{getattr(expected, key)}, the system {system.name!r} has {key} = "
                              f"{getattr(system, key)}. Pass the plant the model was trained for.")
-
-
-def _card_flag(card: dict, where: str) -> bool:
-    flag = card.get(MODEL_BASED_INJECTION, False)
-    if not isinstance(flag, bool):
-        raise ValueError(f"{where}: '{MODEL_BASED_INJECTION}': expected true or false, found "
-                         f"{flag!r}. Set it to true to add the model-based term under the learned "
-                         "injection, or remove it.")
-    if flag and card["method"] != "obs":
-        raise ValueError(f"{where}: '{MODEL_BASED_INJECTION}': only method 'obs' takes it (a "
-                         f"learned residual on top of the model-based term), found method "
-                         f"{card['method']!r}. Remove the field, or use method 'inject'.")
-    return flag
 
 
 def _check_discretization(discretization: Optional[str], linear: bool, method: str) -> str:
@@ -603,8 +556,7 @@ def load_observer(path: PathLike, *, system: Optional[System] = None,
 def make_inject_model(base: PathLike, out_dir: PathLike, *, overwrite: bool = False) -> Path:
     """Write an ``inject`` model from an autonomous (or curriculum) model; no training.
 
-    The new card has method ``inject``, window 1, the base model's system, design, sample period,
-    noise level and encoder/decoder arrays, and ``base`` pointing at ``base`` (relative path).
+    Same as :func:`kklcasadi.modelfile.derive_model` with ``method="inject"``.
 
     Parameters
     ----------
@@ -620,25 +572,4 @@ def make_inject_model(base: PathLike, out_dir: PathLike, *, overwrite: bool = Fa
     Path
         The new model directory.
     """
-    source = load_model(base)
-    if source.method not in ("autonomous", "curriculum"):
-        raise ValueError(f"{source.path / CARD_FILE}: 'method': expected 'autonomous' or "
-                         f"'curriculum' (a Phase-1 encoder/decoder pair), found "
-                         f"{source.method!r}. Point base at the Phase-1 model.")
-    out = Path(out_dir).resolve()
-    card = source.card
-    arrays = {name: value for name, value in source.arrays.items()
-              if name.startswith((f"{ENCODER}/", f"{DECODER}/"))}
-    new_card = {
-        "method": "inject", "system": card["system"], "design": card["design"], "dt": card["dt"],
-        "window": 1,
-        "architecture": {ENCODER: card["architecture"][ENCODER],
-                         DECODER: card["architecture"][DECODER]},
-        "base": {"path": os.path.relpath(source.path, out),
-                 "weights_sha256": card["weights_sha256"]},
-        "noise": card["noise"],
-        "training": {"note": "model-based input injection: the base model's encoder and decoder "
-                             "with the exact term dT/dx(xhat) (f(xhat, u) - f(xhat, 0)); no "
-                             "training", "base_method": source.method},
-    }
-    return save_model(out, arrays, new_card, overwrite=overwrite)
+    return derive_model(base, out_dir, "inject", overwrite=overwrite)

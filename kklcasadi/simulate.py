@@ -226,8 +226,7 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
     with np.errstate(invalid="ignore"):
         x[~(np.abs(x) < blowup)] = np.nan                       # inf, NaN and blow-ups become NaN
     ok &= ~np.isnan(x).any(axis=(1, 2))
-    hmap = system.h.map(m * n)
-    y = np.asarray(hmap(x.reshape(m * n, system.nx).T)).T.reshape(m, n, system.ny) + v
+    y = system.h_batch(x.reshape(m * n, system.nx)).reshape(m, n, system.ny) + v
     for arr in (x, us, y):
         arr.setflags(write=False)
     return TrajectoryBatch(t, x, us, y, ok)

@@ -124,6 +124,41 @@ class System:
     def __repr__(self) -> str:
         return f"System({self.name!r}, nx={self.nx}, nu={self.nu}, ny={self.ny})"
 
+    def f_batch(self, x: object, u: object = None) -> np.ndarray:
+        """``f`` on many points in one mapped call.
+
+        Parameters
+        ----------
+        x : array_like, shape (M, nx)
+        u : array_like, shape (M, nu), optional
+            Default 0 (the autonomous field).
+
+        Returns
+        -------
+        numpy.ndarray, shape (M, nx)
+        """
+        x = self._rows(x, self.nx, "x")
+        u = np.zeros((len(x), self.nu)) if u is None else self._rows(u, self.nu, "u")
+        if len(u) != len(x):
+            raise ValueError(f"u: expected {len(x)} rows (one per row of x), received {len(u)}.")
+        if len(x) == 0:
+            return np.zeros((0, self.nx))
+        return np.asarray(self.f.map(len(x))(x.T, u.T)).T.reshape(len(x), self.nx)
+
+    def h_batch(self, x: object) -> np.ndarray:
+        """``h`` on many points in one mapped call: ``x`` (M, nx) -> ``y`` (M, ny)."""
+        x = self._rows(x, self.nx, "x")
+        if len(x) == 0:
+            return np.zeros((0, self.ny))
+        return np.asarray(self.h.map(len(x))(x.T)).T.reshape(len(x), self.ny)
+
+    @staticmethod
+    def _rows(value: object, width: int, arg: str) -> np.ndarray:
+        arr = np.asarray(value, dtype=float)
+        if arr.ndim != 2 or arr.shape[1] != width:
+            raise ValueError(f"{arg}: expected shape (M, {width}), received {arr.shape}.")
+        return arr
+
     def check_state(self, x: object, arg: str = "x0") -> np.ndarray:
         """Return ``x`` as a float array of shape (nx,), or raise a ValueError naming ``arg``."""
         arr = np.asarray(x, dtype=float)

@@ -45,34 +45,29 @@ def model_dir_factory(tmp_path_factory):
     named as ``card["base"]``. ``card_extra`` adds top-level card fields.
     """
     import kklcasadi
-    from kklcasadi.modelfile import save_model
+    from kklcasadi.architecture import HyperSpec, MLPSpec, ObsSpec
+    from kklcasadi.modelfile import make_card, save_model
+    from kklcasadi.variants import DynModelSpec, MapsSpec, ObsModelSpec
 
     counter = iter(range(10**6))
 
     def make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
              card_extra=None, dt=0.05):
         plant = kklcasadi.systems.get(system) if isinstance(system, str) else system
-        nx, nu, ny = plant.nx, plant.nu, plant.ny
-        nz = ny * (2 * nx + 1)
-        arch = {"encoder": {"sizes": [nx, *hidden, nz], "activation": "tanh"},
-                "decoder": {"sizes": [nz, *hidden, nx], "activation": "tanh"}}
-        if method == "obs":
-            arch.update({"context": {"hidden": 4, "proj": 3},
-                         "gain": {"sizes": [nz + 3, 6, nz * nu], "activation": "tanh"}})
-        if method == "dyn":
-            arch["hyper"] = {"hidden": 4, "embed": 3, "backbone": [5, 5], "rank": 2}
-        card = {"method": method, "system": {"name": plant.name, "nx": nx, "nu": nu, "ny": ny},
-                "design": {"A": (-np.diag(np.arange(1.0, nz + 1))).tolist(),
-                           "B": np.ones((nz, ny)).tolist()},
-                "dt": dt, "window": window, "architecture": arch, "base": None,
-                "noise": {"measurement_std": 0.0}, "training": {"seed": seed},
+        nx, nu = plant.nx, plant.nu
+        design = kklcasadi.Design.default(plant)
+        nz = design.nz
+        maps = MapsSpec(MLPSpec((nx, *hidden, nz)), MLPSpec((nz, *hidden, nx)))
+        spec = {"obs": lambda: ObsModelSpec(maps.encoder, maps.decoder,
+                                            ObsSpec(4, 3, MLPSpec((nz + 3, 6, nz * nu)))),
+                "dyn": lambda: DynModelSpec(maps.encoder, maps.decoder, HyperSpec(4, 3, (5, 5), 2), nu),
+                }.get(method, lambda: maps)()
+        card = {**make_card(plant, design, method, spec, dt=dt, window=window, training={"seed": seed}),
                 **(card_extra or {})}
         root = tmp_path_factory.mktemp(f"model{next(counter)}")
         if base:
-            base_card = {**card, "method": "autonomous",
-                         "architecture": {k: arch[k] for k in ("encoder", "decoder")}}
-            for key in card_extra or {}:
-                base_card.pop(key)
+            base_card = make_card(plant, design, "autonomous", maps, dt=dt, window=window,
+                                  training={"seed": seed})
             base_dir = save_model(root / "autonomous", _random_model_arrays(base_card, seed),
                                   base_card)
             sha = kklcasadi.modelfile.load_model(base_dir).card["weights_sha256"]

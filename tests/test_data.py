@@ -61,7 +61,7 @@ def test_window_convention():
     np.testing.assert_array_equal(w[5, :, 0], [3, 4, 5])     # oldest first, ends at u_k
     batched = data.input_windows(np.stack([u, 2 * u]), 3)
     np.testing.assert_array_equal(batched[1, 4, :, 0], [4, 6, 8])
-    with pytest.raises(ValueError, match="window must be a positive integer"):
+    with pytest.raises(ValueError, match="window: expected a positive int"):
         data.input_windows(u, 0)
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kklcasadi import modelfile
+from kklcasadi import modelfile, variants
 from kklcasadi.modelfile import CARD_FILE, WEIGHTS_FILE, load_model, model_array_shapes, save_model
 
 NX, NU, NY = 2, 1, 1
@@ -73,7 +73,7 @@ def rewrite_weights(directory, arrays):
 
 
 def test_reading_and_exporting_need_no_torch():
-    code = ("import sys, kklcasadi, kklcasadi.modelfile, kklcasadi.export; "
+    code = ("import sys, kklcasadi, kklcasadi.modelfile, kklcasadi.casadi_nets, kklcasadi.observer; "
             "sys.exit('torch was imported' if 'torch' in sys.modules else 0)")
     subprocess.run([sys.executable, "-c", code], check=True,
                    cwd=Path(__file__).resolve().parents[1])
@@ -81,7 +81,7 @@ def test_reading_and_exporting_need_no_torch():
 
 # ----------------------------------------------------------------------------- round trips
 
-@pytest.mark.parametrize("method", modelfile.METHODS)
+@pytest.mark.parametrize("method", variants.names())
 def test_roundtrip(tmp_path, method):
     card = make_card(method, nu=2)
     arrays = random_arrays(card)

@@ -9,7 +9,8 @@ torch = pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.modelfile import load_model  # noqa: E402
-from kklcasadi.torch_nets import MLP, LoRAHyperNet, ObsInjection  # noqa: E402
+from kklcasadi.architecture import lora_target_shapes  # noqa: E402
+from kklcasadi.train.nets import MLP, LoRAHyperNet, ObsInjection  # noqa: E402
 from kklcasadi.train import LoopConfig, Phase2DataConfig, default_config, train_observer  # noqa: E402
 from kklcasadi.train.loop import ArrayDataset, fit  # noqa: E402
 from kklcasadi.train.phase1 import latent_noise_covariance, pde_residual  # noqa: E402
@@ -115,7 +116,7 @@ def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     assert hist["encoder"]["val"][-1] < hist["encoder"]["val"][0]
     assert hist["decoder"]["val"][-1] < hist["decoder"]["val"][0]
     # the saved arrays rebuild the same network bitwise
-    net = MLP.from_arrays(model.arrays, "encoder", card["architecture"]["encoder"])
+    net = MLP.from_arrays(model.arrays, "encoder", model.spec.architecture.encoder)
     again = {k: v for k, v in net.to_arrays("encoder").items()}
     for k, v in again.items():
         np.testing.assert_array_equal(v, model.arrays[k])
@@ -160,12 +161,14 @@ def test_phase2_methods_write_models_that_refer_to_their_base(tmp_path, phase1_d
             np.testing.assert_array_equal(model.arrays[k], model.base.arrays[k])
     if method == "obs":
         assert model.card["model_based_injection"] is config.model_based_injection
-        net = ObsInjection.from_arrays(model.arrays, "", model.card["architecture"])
+        net = ObsInjection.from_arrays(model.arrays, "", model.spec.architecture.obs)
         z = torch.randn(5, 5, dtype=torch.float64)
         w = torch.randn(5, 10, 1, dtype=torch.float64)
         assert torch.equal(net(z, w, torch.zeros(5, 1, dtype=torch.float64)), torch.zeros(5, 5, dtype=torch.float64))
     if method == "dyn":
-        hyper = LoRAHyperNet.from_arrays(model.arrays, "hyper", model.card["architecture"], nu=1)
+        hyper = LoRAHyperNet.from_arrays(model.arrays, "hyper", model.spec.architecture.hyper,
+                                         lora_target_shapes(model.spec.architecture.encoder,
+                                                            model.spec.architecture.decoder), nu=1)
         for a, b in hyper(torch.zeros(2, 10, 1, dtype=torch.float64)):
             assert torch.count_nonzero(a) == 0 and torch.count_nonzero(b) == 0
 
@@ -198,15 +201,15 @@ def test_cuda_training_gives_the_cpu_model(tmp_path, phase1_dir, method, config)
 
 
 def test_train_observer_rejects_bad_arguments(tmp_path, phase1_dir):
-    with pytest.raises(ValueError, match="known methods: autonomous, obs"):
+    with pytest.raises(ValueError, match=r"method: expected one of \['autonomous', 'curriculum', 'obs'"):
         train_observer("duffing", "lstm", tmp_path / "x")
     with pytest.raises(ValueError, match="known systems"):
         train_observer("dufing", "autonomous", tmp_path / "x")
     with pytest.raises(FileExistsError, match="overwrite"):
         train_observer("duffing", "autonomous", phase1_dir, config=tiny_phase1(), progress=False)
-    with pytest.raises(ValueError, match="is for system 'duffing', not 'vdp'"):
+    with pytest.raises(ValueError, match="base: expected a model for system 'vdp'.*system 'duffing'"):
         train_observer("vdp", "inject", tmp_path / "y", base=phase1_dir)
-    with pytest.raises(TypeError, match="must be a ObsConfig"):
+    with pytest.raises(TypeError, match="config: expected a ObsConfig"):
         train_observer("duffing", "obs", tmp_path / "z", base=phase1_dir, config=tiny_phase1())
     with pytest.raises(TypeError, match="no field"):
         default_config("duffing", "obs", epochs=3)

@@ -16,21 +16,20 @@ from typing import Any
 import numpy as np
 import torch
 
-from .. import __version__, systems
+from .. import systems, variants
 from ..design import Design
-from ..modelfile import load_model, save_model
-from ..observer import make_inject_model
+from ..modelfile import derive_model, load_model, make_card, save_model
 from ..systems import System
-from ..torch_nets import MLP
+from ..validation import error, positive_int
 from .config import (CurriculumConfig, DynConfig, LoopConfig, ObsConfig, Phase1Config, Phase2DataConfig,
                      default_config)
-from .phase1 import train_phase1
+from .result import Trained
 
 __all__ = ["train_observer", "default_config", "LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig",
-           "DynConfig", "CurriculumConfig", "METHODS"]
+           "DynConfig", "CurriculumConfig", "Trained", "METHODS"]
 
-#: Methods :func:`train_observer` accepts (``inject`` needs no training beyond Phase 1).
-METHODS = ("autonomous", "obs", "dyn", "curriculum", "inject")
+#: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.variants`).
+METHODS = variants.trainable()
 
 
 def _jsonable(value: Any) -> Any:
@@ -45,27 +44,20 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-def _card(system: System, design: Design, method: str, dt: float, window: int, architecture: dict,
-          training: dict, *, base: dict | None = None, measurement_std: float = 0.0, **extra: Any) -> dict:
-    return {"method": method, "system": {"name": system.name, "nx": system.nx, "nu": system.nu, "ny": system.ny},
-            "design": {"A": design.A.tolist(), "B": design.B.tolist()}, "dt": dt, "window": window,
-            "architecture": architecture, "base": base, "noise": {"measurement_std": measurement_std},
-            "training": _jsonable(training), **extra}
+def _base_reference(out_dir: Path, base: Any) -> dict:
+    return {"path": os.path.relpath(base.path, out_dir.resolve()), "weights_sha256": base.card["weights_sha256"]}
 
 
-def _base_reference(out_dir: Path, base_dir: Path) -> dict:
-    model = load_model(base_dir)
-    return {"path": os.path.relpath(base_dir.resolve(), out_dir.resolve()),
-            "weights_sha256": model.card["weights_sha256"]}
-
-
-def _phase1_base(base: str | Path | None, out: Path, plant: System) -> tuple[Path, Any]:
-    """The Phase-1 model a Phase-2 method starts from (default ``out/../autonomous``), checked."""
+def _load_base(base: str | Path | None, out: Path, plant: System, method: str) -> Any:
+    """The model ``method`` builds on (default ``out/../autonomous`` when it needs one), checked."""
+    variant = variants.get(method)
+    if base is None and not variant.needs_base:
+        return None
     base_dir = Path(base) if base is not None else out.parent / "autonomous"
     model = load_model(base_dir)
-    if model.card["system"]["name"] != plant.name:
-        raise ValueError(f"base model {base_dir} is for system {model.card['system']['name']!r}, not {plant.name!r}")
-    return base_dir, model
+    if model.spec.system.name != plant.name:
+        raise error("base", f"a model for system {plant.name!r}", f"{base_dir} (system {model.spec.system.name!r})")
+    return model
 
 
 def _history_plot(histories: dict[str, dict], path: Path) -> None:
@@ -121,67 +113,41 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     """
     plant = systems.get(system) if isinstance(system, str) else system
     if not isinstance(plant, System):
-        raise TypeError(f"system must be a kklcasadi.System or a registered name, got {type(system).__name__}")
+        raise error("system", "a kklcasadi.System or a registered name", type(system).__name__, kind=TypeError)
     if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; known methods: {', '.join(METHODS)}")
+        raise error("method", f"one of {list(METHODS)}", method)
     if device not in ("cpu", "cuda"):
-        raise ValueError(f"device must be 'cpu' or 'cuda', got {device!r}")
+        raise error("device", "'cpu' or 'cuda'", device)
     if device == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device='cuda' was asked for but torch sees no CUDA device; use device='cpu'")
+        raise ValueError("device: 'cuda' was asked for but torch sees no CUDA device; use device='cpu'.")
     out = Path(out_dir)
     if out.is_file():
-        raise ValueError(f"out_dir {out} is a file; give a directory")
+        raise error("out_dir", "a directory", str(out), "Give a directory path.")
     if (out / "card.json").exists() and not overwrite and not resume:
         raise FileExistsError(f"{out} already holds a model; pass overwrite=True (CLI: --overwrite) to replace it")
-    if method == "inject":
-        base_dir, _ = _phase1_base(base, out, plant)
-        return make_inject_model(base_dir, out, overwrite=overwrite)
-    design = design or Design.default(plant)
+    variant = variants.get(method)
+    base_model = _load_base(base, out, plant, method)
+    if variant.trainer is None:            # made from its base without training (inject)
+        return derive_model(base_model.path, out, method, overwrite=overwrite)
     if config is None:
-        config = default_config(plant.name, "autonomous" if method == "autonomous" else method)
+        config = default_config(plant.name, method)
     if threads is not None:
-        if not isinstance(threads, int) or threads < 1:
-            raise ValueError(f"threads must be a positive integer, got {threads!r}")
-        torch.set_num_threads(threads)
+        torch.set_num_threads(positive_int(threads, "threads"))
+    if base_model is not None:
+        design = Design(base_model.A, base_model.B)
+    design = design or Design.default(plant)
     workdir = out / ".train"
     torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
     t0 = time.perf_counter()
-    if method == "autonomous":
-        if not isinstance(config, Phase1Config):
-            raise TypeError(f"config for 'autonomous' must be a Phase1Config, got {type(config).__name__}")
-        encoder, base_ref = None, None
-        if base is not None:       # keep the base's encoder, train a new decoder (e.g. for a noise level)
-            base_model = load_model(base)
-            design = Design(base_model.A, base_model.B)
-            encoder = MLP.from_arrays(base_model.arrays, "encoder", base_model.card["architecture"]["encoder"])
-            base_ref = _base_reference(out, Path(base))
-        result = train_phase1(plant, design, config, dt=dt, seed=seed, device=device, progress=progress,
-                              workdir=workdir, resume=resume, encoder=encoder)
-        arrays = {**result.encoder.to_arrays("encoder"), **result.decoder.to_arrays("decoder")}
-        fits = {"encoder": result.encoder_fit, "decoder": result.decoder_fit}
-        histories = {k: f.history for k, f in fits.items() if f is not None}
-        training = {"config": config, "seed": seed, "data": {"labelled": result.n_labelled, "pde": result.n_pde},
-                    **{k: (f.summary() if f is not None else "kept from the base model") for k, f in fits.items()},
-                    "wall_time_s": round(time.perf_counter() - t0, 1), "device": device}
-        card = _card(plant, design, "autonomous", dt, 1,
-                     {"encoder": result.encoder.architecture(), "decoder": result.decoder.architecture()},
-                     training, base=base_ref, measurement_std=config.measurement_std)
-    else:
-        from .phase2 import train_method
-
-        base_dir, base_model = _phase1_base(base, out, plant)
-        design = Design(base_model.A, base_model.B)
-        arrays, architecture, training, histories, extra = train_method(
-            plant, design, base_model, method, config, dt=dt, seed=seed, device=device, progress=progress,
-            workdir=workdir, resume=resume)
-        training = {**training, "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1), "device": device}
-        window = architecture.pop("_window", 1)
-        card = _card(plant, design, method, dt, window, architecture, training,
-                     base=_base_reference(out, base_dir),
-                     measurement_std=base_model.card["noise"]["measurement_std"], **extra)
-    path = save_model(out, arrays, card, overwrite=overwrite or resume)
-    if histories:
-        (workdir).mkdir(parents=True, exist_ok=True)
-        (out / "history.json").write_text(json.dumps(_jsonable(histories)))
-        _history_plot(histories, out / "history.png")
+    trained: Trained = variant.load_trainer()(plant, design, base_model, config, dt=dt, seed=seed, device=device,
+                                              progress=progress, workdir=workdir, resume=resume)
+    training = {**_jsonable(trained.training), "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1),
+                "device": device}
+    card = make_card(plant, trained.design, method, trained.spec, dt=dt, window=trained.window,
+                     training=training, measurement_std=trained.measurement_std,
+                     base=None if base_model is None else _base_reference(out, base_model))
+    path = save_model(out, trained.arrays, card, overwrite=overwrite or resume)
+    if trained.histories:
+        (out / "history.json").write_text(json.dumps(_jsonable(trained.histories)))
+        _history_plot(trained.histories, out / "history.png")
     return path

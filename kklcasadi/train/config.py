@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from .. import variants
+
 __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig", "default_config",
            "PAPER_WIDTH"]
 
@@ -175,14 +177,12 @@ class CurriculumConfig:
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=10, batch_size=256, lr=1e-4))
 
 
-_CONFIGS = {"autonomous": Phase1Config, "obs": ObsConfig, "dyn": DynConfig, "curriculum": CurriculumConfig}
-
-
 def default_config(system: str, method: str, **overrides: Any) -> Any:
     """The default configuration of ``method`` for ``system`` (the paper's widths), with overrides."""
-    if method not in _CONFIGS:
-        raise ValueError(f"unknown method {method!r}; trainable methods: {', '.join(_CONFIGS)}")
-    cls = _CONFIGS[method]
+    cls = variants.get(method).config_class()
+    if cls is None:
+        trainable = [v.name for v in variants.VARIANTS.values() if v.config is not None]
+        raise ValueError(f"method: expected one of {trainable} (a method with a configuration), received {method!r}.")
     names = {f.name for f in fields(cls)}
     unknown = sorted(set(overrides) - names)
     if unknown:

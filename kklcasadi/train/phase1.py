@@ -18,11 +18,15 @@ from scipy.linalg import solve_continuous_lyapunov
 from .. import data as kdata
 from ..design import Design
 from ..systems import System
-from ..torch_nets import MLP
+from ..architecture import DECODER, ENCODER
+from ..modelfile import Model
+from ..variants import MapsSpec
+from .nets import MLP
 from .config import Phase1Config
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
+from .result import Trained
 
-__all__ = ["Phase1Result", "train_phase1", "pde_residual", "latent_noise_covariance"]
+__all__ = ["Phase1Result", "train_phase1", "train_autonomous", "pde_residual", "latent_noise_covariance"]
 
 Tensor = torch.Tensor
 
@@ -56,11 +60,6 @@ def pde_residual(encoder: torch.nn.Module, x: Tensor, xdot: Tensor, y: Tensor, A
     return z, dz - z @ A.T - y @ B.T
 
 
-def _f(system: System, x: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
-    u = np.zeros((len(x), system.nu)) if u is None else u
-    return np.asarray(system.f.map(len(x))(x.T, u.T)).T
-
-
 def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: float = 0.05, seed: int = 0,
                  device: str = "cpu", progress: bool = True, workdir: str | Path | None = None,
                  resume: bool = False, encoder: MLP | None = None) -> Phase1Result:
@@ -81,7 +80,7 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
     n_lab, n_pde = len(labelled.x), len(pde.x)
     x = np.vstack([labelled.x, pde.x])
     arrays = {"x": x, "z": np.vstack([labelled.z, np.zeros((n_pde, design.nz))]),
-              "y": np.vstack([labelled.y, pde.y]), "f": np.vstack([_f(system, labelled.x), pde.f]),
+              "y": np.vstack([labelled.y, pde.y]), "f": np.vstack([system.f_batch(labelled.x), pde.f]),
               "labelled": np.r_[np.ones(n_lab), np.zeros(n_pde)][:, None]}
     sizes = [system.nx] + [config.width] * config.depth + [design.nz]
     reuse = encoder is not None
@@ -142,3 +141,28 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
             torch.nn.utils.parametrize.remove_parametrizations(layer, "weight", leave_parametrized=True)
     decoder.requires_grad_(False)
     return Phase1Result(encoder.cpu().double(), decoder.cpu().double(), enc_fit, dec_fit, n_lab, n_pde)
+
+
+def train_autonomous(system: System, design: Design, base: Model | None, config: Phase1Config, *,
+                     dt: float, seed: int, device: str, progress: bool, workdir: Path | None,
+                     resume: bool) -> Trained:
+    """The training hook of the ``autonomous`` variant (see :mod:`kklcasadi.variants`).
+
+    With ``base`` (a Phase-1 model), its encoder and design are kept and only a new decoder is
+    trained (e.g. for another noise level).
+    """
+    if not isinstance(config, Phase1Config):
+        raise TypeError(f"config: expected a Phase1Config for 'autonomous', received {type(config).__name__}.")
+    encoder = None
+    if base is not None:
+        design = Design(base.A, base.B)
+        encoder = MLP.from_arrays(base.arrays, ENCODER, base.spec.architecture.encoder)
+    result = train_phase1(system, design, config, dt=dt, seed=seed, device=device, progress=progress,
+                          workdir=workdir, resume=resume, encoder=encoder)
+    arrays = {**result.encoder.to_arrays(ENCODER), **result.decoder.to_arrays(DECODER)}
+    fits = {ENCODER: result.encoder_fit, DECODER: result.decoder_fit}
+    training = {"config": config, "data": {"labelled": result.n_labelled, "pde": result.n_pde},
+                **{k: (f.summary() if f is not None else "kept from the base model") for k, f in fits.items()}}
+    return Trained(arrays, MapsSpec(result.encoder.spec, result.decoder.spec), design, training,
+                   {k: f.history for k, f in fits.items() if f is not None},
+                   measurement_std=config.measurement_std)

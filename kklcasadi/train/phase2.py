@@ -12,15 +12,18 @@ import torch
 
 from .. import data as kdata
 from .. import signals as sig
+from ..architecture import DECODER, ENCODER, lora_target_shapes
 from ..design import Design
-from ..modelfile import Model, lora_target_shapes
+from ..modelfile import Model
 from ..systems import System
-from ..torch_nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
+from ..variants import DynModelSpec, MapsSpec, ObsModelSpec
 from .config import CurriculumConfig, DynConfig, ObsConfig
 from .loop import ArrayDataset, fit, torch_dtype
+from .nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
 from .phase1 import pde_residual
+from .result import Trained
 
-__all__ = ["train_method", "Phase2Dataset", "model_based_injection"]
+__all__ = ["train_obs", "train_dyn", "train_curriculum", "Phase2Dataset", "model_based_injection"]
 
 Tensor = torch.Tensor
 
@@ -59,10 +62,18 @@ def _flat(p2: kdata.Phase2Data, name: str) -> np.ndarray:
 
 
 def _base_nets(base: Model, dtype: torch.dtype, device: str) -> tuple[MLP, MLP]:
-    arch = base.card["architecture"]
-    nets = tuple(MLP.from_arrays(base.arrays, k, arch[k]).to(dtype=dtype, device=device).requires_grad_(False)
-                 for k in ("encoder", "decoder"))
-    return nets  # type: ignore[return-value]
+    arch = base.spec.architecture
+    return tuple(MLP.from_arrays(base.arrays, name, spec).to(dtype=dtype, device=device).requires_grad_(False)
+                 for name, spec in ((ENCODER, arch.encoder), (DECODER, arch.decoder)))  # type: ignore[return-value]
+
+
+def _check_phase2(method: str, base: Model | None, config: Any, expected: type) -> Model:
+    if base is None or base.method != "autonomous":
+        found = "no base model" if base is None else f"method {base.method!r} at {base.path}"
+        raise ValueError(f"base: expected an 'autonomous' (Phase-1) model for {method!r}, received {found}.")
+    if not isinstance(config, expected):
+        raise TypeError(f"config: expected a {expected.__name__} for {method!r}, received {type(config).__name__}.")
+    return base
 
 
 def _in_chunks(fn: Any, n: int, size: int = 65536) -> np.ndarray:
@@ -81,8 +92,7 @@ def model_based_injection(system: System, encoder: MLP, decoder: MLP, z: np.ndar
         with torch.no_grad():
             xhat = decoder(torch.as_tensor(z[rows], dtype=dtype, device=device))
             xh = xhat.double().cpu().numpy()
-            m = len(xh)
-            df = (np.asarray(system.f.map(m)(xh.T, u[rows].T)) - np.asarray(system.f.map(m)(xh.T, 0 * u[rows].T))).T
+            df = system.f_batch(xh, u[rows]) - system.f_batch(xh)
             _, jv = torch.func.jvp(encoder, (xhat,), (torch.as_tensor(df, dtype=dtype, device=device),))
         return jv.double().cpu().numpy()
 
@@ -94,8 +104,10 @@ def _phase2_data(system: System, cfg: Any, dt: float, seed: int) -> kdata.Phase2
                         kinds=cfg.kinds)
 
 
-def _train_obs(system: System, design: Design, base: Model, config: ObsConfig, *, dt: float, seed: int,
-               device: str, progress: bool, workdir: Path | None, resume: bool) -> tuple:
+def train_obs(system: System, design: Design, base: Model | None, config: ObsConfig, *, dt: float, seed: int,
+              device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
+    """The training hook of the ``obs`` variant: HyperKKL_obs (Algorithm 2) on a frozen Phase-1 model."""
+    base = _check_phase2("obs", base, config, ObsConfig)
     dtype = torch.float32
     encoder, decoder = _base_nets(base, dtype, device)
     p2 = _phase2_data(system, config.data, dt, seed)
@@ -131,16 +143,19 @@ def _train_obs(system: System, design: Design, base: Model, config: ObsConfig, *
                  resume=resume, checkpoint=workdir / "obs.ckpt.npz" if workdir else None)
     net = net.cpu().double()
     arrays = {**base.arrays, **net.to_arrays()}
-    arch = {**base.card["architecture"], **net.architecture(), "_window": config.data.window}
+    maps = base.spec.architecture
+    spec = ObsModelSpec(maps.encoder, maps.decoder, net.spec, bool(config.model_based_injection))
     training = {"config": config, "data": {"trajectories": int(p2.x.shape[0]), "samples": p2.n_samples,
                                            "dropped": len(p2.dropped)},
                 "obs": result.summary(), "loss_without_injection": baseline}
-    extra = {"model_based_injection": bool(config.model_based_injection)}
-    return arrays, arch, training, {"obs": result.history}, extra
+    return Trained(arrays, spec, design, training, {"obs": result.history}, config.data.window,
+                   base.spec.measurement_std)
 
 
-def _train_dyn(system: System, design: Design, base: Model, config: DynConfig, *, dt: float, seed: int,
-               device: str, progress: bool, workdir: Path | None, resume: bool) -> tuple:
+def train_dyn(system: System, design: Design, base: Model | None, config: DynConfig, *, dt: float, seed: int,
+              device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
+    """The training hook of the ``dyn`` variant: HyperKKL_dyn (Algorithm 3) on a frozen Phase-1 model."""
+    base = _check_phase2("dyn", base, config, DynConfig)
     dtype = torch.float32
     encoder, decoder = _base_nets(base, dtype, device)
     p2 = _phase2_data(system, config.data, dt, seed)
@@ -171,14 +186,18 @@ def _train_dyn(system: System, design: Design, base: Model, config: DynConfig, *
                  checkpoint=workdir / "dyn.ckpt.npz" if workdir else None)
     hyper = hyper.cpu().double()
     arrays = {**base.arrays, **hyper.to_arrays()}
-    arch = {**base.card["architecture"], **hyper.architecture(), "_window": config.data.window}
+    maps = base.spec.architecture
+    spec = DynModelSpec(maps.encoder, maps.decoder, hyper.spec, system.nu)
     training = {"config": config, "data": {"trajectories": int(p2.x.shape[0]), "samples": p2.n_samples,
                                            "dropped": len(p2.dropped)}, "dyn": result.summary()}
-    return arrays, arch, training, {"dyn": result.history}, {}
+    return Trained(arrays, spec, design, training, {"dyn": result.history}, config.data.window,
+                   base.spec.measurement_std)
 
 
-def _train_curriculum(system: System, design: Design, base: Model, config: CurriculumConfig, *, dt: float,
-                      seed: int, device: str, progress: bool, workdir: Path | None, resume: bool) -> tuple:
+def train_curriculum(system: System, design: Design, base: Model | None, config: CurriculumConfig, *, dt: float,
+                     seed: int, device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
+    """The training hook of the ``curriculum`` baseline: T and T* fine-tuned on staged driven data."""
+    base = _check_phase2("curriculum", base, config, CurriculumConfig)
     dtype = torch_dtype("float32")
     encoder, decoder = _base_nets(base, dtype, device)
     A = torch.tensor(design.A, dtype=dtype, device=device)
@@ -192,7 +211,7 @@ def _train_curriculum(system: System, design: Design, base: Model, config: Curri
                    for j in range(config.n_signals_per_stage * len(kinds))]
         lab = kdata.driven_labels(system, design, signals, config.n_traj, seed + 11 * s, t_keep=config.t_keep, dt=dt)
         # the PDE term keeps the autonomous field f(x, 0): a static map is fine-tuned, run as autonomous
-        f0 = np.asarray(system.f.map(len(lab.x))(lab.x.T, np.zeros((system.nu, len(lab.x))))).T
+        f0 = system.f_batch(lab.x)
         enc_data = ArrayDataset({"x": lab.x, "z": lab.z, "y": lab.y, "f": f0}, dtype=dtype, device=device)
         encoder.requires_grad_(True)
 
@@ -223,25 +242,6 @@ def _train_curriculum(system: System, design: Design, base: Model, config: Curri
         summaries[f"stage{s}"] = {"kinds": list(kinds), "samples": len(lab.x), "encoder": enc_fit.summary(),
                                   "decoder": dec_fit.summary()}
     encoder, decoder = encoder.cpu().double(), decoder.cpu().double()
-    arrays = {**encoder.to_arrays("encoder"), **decoder.to_arrays("decoder")}
-    arch = {"encoder": encoder.architecture(), "decoder": decoder.architecture(), "_window": 1}
-    return arrays, arch, {"config": config, "stages": summaries}, histories, {}
-
-
-def train_method(system: System, design: Design, base: Model, method: str, config: Any, **kwargs: Any) -> tuple:
-    """Train ``method`` on the frozen Phase-1 model ``base``.
-
-    Returns
-    -------
-    tuple
-        ``(arrays, architecture, training, histories, extra_card_fields)``; ``architecture["_window"]``
-        is the window length for the card.
-    """
-    if base.card["method"] != "autonomous":
-        raise ValueError(f"base model {base.path} has method {base.card['method']!r}; "
-                         "Phase 2 starts from an 'autonomous' (Phase-1) model")
-    expected = {"obs": ObsConfig, "dyn": DynConfig, "curriculum": CurriculumConfig}[method]
-    if not isinstance(config, expected):
-        raise TypeError(f"config for {method!r} must be a {expected.__name__}, got {type(config).__name__}")
-    trainer = {"obs": _train_obs, "dyn": _train_dyn, "curriculum": _train_curriculum}[method]
-    return trainer(system, design, base, config, **kwargs)
+    arrays = {**encoder.to_arrays(ENCODER), **decoder.to_arrays(DECODER)}
+    return Trained(arrays, MapsSpec(encoder.spec, decoder.spec), design, {"config": config, "stages": summaries},
+                   histories, 1, base.spec.measurement_std)

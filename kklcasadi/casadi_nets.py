@@ -1,4 +1,7 @@
-"""Export model-file arrays to CasADi Functions (no torch needed).
+"""The CasADi twin of the torch networks: model-file arrays -> CasADi Functions (no torch needed).
+
+Every builder takes a typed spec (:mod:`kklcasadi.architecture`) and the arrays it names, as
+validated by :func:`kklcasadi.modelfile.load_model`; nothing is re-parsed or re-checked here.
 
 * :func:`mlp_function` -- an MLP, ``x -> y``, layers as MX ``mtimes`` with DM constants, the
   input/output normalisation folded into the first and last layers.
@@ -10,8 +13,9 @@
 * :func:`lora_mlp_function` -- HyperKKL_dyn: the decoder (or encoder) modulated by the
   hypernetwork, ``(z, w) -> xhat``, each layer evaluated as ``W v + b + s a (b^T v)``.
 
-All returned Functions have named inputs and outputs and accept SX or MX arguments. The array
-names and shapes are those of :mod:`kklcasadi.modelfile` (see ``docs/model-format.md``).
+All returned Functions have named inputs and outputs and accept SX or MX arguments. The torch
+twins are in :mod:`kklcasadi.train.nets`; the tests check that both agree to 1e-10 in values and
+Jacobians.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ from typing import Any, Callable, Mapping, Optional
 import casadi as ca
 import numpy as np
 
-from kklcasadi.modelfile import (
+from .architecture import (
     DECODER,
     ENCODER,
     HYPER,
@@ -32,10 +36,11 @@ from kklcasadi.modelfile import (
     HyperSpec,
     MLPSpec,
     ObsSpec,
-    check_arrays,
-    gru_array_shapes,
-    lora_target_shapes,
 )
+from .validation import error, positive_int
+
+__all__ = ["mlp_function", "gru_function", "obs_context_function", "obs_context_gain_function",
+           "obs_gain_function", "obs_injection_function", "lora_mlp_function", "check_name"]
 
 Arrays = Mapping[str, Any]
 _NAME = re.compile(r"^[A-Za-z](?:_?[A-Za-z0-9])*$")
@@ -49,19 +54,12 @@ _CASADI_ACTIVATIONS: dict[str, Callable[[ca.MX], ca.MX]] = {
 }
 
 
-def _check_name(name: Any) -> str:
+def check_name(name: Any) -> str:
+    """Return ``name`` if it is a valid CasADi Function name, else raise a ValueError."""
     if not isinstance(name, str) or not _NAME.match(name) or name in ("null", "jac", "hess"):
-        raise ValueError(f"name: expected a CasADi function name (a letter, then letters, digits "
-                         f"and single underscores; not null, jac or hess), found {name!r}.")
+        raise error("name", "a CasADi function name (a letter, then letters, digits and single "
+                    "underscores; not null, jac or hess)", name)
     return name
-
-
-def _check_count(value: Any, argument: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{argument}: expected a positive int, found {type(value).__name__}.")
-    if value < 1:
-        raise ValueError(f"{argument}: expected a positive int, found {value}.")
-    return int(value)
 
 
 def _array(arrays: Arrays, name: str) -> np.ndarray:
@@ -97,18 +95,19 @@ def _mlp_expr(layers: list[tuple[ca.DM, ca.DM]], activation: str, x: ca.MX,
     return v
 
 
-def mlp_function(arrays: Arrays, prefix: str, arch: Mapping[str, Any],
+def mlp_function(spec: MLPSpec, arrays: Arrays, prefix: str,
                  name: Optional[str] = None) -> ca.Function:
-    """Export an MLP.
+    """Build an MLP.
 
     Parameters
     ----------
+    spec : MLPSpec
+        Its layer sizes and activation.
     arrays : Mapping[str, array_like]
-        Holds ``P/in_mean, P/in_std, P/out_mean, P/out_std, P/W{i}, P/b{i}`` for ``P = prefix``.
+        Holds ``spec.array_shapes(prefix)``: ``P/in_mean, P/in_std, P/out_mean, P/out_std,
+        P/W{i}, P/b{i}`` for ``P = prefix``.
     prefix : str
         E.g. ``"decoder"``.
-    arch : Mapping
-        The card entry ``{"sizes": [d0, ..., dL], "activation": ...}``.
     name : str, optional
         Function name; defaults to ``prefix`` with ``/`` replaced by ``_``.
 
@@ -117,9 +116,7 @@ def mlp_function(arrays: Arrays, prefix: str, arch: Mapping[str, Any],
     ca.Function
         ``y = f(x)``, ``x`` (d0, 1), ``y`` (dL, 1).
     """
-    spec = MLPSpec.from_card(arch, "arch", prefix)
-    check_arrays(arrays, spec.array_shapes(prefix), "arrays")
-    name = _check_name(prefix.replace("/", "_") if name is None else name)
+    name = check_name(prefix.replace("/", "_") if name is None else name)
     x = ca.MX.sym("x", spec.n_in)
     y = _mlp_expr(_folded_layers(arrays, prefix, spec), spec.activation, x)
     return ca.Function(name, [x], [y], ["x"], ["y"])
@@ -136,17 +133,17 @@ def _gru_cell(arrays: Arrays, prefix: str, nu: int, hidden: int, name: str) -> c
     return ca.Function(name, [h, x], [(1 - z) * n + z * h], ["h", "x"], ["h_next"])
 
 
-def gru_function(arrays: Arrays, prefix: str, nu: int, H: int, window: int,
+def gru_function(arrays: Arrays, prefix: str, nu: int, hidden: int, window: int,
                  name: Optional[str] = None) -> ca.Function:
-    """Export the bias-free GRU context over a window.
+    """Build the bias-free GRU context over a window.
 
     Parameters
     ----------
     arrays : Mapping[str, array_like]
-        Holds ``P/W_ih`` (3H, nu) and ``P/W_hh`` (3H, H).
+        Holds ``P/W_ih`` (3H, nu) and ``P/W_hh`` (3H, H) (:func:`gru_array_shapes`).
     prefix : str
         E.g. ``"context/gru"``.
-    nu, H : int
+    nu, hidden : int
         Input and hidden sizes.
     window : int
         Window length in samples.
@@ -159,27 +156,26 @@ def gru_function(arrays: Arrays, prefix: str, nu: int, H: int, window: int,
         ``h = f(w)``, ``w`` (window, nu) oldest sample first, ``h`` (H, 1) the final hidden
         state from ``h_0 = 0``. The cell is one Function folded ``window`` times.
     """
-    nu, H, window = _check_count(nu, "nu"), _check_count(H, "H"), _check_count(window, "window")
-    check_arrays(arrays, gru_array_shapes(prefix, nu, H), "arrays")
-    name = _check_name(prefix.replace("/", "_") if name is None else name)
-    folded = _gru_cell(arrays, prefix, nu, H, f"{name}_cell").fold(window)
+    nu, hidden = positive_int(nu, "nu"), positive_int(hidden, "hidden")
+    window = positive_int(window, "window")
+    name = check_name(prefix.replace("/", "_") if name is None else name)
+    folded = _gru_cell(arrays, prefix, nu, hidden, f"{name}_cell").fold(window)
     w = ca.MX.sym("w", window, nu)
-    return ca.Function(name, [w], [folded(ca.DM.zeros(H, 1), w.T)], ["w"], ["h"])
+    return ca.Function(name, [w], [folded(ca.DM.zeros(hidden, 1), w.T)], ["w"], ["h"])
 
 
-def obs_context_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,
+def obs_context_function(spec: ObsSpec, arrays: Arrays, window: int,
                          name: str = "obs_context") -> ca.Function:
-    """Export the HyperKKL_obs context ``l = P GRU(w)``.
+    """Build the HyperKKL_obs context ``l = P GRU(w)``.
 
     It depends on the window only, so an observer step evaluates it once and reuses it at every
     Runge-Kutta stage (see :func:`obs_context_gain_function`).
 
     Parameters
     ----------
+    spec : ObsSpec
     arrays : Mapping[str, array_like]
         Holds ``context/gru/*`` and ``context/proj/W``.
-    architecture : Mapping
-        Holds the card entries ``context`` and ``gain`` (a card's ``architecture`` will do).
     window : int
         Window length in samples.
     name : str
@@ -189,26 +185,23 @@ def obs_context_function(arrays: Arrays, architecture: Mapping[str, Any], window
     ca.Function
         ``l = f(w)``, ``w`` (window, nu), ``l`` (n_l, 1); exactly 0 for a zero window.
     """
-    spec = ObsSpec.from_card(architecture, "architecture")
-    window = _check_count(window, "window")
-    check_arrays(arrays, spec.array_shapes(), "arrays")
-    name = _check_name(name)
+    window = positive_int(window, "window")
+    name = check_name(name)
     gru = gru_function(arrays, OBS_GRU, spec.nu, spec.hidden, window, f"{name}_gru")
     w = ca.MX.sym("w", window, spec.nu)
     return ca.Function(name, [w], [ca.mtimes(ca.DM(_array(arrays, OBS_PROJ)), gru(w))], ["w"],
                        ["l"])
 
 
-def obs_context_gain_function(arrays: Arrays, architecture: Mapping[str, Any],
+def obs_context_gain_function(spec: ObsSpec, arrays: Arrays,
                               name: str = "obs_context_gain") -> ca.Function:
-    """Export the HyperKKL_obs input gain as a function of the context, ``G(z, l)``.
+    """Build the HyperKKL_obs input gain as a function of the context, ``G(z, l)``.
 
     Parameters
     ----------
+    spec : ObsSpec
     arrays : Mapping[str, array_like]
         Holds ``gain/*``.
-    architecture : Mapping
-        Holds the card entries ``context`` and ``gain``.
     name : str
 
     Returns
@@ -217,25 +210,22 @@ def obs_context_gain_function(arrays: Arrays, architecture: Mapping[str, Any],
         ``G = f(z, l)``, ``z`` (nz, 1), ``l`` (n_l, 1), ``G`` (nz, nu) (the gain MLP's output
         reshaped row-major).
     """
-    spec = ObsSpec.from_card(architecture, "architecture")
-    check_arrays(arrays, spec.gain.array_shapes(OBS_GAIN), "arrays")
-    name = _check_name(name)
-    gain = mlp_function(arrays, OBS_GAIN, spec.gain.to_card(), f"{name}_mlp")
+    name = check_name(name)
+    gain = mlp_function(spec.gain, arrays, OBS_GAIN, f"{name}_mlp")
     z, context = ca.MX.sym("z", spec.nz), ca.MX.sym("l", spec.proj)
     gain_matrix = ca.reshape(gain(ca.vertcat(z, context)), spec.nu, spec.nz).T
     return ca.Function(name, [z, context], [gain_matrix], ["z", "l"], ["G"])
 
 
-def obs_gain_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,
+def obs_gain_function(spec: ObsSpec, arrays: Arrays, window: int,
                       name: str = "obs_gain") -> ca.Function:
-    """Export the HyperKKL_obs input gain ``G(z, P GRU(w))``.
+    """Build the HyperKKL_obs input gain ``G(z, P GRU(w))``.
 
     Parameters
     ----------
+    spec : ObsSpec
     arrays : Mapping[str, array_like]
         Holds ``context/gru/*``, ``context/proj/W`` and ``gain/*``.
-    architecture : Mapping
-        Holds the card entries ``context`` and ``gain`` (a card's ``architecture`` will do).
     window : int
         Window length in samples.
     name : str
@@ -243,21 +233,20 @@ def obs_gain_function(arrays: Arrays, architecture: Mapping[str, Any], window: i
     Returns
     -------
     ca.Function
-        ``G = f(z, w)``, ``z`` (nz, 1), ``w`` (window, nu), ``G`` (nz, nu) (the gain MLP's
-        output reshaped row-major): :func:`obs_context_gain_function` of
-        :func:`obs_context_function`.
+        ``G = f(z, w)``, ``z`` (nz, 1), ``w`` (window, nu), ``G`` (nz, nu):
+        :func:`obs_context_gain_function` of :func:`obs_context_function`.
     """
-    name = _check_name(name)
-    context = obs_context_function(arrays, architecture, window, f"{name}_context")
-    gain = obs_context_gain_function(arrays, architecture, f"{name}_of_l")
+    name = check_name(name)
+    context = obs_context_function(spec, arrays, window, f"{name}_context")
+    gain = obs_context_gain_function(spec, arrays, f"{name}_of_l")
     z = ca.MX.sym("z", gain.size1_in(0))
     w = ca.MX.sym("w", *context.size_in(0))
     return ca.Function(name, [z, w], [gain(z, context(w))], ["z", "w"], ["G"])
 
 
-def obs_injection_function(arrays: Arrays, architecture: Mapping[str, Any], window: int,
+def obs_injection_function(spec: ObsSpec, arrays: Arrays, window: int,
                            name: str = "obs_injection") -> ca.Function:
-    """Export the HyperKKL_obs injection ``phi = G(z, w) u``, exactly zero at ``u = 0``.
+    """Build the HyperKKL_obs injection ``phi = G(z, w) u``, exactly zero at ``u = 0``.
 
     Parameters are those of :func:`obs_gain_function`.
 
@@ -266,17 +255,18 @@ def obs_injection_function(arrays: Arrays, architecture: Mapping[str, Any], wind
     ca.Function
         ``phi = f(z, w, u)``, ``z`` (nz, 1), ``w`` (window, nu), ``u`` (nu, 1), ``phi`` (nz, 1).
     """
-    name = _check_name(name)
-    gain = obs_gain_function(arrays, architecture, window, f"{name}_gain")
+    name = check_name(name)
+    gain = obs_gain_function(spec, arrays, window, f"{name}_gain")
     z = ca.MX.sym("z", gain.size1_in(0))
     w = ca.MX.sym("w", *gain.size_in(1))
     u = ca.MX.sym("u", gain.size2_out(0))
     return ca.Function(name, [z, w, u], [ca.mtimes(gain(z, w), u)], ["z", "w", "u"], ["phi"])
 
 
-def lora_mlp_function(arrays: Arrays, architecture: Mapping[str, Any], nu: int, window: int,
-                      target: str = DECODER, name: Optional[str] = None) -> ca.Function:
-    """Export the HyperKKL_dyn decoder (or encoder) modulated by the LoRA hypernetwork.
+def lora_mlp_function(encoder: MLPSpec, decoder: MLPSpec, hyper: HyperSpec, arrays: Arrays,
+                      nu: int, window: int, target: str = DECODER,
+                      name: Optional[str] = None) -> ca.Function:
+    """Build the HyperKKL_dyn decoder (or encoder) modulated by the LoRA hypernetwork.
 
     Layer ``i`` (target ``j``) computes ``W_i v + b_i + s * a_j (b_j^T v)`` with
     ``f_j = backbone([GRU(w); e_j]) - backbone([0; e_j])``, ``a_j = reshape(Wa_j f_j)``,
@@ -285,10 +275,11 @@ def lora_mlp_function(arrays: Arrays, architecture: Mapping[str, Any], nu: int, 
 
     Parameters
     ----------
+    encoder, decoder : MLPSpec
+        The two maps; the hypernetwork targets all encoder layers, then all decoder layers.
+    hyper : HyperSpec
     arrays : Mapping[str, array_like]
         Holds the ``encoder/*``, ``decoder/*`` and ``hyper/*`` arrays.
-    architecture : Mapping
-        A card's ``architecture`` with ``encoder``, ``decoder`` and ``hyper`` entries.
     nu : int
         Input size.
     window : int
@@ -304,22 +295,15 @@ def lora_mlp_function(arrays: Arrays, architecture: Mapping[str, Any], nu: int, 
         Decoder: ``xhat = f(z, w)``; encoder: ``z = f(x, w)``; ``w`` is (window, nu).
     """
     if target not in (ENCODER, DECODER):
-        raise ValueError(f"target: expected {ENCODER!r} or {DECODER!r}, found {target!r}.")
-    nu, window = _check_count(nu, "nu"), _check_count(window, "window")
-    name = _check_name(f"{target}_dyn" if name is None else name)
-    if not isinstance(architecture, Mapping):
-        raise TypeError(f"architecture: expected a mapping, found {type(architecture).__name__}.")
-    hyper = HyperSpec.from_card(architecture, "architecture")
-    encoder = MLPSpec.from_card(architecture.get(ENCODER), "architecture", ENCODER)
-    decoder = MLPSpec.from_card(architecture.get(DECODER), "architecture", DECODER)
+        raise error("target", f"{ENCODER!r} or {DECODER!r}", target)
+    nu, window = positive_int(nu, "nu"), positive_int(window, "window")
+    name = check_name(f"{target}_dyn" if name is None else name)
     spec = decoder if target == DECODER else encoder
-    check_arrays(arrays, {**spec.array_shapes(target), **hyper.array_shapes(
-        HYPER, nu, lora_target_shapes(encoder, decoder))}, "arrays")
 
     n_layers = len(spec.layer_shapes)
     offset = 0 if target == ENCODER else len(encoder.layer_shapes)
     gru = gru_function(arrays, f"{HYPER}/gru", nu, hyper.hidden, window, f"{name}_gru")
-    backbone = mlp_function(arrays, f"{HYPER}/backbone", hyper.backbone_spec.to_card(),
+    backbone = mlp_function(hyper.backbone_spec, arrays, f"{HYPER}/backbone",
                             f"{name}_backbone").map(n_layers)
     embed = ca.DM(_array(arrays, f"{HYPER}/embed")[offset:offset + n_layers].T)
     in_name, out_name = ("z", "xhat") if target == DECODER else ("x", "z")

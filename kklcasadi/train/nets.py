@@ -1,6 +1,7 @@
 """Torch networks of the HyperKKL observers.
 
-With ``train``, the only kklcasadi module that imports torch.
+The torch twin of :mod:`kklcasadi.casadi_nets`; like the rest of :mod:`kklcasadi.train` it
+imports torch, which the deploy side never does.
 
 * :class:`MLP` -- encoder ``T``, decoder ``T*``, the obs gain MLP and the hypernetwork backbone.
 * :class:`GRUContext` -- a bias-free GRU over the input window, final hidden state out.
@@ -9,8 +10,8 @@ With ``train``, the only kklcasadi module that imports torch.
   layer, applied by :func:`mlp_forward_lora`.
 
 Every module converts to and from the named float64 arrays of the model file format
-(``to_arrays`` / ``from_arrays``); the names and shapes are defined in :mod:`kklcasadi.modelfile`
-and ``docs/model-format.md``. Windows are ``(batch, window, nu)``, oldest sample first.
+(``to_arrays`` / ``from_arrays``), built from the typed specs of :mod:`kklcasadi.architecture`
+(which define the names and shapes, see ``docs/model-format.md``). Windows are ``(batch, window, nu)``, oldest sample first.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from kklcasadi.modelfile import (
+from ..architecture import (
     HYPER,
     OBS_GAIN,
     OBS_GRU,
@@ -33,7 +34,6 @@ from kklcasadi.modelfile import (
     check_activation,
     check_arrays,
     gru_array_shapes,
-    lora_target_shapes,
 )
 
 Tensor = torch.Tensor
@@ -87,10 +87,6 @@ class MLP(nn.Module):
         self.register_buffer("out_mean", torch.zeros(self.spec.n_out))
         self.register_buffer("out_std", torch.ones(self.spec.n_out))
 
-    def architecture(self) -> dict:
-        """The card entry ``{"sizes": [...], "activation": ...}``."""
-        return self.spec.to_card()
-
     def set_normalisation(self, in_mean: Any, in_std: Any, out_mean: Any, out_std: Any) -> None:
         """Set the normalisation from data statistics.
 
@@ -132,9 +128,9 @@ class MLP(nn.Module):
         return arrays
 
     @classmethod
-    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, arch: Mapping[str, Any],
+    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, spec: MLPSpec,
                     *, dtype: torch.dtype = torch.float64) -> "MLP":
-        """Build an MLP from its arrays and its card entry ``arch``.
+        """Build an MLP from its arrays and its spec.
 
         Parameters
         ----------
@@ -142,12 +138,11 @@ class MLP(nn.Module):
             Holds the arrays under ``prefix`` (see :meth:`to_arrays`).
         prefix : str
             E.g. ``"decoder"``.
-        arch : Mapping
-            ``{"sizes": [...], "activation": ...}``.
+        spec : MLPSpec
+            Layer sizes and activation.
         dtype : torch.dtype
             Parameter dtype of the new module.
         """
-        spec = MLPSpec.from_card(arch, "arch", prefix)
         mlp = cls(spec.sizes, spec.activation).to(dtype)
         mlp._load_arrays(arrays, prefix)
         return mlp
@@ -203,7 +198,7 @@ def mlp_forward_lora(mlp: MLP, x: Tensor, factors: Sequence[tuple[Tensor, Tensor
     """
     if len(factors) != len(mlp.layers):
         raise ValueError(f"factors: expected {len(mlp.layers)} (a, b) pairs, one per layer of the "
-                         f"MLP, found {len(factors)}.")
+                         f"MLP, received {len(factors)}.")
     for i, ((d_out, d_in), (a, b)) in enumerate(zip(mlp.spec.layer_shapes, factors)):
         if a.shape[-2] != d_out or b.shape[-2] != d_in or a.shape[-1] != b.shape[-1]:
             raise ValueError(f"factors[{i}]: expected a (..., {d_out}, r) and b (..., {d_in}, r), "
@@ -236,10 +231,6 @@ class GRUContext(nn.Module):
         super().__init__()
         self.nu, self.hidden = nu, hidden
         self.gru = nn.GRU(nu, hidden, bias=False, batch_first=True)
-
-    def architecture(self) -> dict:
-        """``{"nu": nu, "hidden": H}``."""
-        return {"nu": self.nu, "hidden": self.hidden}
 
     def forward(self, w: Tensor) -> Tensor:
         """Run over the window.
@@ -275,12 +266,10 @@ class GRUContext(nn.Module):
                 f"{prefix}/W_hh": _to_numpy(self.gru.weight_hh_l0)}
 
     @classmethod
-    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, arch: Mapping[str, Any],
+    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, nu: int, hidden: int,
                     *, dtype: torch.dtype = torch.float64) -> "GRUContext":
-        """Build from arrays; ``arch`` is ``{"nu": nu, "hidden": H}``."""
-        if not isinstance(arch, Mapping) or set(arch) != {"nu", "hidden"}:
-            raise ValueError(f"arch: expected {{'nu': int, 'hidden': int}}, found {arch!r}.")
-        context = cls(arch["nu"], arch["hidden"]).to(dtype)
+        """Build from the arrays under ``prefix`` for input size ``nu`` and width ``hidden``."""
+        context = cls(nu, hidden).to(dtype)
         context._load_arrays(arrays, prefix)
         return context
 
@@ -319,10 +308,6 @@ class ObsInjection(nn.Module):
         self.proj = nn.Linear(hidden, proj, bias=False)
         self.gain_net = MLP(self.spec.gain.sizes, activation)
 
-    def architecture(self) -> dict:
-        """The card entries ``{"context": {"hidden", "proj"}, "gain": {mlp}}``."""
-        return self.spec.to_card()
-
     def gain(self, z: Tensor, w: Tensor) -> Tensor:
         """The input gain ``G(z, l)``.
 
@@ -336,7 +321,7 @@ class ObsInjection(nn.Module):
         Tensor, shape (batch, nz, nu)
         """
         if z.dim() != 2 or z.shape[-1] != self.nz:
-            raise ValueError(f"z: expected shape (batch, {self.nz}), found {tuple(z.shape)}.")
+            raise ValueError(f"z: expected shape (batch, {self.nz}), received {tuple(z.shape)}.")
         if w.dim() != 3:
             raise ValueError(f"w: expected shape (batch, window, {self.nu}), "
                              f"found {tuple(w.shape)}.")
@@ -357,7 +342,7 @@ class ObsInjection(nn.Module):
         Tensor, shape (batch, nz)
         """
         if u.dim() != 2 or u.shape[-1] != self.nu:
-            raise ValueError(f"u: expected shape (batch, {self.nu}), found {tuple(u.shape)}.")
+            raise ValueError(f"u: expected shape (batch, {self.nu}), received {tuple(u.shape)}.")
         return torch.einsum("bij,bj->bi", self.gain(z, w), u)
 
     def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
@@ -368,14 +353,9 @@ class ObsInjection(nn.Module):
         return arrays
 
     @classmethod
-    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, arch: Mapping[str, Any],
+    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, spec: ObsSpec,
                     *, dtype: torch.dtype = torch.float64) -> "ObsInjection":
-        """Build from arrays.
-
-        ``arch`` holds the ``context`` and ``gain`` card entries (a card's whole
-        ``architecture`` will do).
-        """
-        spec = ObsSpec.from_card(arch, "arch")
+        """Build from the arrays under ``prefix`` (empty in model files) and the spec."""
         check_arrays(arrays, spec.array_shapes(prefix), "arrays")
         obs = cls(spec.nz, spec.nu, spec.hidden, spec.proj, spec.gain.sizes[1:-1],
                   spec.gain.activation).to(dtype)
@@ -397,7 +377,7 @@ class LoRAHyperNet(nn.Module):
     ----------
     target_shapes : sequence of (d_out, d_in)
         The modulated layers; in model files all encoder layers then all decoder layers
-        (:func:`kklcasadi.modelfile.lora_target_shapes`).
+        (:func:`kklcasadi.architecture.lora_target_shapes`).
     nu : int
         Input size.
     hidden : int
@@ -420,7 +400,7 @@ class LoRAHyperNet(nn.Module):
         self.spec = HyperSpec(hidden, embed, tuple(backbone), rank)
         self.target_shapes = tuple((int(d_out), int(d_in)) for d_out, d_in in target_shapes)
         if not self.target_shapes:
-            raise ValueError("target_shapes: expected at least one (d_out, d_in) pair, found none.")
+            raise ValueError("target_shapes: expected at least one (d_out, d_in) pair, received none.")
         self.nu = nu
         self.gru = GRUContext(nu, hidden)
         self.embed = nn.Parameter(torch.randn(len(self.target_shapes), embed))
@@ -431,10 +411,6 @@ class LoRAHyperNet(nn.Module):
         self.heads_b = nn.ModuleList(nn.Linear(n_features, d_in * rank, bias=False)
                                      for _, d_in in self.target_shapes)
         self.scale = nn.Parameter(torch.tensor(float(scale_init)))
-
-    def architecture(self) -> dict:
-        """The card entry ``{"hyper": {"hidden", "embed", "backbone", "rank"}}``."""
-        return self.spec.to_card()
 
     def forward(self, w: Tensor) -> list[tuple[Tensor, Tensor]]:
         """Per-sample factors for every target.
@@ -479,8 +455,9 @@ class LoRAHyperNet(nn.Module):
         return arrays
 
     @classmethod
-    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, arch: Mapping[str, Any],
-                    *, nu: int, dtype: torch.dtype = torch.float64) -> "LoRAHyperNet":
+    def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, spec: HyperSpec,
+                    targets: Sequence[tuple[int, int]], *, nu: int,
+                    dtype: torch.dtype = torch.float64) -> "LoRAHyperNet":
         """Build from arrays.
 
         Parameters
@@ -488,16 +465,13 @@ class LoRAHyperNet(nn.Module):
         arrays : Mapping[str, array_like]
         prefix : str
             ``"hyper"`` in model files.
-        arch : Mapping
-            A card's ``architecture``: the ``hyper`` entry, and the ``encoder`` and ``decoder``
-            entries that define the targets.
+        spec : HyperSpec
+        targets : sequence of (d_out, d_in)
+            The modulated layers (:func:`kklcasadi.architecture.lora_target_shapes`).
         nu : int
             Input size.
         dtype : torch.dtype
         """
-        spec = HyperSpec.from_card(arch, "arch")
-        targets = lora_target_shapes(MLPSpec.from_card(arch.get("encoder"), "arch", "encoder"),
-                                     MLPSpec.from_card(arch.get("decoder"), "arch", "decoder"))
         check_arrays(arrays, spec.array_shapes(prefix, nu, targets), "arrays")
         hyper = cls(targets, nu, spec.hidden, spec.embed, spec.backbone, spec.rank).to(dtype)
         hyper.gru._load_arrays(arrays, f"{prefix}/gru")

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from kklcasadi.modelfile import ACTIVATIONS, HyperSpec, MLPSpec, ObsSpec, lora_target_shapes
-from kklcasadi.torch_nets import MLP, GRUContext, LoRAHyperNet, ObsInjection, mlp_forward_lora
+from kklcasadi.architecture import ACTIVATIONS, HyperSpec, MLPSpec, ObsSpec, lora_target_shapes
+from kklcasadi.train.nets import MLP, GRUContext, LoRAHyperNet, ObsInjection, mlp_forward_lora
 
 
 @pytest.fixture(autouse=True)
@@ -49,7 +49,7 @@ def test_mlp_forward_is_the_specified_formula(activation):
     for row, x_row in zip(out, x):
         np.testing.assert_allclose(row, numpy_mlp(arrays, "net", mlp.spec, x_row), rtol=1e-13)
     assert mlp(torch.zeros(7, 4, 3)).shape == (7, 4, 2)
-    assert mlp.architecture() == {"sizes": [3, 6, 6, 2], "activation": activation}
+    assert mlp.spec.to_card() == {"sizes": [3, 6, 6, 2], "activation": activation}
 
 
 def test_softplus_is_stable_for_large_inputs():
@@ -130,13 +130,13 @@ def test_obs_gain_is_the_row_major_mlp_output_and_injection_is_linear_in_u():
     assert torch.equal(gain[:, 3, 1], flat[:, 3 * 2 + 1])
     torch.testing.assert_close(obs(z, w, u), (gain @ u[..., None])[..., 0], rtol=1e-14, atol=0)
     assert torch.equal(obs(z, w, torch.zeros(4, 2)), torch.zeros(4, 5))
-    assert obs.architecture() == {"context": {"hidden": 6, "proj": 3},
+    assert obs.spec.to_card() == {"context": {"hidden": 6, "proj": 3},
                                   "gain": {"sizes": [8, 8, 8, 10], "activation": "tanh"}}
 
 
 def test_obs_defaults_are_the_papers():
     obs = ObsInjection(5, 1)
-    assert obs.architecture() == {"context": {"hidden": 64, "proj": 16},
+    assert obs.spec.to_card() == {"context": {"hidden": 64, "proj": 16},
                                   "gain": {"sizes": [21, 64, 64, 5], "activation": "tanh"}}
     assert obs.proj.bias is None and obs.context.gru.bias is False
 
@@ -158,7 +158,7 @@ def test_lora_factor_shapes_and_defaults():
     for (a, b), (d_out, d_in) in zip(factors, hyper.target_shapes):
         assert a.shape == (5, d_out, 3) and b.shape == (5, d_in, 3)
     default = LoRAHyperNet([(3, 2)], 1)
-    assert default.architecture() == {"hyper": {"hidden": 64, "embed": 16, "backbone": [64, 64],
+    assert default.spec.to_card() == {"hyper": {"hidden": 64, "embed": 16, "backbone": [64, 64],
                                                 "rank": 4}}
     assert default.scale.item() == 0.01 and default.scale.requires_grad
 
@@ -229,17 +229,17 @@ def test_mlp_roundtrip_is_bitwise():
     mlp = MLP((3, 7, 2), "relu")
     mlp.set_normalisation([1.0, 2.0, 3.0], [0.5, 0.25, 4.0], [0.0, 1.0], [2.0, 3.0])
     arrays = mlp.to_arrays("net")
-    spec = MLPSpec.from_card(mlp.architecture())
+    spec = MLPSpec.from_card(mlp.spec.to_card())
     assert {k: v.shape for k, v in arrays.items()} == spec.array_shapes("net")
     assert all(v.dtype == np.float64 for v in arrays.values())
-    again = MLP.from_arrays(arrays, "net", mlp.architecture())
+    again = MLP.from_arrays(arrays, "net", spec)
     x = torch.randn(5, 3)
     assert torch.equal(again(x), mlp(x))
 
 
 def test_gru_roundtrip_is_bitwise():
     gru = GRUContext(2, 5)
-    again = GRUContext.from_arrays(gru.to_arrays("g"), "g", gru.architecture())
+    again = GRUContext.from_arrays(gru.to_arrays("g"), "g", 2, 5)
     w = torch.randn(3, 8, 2)
     assert torch.equal(again(w), gru(w))
 
@@ -248,21 +248,20 @@ def test_obs_roundtrip_is_bitwise():
     obs = ObsInjection(4, 2, hidden=5, proj=3, gain_hidden=(6,), activation="softplus")
     arrays = obs.to_arrays()
     assert {k: v.shape for k, v in arrays.items()} == ObsSpec.from_card(
-        obs.architecture()).array_shapes()
-    again = ObsInjection.from_arrays(arrays, "", obs.architecture())
+        obs.spec.to_card()).array_shapes()
+    again = ObsInjection.from_arrays(arrays, "", ObsSpec.from_card(obs.spec.to_card()))
     z, w, u = torch.randn(3, 4), torch.randn(3, 6, 2), torch.randn(3, 2)
     assert torch.equal(again(z, w, u), obs(z, w, u))
 
 
 def test_lora_roundtrip_is_bitwise():
     encoder, decoder, hyper = make_dyn()
-    arch = {"encoder": encoder.architecture(), "decoder": decoder.architecture(),
-            **hyper.architecture()}
+    arch = {"encoder": encoder.spec.to_card(), "decoder": decoder.spec.to_card(), **hyper.spec.to_card()}
     arrays = hyper.to_arrays()
     targets = lora_target_shapes(encoder.spec, decoder.spec)
     assert {k: v.shape for k, v in arrays.items()} == HyperSpec.from_card(arch).array_shapes(
         "hyper", 2, targets)
-    again = LoRAHyperNet.from_arrays(arrays, "hyper", arch, nu=2)
+    again = LoRAHyperNet.from_arrays(arrays, "hyper", HyperSpec.from_card(arch), targets, nu=2)
     w = torch.randn(3, 6, 2)
     for (a1, b1), (a2, b2) in zip(again(w), hyper(w)):
         assert torch.equal(a1, a2) and torch.equal(b1, b2)
@@ -273,10 +272,9 @@ def test_from_arrays_reports_missing_and_misshaped_arrays():
     mlp = MLP((3, 4, 2))
     arrays = mlp.to_arrays("net")
     with pytest.raises(ValueError, match="net/W0.*missing"):
-        MLP.from_arrays({k: v for k, v in arrays.items() if k != "net/W0"}, "net",
-                        mlp.architecture())
+        MLP.from_arrays({k: v for k, v in arrays.items() if k != "net/W0"}, "net", mlp.spec)
     obs = ObsInjection(3, 1, hidden=4, proj=2, gain_hidden=(5,))
     arrays = obs.to_arrays()
     arrays["context/proj/W"] = np.zeros((2, 5))
     with pytest.raises(ValueError, match=r"context/proj/W.*shape \(2, 4\)"):
-        ObsInjection.from_arrays(arrays, "", obs.architecture())
+        ObsInjection.from_arrays(arrays, "", obs.spec)

@@ -1,4 +1,4 @@
-"""CasADi exports against the torch networks (float64): values and Jacobians to 1e-10, exact
+"""CasADi networks against the torch networks (float64): values and Jacobians to 1e-10, exact
 collapses, folded (not unrolled) GRU, SX/MX calls, argument errors."""
 
 import itertools
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from kklcasadi import export
-from kklcasadi.modelfile import ACTIVATIONS
-from kklcasadi.torch_nets import MLP, GRUContext, LoRAHyperNet, ObsInjection, mlp_forward_lora
+from kklcasadi import casadi_nets
+from kklcasadi.architecture import ACTIVATIONS, check_arrays, gru_array_shapes
+from kklcasadi.train.nets import MLP, GRUContext, LoRAHyperNet, ObsInjection, mlp_forward_lora
 
 TOL = 1e-10
 WINDOWS = (1, 5, 30)
@@ -88,7 +88,7 @@ def test_mlp_matches_torch(sizes, activation):
     rng = np.random.default_rng(seed_of(sizes, activation))
     mlp = MLP(sizes, activation)
     randomise_normalisation(mlp, rng)
-    f = export.mlp_function(mlp.to_arrays("net"), "net", mlp.architecture())
+    f = casadi_nets.mlp_function(mlp.spec, mlp.to_arrays("net"), "net")
     assert (f.name(), f.name_in(), f.name_out()) == ("net", ["x"], ["y"])
     for _ in range(3):
         x = rng.normal(size=sizes[0]) * 2
@@ -100,7 +100,7 @@ def test_mlp_layers_are_mx_with_dm_constants_and_folded_normalisation():
     torch.manual_seed(0)
     mlp = MLP((3, 8, 2), "tanh")
     randomise_normalisation(mlp, np.random.default_rng(0))
-    f = export.mlp_function(mlp.to_arrays("net"), "net", mlp.architecture())
+    f = casadi_nets.mlp_function(mlp.spec, mlp.to_arrays("net"), "net")
     assert f.is_a("MXFunction")
     ops = [f.instruction_id(k) for k in range(f.n_instructions())]
     assert ops.count(ca.OP_MTIMES) == 2                     # one matrix product per layer
@@ -115,7 +115,7 @@ def test_gru_matches_torch(nu, window, hidden):
     torch.manual_seed(seed_of(nu, window, hidden))
     rng = np.random.default_rng(seed_of(nu, window, hidden))
     gru = GRUContext(nu, hidden)
-    f = export.gru_function(gru.to_arrays("g"), "g", nu, hidden, window)
+    f = casadi_nets.gru_function(gru.to_arrays("g"), "g", nu, hidden, window)
     assert (f.name_in(), f.name_out()) == (["w"], ["h"])
     w = rng.normal(size=(window, nu))
     check_values_and_jacobians(f, gru, [w], (hidden,))
@@ -126,7 +126,7 @@ def test_gru_matches_torch(nu, window, hidden):
 def test_gru_is_folded_not_unrolled():
     gru = GRUContext(2, 8)
     arrays = gru.to_arrays("g")
-    short, long = (export.gru_function(arrays, "g", 2, 8, n) for n in (5, 200))
+    short, long = (casadi_nets.gru_function(arrays, "g", 2, 8, n) for n in (5, 200))
     assert short.n_instructions() == long.n_instructions()
     assert short.n_nodes() == long.n_nodes()
 
@@ -140,9 +140,9 @@ def test_obs_injection_matches_torch(nu, window, activation):
     rng = np.random.default_rng(seed_of(nu, window, activation))
     obs = ObsInjection(nz, nu, hidden=6, proj=3, gain_hidden=(10, 10), activation=activation)
     randomise_normalisation(obs.gain_net, rng)
-    arrays, arch = obs.to_arrays(), obs.architecture()
-    gain = export.obs_gain_function(arrays, arch, window)
-    inj = export.obs_injection_function(arrays, arch, window)
+    arrays = obs.to_arrays()
+    gain = casadi_nets.obs_gain_function(obs.spec, arrays, window)
+    inj = casadi_nets.obs_injection_function(obs.spec, arrays, window)
     assert (gain.name_in(), gain.name_out()) == (["z", "w"], ["G"])
     assert (inj.name_in(), inj.name_out()) == (["z", "w", "u"], ["phi"])
     z, w, u = rng.normal(size=nz), rng.normal(size=(window, nu)), rng.normal(size=nu)
@@ -171,8 +171,7 @@ def make_dyn(nu, activation, rank, seed):
             head.weight.mul_(8.0)
         for weight in hyper.gru.parameters():
             weight.mul_(3.0)
-    arch = {"encoder": encoder.architecture(), "decoder": decoder.architecture(),
-            **hyper.architecture()}
+    arch = (encoder.spec, decoder.spec, hyper.spec)
     arrays = {**encoder.to_arrays("encoder"), **decoder.to_arrays("decoder"), **hyper.to_arrays()}
     return encoder, decoder, hyper, arch, arrays
 
@@ -182,7 +181,7 @@ def test_dyn_decoder_matches_torch(nu, window, activation):
     rank = 1 + seed_of(nu, window, activation) % 4
     encoder, decoder, hyper, arch, arrays = make_dyn(nu, activation, rank,
                                                      seed_of(nu, window, activation))
-    f = export.lora_mlp_function(arrays, arch, nu, window)
+    f = casadi_nets.lora_mlp_function(*arch, arrays, nu, window)
     assert (f.name_in(), f.name_out()) == (["z", "w"], ["xhat"])
     rng = np.random.default_rng(seed_of(nu, window, activation))
     z, w = rng.normal(size=5), rng.normal(size=(window, nu))
@@ -200,7 +199,7 @@ def test_dyn_decoder_matches_torch(nu, window, activation):
 @pytest.mark.parametrize("window", WINDOWS)
 def test_dyn_encoder_matches_torch(window):
     encoder, decoder, hyper, arch, arrays = make_dyn(2, "tanh", 3, seed_of(window))
-    f = export.lora_mlp_function(arrays, arch, 2, window, target="encoder")
+    f = casadi_nets.lora_mlp_function(*arch, arrays, 2, window, target="encoder")
     assert (f.name(), f.name_in(), f.name_out()) == ("encoder_dyn", ["x", "w"], ["z"])
     rng = np.random.default_rng(window)
     x, w = rng.normal(size=2), rng.normal(size=(window, 2))
@@ -212,8 +211,8 @@ def test_dyn_encoder_matches_torch(window):
 @pytest.mark.parametrize("activation", ACTIVATIONS)
 def test_dyn_decoder_collapses_exactly_at_zero_window(activation):
     _, _, _, arch, arrays = make_dyn(2, activation, 4, seed_of(activation))
-    dyn = export.lora_mlp_function(arrays, arch, 2, 30)
-    plain = export.mlp_function(arrays, "decoder", arch["decoder"])
+    dyn = casadi_nets.lora_mlp_function(*arch, arrays, 2, 30)
+    plain = casadi_nets.mlp_function(arch[1], arrays, "decoder")
     rng = np.random.default_rng(1)
     for _ in range(5):
         z = rng.normal(size=5) * 3
@@ -223,54 +222,47 @@ def test_dyn_decoder_collapses_exactly_at_zero_window(activation):
 def test_exported_window_functions_do_not_grow_with_the_window():
     obs = ObsInjection(5, 2, hidden=6, proj=3, gain_hidden=(8,))
     _, _, _, arch, arrays = make_dyn(2, "tanh", 2, 0)
-    for build in (lambda n: export.obs_injection_function(obs.to_arrays(), obs.architecture(), n),
-                  lambda n: export.lora_mlp_function(arrays, arch, 2, n)):
+    for build in (lambda n: casadi_nets.obs_injection_function(obs.spec, obs.to_arrays(), n),
+                  lambda n: casadi_nets.lora_mlp_function(*arch, arrays, 2, n)):
         assert build(3).n_instructions() == build(100).n_instructions()
 
 
 # ----------------------------------------------------------------------------- errors
+# The builders take validated (spec, arrays); the arrays are checked once, by check_arrays (on load).
 
 @pytest.fixture
 def mlp_case():
     mlp = MLP((3, 4, 2))
-    return mlp.to_arrays("net"), mlp.architecture()
+    return mlp.to_arrays("net"), mlp.spec
 
 
 def test_missing_array_names_it(mlp_case):
-    arrays, arch = mlp_case
+    arrays, spec = mlp_case
     del arrays["net/W1"]
     with pytest.raises(ValueError, match="net/W1"):
-        export.mlp_function(arrays, "net", arch)
+        check_arrays(arrays, spec.array_shapes("net"), "arrays")
 
 
 def test_misshaped_array_names_it(mlp_case):
-    arrays, arch = mlp_case
+    arrays, spec = mlp_case
     arrays["net/b0"] = np.zeros(5)
     with pytest.raises(ValueError, match=r"net/b0.*shape \(4,\)"):
-        export.mlp_function(arrays, "net", arch)
+        check_arrays(arrays, spec.array_shapes("net"), "arrays")
 
 
 def test_bad_arguments(mlp_case):
-    arrays, arch = mlp_case
+    arrays, spec = mlp_case
     with pytest.raises(TypeError, match="arrays"):
-        export.mlp_function([1, 2], "net", arch)
-    with pytest.raises(ValueError, match="activation.*tanh"):
-        export.mlp_function(arrays, "net", {**arch, "activation": "gelu"})
+        check_arrays([1, 2], spec.array_shapes("net"), "arrays")
     with pytest.raises(ValueError, match="name"):
-        export.mlp_function(arrays, "net", arch, name="not a name")
+        casadi_nets.mlp_function(spec, arrays, "net", name="not a name")
     gru = GRUContext(1, 3).to_arrays("g")
     with pytest.raises(ValueError, match="window"):
-        export.gru_function(gru, "g", 1, 3, 0)
+        casadi_nets.gru_function(gru, "g", 1, 3, 0)
     with pytest.raises(TypeError, match="window"):
-        export.gru_function(gru, "g", 1, 3, 2.5)
+        casadi_nets.gru_function(gru, "g", 1, 3, 2.5)
     with pytest.raises(ValueError, match="g/W_ih"):
-        export.gru_function(gru, "g", 2, 3, 4)            # arrays are for nu = 1
+        check_arrays(gru, gru_array_shapes("g", 2, 3), "arrays")            # arrays are for nu = 1
     _, _, _, dyn_arch, dyn_arrays = make_dyn(1, "tanh", 2, 0)
     with pytest.raises(ValueError, match="target"):
-        export.lora_mlp_function(dyn_arrays, dyn_arch, 1, 4, target="middle")
-    with pytest.raises(ValueError, match="hyper"):
-        export.lora_mlp_function(dyn_arrays, {k: v for k, v in dyn_arch.items() if k != "hyper"},
-                                 1, 4)
-    obs = ObsInjection(3, 1, hidden=4, proj=2, gain_hidden=(5,))
-    with pytest.raises(ValueError, match="context"):
-        export.obs_gain_function(obs.to_arrays(), {"gain": obs.architecture()["gain"]}, 4)
+        casadi_nets.lora_mlp_function(*dyn_arch, dyn_arrays, 1, 4, target="middle")

@@ -1,0 +1,41 @@
+"""What a training hook returns: everything the model file needs besides the plant and paths."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..design import Design
+
+__all__ = ["Trained"]
+
+
+@dataclass(frozen=True, eq=False)
+class Trained:
+    """The outcome of one variant's training hook.
+
+    Attributes
+    ----------
+    arrays : dict[str, numpy.ndarray]
+        Every array of the model file (float64).
+    spec
+        The variant's typed architecture spec.
+    design : Design
+        The latent pair ``(A, B)`` the model uses.
+    training : dict
+        The card's training record (configuration, data sizes, fit summaries).
+    histories : dict[str, dict[str, list[float]]]
+        Loss histories per stage (written to ``history.json`` / ``history.png``).
+    window : int
+        Input-window length of the card.
+    measurement_std : float
+        The noise level the decoder was fit for.
+    """
+
+    arrays: dict
+    spec: Any
+    design: Design
+    training: dict
+    histories: dict = field(default_factory=dict)
+    window: int = 1
+    measurement_std: float = 0.0

@@ -1,0 +1,127 @@
+"""Argument checks shared by every module, with one error style.
+
+Every message reads ``"<argument>: expected <what>, received <value>."``, optionally followed by
+what to do about it. Wrong types raise :class:`TypeError`, wrong values :class:`ValueError`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Collection, Optional
+
+import numpy as np
+
+__all__ = ["error", "Text", "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
+           "nonnegative_number", "finite_number", "one_of", "finite_array"]
+
+
+class Text(str):
+    """A description of what was received, shown without quotes in error messages."""
+
+    def __repr__(self) -> str:
+        return str(self)
+
+
+def error(argument: str, expected: str, received: Any, fix: str = "", *,
+          kind: type[Exception] = ValueError) -> Exception:
+    """Build the package's one error message.
+
+    Parameters
+    ----------
+    argument : str
+        What is wrong: an argument name, or ``"<file>: '<field>'"``.
+    expected : str
+        What was expected.
+    received
+        What was received, shown with ``repr`` (so ``"100"`` and ``100`` differ; wrap a
+        description in :class:`Text` to show it as is).
+    fix : str, optional
+        What the user should do about it.
+    kind : type
+        The exception class (``ValueError`` or ``TypeError``).
+
+    Returns
+    -------
+    Exception
+        To be raised by the caller.
+    """
+    message = f"{argument}: expected {expected}, received {received!r}."
+    return kind(f"{message} {fix}" if fix else message)
+
+
+def is_int(value: Any) -> bool:
+    """Whether ``value`` is a Python or numpy integer (not a bool)."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def is_number(value: Any) -> bool:
+    """Whether ``value`` is a real Python or numpy number (not a bool)."""
+    return is_int(value) or (isinstance(value, (float, np.floating)) and not isinstance(value, np.bool_))
+
+
+def _integer(value: Any, argument: str, lowest: int, expected: str, fix: str) -> int:
+    if not is_int(value):
+        raise error(argument, expected, Text(type(value).__name__ if not is_number(value) else repr(value)),
+                    fix, kind=TypeError)
+    if value < lowest:
+        raise error(argument, expected, value, fix)
+    return int(value)
+
+
+def positive_int(value: Any, argument: str, fix: str = "") -> int:
+    """Return ``value`` as an int >= 1, else raise (TypeError for a non-integer)."""
+    return _integer(value, argument, 1, "a positive int", fix)
+
+
+def nonnegative_int(value: Any, argument: str, fix: str = "") -> int:
+    """Return ``value`` as an int >= 0, else raise (TypeError for a non-integer)."""
+    return _integer(value, argument, 0, "an int >= 0", fix)
+
+
+def _real(value: Any, argument: str, expected: str, fix: str) -> float:
+    if not is_number(value):
+        raise error(argument, expected, Text(type(value).__name__), fix, kind=TypeError)
+    if not math.isfinite(value):
+        raise error(argument, expected, value, fix)
+    return float(value)
+
+
+def finite_number(value: Any, argument: str, fix: str = "") -> float:
+    """Return ``value`` as a finite float, else raise."""
+    return _real(value, argument, "a finite number", fix)
+
+
+def positive_number(value: Any, argument: str, fix: str = "") -> float:
+    """Return ``value`` as a finite float > 0, else raise."""
+    out = _real(value, argument, "a finite number > 0", fix)
+    if out <= 0:
+        raise error(argument, "a finite number > 0", value, fix)
+    return out
+
+
+def nonnegative_number(value: Any, argument: str, fix: str = "") -> float:
+    """Return ``value`` as a finite float >= 0, else raise."""
+    out = _real(value, argument, "a finite number >= 0", fix)
+    if out < 0:
+        raise error(argument, "a finite number >= 0", value, fix)
+    return out
+
+
+def one_of(value: Any, argument: str, choices: Collection[Any], fix: str = "") -> Any:
+    """Return ``value`` if it is one of ``choices``, else raise a ValueError listing them."""
+    if value not in choices:
+        raise error(argument, f"one of {list(choices)}", value, fix)
+    return value
+
+
+def finite_array(value: Any, argument: str, shape: Optional[tuple[int, ...]] = None) -> np.ndarray:
+    """Return ``value`` as a float64 array (of ``shape`` if given) with finite entries, else raise."""
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise error(argument, "an array of real numbers", Text(type(value).__name__), kind=TypeError) from exc
+    if shape is not None and array.shape != tuple(shape):
+        raise error(argument, f"shape {tuple(shape)}", Text(f"shape {array.shape}"))
+    if not np.all(np.isfinite(array)):
+        raise error(argument, "finite values", Text("NaN or inf"))
+    return array

@@ -1,0 +1,214 @@
+"""What an observer variant is: its typed architecture spec, its CasADi networks and its hooks.
+
+A variant (one per card ``method``) owns, in one place,
+
+* which architecture entries its card holds and their typed spec (:meth:`Variant.parse`, the
+  spec's ``to_card`` and ``array_shapes``),
+* its CasADi parts (:meth:`Variant.networks`): the encoder, the decoder ``(z, w) -> xhat``, and
+  the latent input term added to ``A z + B y`` (``None`` for a linear latent),
+* its training hook on the torch side (:attr:`Variant.trainer`, a ``"module:function"`` path
+  imported only when training) and its configuration class (:attr:`Variant.config`),
+* the extra top-level card fields it reads (:attr:`Variant.card_fields`).
+
+Nothing here imports torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Mapping, Optional
+
+import casadi as ca
+
+from ..architecture import DECODER, ENCODER, MLPSpec, field_error
+from ..casadi_nets import mlp_function
+from ..systems import System
+
+__all__ = ["Sizes", "MapsSpec", "Networks", "Variant", "InputTerm"]
+
+#: ``input_term(z, u, context) -> dz`` (nz, 1), exactly 0 at ``u = 0``; ``context`` is the
+#: output of :attr:`Networks.context` for the step's window (None if the variant has none).
+InputTerm = Callable[[ca.MX, ca.MX, Optional[ca.MX]], ca.MX]
+
+
+@dataclass(frozen=True)
+class Sizes:
+    """The sizes a card fixes: state ``nx``, input ``nu``, output ``ny``, latent ``nz``."""
+
+    nx: int
+    nu: int
+    ny: int
+    nz: int
+
+
+@dataclass(frozen=True)
+class MapsSpec:
+    """Encoder ``T: x -> z`` and decoder ``T*: z -> x``, the maps every variant has.
+
+    Card entries ``"encoder"`` and ``"decoder"`` (:class:`kklcasadi.architecture.MLPSpec`).
+    """
+
+    encoder: MLPSpec
+    decoder: MLPSpec
+
+    @classmethod
+    def parse_maps(cls, architecture: Mapping[str, Any], sizes: Sizes, where: str) -> "MapsSpec":
+        """Parse and size-check the ``encoder`` and ``decoder`` entries."""
+        specs = {}
+        for name, n_in, n_out in ((ENCODER, sizes.nx, sizes.nz), (DECODER, sizes.nz, sizes.nx)):
+            spec = MLPSpec.from_card(architecture[name], where, f"architecture.{name}")
+            if (spec.n_in, spec.n_out) != (n_in, n_out):
+                raise field_error(where, f"architecture.{name}.sizes",
+                                  f"[{n_in}, ..., {n_out}] (nx={sizes.nx}, nz={sizes.nz})",
+                                  list(spec.sizes),
+                                  "The encoder maps x to z and the decoder z to x; fix the sizes or "
+                                  "the system/design entries.")
+            specs[name] = spec
+        return MapsSpec(specs[ENCODER], specs[DECODER])
+
+    def to_card(self) -> dict:
+        """The ``architecture`` card entries."""
+        return {ENCODER: self.encoder.to_card(), DECODER: self.decoder.to_card()}
+
+    def array_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of every array of the model file."""
+        return {**self.encoder.array_shapes(ENCODER), **self.decoder.array_shapes(DECODER)}
+
+    def maps(self) -> "MapsSpec":
+        """The encoder/decoder part alone (what a Phase-2 variant inherits from its base)."""
+        return MapsSpec(self.encoder, self.decoder)
+
+
+@dataclass(frozen=True)
+class Networks:
+    """The CasADi parts of one observer.
+
+    Attributes
+    ----------
+    encoder : casadi.Function
+        ``encoder(x) -> z`` (the window-free T).
+    decoder : casadi.Function
+        ``decoder(z (nz,1), w (window,nu)) -> xhat (nx,1)``.
+    context : casadi.Function or None
+        ``context(w) -> c``, evaluated once per sample interval and passed to ``input_term``.
+    input_term : callable or None
+        ``input_term(z, u, c) -> dz``, added to ``A z + B y``; exactly 0 at ``u = 0``. None for
+        a linear latent ``zdot = A z + B y``.
+    model_injection : casadi.Function or None
+        ``model_injection(z, u) -> dz``, the model-based term, when the variant uses it.
+    """
+
+    encoder: ca.Function
+    decoder: ca.Function
+    context: Optional[ca.Function] = None
+    input_term: Optional[InputTerm] = None
+    model_injection: Optional[ca.Function] = None
+
+
+def _hook(path: str) -> Any:
+    module, _, attribute = path.partition(":")
+    return getattr(importlib.import_module(module), attribute)
+
+
+class Variant:
+    """Base class of the observer variants; subclasses set the class attributes and override
+    :meth:`parse` and :meth:`networks`.
+
+    Attributes
+    ----------
+    name : str
+        The card's ``method``.
+    summary : str
+        One line for listings and the CLI help.
+    entries : tuple of str
+        The ``architecture`` entries of its card.
+    linear : bool
+        Whether the latent dynamics are ``zdot = A z + B y`` (the exact discretisation applies).
+    windowed : bool
+        Whether the networks read the input window (else the card's window is 1).
+    needs_base : bool
+        Whether it is built on a Phase-1 model (``base`` argument of training).
+    trainer : str or None
+        ``"module:function"`` of its torch training hook (see :mod:`kklcasadi.train`), or None.
+    config : str or None
+        ``"module:class"`` of its training configuration, or None when it has nothing to train.
+    card_fields : tuple of str
+        Extra top-level card fields it reads.
+    derives_from : tuple of str
+        The methods whose models it is made from without training (:meth:`derive`).
+    """
+
+    name: ClassVar[str]
+    summary: ClassVar[str]
+    entries: ClassVar[tuple[str, ...]] = (ENCODER, DECODER)
+    linear: ClassVar[bool] = True
+    windowed: ClassVar[bool] = False
+    needs_base: ClassVar[bool] = True
+    trainer: ClassVar[Optional[str]] = None
+    config: ClassVar[Optional[str]] = None
+    card_fields: ClassVar[tuple[str, ...]] = ()
+    derives_from: ClassVar[tuple[str, ...]] = ()
+
+    def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> Any:
+        """The typed spec of a card whose common fields are valid.
+
+        Parameters
+        ----------
+        card : Mapping
+            The card (``card["architecture"]`` has exactly :attr:`entries`).
+        sizes : Sizes
+        where : str
+            Used in error messages (the card's path).
+
+        Returns
+        -------
+        spec
+            A frozen dataclass with ``to_card()`` (the architecture entries),
+            ``array_shapes()`` and the variant's parameters.
+        """
+        return MapsSpec.parse_maps(card["architecture"], sizes, where)
+
+    def card_entries(self, spec: Any) -> dict:
+        """The extra top-level card fields of ``spec`` (the inverse of :meth:`parse` for them)."""
+        return {}
+
+    def networks(self, spec: Any, arrays: Mapping[str, Any], system: System,
+                 window: int) -> Networks:
+        """Build the CasADi parts from a validated spec and its arrays."""
+        return Networks(*plain_maps(spec, arrays, window, system.nu))
+
+    def derive(self, base_method: str, spec: Any,
+               arrays: Mapping[str, Any]) -> tuple[Any, dict, dict]:
+        """The spec, arrays and training record of a model made from a base model, no training.
+
+        Only variants with a non-empty :attr:`derives_from` implement it.
+        """
+        raise ValueError(f"method: {self.name!r} cannot be made from a base model without training.")
+
+    def load_trainer(self) -> Callable[..., Any]:
+        """Import and return the training hook (imports torch)."""
+        if self.trainer is None:
+            raise ValueError(f"method: {self.name!r} has no training hook.")
+        return _hook(self.trainer)
+
+    def config_class(self) -> Optional[type]:
+        """Import and return the configuration class, or None when there is nothing to train."""
+        return None if self.config is None else _hook(self.config)
+
+    def __repr__(self) -> str:
+        return f"<variant {self.name!r}: {self.summary}>"
+
+
+def plain_maps(spec: MapsSpec, arrays: Mapping[str, Any], window: int,
+               nu: int) -> tuple[ca.Function, ca.Function]:
+    """The encoder ``x -> z`` and the window-free decoder as ``(z, w) -> xhat``."""
+    encoder = mlp_function(spec.encoder, arrays, ENCODER, "encoder")
+    return encoder, window_free(mlp_function(spec.decoder, arrays, DECODER, "decoder"), window, nu)
+
+
+def window_free(decoder: ca.Function, window: int, nu: int) -> ca.Function:
+    """``decoder(z) -> xhat`` as ``(z, w (window, nu)) -> xhat``, ignoring the window."""
+    z = ca.MX.sym("z", decoder.size1_in(0))
+    w = ca.MX.sym("w", window, nu)
+    return ca.Function("decoder", [z, w], [decoder(z)], ["z", "w"], ["xhat"])
