@@ -1,17 +1,39 @@
 """kklcasadi: learned KKL observers for controlled nonlinear systems, exported to CasADi and C.
 
-The deploy side (systems, signals, simulation, model files, export, observer) needs casadi, numpy,
-scipy and python-control only; torch is imported by :mod:`kklcasadi.train` alone.
+The deploy side (systems, signals, simulation, model files, CasADi networks, observer, C code,
+EKF) needs casadi, numpy, scipy and python-control only; torch is imported by
+:mod:`kklcasadi.train` (and the benchmarks that time torch) alone. ``kc.train`` and the other
+submodules listed in :data:`_LAZY` are imported on first use, so ``import kklcasadi`` stays
+torch-free.
 """
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from typing import Any
 
 __version__ = "0.1.0"
 
-from . import data, metrics, signals, systems
+from . import data, metrics, signals, systems, variants
 from .design import Design
 from .observer import Estimate, KKLObserver, load_observer
 from .simulate import Trajectory, TrajectoryBatch, simulate, simulate_batch
 from .systems import System
 
+#: Submodules reachable as attributes of the package, imported when first used.
+_LAZY = ("train", "ekf", "protocol", "report", "codegen", "interop", "modelfile", "casadi_nets",
+         "architecture")
+
 __all__ = ["System", "Design", "Trajectory", "TrajectoryBatch", "simulate", "simulate_batch",
            "KKLObserver", "Estimate", "load_observer",
-           "systems", "signals", "data", "metrics", "__version__"]
+           "systems", "signals", "data", "metrics", "variants", "__version__", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        if name == "train" and importlib.util.find_spec("torch") is None:
+            raise ModuleNotFoundError("kklcasadi.train needs torch, which is not installed; install the "
+                                      "training extra: pip install 'kklcasadi[train]'", name="torch")
+        return importlib.import_module(f".{name}", __name__)
+    raise AttributeError(f"module 'kklcasadi' has no attribute {name!r}")

@@ -100,7 +100,7 @@ class MLPSpec:
 
     @classmethod
     def from_card(cls, entry: Any, where: str = "architecture",
-                  field_name: str = "mlp") -> "MLPSpec":
+                  field_name: str = "mlp") -> MLPSpec:
         """Parse a card entry ``{"sizes": [...], "activation": ...}``.
 
         Parameters
@@ -188,7 +188,7 @@ class ObsSpec:
                          self.gain.n_out, "The gain MLP outputs G(z, l) (nz, nu) row-major.")
 
     @classmethod
-    def from_card(cls, architecture: Any, where: str = "architecture") -> "ObsSpec":
+    def from_card(cls, architecture: Any, where: str = "architecture") -> ObsSpec:
         """Parse the ``context`` and ``gain`` entries of an architecture mapping."""
         fix = 'Write "context" as {"hidden": H, "proj": n_l}.'
         if not isinstance(architecture, Mapping):
@@ -251,7 +251,7 @@ class HyperSpec:
         object.__setattr__(self, "backbone", tuple(int(d) for d in backbone))
 
     @classmethod
-    def from_card(cls, architecture: Any, where: str = "architecture") -> "HyperSpec":
+    def from_card(cls, architecture: Any, where: str = "architecture") -> HyperSpec:
         """Parse the ``hyper`` entry of an architecture mapping."""
         fix = 'Write "hyper" as {"hidden": H, "embed": E, "backbone": [64, 64], "rank": r}.'
         if not isinstance(architecture, Mapping):

@@ -55,10 +55,10 @@ def bench_simulation(system: str = "duffing", n_trials: int = 32, T: float = 50.
     out = []
     for method in ("cvodes", "rk"):
         mapped = time_call(f"{system} {method}: mapped batch of {n_trials}",
-                           lambda: simulate_batch(plant, x0, inputs, T, dt, seed=0, method=method),
+                           lambda method=method: simulate_batch(plant, x0, inputs, T, dt, seed=0, method=method),
                            n_trials, repeat)
         looped = time_call(f"{system} {method}: Python loop over {n_trials}",
-                           lambda: [simulate(plant, x0[i], inputs[i], T, dt, seed=i, method=method)
+                           lambda method=method: [simulate(plant, x0[i], inputs[i], T, dt, seed=i, method=method)
                                     for i in range(n_trials)], n_trials, repeat)
         out += [mapped, looped]
         print(mapped)

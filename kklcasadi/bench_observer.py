@@ -26,9 +26,9 @@ from typing import Any, Callable, Optional, Sequence
 import casadi as ca
 import numpy as np
 
+from .architecture import DECODER, HYPER, lora_target_shapes
 from .bench import Timing, time_call
 from .codegen import C_FLAGS
-from .architecture import DECODER, HYPER, lora_target_shapes
 from .observer import KKLObserver, load_observer
 from .rk4 import rk4_step
 from .systems import System

@@ -11,7 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from . import signals as sig
-from . import systems
+from . import systems, variants
 
 __all__ = ["main"]
 
@@ -202,7 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     t = sub.add_parser("train", help="train an observer variant and write its model directory")
     t.add_argument("--system", required=True, choices=systems.names())
-    t.add_argument("--method", required=True, choices=("autonomous", "obs", "dyn", "curriculum", "inject"))
+    t.add_argument("--method", required=True, choices=variants.trainable(),
+                   help="; ".join(f"{v.name}: {v.summary}" for v in variants.VARIANTS.values()))
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--base", help="Phase-1 model (default OUT/../autonomous for Phase-2 methods)")
     t.add_argument("--noise", type=float, help="autonomous: train the decoder for this measurement-noise std")

@@ -89,7 +89,7 @@ def _work_sizes(casadi_header: str, names: list[str]) -> dict[str, int]:
     return sizes
 
 
-def _header(observer: "KKLObserver", name: str, casadi_header: str,
+def _header(observer: KKLObserver, name: str, casadi_header: str,
             sizes: dict[str, int]) -> str:
     macro = name.upper()
     defines = {"NX": observer.nx, "NU": observer.nu, "NY": observer.ny, "NZ": observer.nz,
@@ -246,7 +246,7 @@ _PRAGMA_POP = """#if defined(__GNUC__)
 """
 
 
-def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
+def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
                *, overwrite: bool = False) -> list[Path]:
     """Write the observer step as C99 source, a header and a ``main`` example.
 

@@ -62,7 +62,7 @@ class Design:
         object.__setattr__(self, "B", _frozen(B))
 
     @classmethod
-    def default(cls, system: System) -> "Design":
+    def default(cls, system: System) -> Design:
         """The paper's choice: ``nz = ny (2 nx + 1)``, ``A = -diag(1..nz)``, ``B = ones((nz, ny))``."""
         if not isinstance(system, System):
             raise TypeError(f"system must be a kklcasadi.System, got {type(system).__name__}")

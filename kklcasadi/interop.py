@@ -13,7 +13,7 @@ if TYPE_CHECKING:
 __all__ = ["to_iosys"]
 
 
-def to_iosys(observer: "KKLObserver", name: str = "kkl_observer") -> control.NonlinearIOSystem:
+def to_iosys(observer: KKLObserver, name: str = "kkl_observer") -> control.NonlinearIOSystem:
     """The observer as a discrete-time :class:`control.NonlinearIOSystem` with ``dt = obs.dt``.
 
     Inputs ``[y[0], ..., y[ny-1], u[0], ..., u[nu-1]]`` (the sample ``y_k`` and the input ``u_k``

@@ -262,7 +262,7 @@ def model_array_shapes(card: Mapping[str, Any], where: str = CARD_FILE) -> dict[
     return parse_card(filled, where, require_sha=False).array_shapes()
 
 
-def make_card(system: "System | SystemSpec", design: "Design", method: str, spec: Any, *, dt: float,
+def make_card(system: System | SystemSpec, design: Design, method: str, spec: Any, *, dt: float,
               window: int = 1, training: Optional[Mapping[str, Any]] = None,
               base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0) -> dict:
     """The card of a model: the one way training, :func:`derive_model` and tests write one.
@@ -326,7 +326,7 @@ class Model:
     card: dict
     spec: ModelSpec
     arrays: dict
-    base: Optional["Model"] = field(default=None, repr=False)
+    base: Optional[Model] = field(default=None, repr=False)
 
     @property
     def method(self) -> str:

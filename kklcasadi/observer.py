@@ -42,7 +42,7 @@ from . import systems, variants
 from .modelfile import CARD_FILE, Model, ModelSpec, derive_model, load_model
 from .rk4 import rk4_step
 from .systems import System
-from .validation import error, positive_int
+from .validation import positive_int
 from .variants import MODEL_BASED_INJECTION
 from .windows import input_windows
 
@@ -56,8 +56,6 @@ __all__ = ["KKLObserver", "Estimate", "Estimator", "load_observer", "make_inject
 DISCRETIZATIONS = ("exact", "rk4")
 #: ``ca.integrator`` plugins accepted by :meth:`KKLObserver.integrator`.
 INTEGRATOR_SOLVERS = ("cvodes", "idas", "rk", "collocation")
-#: Top-level card field: add the model-based (``inject``) term under a learned obs injection.
-MODEL_BASED_INJECTION = "model_based_injection"
 
 PathLike = Union[str, os.PathLike]
 
@@ -334,11 +332,11 @@ class KKLObserver:
             return Estimate(t, xhat, z)
         return Estimate(t, xhat[0], z[0])
 
-    def estimator(self) -> "Estimator":
+    def estimator(self) -> Estimator:
         """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample."""
         return Estimator(self)
 
-    def to_iosys(self, name: str = "kkl_observer") -> "control.NonlinearIOSystem":
+    def to_iosys(self, name: str = "kkl_observer") -> control.NonlinearIOSystem:
         """The observer as a discrete-time python-control system.
 
         See :func:`kklcasadi.interop.to_iosys`.

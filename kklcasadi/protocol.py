@@ -50,7 +50,7 @@ class Protocol:
     def noisy(self) -> bool:
         return self.process_std > 0 or self.measurement_std > 0
 
-    def noise_free(self) -> "Protocol":
+    def noise_free(self) -> Protocol:
         """The same protocol without process or measurement noise."""
         return replace(self, process_std=0.0, measurement_std=0.0)
 

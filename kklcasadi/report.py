@@ -28,8 +28,9 @@ class MethodScores:
         return self.results[(noisy, kind)]
 
 
-def score(label: str, estimator: Estimator, system: System, protocol: Protocol, *, noise: Sequence[bool] = (False, True),
-          kinds: Sequence[str] = sig.BENCHMARK_KINDS, cache: dict | None = None) -> MethodScores:
+def score(label: str, estimator: Estimator, system: System, protocol: Protocol, *,
+          noise: Sequence[bool] = (False, True), kinds: Sequence[str] = sig.BENCHMARK_KINDS,
+          cache: dict | None = None) -> MethodScores:
     """Evaluate ``estimator`` on the noise-free and/or noisy protocol; ``cache`` shares trials across methods."""
     cache = {} if cache is None else cache
     results = {}

@@ -5,7 +5,6 @@ import subprocess
 import sys
 
 import casadi as ca
-import numpy as np
 import pytest
 
 from kklcasadi.cli import main

@@ -3,7 +3,6 @@ bitwise collapse to the autonomous observer at u = 0, simulate (mapaccum / map),
 ca.integrator form, the stateful estimator, the inject model on a plant with a known KKL map,
 argument errors, and the closed-loop example (torch-free)."""
 
-import dataclasses
 import json
 import runpy
 import subprocess
@@ -372,7 +371,7 @@ def test_estimator_equals_simulate_sample_by_sample(model_dir_factory, method):
     expected = obs.simulate(tr.t, tr.y, tr.u).xhat
     est = obs.estimator()
     assert est.z is None
-    for run in range(2):                                           # and again after reset()
+    for _ in range(2):                                             # and again after reset()
         for k in range(tr.t.size):
             assert np.array_equal(est.make_step(tr.y[k], tr.u[k]), expected[k])
         assert est.k == tr.t.size and est.z.shape == (5,) and est.w.shape == (4, 1)

@@ -12,7 +12,9 @@ def reference(system, x0, u, T, dt):
     us = u(t)
     xs = [np.asarray(x0, float)]
     for k in range(len(t) - 1):
-        rhs = lambda _t, x: np.asarray(system.f(x, us[k])).ravel()
+        def rhs(_t, x, u=us[k]):
+            return np.asarray(system.f(x, u)).ravel()
+
         sol = solve_ivp(rhs, (0.0, dt), xs[-1], method="DOP853", rtol=1e-11, atol=1e-12)
         xs.append(sol.y[:, -1])
     return t, np.array(xs)

@@ -8,11 +8,11 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi.modelfile import load_model  # noqa: E402
 from kklcasadi.architecture import lora_target_shapes  # noqa: E402
-from kklcasadi.train.nets import MLP, LoRAHyperNet, ObsInjection  # noqa: E402
+from kklcasadi.modelfile import load_model  # noqa: E402
 from kklcasadi.train import LoopConfig, Phase2DataConfig, default_config, train_observer  # noqa: E402
 from kklcasadi.train.loop import ArrayDataset, fit  # noqa: E402
+from kklcasadi.train.nets import MLP, LoRAHyperNet, ObsInjection  # noqa: E402
 from kklcasadi.train.phase1 import latent_noise_covariance, pde_residual  # noqa: E402
 
 TINY_LOOP = LoopConfig(epochs=3, batch_size=64, lr=3e-3)

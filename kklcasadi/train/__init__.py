@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, is_dataclass, replace
+from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +21,7 @@ from ..design import Design
 from ..modelfile import derive_model, load_model, make_card, save_model
 from ..systems import System
 from ..validation import error, positive_int
-from .config import (CurriculumConfig, DynConfig, LoopConfig, ObsConfig, Phase1Config, Phase2DataConfig,
-                     default_config)
+from .config import CurriculumConfig, DynConfig, LoopConfig, ObsConfig, Phase1Config, Phase2DataConfig, default_config
 from .result import Trained
 
 __all__ = ["train_observer", "default_config", "LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig",

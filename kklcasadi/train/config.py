@@ -7,8 +7,8 @@ from typing import Any
 
 from .. import variants
 
-__all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig", "default_config",
-           "PAPER_WIDTH"]
+__all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig",
+           "default_config", "PAPER_WIDTH"]
 
 #: Hidden width of the encoder/decoder per system in the paper (150 or 350 units). The default here
 #: is 150 for every system: a 350-unit model costs 5x more per observer step (in CasADi's VM, 25 ms

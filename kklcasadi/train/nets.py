@@ -11,7 +11,8 @@ imports torch, which the deploy side never does.
 
 Every module converts to and from the named float64 arrays of the model file format
 (``to_arrays`` / ``from_arrays``), built from the typed specs of :mod:`kklcasadi.architecture`
-(which define the names and shapes, see ``docs/model-format.md``). Windows are ``(batch, window, nu)``, oldest sample first.
+(which define the names and shapes, see ``docs/model-format.md``). Windows are
+``(batch, window, nu)``, oldest sample first.
 """
 
 from __future__ import annotations
@@ -129,7 +130,7 @@ class MLP(nn.Module):
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, spec: MLPSpec,
-                    *, dtype: torch.dtype = torch.float64) -> "MLP":
+                    *, dtype: torch.dtype = torch.float64) -> MLP:
         """Build an MLP from its arrays and its spec.
 
         Parameters
@@ -267,7 +268,7 @@ class GRUContext(nn.Module):
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, nu: int, hidden: int,
-                    *, dtype: torch.dtype = torch.float64) -> "GRUContext":
+                    *, dtype: torch.dtype = torch.float64) -> GRUContext:
         """Build from the arrays under ``prefix`` for input size ``nu`` and width ``hidden``."""
         context = cls(nu, hidden).to(dtype)
         context._load_arrays(arrays, prefix)
@@ -354,7 +355,7 @@ class ObsInjection(nn.Module):
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, spec: ObsSpec,
-                    *, dtype: torch.dtype = torch.float64) -> "ObsInjection":
+                    *, dtype: torch.dtype = torch.float64) -> ObsInjection:
         """Build from the arrays under ``prefix`` (empty in model files) and the spec."""
         check_arrays(arrays, spec.array_shapes(prefix), "arrays")
         obs = cls(spec.nz, spec.nu, spec.hidden, spec.proj, spec.gain.sizes[1:-1],
@@ -457,7 +458,7 @@ class LoRAHyperNet(nn.Module):
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, Any], prefix: str, spec: HyperSpec,
                     targets: Sequence[tuple[int, int]], *, nu: int,
-                    dtype: torch.dtype = torch.float64) -> "LoRAHyperNet":
+                    dtype: torch.dtype = torch.float64) -> LoRAHyperNet:
         """Build from arrays.
 
         Parameters

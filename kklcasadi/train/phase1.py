@@ -16,14 +16,14 @@ import torch
 from scipy.linalg import solve_continuous_lyapunov
 
 from .. import data as kdata
-from ..design import Design
-from ..systems import System
 from ..architecture import DECODER, ENCODER
+from ..design import Design
 from ..modelfile import Model
+from ..systems import System
 from ..variants import MapsSpec
-from .nets import MLP
 from .config import Phase1Config
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
+from .nets import MLP
 from .result import Trained
 
 __all__ = ["Phase1Result", "train_phase1", "train_autonomous", "pde_residual", "latent_noise_covariance"]

@@ -138,7 +138,7 @@ def train_obs(system: System, design: Design, base: Model | None, config: ObsCon
     def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
         return (((net(batch["z"], batch["w"], batch["u"]) - batch["r"]) / scale) ** 2).mean(), {}
 
-    baseline = float((((residual / (residual.std(0) + 1e-8)) ** 2).mean()))
+    baseline = float(((residual / (residual.std(0) + 1e-8)) ** 2).mean())
     result = fit(list(net.parameters()), loss_fn, dataset, config.loop, name="obs", seed=seed, progress=progress,
                  resume=resume, checkpoint=workdir / "obs.ckpt.npz" if workdir else None)
     net = net.cpu().double()
@@ -186,8 +186,8 @@ def train_dyn(system: System, design: Design, base: Model | None, config: DynCon
                  checkpoint=workdir / "dyn.ckpt.npz" if workdir else None)
     hyper = hyper.cpu().double()
     arrays = {**base.arrays, **hyper.to_arrays()}
-    maps = base.spec.architecture
-    spec = DynModelSpec(maps.encoder, maps.decoder, hyper.spec, system.nu)
+    base_arch = base.spec.architecture
+    spec = DynModelSpec(base_arch.encoder, base_arch.decoder, hyper.spec, system.nu)
     training = {"config": config, "data": {"trajectories": int(p2.x.shape[0]), "samples": p2.n_samples,
                                            "dropped": len(p2.dropped)}, "dyn": result.summary()}
     return Trained(arrays, spec, design, training, {"dyn": result.history}, config.data.window,

@@ -8,12 +8,12 @@ module with a :class:`~kklcasadi.variants.base.Variant` subclass and one line in
 
 from __future__ import annotations
 
+from ..validation import error
 from .autonomous import Autonomous, Curriculum
 from .base import MapsSpec, Networks, Sizes, Variant
 from .dyn import Dyn, DynModelSpec
 from .inject import Inject, model_injection_function
 from .obs import MODEL_BASED_INJECTION, Obs, ObsModelSpec
-from ..validation import error
 
 __all__ = ["VARIANTS", "get", "names", "trainable", "Variant", "Networks", "Sizes", "MapsSpec",
            "ObsModelSpec", "DynModelSpec", "MODEL_BASED_INJECTION", "model_injection_function"]

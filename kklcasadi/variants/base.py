@@ -53,7 +53,7 @@ class MapsSpec:
     decoder: MLPSpec
 
     @classmethod
-    def parse_maps(cls, architecture: Mapping[str, Any], sizes: Sizes, where: str) -> "MapsSpec":
+    def parse_maps(cls, architecture: Mapping[str, Any], sizes: Sizes, where: str) -> MapsSpec:
         """Parse and size-check the ``encoder`` and ``decoder`` entries."""
         specs = {}
         for name, n_in, n_out in ((ENCODER, sizes.nx, sizes.nz), (DECODER, sizes.nz, sizes.nx)):
@@ -75,7 +75,7 @@ class MapsSpec:
         """Names and shapes of every array of the model file."""
         return {**self.encoder.array_shapes(ENCODER), **self.decoder.array_shapes(DECODER)}
 
-    def maps(self) -> "MapsSpec":
+    def maps(self) -> MapsSpec:
         """The encoder/decoder part alone (what a Phase-2 variant inherits from its base)."""
         return MapsSpec(self.encoder, self.decoder)
 

@@ -75,8 +75,8 @@ class Obs(Variant):
         injection = (model_injection_function(encoder, decoder, system)
                      if spec.model_based_injection else None)
 
-        def input_term(z: ca.MX, u: ca.MX, l: Optional[ca.MX]) -> ca.MX:
-            learned = ca.mtimes(gain(z, l), u)
+        def input_term(z: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
+            learned = ca.mtimes(gain(z, context), u)
             return learned if injection is None else injection(z, u) + learned
 
         return Networks(encoder, decoder, context, input_term, injection)
