@@ -39,8 +39,9 @@ from .architecture import (
 )
 from .validation import error, positive_int
 
-__all__ = ["mlp_function", "gru_function", "obs_context_function", "obs_context_gain_function",
-           "obs_gain_function", "obs_injection_function", "lora_mlp_function", "check_name"]
+__all__ = ["mlp_function", "gru_cell_function", "gru_function", "obs_context_function",
+           "obs_context_gain_function", "obs_gain_function", "obs_injection_function", "lora_mlp_function",
+           "lora_mlp_of_hidden", "check_name"]
 
 Arrays = Mapping[str, Any]
 _NAME = re.compile(r"^[A-Za-z](?:_?[A-Za-z0-9])*$")
@@ -122,8 +123,11 @@ def mlp_function(spec: MLPSpec, arrays: Arrays, prefix: str,
     return ca.Function(name, [x], [y], ["x"], ["y"])
 
 
-def _gru_cell(arrays: Arrays, prefix: str, nu: int, hidden: int, name: str) -> ca.Function:
-    """One GRU step ``(h, x) -> h'`` in torch's gate order (r, z, n), bias-free."""
+def gru_cell_function(arrays: Arrays, prefix: str, nu: int, hidden: int, name: str) -> ca.Function:
+    """One bias-free GRU step ``(h (H,1), x (nu,1)) -> h' (H,1)`` in torch's gate order (r, z, n).
+
+    Exactly ``h' = 0`` for ``h = 0`` and ``x = 0``. A streaming context applies it once per sample.
+    """
     w_ih, w_hh = ca.DM(_array(arrays, f"{prefix}/W_ih")), ca.DM(_array(arrays, f"{prefix}/W_hh"))
     h, x = ca.MX.sym("h", hidden), ca.MX.sym("x", nu)
     gi, gh = ca.mtimes(w_ih, x), ca.mtimes(w_hh, h)
@@ -159,7 +163,7 @@ def gru_function(arrays: Arrays, prefix: str, nu: int, hidden: int, window: int,
     nu, hidden = positive_int(nu, "nu"), positive_int(hidden, "hidden")
     window = positive_int(window, "window")
     name = check_name(prefix.replace("/", "_") if name is None else name)
-    folded = _gru_cell(arrays, prefix, nu, hidden, f"{name}_cell").fold(window)
+    folded = gru_cell_function(arrays, prefix, nu, hidden, f"{name}_cell").fold(window)
     w = ca.MX.sym("w", window, nu)
     return ca.Function(name, [w], [folded(ca.DM.zeros(hidden, 1), w.T)], ["w"], ["h"])
 
@@ -294,21 +298,41 @@ def lora_mlp_function(encoder: MLPSpec, decoder: MLPSpec, hyper: HyperSpec, arra
     ca.Function
         Decoder: ``xhat = f(z, w)``; encoder: ``z = f(x, w)``; ``w`` is (window, nu).
     """
-    if target not in (ENCODER, DECODER):
-        raise error("target", f"{ENCODER!r} or {DECODER!r}", target)
     nu, window = positive_int(nu, "nu"), positive_int(window, "window")
     name = check_name(f"{target}_dyn" if name is None else name)
+    modulated = lora_mlp_of_hidden(encoder, decoder, hyper, arrays, target, f"{name}_of_h")
+    gru = gru_function(arrays, f"{HYPER}/gru", nu, hyper.hidden, window, f"{name}_gru")
+    in_name, out_name = modulated.name_in(0), modulated.name_out(0)
+    x, w = ca.MX.sym(in_name, modulated.size1_in(0)), ca.MX.sym("w", window, nu)
+    return ca.Function(name, [x, w], [modulated(x, gru(w))], [in_name, "w"], [out_name])
+
+
+def lora_mlp_of_hidden(encoder: MLPSpec, decoder: MLPSpec, hyper: HyperSpec, arrays: Arrays,
+                       target: str = DECODER, name: Optional[str] = None) -> ca.Function:
+    """The HyperKKL_dyn network modulated by a given GRU hidden state ``h`` (H, 1).
+
+    :func:`lora_mlp_function` with the window's GRU replaced by its output ``h``: a streaming
+    context passes the hidden state it carries from sample to sample. Exactly the unmodulated
+    network at ``h = 0``.
+
+    Returns
+    -------
+    ca.Function
+        Decoder: ``xhat = f(z, h)``; encoder: ``z = f(x, h)``.
+    """
+    if target not in (ENCODER, DECODER):
+        raise error("target", f"{ENCODER!r} or {DECODER!r}", target)
+    name = check_name(f"{target}_dyn_of_h" if name is None else name)
     spec = decoder if target == DECODER else encoder
 
     n_layers = len(spec.layer_shapes)
     offset = 0 if target == ENCODER else len(encoder.layer_shapes)
-    gru = gru_function(arrays, f"{HYPER}/gru", nu, hyper.hidden, window, f"{name}_gru")
     backbone = mlp_function(hyper.backbone_spec, arrays, f"{HYPER}/backbone",
                             f"{name}_backbone").map(n_layers)
     embed = ca.DM(_array(arrays, f"{HYPER}/embed")[offset:offset + n_layers].T)
     in_name, out_name = ("z", "xhat") if target == DECODER else ("x", "z")
-    x, w = ca.MX.sym(in_name, spec.n_in), ca.MX.sym("w", window, nu)
-    features = (backbone(ca.vertcat(ca.repmat(gru(w), 1, n_layers), embed))
+    x, h = ca.MX.sym(in_name, spec.n_in), ca.MX.sym("h", hyper.hidden)
+    features = (backbone(ca.vertcat(ca.repmat(h, 1, n_layers), embed))
                 - backbone(ca.vertcat(ca.DM.zeros(hyper.hidden, n_layers), embed)))
     scale = float(_array(arrays, f"{HYPER}/scale"))
     in_mean, in_std = _array(arrays, f"{target}/in_mean"), _array(arrays, f"{target}/in_std")
@@ -329,4 +353,4 @@ def lora_mlp_function(encoder: MLPSpec, decoder: MLPSpec, hyper: HyperSpec, arra
         return term * out_std if i == n_layers - 1 else term
 
     y = _mlp_expr(_folded_layers(arrays, target, spec), spec.activation, x, delta)
-    return ca.Function(name, [x, w], [y], [in_name, "w"], [out_name])
+    return ca.Function(name, [x, h], [y], [in_name, "h"], [out_name])

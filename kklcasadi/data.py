@@ -24,6 +24,7 @@ from . import signals as sig
 from .design import Design
 from .simulate import TrajectoryBatch, simulate_batch, time_grid
 from .systems import System
+from .validation import Text, error, finite_number, one_of
 from .windows import input_windows
 
 __all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "driven_labels", "input_windows"]
@@ -55,7 +56,7 @@ def _latent_system(system: System, design: Design, *, driven: bool = False) -> S
     the latent state settles).
     """
     if design.ny != system.ny:
-        raise ValueError(f"design has ny = {design.ny} but system {system.name!r} has ny = {system.ny}")
+        raise error("design", f"ny = {system.ny} (the outputs of system {system.name!r})", Text(f"ny = {design.ny}"))
     xz = ca.SX.sym("xz", system.nx + design.nz)
     x, z = xz[:system.nx], xz[system.nx:]
     y = system.h(x)
@@ -124,13 +125,12 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         trajectories that failed (reported with a warning).
     """
     if not isinstance(design, Design):
-        raise TypeError(f"design must be a kklcasadi.Design, got {type(design).__name__}")
-    if not (np.isfinite(tol) and 0 < tol < 1):
-        raise ValueError(f"tol must lie in (0, 1), got {tol!r}")
-    if not (np.isfinite(domain_scale) and domain_scale >= 1):
-        raise ValueError(f"domain_scale must be >= 1 (the domain contains the X0 box), got {domain_scale!r}")
-    if labels not in ("exact", "frozen", "cold"):
-        raise ValueError(f"labels must be 'exact', 'frozen' or 'cold', got {labels!r}")
+        raise error("design", "a kklcasadi.Design", Text(type(design).__name__), kind=TypeError)
+    if not 0 < finite_number(tol, "tol") < 1:
+        raise error("tol", "a number in (0, 1)", tol)
+    if finite_number(domain_scale, "domain_scale") < 1:
+        raise error("domain_scale", "a number >= 1 (the domain contains the X0 box)", domain_scale)
+    one_of(labels, "labels", ("exact", "frozen", "cold"))
     x0 = system.sample_box(n_traj, seed, scale=box_scale)
     n_keep = time_grid(t_keep, dt).size
     if labels == "cold":
@@ -240,7 +240,8 @@ class Phase2Data:
         """
         index = np.asarray(index)
         if index.size and (index.min() < 0 or index.max() >= self.n_samples):
-            raise ValueError(f"index must lie in [0, {self.n_samples}), got range [{index.min()}, {index.max()}]")
+            raise error("index", f"flat sample indices in [0, {self.n_samples})",
+                        Text(f"range [{index.min()}, {index.max()}]"))
         p, k = np.divmod(index, self.x.shape[1] - 1)
         windows = input_windows(self.u, self.window)
         return {"x": self.x[p, k], "y": self.y[p, k], "u": self.u[p, k], "xdot": self.xdot[p, k],
@@ -272,14 +273,14 @@ def phase2(system: System, n_traj: int = 20, signals: Sequence[sig.Signal] | int
     rng = np.random.default_rng(seed)
     if isinstance(signals, (int, np.integer)):
         if signals < 1:
-            raise ValueError(f"signals must be a positive count or a sequence of signals, got {signals}")
+            raise error("signals", "a positive count or a sequence of signals", int(signals))
         if not kinds:
-            raise ValueError("kinds must name at least one signal kind")
+            raise error("kinds", "at least one signal kind", kinds)
         signals = [sig.sample(kinds[i % len(kinds)], rng, regime, nu=system.nu) for i in range(int(signals))]
     signals = tuple(signals)
     for j, s in enumerate(signals):
         if not callable(s):
-            raise TypeError(f"signals[{j}] must be a signal u(t), got {type(s).__name__}")
+            raise error(f"signals[{j}]", "a signal u(t) (a callable)", Text(type(s).__name__), kind=TypeError)
     x0 = system.sample_box(n_traj, seed)
     pairs = np.array([(i, j) for i in range(n_traj) for j in range(len(signals))])
     batch = simulate_batch(system, x0[pairs[:, 0]], [signals[j] for j in pairs[:, 1]], T, dt, method=method)

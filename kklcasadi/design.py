@@ -8,6 +8,7 @@ import control
 import numpy as np
 
 from .systems import System
+from .validation import Text, error, finite_array
 
 __all__ = ["Design"]
 
@@ -45,19 +46,19 @@ class Design:
         if B.ndim == 1:
             B = B[:, None]
         if A.ndim != 2 or A.shape[0] != A.shape[1] or A.shape[0] == 0:
-            raise ValueError(f"A must be a non-empty square matrix (nz, nz), got shape {A.shape}")
+            raise error("A", "a non-empty square matrix (nz, nz)", Text(f"shape {A.shape}"))
         if B.ndim != 2 or B.shape[0] != A.shape[0]:
-            raise ValueError(f"B must have shape (nz, ny) = ({A.shape[0]}, ny), got shape {B.shape}")
-        if not (np.all(np.isfinite(A)) and np.all(np.isfinite(B))):
-            raise ValueError("A and B must be finite")
+            raise error("B", f"shape (nz, ny) = ({A.shape[0]}, ny)", Text(f"shape {B.shape}"))
+        finite_array(A, "A")
+        finite_array(B, "B")
         eig = np.linalg.eigvals(A)
         if np.max(eig.real) >= 0:
-            raise ValueError(f"A must be Hurwitz (all eigenvalues with negative real part); max Re eig(A) = "
-                             f"{np.max(eig.real):.6g}")
+            raise error("A", "a Hurwitz matrix (all eigenvalues with negative real part)",
+                        Text(f"max Re eig(A) = {np.max(eig.real):.6g}"))
         rank = np.linalg.matrix_rank(control.ctrb(A, B))
         if rank < A.shape[0]:
-            raise ValueError(f"(A, B) must be controllable: rank of the controllability matrix is {rank}, "
-                             f"need nz = {A.shape[0]}; give A distinct eigenvalues or change B")
+            raise error("(A, B)", f"a controllable pair (controllability matrix of rank nz = {A.shape[0]})",
+                        Text(f"rank {rank}"), "Give A distinct eigenvalues or change B.")
         object.__setattr__(self, "A", _frozen(A))
         object.__setattr__(self, "B", _frozen(B))
 
@@ -65,7 +66,7 @@ class Design:
     def default(cls, system: System) -> Design:
         """The paper's choice: ``nz = ny (2 nx + 1)``, ``A = -diag(1..nz)``, ``B = ones((nz, ny))``."""
         if not isinstance(system, System):
-            raise TypeError(f"system must be a kklcasadi.System, got {type(system).__name__}")
+            raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
         nz = system.ny * (2 * system.nx + 1)
         return cls(-np.diag(np.arange(1.0, nz + 1.0)), np.ones((nz, system.ny)))
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from .rk4 import rk4_step
 from .systems import System
+from .validation import Text, error, positive_number
 
 __all__ = ["EKF", "EKFEstimate"]
 
@@ -52,13 +53,12 @@ class EKF:
     def __init__(self, system: System, dt: float, *, Q: object = None, R: object = None, x0: object = None,
                  P0: object = None, substeps: int = 1) -> None:
         if not isinstance(system, System):
-            raise TypeError(f"system must be a kklcasadi.System, got {type(system).__name__}")
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
+            raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
+        dt = positive_number(dt, "dt")
         nx, ny = system.nx, system.ny
         width = system.x0_box[:, 1] - system.x0_box[:, 0]
         self.system = system
-        self.dt = float(dt)
+        self.dt = dt
         self.Q = self._matrix(np.eye(nx) * (0.1 * dt) ** 2 if Q is None else Q, (nx, nx), "Q")
         self.R = self._matrix(0.01 * np.eye(ny) if R is None else R, (ny, ny), "R")
         self.x0 = system.x0_box.mean(axis=1) if x0 is None else system.check_state(x0, "x0")
@@ -95,9 +95,9 @@ class EKF:
     def _matrix(value: object, shape: tuple[int, int], arg: str) -> np.ndarray:
         m = np.atleast_2d(np.asarray(value, dtype=float))
         if m.shape != shape:
-            raise ValueError(f"{arg} must have shape {shape}, got {m.shape}")
+            raise error(arg, f"shape {shape}", Text(f"shape {m.shape}"))
         if not np.allclose(m, m.T) or np.min(np.linalg.eigvalsh(m)) < 0:
-            raise ValueError(f"{arg} must be symmetric positive semi-definite")
+            raise error(arg, "a symmetric positive semi-definite matrix", m.tolist())
         return m
 
     def simulate(self, t: object, y: object, u: object, *, n_threads: int | None = None) -> EKFEstimate:
@@ -123,14 +123,16 @@ class EKF:
             y, u = y[None], u[None]
         nx, ny, nu = self.system.nx, self.system.ny, self.system.nu
         if y.ndim != 3 or y.shape[2] != ny or y.shape[1] != t.size:
-            raise ValueError(f"y must have shape (N, ny) or (M, N, ny) with N = {t.size}, ny = {ny}; got {y.shape}")
+            raise error("y", f"shape (N, ny) or (M, N, ny) with N = {t.size}, ny = {ny}", Text(f"shape {y.shape}"))
         if u.shape != y.shape[:2] + (nu,):
-            raise ValueError(f"u must have shape {y.shape[:2] + (nu,)}, got {u.shape}")
-        if t.size > 1 and not np.allclose(np.diff(t), self.dt, rtol=1e-9, atol=1e-12):
-            raise ValueError(f"t must be spaced by dt = {self.dt}")
+            raise error("u", f"shape {y.shape[:2] + (nu,)}", Text(f"shape {u.shape}"))
+        spacing = np.diff(t)
+        if spacing.size and not np.allclose(spacing, self.dt, rtol=1e-9, atol=1e-12):
+            raise error("t", f"samples spaced by dt = {self.dt}",
+                        Text(f"spacings from {spacing.min():.6g} to {spacing.max():.6g}"))
         bad = np.argwhere(~np.isfinite(y))
         if bad.size:
-            raise ValueError(f"y is not finite at trial {bad[0, 0]}, sample {bad[0, 1]}")
+            raise error("y", "finite values", Text(f"NaN or inf at trial {bad[0, 0]}, sample {bad[0, 1]}"))
         m, n = y.shape[:2]
         x0, P0 = (np.asarray(a) for a in self.update.map(m)(np.tile(self.x0[:, None], (1, m)),
                                                              np.tile(self.P0, (1, m)), y[:, 0].T))

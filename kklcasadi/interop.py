@@ -19,9 +19,10 @@ def to_iosys(observer: KKLObserver, name: str = "kkl_observer") -> control.Nonli
     Inputs ``[y[0], ..., y[ny-1], u[0], ..., u[nu-1]]`` (the sample ``y_k`` and the input ``u_k``
     held from ``t_k``), outputs ``xhat[0], ..., xhat[nx-1]``. The output at sample k depends on
     the input at sample k (the estimate uses ``y_k``), so the system state is what the observer
-    knew before it: ``[z_k-1; vec(w_k-1); y_k-1; started]`` (``vec`` column-major). With the
-    default initial state 0 (``started = 0``) the first sample initialises ``z_0 = 0`` and the
-    window with ``u_0``, and :func:`control.input_output_response` reproduces
+    knew before it: ``[z_k-1; vec(w_k-1); y_k-1; started]`` (``vec`` column-major; ``w`` is the
+    observer's input memory, the window for windowed variants). With the default initial state 0
+    (``started = 0``) the first sample initialises ``z_0 = 0`` and the memory from ``u_0``
+    (``observer.memory_init``), and :func:`control.input_output_response` reproduces
     :meth:`KKLObserver.simulate`.
 
     Parameters
@@ -40,17 +41,18 @@ def to_iosys(observer: KKLObserver, name: str = "kkl_observer") -> control.Nonli
         raise TypeError(f"observer: expected a KKLObserver, received {type(observer).__name__}.")
     if not isinstance(name, str) or not name:
         raise ValueError(f"name: expected a non-empty string, received {name!r}.")
-    nz, ny, nu, window = observer.nz, observer.ny, observer.nu, observer.window
-    n_window = window * nu
+    nz, ny, nu = observer.nz, observer.ny, observer.nu
+    rows, cols = observer.memory_shape
+    n_window = rows * cols
 
     def advance(x: np.ndarray, inputs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(z_k, vec w_k, xhat_k)`` from the state before sample k and the inputs at k."""
         y, u = inputs[:ny], inputs[ny:]
         if x[-1] < 0.5:                                      # not started: first sample
-            z, w = np.zeros(nz), np.repeat(u[None, :], window, axis=0)
+            z, w = np.zeros(nz), np.asarray(observer.memory_init(u))
             xhat = observer.decode(z, w)
             return z, w.ravel(order="F"), np.asarray(xhat).ravel()
-        w = x[nz:nz + n_window].reshape(window, nu, order="F")
+        w = x[nz:nz + n_window].reshape(rows, cols, order="F")
         y_prev = x[nz + n_window:nz + n_window + ny]
         z_next, w_next, xhat = observer.step(x[:nz], w, y_prev, y, u)
         return (np.asarray(z_next).ravel(), np.asarray(w_next).ravel(order="F"),
@@ -64,7 +66,7 @@ def to_iosys(observer: KKLObserver, name: str = "kkl_observer") -> control.Nonli
         return advance(np.asarray(x, dtype=float), np.asarray(inputs, dtype=float))[2]
 
     states = ([f"z[{i}]" for i in range(nz)]
-              + [f"w[{i},{j}]" for j in range(nu) for i in range(window)]
+              + [f"w[{i},{j}]" for j in range(cols) for i in range(rows)]
               + [f"y_prev[{i}]" for i in range(ny)] + ["started"])
     return control.NonlinearIOSystem(
         update, output, name=name, dt=observer.dt, states=states,

@@ -13,9 +13,10 @@ def _pair(x_true: object, xhat: object) -> tuple[np.ndarray, np.ndarray]:
     a = np.asarray(x_true, dtype=float)
     b = np.asarray(xhat, dtype=float)
     if a.shape != b.shape:
-        raise ValueError(f"x_true and xhat must have the same shape, got {a.shape} and {b.shape}")
+        raise ValueError(f"xhat: expected the same shape as x_true {a.shape}, received shape {b.shape}.")
     if a.ndim < 2:
-        raise ValueError(f"trajectories must have shape (N, nx) or (M, N, nx), got {a.shape}")
+        raise ValueError(f"x_true, xhat: expected trajectories of shape (N, nx) or (M, N, nx), "
+                         f"received shape {a.shape}.")
     return a, b
 
 
@@ -62,10 +63,10 @@ def rmse_after(t: object, x_true: object, xhat: object, t_settle: float = 5.0) -
     a, b = _pair(x_true, xhat)
     t = np.asarray(t, dtype=float)
     if t.shape != (a.shape[-2],):
-        raise ValueError(f"t must have shape (N,) = ({a.shape[-2]},), got {t.shape}")
+        raise ValueError(f"t: expected shape (N,) = ({a.shape[-2]},), received shape {t.shape}.")
     keep = t >= t_settle
     if not keep.any():
-        raise ValueError(f"t_settle = {t_settle} is after the last sample t = {t[-1]}")
+        raise ValueError(f"t_settle: expected a time at or before the last sample t = {t[-1]}, received {t_settle!r}.")
     return rmse(a[..., keep, :], b[..., keep, :])
 
 
@@ -94,6 +95,7 @@ def summarize(values: object) -> Summary:
     v = np.asarray(values, dtype=float).ravel()
     ok = np.isfinite(v)
     if not ok.any():
-        raise ValueError(f"no finite values to summarise ({v.size} given)")
+        raise ValueError(f"values: expected at least one finite value to summarise, "
+                         f"received {v.size} values, none finite.")
     q25, med, q75 = np.percentile(v[ok], [25, 50, 75])
     return Summary(float(v[ok].mean()), float(med), float(q25), float(q75), int(ok.sum()), int((~ok).sum()))

@@ -44,7 +44,6 @@ from .rk4 import rk4_step
 from .systems import System
 from .validation import positive_int
 from .variants import MODEL_BASED_INJECTION
-from .windows import input_windows
 
 if TYPE_CHECKING:
     import control
@@ -182,13 +181,16 @@ class KKLObserver:
                              if self.discretization == "exact" else None)
 
         nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
+        self.memory = nets.memory if nets.memory is not None else variants.window_memory(self.window, self.nu)
+        self.memory_shape: tuple[int, int] = self.memory.shape
+        self.memory_init: ca.Function = self.memory.init
         self.encoder = nets.encoder
         self._context, self._input_term = nets.context, nets.input_term
         self.model_injection = nets.model_injection
         self.model_based_injection = nets.model_injection is not None
         self._A, self._B = ca.sparsify(ca.DM(self.A)), ca.sparsify(ca.DM(self.B))
 
-        z, w = ca.MX.sym("z", self.nz), ca.MX.sym("w", self.window, self.nu)
+        z, w = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape)
         y, u = ca.MX.sym("y", self.ny), ca.MX.sym("u", self.nu)
         self.decode = ca.Function("decode", [z, w], [nets.decoder(z, w)], ["z", "w"], ["xhat"])
         self.rhs = ca.Function("rhs", [z, y, u, w], [self._field(z, y, u, self._context_of(w))],
@@ -208,18 +210,18 @@ class KKLObserver:
         return zdot
 
     def _build_step(self) -> ca.Function:
-        z, w = ca.MX.sym("z", self.nz), ca.MX.sym("w", self.window, self.nu)
+        z, w = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape)
         y, y_next = ca.MX.sym("y", self.ny), ca.MX.sym("y_next", self.ny)
         u_next = ca.MX.sym("u_next", self.nu)
         if self.foh_matrices is not None:
             ad, gy, gy_next = (ca.sparsify(ca.DM(m)) for m in self.foh_matrices)
             z_next = ca.mtimes(ad, z) + ca.mtimes(gy, y) + ca.mtimes(gy_next, y_next)
         else:
-            u = w[self.window - 1, :].T
+            u = self.memory.held(w)
             context = self._context_of(w)
             z_next = rk4_step(lambda s, zz: self._field(zz, y + s * (y_next - y), u, context),
                               z, self.dt, self.substeps)
-        w_next = ca.vertcat(w[1:, :], u_next.T)
+        w_next = self.memory.next(w, u_next)
         return ca.Function("step", [z, w, y, y_next, u_next],
                            [z_next, w_next, self.decode(z_next, w_next)],
                            ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
@@ -253,11 +255,11 @@ class KKLObserver:
             raise ValueError(f"solver: expected one of {list(INTEGRATOR_SOLVERS)}, received "
                              f"{solver!r}.")
         z, t = ca.MX.sym("z", self.nz), ca.MX.sym("t")
-        p = ca.MX.sym("p", 2 * self.ny + self.nu + self.window * self.nu)
-        y, y_next, u, w = ca.vertsplit(p, np.cumsum([0, self.ny, self.ny, self.nu, self.window
-                                                     * self.nu]).tolist())
+        rows, cols = self.memory_shape
+        p = ca.MX.sym("p", 2 * self.ny + self.nu + rows * cols)
+        y, y_next, u, w = ca.vertsplit(p, np.cumsum([0, self.ny, self.ny, self.nu, rows * cols]).tolist())
         y_t = y + t / self.dt * (y_next - y)
-        ode = self.rhs(z, y_t, u, ca.reshape(w, self.window, self.nu))
+        ode = self.rhs(z, y_t, u, ca.reshape(w, rows, cols))
         return ca.integrator(f"{self.method}_latent", solver, {"x": z, "p": p, "t": t, "ode": ode},
                              0.0, self.dt, opts)
 
@@ -305,11 +307,10 @@ class KKLObserver:
                              f"(M, N, .)), received y {np.shape(y)} and u {np.shape(u)}.")
         for name, values in (("y", ys), ("u", us)):
             _check_finite(values, name, t, batched_y)
-        m, nz, nu, window = ys.shape[0], self.nz, self.nu, self.window
+        m, nz, nu = ys.shape[0], self.nz, self.nu
         z_start = _check_initial(z0, m, nz, batched_y)                          # (nz, M)
 
-        w0 = np.ascontiguousarray(input_windows(us[:, :1], window)[:, 0])    # (M, window, nu)
-        w0_cols = w0.transpose(1, 0, 2).reshape(window, m * nu)
+        w0_cols = self.memory_init.map(m)(us[:, 0].T)                      # (rows, M cols)
         xhat = np.empty((m, n, self.nx))
         z = np.empty((m, n, nz))
         xhat[:, 0] = np.asarray(self.decode.map(m)(z_start, w0_cols)).T
@@ -391,7 +392,8 @@ class Estimator:
 
     @property
     def w(self) -> Optional[np.ndarray]:
-        """Input window ``w_k`` (window, nu) after the last step, or None before the first."""
+        """Input memory ``w_k`` (``observer.memory_shape``; the window (window, nu) for windowed
+        variants) after the last step, or None before the first."""
         return None if self._w is None else self._w.copy()
 
     def make_step(self, y: Any, u: Any) -> np.ndarray:
@@ -410,11 +412,11 @@ class Estimator:
         y = _check_sample(y, "y", obs.ny, self.k)
         u = _check_sample(u, "u", obs.nu, self.k)
         if self._z is None:
-            z, w = np.zeros(obs.nz), np.repeat(u[None, :], obs.window, axis=0)
+            z, w = np.zeros(obs.nz), np.asarray(obs.memory_init(u))
             xhat = obs.decode(z, w)
         else:
-            z_next, w_next, xhat = obs.step(self._z, self._w, self._y, y, u)
-            z, w = np.asarray(z_next).ravel(), np.asarray(w_next).reshape(obs.window, obs.nu)
+            z_next, w, xhat = obs.step(self._z, self._w, self._y, y, u)
+            z, w = np.asarray(z_next).ravel(), np.asarray(w)
         self._z, self._w, self._y = z, w, y
         self.k += 1
         return np.asarray(xhat).ravel()

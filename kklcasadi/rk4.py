@@ -33,7 +33,8 @@ def rk4_step(rhs: Callable[[float, S], S], x: S, h: object, substeps: int = 1) -
     Same type as ``x``: the state at the end of the interval.
     """
     if not isinstance(substeps, int) or substeps < 1:
-        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+        kind = ValueError if isinstance(substeps, int) else TypeError
+        raise kind(f"substeps: expected a positive int, received {substeps!r}.")
     ds = 1.0 / substeps
     step = h * ds
     for i in range(substeps):

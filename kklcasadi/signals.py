@@ -11,6 +11,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from .validation import Text, error, finite_number, one_of, positive_int, positive_number
+
 __all__ = ["Signal", "Zero", "Constant", "Sinusoid", "Square", "Step", "Chirp", "RandomSteps",
            "make", "kinds", "sample", "RANGES", "REGIMES", "BENCHMARK_KINDS"]
 
@@ -18,26 +20,19 @@ __all__ = ["Signal", "Zero", "Constant", "Sinusoid", "Square", "Step", "Chirp", 
 def _vector(value: Any, arg: str) -> np.ndarray:
     arr = np.atleast_1d(np.asarray(value, dtype=float))
     if arr.ndim != 1 or arr.size == 0:
-        raise ValueError(f"{arg} must be a scalar or a 1-D vector (one entry per input), got shape {arr.shape}")
+        raise error(arg, "a scalar or a 1-D vector (one entry per input)", Text(f"shape {arr.shape}"))
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{arg} must be finite, got {arr.tolist()}")
+        raise error(arg, "finite values", arr.tolist())
     arr.setflags(write=False)
     return arr
-
-
-def _positive(value: Any, arg: str) -> float:
-    v = float(value)
-    if not np.isfinite(v) or v <= 0:
-        raise ValueError(f"{arg} must be a finite number > 0, got {value!r}")
-    return v
 
 
 def _times(t: Any) -> tuple[np.ndarray, bool]:
     arr = np.asarray(t, dtype=float)
     if arr.ndim > 1:
-        raise ValueError(f"t must be a scalar or a 1-D array of times, got shape {arr.shape}")
+        raise error("t", "a scalar or a 1-D array of times", Text(f"shape {arr.shape}"))
     if not np.all(np.isfinite(arr)):
-        raise ValueError("t must be finite")
+        raise error("t", "finite times", Text("NaN or inf"))
     return np.atleast_1d(arr), arr.ndim == 0
 
 
@@ -65,8 +60,7 @@ class Zero(Signal):
     size: int = 1
 
     def __post_init__(self) -> None:
-        if not isinstance(self.size, (int, np.integer)) or self.size < 1:
-            raise ValueError(f"size must be a positive integer (number of inputs), got {self.size!r}")
+        positive_int(self.size, "size (number of inputs)")
 
     @property
     def nu(self) -> int:
@@ -101,11 +95,8 @@ class _Periodic(Signal):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "amplitude", _vector(self.amplitude, "amplitude"))
-        object.__setattr__(self, "omega", _positive(self.omega, "omega (rad/s)"))
-        phase = float(self.phase)
-        if not np.isfinite(phase):
-            raise ValueError(f"phase must be finite, got {self.phase!r}")
-        object.__setattr__(self, "phase", phase)
+        object.__setattr__(self, "omega", positive_number(self.omega, "omega (rad/s)"))
+        object.__setattr__(self, "phase", finite_number(self.phase, "phase"))
 
     @property
     def nu(self) -> int:
@@ -143,9 +134,8 @@ class Step(Signal):
         object.__setattr__(self, "before", _vector(self.before, "before"))
         object.__setattr__(self, "after", _vector(self.after, "after"))
         if self.before.size != self.after.size:
-            raise ValueError(f"before and after must have the same size, got {self.before.size} and {self.after.size}")
-        if not np.isfinite(float(self.time)):
-            raise ValueError(f"time must be finite, got {self.time!r}")
+            raise error("after", f"the size of before ({self.before.size})", Text(f"size {self.after.size}"))
+        finite_number(self.time, "time")
 
     @property
     def nu(self) -> int:
@@ -171,9 +161,9 @@ class Chirp(Signal):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "amplitude", _vector(self.amplitude, "amplitude"))
-        _positive(self.omega0, "omega0 (rad/s)")
-        _positive(self.omega1, "omega1 (rad/s)")
-        _positive(self.duration, "duration")
+        positive_number(self.omega0, "omega0 (rad/s)")
+        positive_number(self.omega1, "omega1 (rad/s)")
+        positive_number(self.duration, "duration")
 
     @property
     def nu(self) -> int:
@@ -202,8 +192,8 @@ class RandomSteps(Signal):
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "amplitude", _vector(self.amplitude, "amplitude"))
-        _positive(self.hold, "hold")
-        _positive(self.horizon, "horizon")
+        positive_number(self.hold, "hold")
+        positive_number(self.horizon, "horizon")
         n = int(np.ceil(self.horizon / self.hold)) + 1
         levels = np.random.default_rng(self.seed).uniform(-1.0, 1.0, (n, self.nu)) * self.amplitude
         levels.setflags(write=False)
@@ -236,14 +226,13 @@ def make(kind: str, **params: Any) -> Signal:
     phase), ``step`` (time, before, after), ``chirp`` (amplitude, omega0, omega1, duration, phase),
     ``random`` (amplitude, hold, seed, horizon).
     """
-    if kind not in _KINDS:
-        raise ValueError(f"unknown signal kind {kind!r}; known kinds: {', '.join(_KINDS)}")
-    cls = _KINDS[kind]
-    try:
-        return cls(**params)
-    except TypeError as err:
-        fields = [f for f in cls.__dataclass_fields__ if f != "levels"]
-        raise TypeError(f"signal {kind!r} takes parameters {fields}; got {sorted(params)} ({err})") from err
+    cls = _KINDS[one_of(kind, "kind", _KINDS)]
+    fields = [f for f in cls.__dataclass_fields__ if f != "levels"]
+    unknown = sorted(set(params) - set(fields))
+    if unknown:
+        raise error("params", f"parameters of signal {kind!r} among {fields}", Text(f"unknown {unknown}"),
+                    kind=TypeError)
+    return cls(**params)
 
 
 _ID_RANGES = {
@@ -280,14 +269,12 @@ def sample(kind: str, rng: np.random.Generator, regime: str = "id", *, nu: int =
         independent amplitudes for periodic ones.
     """
     if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator (np.random.default_rng(seed)), got {type(rng).__name__}")
-    if regime not in RANGES:
-        raise ValueError(f"unknown regime {regime!r}; known regimes: {', '.join(REGIMES)}")
+        raise error("rng", "a numpy.random.Generator (np.random.default_rng(seed))", Text(type(rng).__name__),
+                    kind=TypeError)
+    ranges = RANGES[one_of(regime, "regime", REGIMES)]
+    one_of(kind, "kind", ("zero", *ranges))
     if kind == "zero":
         return Zero(nu)
-    ranges = RANGES[regime]
-    if kind not in ranges:
-        raise ValueError(f"cannot sample kind {kind!r}; sampled kinds: zero, {', '.join(ranges)}")
     r = ranges[kind]
     if kind == "constant":
         return Constant(rng.uniform(*r["value"], size=nu))

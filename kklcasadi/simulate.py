@@ -17,6 +17,16 @@ import numpy as np
 
 from .rk4 import rk4_step
 from .systems import System
+from .validation import (
+    Text,
+    error,
+    finite_array,
+    finite_number,
+    nonnegative_number,
+    one_of,
+    positive_int,
+    positive_number,
+)
 
 __all__ = ["Trajectory", "TrajectoryBatch", "simulate", "simulate_batch", "time_grid", "input_samples",
            "step_function", "INTEGRATORS"]
@@ -73,15 +83,13 @@ class TrajectoryBatch:
 
 def time_grid(T: float, dt: float) -> np.ndarray:
     """Sample times ``t_k = k dt``, ``k = 0..N-1`` with ``N = round(T / dt)`` (PROTOCOL.md)."""
-    dt = float(dt)
-    T = float(T)
-    if not np.isfinite(dt) or dt <= 0:
-        raise ValueError(f"dt must be a finite number > 0, got {dt!r}")
-    if not np.isfinite(T) or T < 2 * dt:
-        raise ValueError(f"T must be at least 2 dt = {2 * dt}, got {T!r}")
+    dt = positive_number(dt, "dt")
+    T = finite_number(T, "T")
+    if T < 2 * dt:
+        raise error("T", f"at least 2 dt = {2 * dt}", T)
     n = int(round(T / dt))
     if abs(n * dt - T) > 1e-9 * max(1.0, T):
-        raise ValueError(f"T = {T} must be a whole number of sample periods dt = {dt}")
+        raise error("T", f"a whole number of sample periods dt = {dt}", T)
     return np.arange(n) * dt
 
 
@@ -100,11 +108,11 @@ def input_samples(u: InputLike, t: np.ndarray, nu: int, arg: str = "u") -> np.nd
     if values.ndim == 1 and nu == 1:
         values = values[:, None]
     if values.shape != (t.size, nu):
-        raise ValueError(f"{arg} must give samples of shape (N, nu) = ({t.size}, {nu}), got {values.shape}")
+        raise error(arg, f"samples of shape (N, nu) = ({t.size}, {nu})", Text(f"shape {values.shape}"))
     bad = ~np.isfinite(values)
     if bad.any():
         k = int(np.argwhere(bad)[0, 0])
-        raise ValueError(f"{arg} is not finite at sample {k} (t = {t[k]:.6g}): {values[k].tolist()}")
+        raise error(arg, "finite samples", Text(f"{values[k].tolist()} at sample {k} (t = {t[k]:.6g})"))
     return values
 
 
@@ -120,15 +128,13 @@ def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: fl
         ``"cvodes"``: adaptive BDF with tolerances ``rtol``/``atol`` (PROTOCOL.md: 1e-8 / 1e-10).
         ``"rk"``: RK4 (:func:`kklcasadi.rk4.rk4_step`, SX) with ``substeps`` fixed steps per interval.
     """
-    if method not in INTEGRATORS:
-        raise ValueError(f"unknown integrator method {method!r}; known methods: {', '.join(INTEGRATORS)}")
-    if not isinstance(substeps, (int, np.integer)) or substeps < 1:
-        raise ValueError(f"substeps must be a positive integer, got {substeps!r}")
+    one_of(method, "method", INTEGRATORS)
+    substeps = positive_int(substeps, "substeps")
     x = ca.SX.sym("x", system.nx)
     p = ca.SX.sym("p", system.nu + system.nx)
     ode = system.f(x, p[:system.nu]) + p[system.nu:]
     if method == "rk":
-        x_next = rk4_step(lambda _s, xx: system.f(xx, p[:system.nu]) + p[system.nu:], x, float(dt), int(substeps))
+        x_next = rk4_step(lambda _s, xx: system.f(xx, p[:system.nu]) + p[system.nu:], x, float(dt), substeps)
         return ca.Function("step", [x, p], [x_next], ["x", "p"], ["x_next"])
     opts = {"abstol": float(atol), "reltol": float(rtol), "max_num_steps": 100000, "disable_internal_warnings": True,
             "show_eval_warnings": False}
@@ -143,15 +149,8 @@ def _seeds(seed: int | Sequence[int] | None, m: int) -> list[Any]:
         return list(np.random.SeedSequence(seed).spawn(m)) if m > 1 else [seed]
     seeds = list(seed)
     if len(seeds) != m:
-        raise ValueError(f"seed must be an int or one seed per trial ({m}), got {len(seeds)} seeds")
+        raise error("seed", f"an int or one seed per trial ({m})", Text(f"{len(seeds)} seeds"))
     return seeds
-
-
-def _noise_std(value: float, arg: str) -> float:
-    v = float(value)
-    if not np.isfinite(v) or v < 0:
-        raise ValueError(f"{arg} must be a finite number >= 0, got {value!r}")
-    return v
 
 
 def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], T: float = 50.0, dt: float = 0.05,
@@ -184,22 +183,21 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
         Worker threads for the trial map (default: the CPU count).
     """
     if not isinstance(system, System):
-        raise TypeError(f"system must be a kklcasadi.System, got {type(system).__name__}")
+        raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
     t = time_grid(T, dt)
     n = t.size
     x0 = np.asarray(x0, dtype=float)
     if x0.ndim != 2 or x0.shape[1] != system.nx or x0.shape[0] == 0:
-        raise ValueError(f"x0 must have shape (M, nx) = (M, {system.nx}) for system {system.name!r}, got {x0.shape}")
-    if not np.all(np.isfinite(x0)):
-        raise ValueError("x0 must be finite")
+        raise error("x0", f"shape (M, nx) = (M, {system.nx}) for system {system.name!r}", Text(f"shape {x0.shape}"))
+    finite_array(x0, "x0")
     m = x0.shape[0]
     single = callable(u) or (not isinstance(u, (list, tuple)))
     inputs = [u] * m if single else list(u)
     if len(inputs) != m:
-        raise ValueError(f"u must be one input or a sequence of M = {m} inputs, got {len(inputs)}")
+        raise error("u", f"one input or a sequence of M = {m} inputs", Text(f"{len(inputs)} inputs"))
     us = np.stack([input_samples(ui, t, system.nu, f"u[{i}]") for i, ui in enumerate(inputs)])
-    process_std = _noise_std(process_std, "process_std")
-    measurement_std = _noise_std(measurement_std, "measurement_std")
+    process_std = nonnegative_number(process_std, "process_std")
+    measurement_std = nonnegative_number(measurement_std, "measurement_std")
     rngs = [np.random.default_rng(s) for s in _seeds(seed, m)]
     w = np.stack([rng.normal(0.0, 1.0, (n - 1, system.nx)) for rng in rngs]) * process_std
     v = np.stack([rng.normal(0.0, 1.0, (n, system.ny)) for rng in rngs]) * measurement_std

@@ -13,17 +13,20 @@ from typing import Callable, Sequence
 import casadi as ca
 import numpy as np
 
+from .validation import Text, error, one_of, positive_int
+
 __all__ = ["System", "get", "names", "register"]
 
 
 def _column_symbol(value: object, arg: str) -> ca.SX:
     """Check that ``value`` is a column vector of purely symbolic SX entries."""
     if not isinstance(value, ca.SX):
-        raise TypeError(f"{arg} must be a casadi.SX symbol (e.g. ca.SX.sym('{arg}', n)); got {type(value).__name__}")
+        raise error(arg, f"a casadi.SX symbol (e.g. ca.SX.sym('{arg}', n))", Text(type(value).__name__),
+                    kind=TypeError)
     if value.size2() != 1 or value.numel() == 0:
-        raise ValueError(f"{arg} must be a non-empty column vector, got shape {value.shape}")
+        raise error(arg, "a non-empty column vector", Text(f"shape {value.shape}"))
     if not value.is_valid_input():
-        raise ValueError(f"{arg} must consist of distinct purely symbolic entries (ca.SX.sym), not expressions")
+        raise error(arg, "distinct purely symbolic entries (ca.SX.sym), not expressions", Text(str(value)))
     return value
 
 
@@ -31,23 +34,23 @@ def _column_expr(value: object, arg: str, n: int | None = None) -> ca.SX:
     if isinstance(value, (list, tuple)):
         value = ca.vertcat(*value)
     if not isinstance(value, ca.SX):
-        raise TypeError(f"{arg} must be a casadi.SX expression or a list of them; got {type(value).__name__}")
+        raise error(arg, "a casadi.SX expression or a list of them", Text(type(value).__name__), kind=TypeError)
     if value.size2() != 1:
-        raise ValueError(f"{arg} must be a column expression, got shape {value.shape}")
+        raise error(arg, "a column expression", Text(f"shape {value.shape}"))
     if n is not None and value.size1() != n:
-        raise ValueError(f"{arg} must have {n} entries (one per state), got {value.size1()}")
+        raise error(arg, f"{n} entries (one per state)", Text(f"{value.size1()} entries"))
     return value
 
 
 def _box(x0_box: object, nx: int) -> np.ndarray:
     box = np.asarray(x0_box, dtype=float)
     if box.shape != (nx, 2):
-        raise ValueError(f"x0_box must have shape (nx, 2) = ({nx}, 2) as [[lo, hi], ...], got shape {box.shape}")
+        raise error("x0_box", f"shape (nx, 2) = ({nx}, 2) as [[lo, hi], ...]", Text(f"shape {box.shape}"))
     if not np.all(np.isfinite(box)):
-        raise ValueError(f"x0_box must be finite, got {box.tolist()}")
+        raise error("x0_box", "finite bounds", box.tolist())
     if np.any(box[:, 1] <= box[:, 0]):
         bad = np.nonzero(box[:, 1] <= box[:, 0])[0].tolist()
-        raise ValueError(f"x0_box rows {bad} are empty or inverted (need lo < hi), got {box.tolist()}")
+        raise error("x0_box", f"rows [lo, hi] with lo < hi (rows {bad} are empty or inverted)", box.tolist())
     box.setflags(write=False)
     return box
 
@@ -95,20 +98,21 @@ class System:
     def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
                  x0_box: object, *, description: str = "") -> None:
         if not isinstance(name, str) or not name.isidentifier():
-            raise ValueError(f"name must be a Python identifier such as 'duffing', got {name!r}")
+            raise error("name", "a Python identifier such as 'duffing'", name)
         x = _column_symbol(x, "x")
         u = _column_symbol(u, "u")
         xdot = _column_expr(xdot, "xdot", x.size1())
         y = _column_expr(y, "y")
         if y.size1() == 0:
-            raise ValueError("y must have at least one output")
+            raise error("y", "at least one output", Text("0 outputs"))
         if ca.depends_on(y, u):
-            raise ValueError("y = h(x) must not depend on the input u (direct feedthrough is not supported)")
+            raise error("y", "an output map h(x) that does not depend on the input u", Text(str(y)),
+                        "Direct feedthrough is not supported.")
         free = ca.symvar(ca.vertcat(xdot, y))
         known = set(ca.symvar(ca.vertcat(x, u)))
         extra = [str(s) for s in free if s not in known]
         if extra:
-            raise ValueError(f"xdot and y may only use the symbols of x and u; found free symbols {extra}")
+            raise error("xdot, y", "expressions in the symbols of x and u only", Text(f"free symbols {extra}"))
         self.name = name
         self.description = description
         self.nx, self.nu, self.ny = x.size1(), u.size1(), y.size1()
@@ -163,9 +167,9 @@ class System:
         """Return ``x`` as a float array of shape (nx,), or raise a ValueError naming ``arg``."""
         arr = np.asarray(x, dtype=float)
         if arr.shape not in ((self.nx,), (self.nx, 1)):
-            raise ValueError(f"{arg} must have shape ({self.nx},) for system {self.name!r}, got {arr.shape}")
+            raise error(arg, f"shape ({self.nx},) for system {self.name!r}", Text(f"shape {arr.shape}"))
         if not np.all(np.isfinite(arr)):
-            raise ValueError(f"{arg} must be finite, got {arr.ravel().tolist()}")
+            raise error(arg, "finite values", arr.ravel().tolist())
         return arr.reshape(self.nx)
 
     def sample_box(self, n: int, seed: int | np.random.Generator | None = 0, *, scale: float = 1.0) -> np.ndarray:
@@ -177,11 +181,10 @@ class System:
         """
         from scipy.stats import qmc
 
-        if not isinstance(n, (int, np.integer)) or n < 1:
-            raise ValueError(f"n must be a positive integer, got {n!r}")
+        n = positive_int(n, "n")
         centre = self.x0_box.mean(axis=1)
         half = 0.5 * (self.x0_box[:, 1] - self.x0_box[:, 0]) * scale
-        unit = qmc.LatinHypercube(d=self.nx, seed=seed).random(int(n))
+        unit = qmc.LatinHypercube(d=self.nx, seed=seed).random(n)
         return centre + (2.0 * unit - 1.0) * half
 
 
@@ -191,7 +194,7 @@ _REGISTRY: dict[str, Callable[[], System]] = {}
 def register(name: str, factory: Callable[[], System]) -> None:
     """Add a plant factory to the registry used by :func:`get` and the CLI."""
     if not callable(factory):
-        raise TypeError(f"factory must be callable returning a System, got {type(factory).__name__}")
+        raise error("factory", "a callable returning a System", Text(type(factory).__name__), kind=TypeError)
     _REGISTRY[name] = factory
 
 
@@ -202,9 +205,7 @@ def names() -> list[str]:
 
 def get(name: str) -> System:
     """Build the registered system ``name`` (e.g. ``"duffing"``)."""
-    if name not in _REGISTRY:
-        raise ValueError(f"unknown system {name!r}; known systems: {', '.join(names())}")
-    return _REGISTRY[name]()
+    return _REGISTRY[one_of(name, "name", names())]()
 
 
 def _symbols(nx: int) -> tuple[ca.SX, ca.SX]:

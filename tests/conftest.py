@@ -39,8 +39,9 @@ def model_dir_factory(tmp_path_factory):
     ``make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
     card_extra=None, dt=0.05)``; ``system`` is a registered name or a ``kklcasadi.System`` (then
     pass it to ``load_observer(path, system=...)``). Encoder/decoder MLPs ``[nx, *hidden, nz]`` / ``[nz, *hidden,
-    nx]`` (tanh), ``A = -diag(1..nz)``, ``B = ones``; obs: GRU 4, projection 3, gain ``[nz + 3,
-    6, nz*nu]``; dyn: hypernetwork GRU 4, embeddings 3, backbone ``[5, 5]``, rank 2, scale 1.
+    nx]`` (tanh), ``A = -diag(1..nz)``, ``B = ones``; obs, obs_stream: GRU 4, projection 3, gain
+    ``[nz + 3, 6, nz*nu]``; dyn, dyn_stream: hypernetwork GRU 4, embeddings 3, backbone ``[5, 5]``,
+    rank 2, scale 1.
     With ``base=True`` an autonomous model with the same encoder/decoder is written first and
     named as ``card["base"]``. ``card_extra`` adds top-level card fields.
     """
@@ -58,10 +59,10 @@ def model_dir_factory(tmp_path_factory):
         design = kklcasadi.Design.default(plant)
         nz = design.nz
         maps = MapsSpec(MLPSpec((nx, *hidden, nz)), MLPSpec((nz, *hidden, nx)))
-        spec = {"obs": lambda: ObsModelSpec(maps.encoder, maps.decoder,
-                                            ObsSpec(4, 3, MLPSpec((nz + 3, 6, nz * nu)))),
-                "dyn": lambda: DynModelSpec(maps.encoder, maps.decoder, HyperSpec(4, 3, (5, 5), 2), nu),
-                }.get(method, lambda: maps)()
+        obs = lambda: ObsModelSpec(maps.encoder, maps.decoder,  # noqa: E731
+                                   ObsSpec(4, 3, MLPSpec((nz + 3, 6, nz * nu))))
+        dyn = lambda: DynModelSpec(maps.encoder, maps.decoder, HyperSpec(4, 3, (5, 5), 2), nu)  # noqa: E731
+        spec = {"obs": obs, "obs_stream": obs, "dyn": dyn, "dyn_stream": dyn}.get(method, lambda: maps)()
         card = {**make_card(plant, design, method, spec, dt=dt, window=window, training={"seed": seed}),
                 **(card_extra or {})}
         root = tmp_path_factory.mktemp(f"model{next(counter)}")

@@ -34,13 +34,13 @@ def test_design_is_immutable():
 
 
 def test_bad_designs_are_rejected():
-    with pytest.raises(ValueError, match="Hurwitz"):
+    with pytest.raises(ValueError, match="A: expected a Hurwitz matrix"):
         kc.Design(np.diag([-1.0, 0.5]), np.ones((2, 1)))
-    with pytest.raises(ValueError, match="controllable"):
+    with pytest.raises(ValueError, match=r"\(A, B\): expected a controllable pair"):
         kc.Design(-np.eye(2), np.ones((2, 1)))
-    with pytest.raises(ValueError, match="square"):
+    with pytest.raises(ValueError, match="A: expected a non-empty square matrix"):
         kc.Design(np.ones((2, 3)), np.ones((2, 1)))
-    with pytest.raises(ValueError, match=r"B must have shape \(nz, ny\) = \(2, ny\)"):
+    with pytest.raises(ValueError, match=r"B: expected shape \(nz, ny\) = \(2, ny\)"):
         kc.Design(-np.diag([1.0, 2.0]), np.ones((3, 1)))
-    with pytest.raises(TypeError, match="kklcasadi.System"):
+    with pytest.raises(TypeError, match=r"system: expected a kklcasadi\.System"):
         kc.Design.default("duffing")

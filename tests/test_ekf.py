@@ -64,13 +64,13 @@ def test_ekf_bad_input():
     s = kc.systems.get("duffing")
     ekf = EKF(s, 0.05)
     t = np.arange(10) * 0.05
-    with pytest.raises(ValueError, match="y must have shape"):
+    with pytest.raises(ValueError, match=r"y: expected shape \(N, ny\) or \(M, N, ny\)"):
         ekf.simulate(t, np.zeros((10, 2)), np.zeros((10, 1)))
     y = np.zeros((10, 1))
     y[4] = np.inf
-    with pytest.raises(ValueError, match="sample 4"):
+    with pytest.raises(ValueError, match="y: expected finite values, received NaN or inf at trial 0, sample 4"):
         ekf.simulate(t, y, np.zeros((10, 1)))
-    with pytest.raises(ValueError, match="Q must have shape"):
+    with pytest.raises(ValueError, match=r"Q: expected shape \(2, 2\)"):
         EKF(s, 0.05, Q=np.eye(3))
-    with pytest.raises(ValueError, match="spaced by dt"):
+    with pytest.raises(ValueError, match="t: expected samples spaced by dt = 0.05"):
         ekf.simulate(t * 2, np.zeros((10, 1)), np.zeros((10, 1)))

@@ -24,10 +24,10 @@ NZ = NY * (2 * NX + 1)
 def make_card(method="autonomous", nu=NU, base=None):
     arch = {"encoder": {"sizes": [NX, 8, 8, NZ], "activation": "tanh"},
             "decoder": {"sizes": [NZ, 8, 8, NX], "activation": "relu"}}
-    if method == "obs":
+    if method in ("obs", "obs_stream"):
         arch.update({"context": {"hidden": 6, "proj": 3},
                      "gain": {"sizes": [NZ + 3, 7, NZ * nu], "activation": "tanh"}})
-    if method == "dyn":
+    if method in ("dyn", "dyn_stream"):
         arch["hyper"] = {"hidden": 6, "embed": 4, "backbone": [9, 9], "rank": 2}
     return {
         "method": method,

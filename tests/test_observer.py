@@ -39,7 +39,7 @@ def plant_run(system="duffing", T=4.0, u=None, x0=(0.5, -0.2)):
 
 
 def random_step_args(obs, rng):
-    return (rng.normal(size=obs.nz), rng.normal(size=(obs.window, obs.nu)),
+    return (rng.normal(size=obs.nz), rng.normal(size=obs.memory_shape),
             rng.normal(size=obs.ny), rng.normal(size=obs.ny), rng.normal(size=obs.nu))
 
 
@@ -50,12 +50,13 @@ def test_every_method_loads_with_named_functions(model_dir_factory, method):
     obs = kc.load_observer(model_dir_factory(method, base=method != "autonomous"))
     assert isinstance(obs, kc.KKLObserver) and obs.method == method
     assert (obs.nx, obs.nu, obs.ny, obs.nz, obs.window, obs.dt) == (2, 1, 1, 5, 3, DT)
-    assert obs.discretization == ("rk4" if method in ("obs", "inject") else "exact")
+    assert obs.discretization == ("exact" if obs.variant.linear else "rk4")
     assert (obs.rhs.name_in(), obs.rhs.name_out()) == (["z", "y", "u", "w"], ["zdot"])
     assert (obs.decode.name_in(), obs.decode.name_out()) == (["z", "w"], ["xhat"])
     assert obs.step.name_in() == ["z", "w", "y", "y_next", "u_next"]
     assert obs.step.name_out() == ["z_next", "w_next", "xhat_next"]
-    assert obs.step.size_in(1) == (3, 1) and obs.step.size_out(1) == (3, 1)
+    memory = (3, 1) if obs.variant.windowed or method in ("autonomous", "curriculum", "inject") else (4 + 1, 1)
+    assert obs.memory_shape == memory and obs.step.size_in(1) == memory and obs.step.size_out(1) == memory
     assert obs.step.is_a("MXFunction")
 
 
@@ -153,11 +154,15 @@ def test_dyn_decoder_is_the_exported_lora_decoder(model_dir_factory, rng):
 # ----------------------------------------------------------------------------- the step
 
 @pytest.mark.parametrize("method", METHODS)
-def test_step_shifts_the_window_and_decodes_the_new_state(model_dir_factory, rng, method):
+def test_step_updates_the_memory_and_decodes_the_new_state(model_dir_factory, rng, method):
     obs = load_observer(model_dir_factory(method, window=4))
     z, w, y, y_next, u_next = random_step_args(obs, rng)
     z_next, w_next, xhat_next = obs.step(z, w, y, y_next, u_next)
-    assert np.array_equal(np.array(w_next), np.vstack([w[1:], u_next[None]]))
+    assert np.array_equal(np.array(w_next), np.array(obs.memory.next(w, u_next)))
+    if obs.memory_shape == (4, 1):                                     # the window shifts
+        assert np.array_equal(np.array(w_next), np.vstack([w[1:], u_next[None]]))
+    else:                                                              # [h; u]: one GRU cell
+        assert obs.memory_shape == (5, 1) and np.array_equal(np.array(w_next)[4:], u_next[None])
     assert np.array_equal(np.array(xhat_next), np.array(obs.decode(z_next, w_next)))
 
 
@@ -201,11 +206,12 @@ def test_rk4_converges_to_the_exact_step_at_fourth_order(model_dir_factory, rng)
 # ----------------------------------------------------------------------------- exact collapse
 
 @pytest.mark.parametrize("method,extra", [("obs", None), ("dyn", None), ("inject", None),
-                                          ("obs", {"model_based_injection": True})])
+                                          ("obs", {"model_based_injection": True}),
+                                          ("obs_stream", None), ("dyn_stream", None)])
 def test_collapses_bitwise_to_the_autonomous_observer_at_zero_input(model_dir_factory, method,
                                                                     extra):
     tr = plant_run(u=np.zeros((80, 1)))
-    discretization = "exact" if method == "dyn" else "rk4"
+    discretization = "exact" if method.startswith("dyn") else "rk4"
     auto = load_observer(model_dir_factory("autonomous", window=5, seed=7),
                          discretization=discretization)
     other = load_observer(model_dir_factory(method, window=5, seed=7, card_extra=extra))
@@ -217,6 +223,29 @@ def test_collapses_bitwise_to_the_autonomous_observer_at_zero_input(model_dir_fa
                               other.simulate(tr.t, tr.y, driven).xhat)
 
 
+# ----------------------------------------------------------------------------- streaming
+
+@pytest.mark.parametrize("method", ["obs_stream", "dyn_stream"])
+def test_streaming_context_is_the_window_gru_over_the_whole_history(model_dir_factory, method):
+    """After k + 1 samples the streamed context equals the window GRU run over u_0..u_k (no
+    padding), so the streaming observer is the windowed one with an ever-growing window."""
+    stream = load_observer(model_dir_factory(method, seed=3))
+    tr = plant_run(T=0.6)
+    n = tr.t.size
+    windowed = load_observer(model_dir_factory(method.split("_")[0], window=n, seed=3))
+    w = stream.memory_init(tr.u[0])
+    for k in range(1, n):
+        w = stream.memory.next(w, tr.u[k])
+    h = np.array(w)[:-1]
+    if method == "obs_stream":
+        expected = windowed._context(tr.u)
+        np.testing.assert_allclose(np.array(stream._context(w)), np.array(expected), rtol=0, atol=1e-14)
+    z = np.linspace(-1, 1, 5)
+    np.testing.assert_allclose(np.array(stream.decode(z, w)), np.array(windowed.decode(z, tr.u)),
+                               rtol=0, atol=1e-14)
+    assert np.abs(h).max() > 1e-3
+
+
 # ----------------------------------------------------------------------------- simulate
 
 @pytest.mark.parametrize("method", METHODS)
@@ -225,7 +254,9 @@ def test_simulate_is_the_step_repeated_from_zero(model_dir_factory, method):
     tr = plant_run(T=1.0)
     est = obs.simulate(tr.t, tr.y, tr.u)
     assert np.array_equal(est.t, tr.t) and est.xhat.shape == (20, 2) and est.z.shape == (20, 5)
-    z, w = np.zeros(5), np.repeat(tr.u[:1], 4, axis=0)
+    z, w = np.zeros(5), obs.memory_init(tr.u[0])
+    if obs.variant.windowed or method in ("autonomous", "curriculum", "inject"):
+        assert np.array_equal(np.array(w), np.repeat(tr.u[:1], 4, axis=0))      # filled with u_0
     assert np.array_equal(est.z[0], z)
     assert np.array_equal(est.xhat[0], np.array(obs.decode(z, w)).ravel())
     for k in range(1, 20):
@@ -332,7 +363,7 @@ def test_simulate_names_the_trial_and_sample_of_a_nan_or_inf(model_dir_factory):
 
 # ----------------------------------------------------------------------------- integrator
 
-@pytest.mark.parametrize("method", ["obs", "inject", "dyn"])
+@pytest.mark.parametrize("method", ["obs", "inject", "dyn", "obs_stream"])
 def test_cvodes_agrees_with_the_step(model_dir_factory, rng, method):
     """CVODES (reltol 1e-10, abstol 1e-12) vs the step: 1e-9 for the exact discretisation,
     1e-8 for RK4 with 8 substeps per interval (its error on these random networks is ~2e-9;
@@ -341,7 +372,7 @@ def test_cvodes_agrees_with_the_step(model_dir_factory, rng, method):
     integ = obs.integrator("cvodes", reltol=1e-10, abstol=1e-12)
     for _ in range(2):
         z, w, y, y_next, u_next = random_step_args(obs, rng)
-        p = np.concatenate([y, y_next, w[-1], w.ravel(order="F")])
+        p = np.concatenate([y, y_next, np.array(obs.memory.held(ca.DM(w))).ravel(), w.ravel(order="F")])
         zf = np.array(integ(x0=z, p=p)["xf"])
         tol = 1e-9 if obs.discretization == "exact" else 1e-8
         np.testing.assert_allclose(zf, np.array(obs.step(z, w, y, y_next, u_next)[0]),
@@ -364,7 +395,7 @@ def test_other_integrator_plugins_and_a_bad_one(model_dir_factory, rng):
 
 # ----------------------------------------------------------------------------- estimator
 
-@pytest.mark.parametrize("method", ["dyn", "obs"])
+@pytest.mark.parametrize("method", ["dyn", "obs", "obs_stream"])
 def test_estimator_equals_simulate_sample_by_sample(model_dir_factory, method):
     obs = load_observer(model_dir_factory(method, window=4))
     tr = plant_run(T=1.0)
@@ -374,7 +405,7 @@ def test_estimator_equals_simulate_sample_by_sample(model_dir_factory, method):
     for _ in range(2):                                             # and again after reset()
         for k in range(tr.t.size):
             assert np.array_equal(est.make_step(tr.y[k], tr.u[k]), expected[k])
-        assert est.k == tr.t.size and est.z.shape == (5,) and est.w.shape == (4, 1)
+        assert est.k == tr.t.size and est.z.shape == (5,) and est.w.shape == obs.memory_shape
         est.reset()
 
 

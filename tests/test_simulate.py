@@ -101,19 +101,19 @@ def test_blow_up_is_reported_not_kept():
 def test_bad_arguments_are_named():
     s = kc.systems.get("duffing")
     u = sig.make("zero")
-    with pytest.raises(ValueError, match=r"x0 must have shape \(2,\)"):
+    with pytest.raises(ValueError, match=r"x0: expected shape \(2,\)"):
         kc.simulate(s, [0.0, 0.0, 0.0], u, T=1.0)
-    with pytest.raises(ValueError, match="dt must be"):
+    with pytest.raises(ValueError, match="dt: expected a finite number > 0"):
         kc.simulate(s, [0.0, 0.0], u, T=1.0, dt=0.0)
-    with pytest.raises(ValueError, match="whole number of sample periods"):
+    with pytest.raises(ValueError, match="T: expected a whole number of sample periods"):
         kc.simulate(s, [0.0, 0.0], u, T=1.01, dt=0.05)
-    with pytest.raises(ValueError, match=r"u\[0\] must give samples of shape \(N, nu\) = \(20, 1\)"):
+    with pytest.raises(ValueError, match=r"u\[0\]: expected samples of shape \(N, nu\) = \(20, 1\)"):
         kc.simulate(s, [0.0, 0.0], np.zeros((19, 1)), T=1.0)
     bad = np.zeros((20, 1))
     bad[7] = np.nan
-    with pytest.raises(ValueError, match="not finite at sample 7"):
+    with pytest.raises(ValueError, match=r"u\[0\]: expected finite samples, received \[nan\] at sample 7"):
         kc.simulate(s, [0.0, 0.0], bad, T=1.0)
-    with pytest.raises(ValueError, match="known methods: cvodes, rk"):
+    with pytest.raises(ValueError, match=r"method: expected one of \['cvodes', 'rk'\]"):
         kc.simulate(s, [0.0, 0.0], u, T=1.0, method="euler")
-    with pytest.raises(ValueError, match="process_std"):
+    with pytest.raises(ValueError, match="process_std: expected a finite number >= 0"):
         kc.simulate(s, [0.0, 0.0], u, T=1.0, process_std=-1.0)

@@ -6,8 +6,10 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from .. import variants
+from ..validation import Text, error, finite_number, one_of, positive_int, positive_number
 
 __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig",
+           "ObsStreamConfig", "DynStreamConfig",
            "default_config", "PAPER_WIDTH"]
 
 #: Hidden width of the encoder/decoder per system in the paper (150 or 350 units). The default here
@@ -52,19 +54,16 @@ class LoopConfig:
     samples_per_epoch: int | None = None
 
     def __post_init__(self) -> None:
-        for name in ("epochs", "batch_size"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if not (self.lr > 0 and self.clip > 0):
-            raise ValueError(f"lr and clip must be > 0, got lr={self.lr!r}, clip={self.clip!r}")
-        if self.schedule not in ("plateau", "cosine"):
-            raise ValueError(f"schedule must be 'plateau' or 'cosine', got {self.schedule!r}")
-        if not 0 < self.val_fraction < 0.5:
-            raise ValueError(f"val_fraction must lie in (0, 0.5), got {self.val_fraction!r}")
+        positive_int(self.epochs, "epochs")
+        positive_int(self.batch_size, "batch_size")
+        positive_number(self.lr, "lr")
+        positive_number(self.clip, "clip")
+        one_of(self.schedule, "schedule", ("plateau", "cosine"))
+        if not 0 < finite_number(self.val_fraction, "val_fraction") < 0.5:
+            raise error("val_fraction", "a number in (0, 0.5)", self.val_fraction)
         if self.samples_per_epoch is not None and self.samples_per_epoch < self.batch_size:
-            raise ValueError(f"samples_per_epoch must be >= batch_size ({self.batch_size}), "
-                             f"got {self.samples_per_epoch!r}")
+            raise error("samples_per_epoch", f"None or a count >= batch_size ({self.batch_size})",
+                        self.samples_per_epoch)
 
 
 @dataclass(frozen=True)
@@ -177,6 +176,30 @@ class CurriculumConfig:
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=10, batch_size=256, lr=1e-4))
 
 
+@dataclass(frozen=True)
+class ObsStreamConfig(ObsConfig):
+    """HyperKKL_obs with a streaming context: as :class:`ObsConfig`, trained on whole trajectories.
+
+    ``loop.batch_size`` and ``loop.samples_per_epoch`` count trajectories (each of
+    ``data.T / dt`` samples); ``data.window`` is not used.
+    """
+
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=8, lr=1e-3,
+                                                                schedule="cosine"))
+
+
+@dataclass(frozen=True)
+class DynStreamConfig(DynConfig):
+    """HyperKKL_dyn with a streaming context: as :class:`DynConfig`, trained on whole trajectories.
+
+    ``loop.batch_size`` and ``loop.samples_per_epoch`` count trajectories; ``data.window`` is not
+    used.
+    """
+
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=8, lr=1e-3,
+                                                                schedule="cosine", samples_per_epoch=200))
+
+
 def default_config(system: str, method: str, **overrides: Any) -> Any:
     """The default configuration of ``method`` for ``system`` (the paper's widths), with overrides."""
     cls = variants.get(method).config_class()
@@ -186,7 +209,8 @@ def default_config(system: str, method: str, **overrides: Any) -> Any:
     names = {f.name for f in fields(cls)}
     unknown = sorted(set(overrides) - names)
     if unknown:
-        raise TypeError(f"{cls.__name__} has no field(s) {unknown}; fields: {sorted(names)}")
+        raise error("overrides", f"fields of {cls.__name__} among {sorted(names)}", Text(f"unknown field(s) {unknown}"),
+                    kind=TypeError)
     config = cls()
     if method == "autonomous":
         config = replace(config, box_scale=BOX_SCALE.get(system, 1.0), labels=LABELS.get(system, "exact"))

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from ..validation import Text, error, one_of
 from .config import LoopConfig
 
 __all__ = ["Dataset", "ArrayDataset", "FitResult", "fit", "torch_dtype"]
@@ -30,9 +31,7 @@ LossFn = Callable[[Mapping[str, Tensor], int], tuple[Tensor, dict[str, float]]]
 
 def torch_dtype(name: str) -> torch.dtype:
     """``"float32"`` or ``"float64"`` as a torch dtype."""
-    if name not in ("float32", "float64"):
-        raise ValueError(f"dtype must be 'float32' or 'float64', got {name!r}")
-    return getattr(torch, name)
+    return getattr(torch, one_of(name, "dtype", ("float32", "float64")))
 
 
 class Dataset(Protocol):
@@ -50,7 +49,7 @@ class ArrayDataset:
                  device: str | torch.device = "cpu") -> None:
         lengths = {k: len(v) for k, v in arrays.items()}
         if len(set(lengths.values())) != 1:
-            raise ValueError(f"arrays must have the same number of samples, got {lengths}")
+            raise error("arrays", "arrays with the same number of samples", Text(f"lengths {lengths}"))
         self.tensors = {k: torch.as_tensor(np.asarray(v), dtype=dtype, device=device) for k, v in arrays.items()}
         self.n = next(iter(lengths.values()))
 
@@ -115,13 +114,13 @@ def _load_checkpoint(path: Path, params: list[Tensor], opt: torch.optim.Optimize
         arrays = {k: data[k] for k in data.files}
     n = sum(1 for k in arrays if k.startswith("param/"))
     if n != len(params):
-        raise ValueError(f"checkpoint {path} holds {n} parameter tensors, this stage has {len(params)}; "
-                         "delete it to start afresh")
+        raise error(f"checkpoint {path}", f"{len(params)} parameter tensors (as this stage has)",
+                    Text(f"{n} parameter tensors"), "Delete it to start afresh.")
     with torch.no_grad():
         for i, p in enumerate(params):
             if tuple(arrays[f"param/{i}"].shape) != tuple(p.shape):
-                raise ValueError(f"checkpoint {path}: parameter {i} has shape {arrays[f'param/{i}'].shape}, "
-                                 f"expected {tuple(p.shape)}; delete it to start afresh")
+                raise error(f"checkpoint {path}: 'param/{i}'", f"shape {tuple(p.shape)}",
+                            Text(f"shape {arrays[f'param/{i}'].shape}"), "Delete it to start afresh.")
             p.copy_(torch.as_tensor(arrays[f"param/{i}"]))
             best[i].copy_(torch.as_tensor(arrays[f"best/{i}"]))
             state = {k.split("/")[2]: torch.as_tensor(v, device=p.device) for k, v in arrays.items()
@@ -171,8 +170,8 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
     n = len(data)
     n_val = max(1, int(round(config.val_fraction * n)))
     if n - n_val < config.batch_size:
-        raise ValueError(f"{name}: {n} samples leave {n - n_val} for training, fewer than batch_size "
-                         f"{config.batch_size}; generate more data or lower batch_size")
+        raise error(f"{name}: data", f"at least batch_size = {config.batch_size} training samples",
+                    Text(f"{n} samples, {n - n_val} of them for training"), "Generate more data or lower batch_size.")
     perm = np.random.default_rng(seed).permutation(n)
     val_idx, train_idx = perm[:n_val], perm[n_val:]
     opt = torch.optim.Adam(params, lr=config.lr)

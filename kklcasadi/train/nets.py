@@ -203,7 +203,7 @@ def mlp_forward_lora(mlp: MLP, x: Tensor, factors: Sequence[tuple[Tensor, Tensor
     for i, ((d_out, d_in), (a, b)) in enumerate(zip(mlp.spec.layer_shapes, factors)):
         if a.shape[-2] != d_out or b.shape[-2] != d_in or a.shape[-1] != b.shape[-1]:
             raise ValueError(f"factors[{i}]: expected a (..., {d_out}, r) and b (..., {d_in}, r), "
-                             f"found {tuple(a.shape)} and {tuple(b.shape)}.")
+                             f"received {tuple(a.shape)} and {tuple(b.shape)}.")
     return _mlp_apply(mlp, x, factors, scale)
 
 
@@ -246,12 +246,32 @@ class GRUContext(nn.Module):
         Tensor, shape (..., H)
             The final hidden state.
         """
+        return self._run(w, keep=False)
+
+    def sequence(self, u: Tensor) -> Tensor:
+        """The hidden state after every sample: the streaming context of a whole input sequence.
+
+        Parameters
+        ----------
+        u : Tensor, shape (..., N, nu)
+            Oldest sample first; ``h_0 = 0`` before the first sample.
+
+        Returns
+        -------
+        Tensor, shape (..., N, H)
+            ``out[..., k, :]`` is the GRU's state after ``u_0, ..., u_k`` (one cell per sample,
+            as the streaming observer applies it).
+        """
+        return self._run(u, keep=True)
+
+    def _run(self, w: Tensor, keep: bool) -> Tensor:
         if w.dim() < 2 or w.shape[-1] != self.nu:
             raise ValueError(f"w: expected shape (..., window, {self.nu}), "
-                             f"found {tuple(w.shape)}.")
+                             f"received {tuple(w.shape)}.")
         n_hidden = self.hidden
         gates_in = nn.functional.linear(w, self.gru.weight_ih_l0)
         h = torch.zeros_like(gates_in[..., 0, :n_hidden])
+        states = []
         for k in range(w.shape[-2]):
             gi = gates_in[..., k, :]
             gh = nn.functional.linear(h, self.gru.weight_hh_l0)
@@ -259,7 +279,9 @@ class GRUContext(nn.Module):
             z = torch.sigmoid(gi[..., n_hidden:2 * n_hidden] + gh[..., n_hidden:2 * n_hidden])
             n = torch.tanh(gi[..., 2 * n_hidden:] + r * gh[..., 2 * n_hidden:])
             h = (1 - z) * n + z * h
-        return h
+            if keep:
+                states.append(h)
+        return torch.stack(states, dim=-2) if keep else h
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
         """Float64 arrays ``P/W_ih`` (3H, nu) and ``P/W_hh`` (3H, H)."""
@@ -325,9 +347,18 @@ class ObsInjection(nn.Module):
             raise ValueError(f"z: expected shape (batch, {self.nz}), received {tuple(z.shape)}.")
         if w.dim() != 3:
             raise ValueError(f"w: expected shape (batch, window, {self.nu}), "
-                             f"found {tuple(w.shape)}.")
-        l_context = self.proj(self.context(w))
-        return self.gain_net(torch.cat([z, l_context], dim=-1)).view(-1, self.nz, self.nu)
+                             f"received {tuple(w.shape)}.")
+        return self.gain_of_hidden(z, self.context(w))
+
+    def gain_of_hidden(self, z: Tensor, h: Tensor) -> Tensor:
+        """The input gain ``G(z, P h)`` for a given GRU state ``h`` (..., H) (a streaming context).
+
+        Returns
+        -------
+        Tensor, shape (..., nz, nu)
+        """
+        out = self.gain_net(torch.cat([z, self.proj(h)], dim=-1))
+        return out.view(*out.shape[:-1], self.nz, self.nu)
 
     def forward(self, z: Tensor, w: Tensor, u: Tensor) -> Tensor:
         """The injection ``G(z, l) u``.
@@ -427,8 +458,11 @@ class LoRAHyperNet(nn.Module):
         """
         if w.dim() != 3:
             raise ValueError(f"w: expected shape (batch, window, {self.nu}), "
-                             f"found {tuple(w.shape)}.")
-        h = self.gru(w)
+                             f"received {tuple(w.shape)}.")
+        return self.factors_of_hidden(self.gru(w))
+
+    def factors_of_hidden(self, h: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Per-sample factors for a given GRU state ``h`` (batch, H) (a streaming context)."""
         n_batch, n_targets = h.shape[0], len(self.target_shapes)
         embed = self.embed.expand(n_batch, n_targets, -1)
         h = h.unsqueeze(1).expand(-1, n_targets, -1)

@@ -61,17 +61,17 @@ def _flat(p2: kdata.Phase2Data, name: str) -> np.ndarray:
     return arr[:, :-1].reshape(-1, arr.shape[-1])
 
 
-def _base_nets(base: Model, dtype: torch.dtype, device: str) -> tuple[MLP, MLP]:
+def base_nets(base: Model, dtype: torch.dtype, device: str) -> tuple[MLP, MLP]:
     arch = base.spec.architecture
     return tuple(MLP.from_arrays(base.arrays, name, spec).to(dtype=dtype, device=device).requires_grad_(False)
                  for name, spec in ((ENCODER, arch.encoder), (DECODER, arch.decoder)))  # type: ignore[return-value]
 
 
-def _check_phase2(method: str, base: Model | None, config: Any, expected: type) -> Model:
+def check_phase2(method: str, base: Model | None, config: Any, expected: type) -> Model:
     if base is None or base.method != "autonomous":
         found = "no base model" if base is None else f"method {base.method!r} at {base.path}"
         raise ValueError(f"base: expected an 'autonomous' (Phase-1) model for {method!r}, received {found}.")
-    if not isinstance(config, expected):
+    if type(config) is not expected:
         raise TypeError(f"config: expected a {expected.__name__} for {method!r}, received {type(config).__name__}.")
     return base
 
@@ -99,19 +99,16 @@ def model_based_injection(system: System, encoder: MLP, decoder: MLP, z: np.ndar
     return _in_chunks(chunk, len(z))
 
 
-def _phase2_data(system: System, cfg: Any, dt: float, seed: int) -> kdata.Phase2Data:
+def phase2_data(system: System, cfg: Any, dt: float, seed: int) -> kdata.Phase2Data:
     return kdata.phase2(system, cfg.n_traj, cfg.n_signals, window=cfg.window, T=cfg.T, dt=dt, seed=seed + 101,
                         kinds=cfg.kinds)
 
 
-def train_obs(system: System, design: Design, base: Model | None, config: ObsConfig, *, dt: float, seed: int,
-              device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
-    """The training hook of the ``obs`` variant: HyperKKL_obs (Algorithm 2) on a frozen Phase-1 model."""
-    base = _check_phase2("obs", base, config, ObsConfig)
-    dtype = torch.float32
-    encoder, decoder = _base_nets(base, dtype, device)
-    p2 = _phase2_data(system, config.data, dt, seed)
-    x, y, u, xdot = (_flat(p2, k) for k in ("x", "y", "u", "xdot"))
+def obs_residuals(system: System, design: Design, encoder: MLP, decoder: MLP, x: np.ndarray, y: np.ndarray,
+                  u: np.ndarray, xdot: np.ndarray, on_inject: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The latents ``z = T(x)`` and what the obs injection must supply, ``dT/dx xdot - A z - B y``
+    (minus the model-based term when ``on_inject``), per row of the flat samples."""
+    dtype, device = encoder.layers[0].weight.dtype, encoder.layers[0].weight.device
 
     def targets(rows: slice) -> np.ndarray:
         with torch.no_grad():
@@ -122,17 +119,35 @@ def train_obs(system: System, design: Design, base: Model | None, config: ObsCon
     zz = _in_chunks(targets, len(x))
     z, zdot_true = zz[:, :design.nz], zz[:, design.nz:]
     residual = zdot_true - z @ design.A.T - y @ design.B.T
-    if config.model_based_injection:
+    if on_inject:
         residual = residual - model_based_injection(system, encoder, decoder, z, u)
-    scale = torch.as_tensor(residual.std(0) + 1e-8, dtype=dtype, device=device)
-    net = ObsInjection(design.nz, system.nu, config.hidden, config.proj, config.gain_hidden).to(dtype)
+    return z, residual
+
+
+def make_obs_net(system: System, design: Design, config: Any, z: np.ndarray, u: np.ndarray,
+                 residual: np.ndarray) -> ObsInjection:
+    """A new float32 obs injection, normalised for the latents ``z`` and the targets ``residual``."""
+    net = ObsInjection(design.nz, system.nu, config.hidden, config.proj, config.gain_hidden).to(torch.float32)
     # the gain MLP sees [z; l]: normalise z by its statistics, l is O(1); outputs are in residual units
     in_mean = np.r_[z.mean(0), np.zeros(config.proj)]
     in_std = np.r_[z.std(0), np.ones(config.proj)]
     u_std = max(float(u.std()), 1e-3)
     out_std = np.repeat(residual.std(0) / u_std, system.nu)
     net.gain_net.set_normalisation(in_mean, in_std, np.zeros(design.nz * system.nu), out_std)
-    net.to(device)
+    return net
+
+
+def train_obs(system: System, design: Design, base: Model | None, config: ObsConfig, *, dt: float, seed: int,
+              device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
+    """The training hook of the ``obs`` variant: HyperKKL_obs (Algorithm 2) on a frozen Phase-1 model."""
+    base = check_phase2("obs", base, config, ObsConfig)
+    dtype = torch.float32
+    encoder, decoder = base_nets(base, dtype, device)
+    p2 = phase2_data(system, config.data, dt, seed)
+    x, y, u, xdot = (_flat(p2, k) for k in ("x", "y", "u", "xdot"))
+    z, residual = obs_residuals(system, design, encoder, decoder, x, y, u, xdot, config.model_based_injection)
+    scale = torch.as_tensor(residual.std(0) + 1e-8, dtype=dtype, device=device)
+    net = make_obs_net(system, design, config, z, u, residual).to(device)
     dataset = Phase2Dataset(p2, {"z": z, "r": residual}, keys=("u", "w"), dtype=dtype, device=device)
 
     def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
@@ -155,10 +170,10 @@ def train_obs(system: System, design: Design, base: Model | None, config: ObsCon
 def train_dyn(system: System, design: Design, base: Model | None, config: DynConfig, *, dt: float, seed: int,
               device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
     """The training hook of the ``dyn`` variant: HyperKKL_dyn (Algorithm 3) on a frozen Phase-1 model."""
-    base = _check_phase2("dyn", base, config, DynConfig)
+    base = check_phase2("dyn", base, config, DynConfig)
     dtype = torch.float32
-    encoder, decoder = _base_nets(base, dtype, device)
-    p2 = _phase2_data(system, config.data, dt, seed)
+    encoder, decoder = base_nets(base, dtype, device)
+    p2 = phase2_data(system, config.data, dt, seed)
     n_enc = len(encoder.layers)
     targets = lora_target_shapes(encoder.spec, decoder.spec)
     hyper = LoRAHyperNet(targets, system.nu, config.hidden, config.embed, config.backbone, config.rank,
@@ -197,9 +212,9 @@ def train_dyn(system: System, design: Design, base: Model | None, config: DynCon
 def train_curriculum(system: System, design: Design, base: Model | None, config: CurriculumConfig, *, dt: float,
                      seed: int, device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
     """The training hook of the ``curriculum`` baseline: T and T* fine-tuned on staged driven data."""
-    base = _check_phase2("curriculum", base, config, CurriculumConfig)
+    base = check_phase2("curriculum", base, config, CurriculumConfig)
     dtype = torch_dtype("float32")
-    encoder, decoder = _base_nets(base, dtype, device)
+    encoder, decoder = base_nets(base, dtype, device)
     A = torch.tensor(design.A, dtype=dtype, device=device)
     B = torch.tensor(design.B, dtype=dtype, device=device)
     z_scale = torch.tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)

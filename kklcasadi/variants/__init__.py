@@ -10,12 +10,14 @@ from __future__ import annotations
 
 from ..validation import error
 from .autonomous import Autonomous, Curriculum
-from .base import MapsSpec, Networks, Sizes, Variant
+from .base import MapsSpec, Memory, Networks, Sizes, Variant, window_memory
 from .dyn import Dyn, DynModelSpec
 from .inject import Inject, model_injection_function
 from .obs import MODEL_BASED_INJECTION, Obs, ObsModelSpec
+from .stream import DynStream, ObsStream
 
-__all__ = ["VARIANTS", "get", "names", "trainable", "Variant", "Networks", "Sizes", "MapsSpec",
+__all__ = ["VARIANTS", "get", "names", "trainable", "Variant", "Networks", "Memory", "window_memory", "Sizes",
+           "MapsSpec",
            "ObsModelSpec", "DynModelSpec", "MODEL_BASED_INJECTION", "model_injection_function"]
 
 #: Every observer variant, by card ``method``.
@@ -25,6 +27,8 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Obs(),
     Dyn(),
     Inject(),
+    ObsStream(),
+    DynStream(),
 )}
 
 

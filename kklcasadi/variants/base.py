@@ -25,7 +25,7 @@ from ..architecture import DECODER, ENCODER, MLPSpec, field_error
 from ..casadi_nets import mlp_function
 from ..systems import System
 
-__all__ = ["Sizes", "MapsSpec", "Networks", "Variant", "InputTerm"]
+__all__ = ["Sizes", "MapsSpec", "Networks", "Memory", "Variant", "InputTerm", "window_memory"]
 
 #: ``input_term(z, u, context) -> dz`` (nz, 1), exactly 0 at ``u = 0``; ``context`` is the
 #: output of :attr:`Networks.context` for the step's window (None if the variant has none).
@@ -81,6 +81,39 @@ class MapsSpec:
 
 
 @dataclass(frozen=True)
+class Memory:
+    """What the observer remembers of the inputs between samples, ``w``: its shape and updates.
+
+    The windowed variants remember the input window (:func:`window_memory`); a streaming variant
+    remembers a context state updated once per sample (O(1) per step) and the held input.
+
+    Attributes
+    ----------
+    shape : (int, int)
+        Shape of ``w``.
+    init : casadi.Function
+        ``init(u0 (nu,1)) -> w0``: the memory at the first sample.
+    next : casadi.Function
+        ``next(w, u_next (nu,1)) -> w_next``: the memory at the next sample.
+    held : callable
+        ``held(w) -> u_k`` (nu, 1), the input held over the current sample interval (MX).
+    """
+
+    shape: tuple[int, int]
+    init: ca.Function
+    next: ca.Function
+    held: Callable[[ca.MX], ca.MX]
+
+
+def window_memory(window: int, nu: int) -> Memory:
+    """The input window of ``docs/design.md``: ``(window, nu)``, oldest first, filled with ``u_0``."""
+    u, w = ca.MX.sym("u", nu), ca.MX.sym("w", window, nu)
+    init = ca.Function("memory_init", [u], [ca.repmat(u.T, window, 1)], ["u0"], ["w0"])
+    shift = ca.Function("memory_next", [w, u], [ca.vertcat(w[1:, :], u.T)], ["w", "u_next"], ["w_next"])
+    return Memory((window, nu), init, shift, lambda m: m[window - 1, :].T)
+
+
+@dataclass(frozen=True)
 class Networks:
     """The CasADi parts of one observer.
 
@@ -97,6 +130,8 @@ class Networks:
         a linear latent ``zdot = A z + B y``.
     model_injection : casadi.Function or None
         ``model_injection(z, u) -> dz``, the model-based term, when the variant uses it.
+    memory : Memory or None
+        The observer's input memory ``w``; None for the input window of ``docs/design.md``.
     """
 
     encoder: ca.Function
@@ -104,6 +139,7 @@ class Networks:
     context: Optional[ca.Function] = None
     input_term: Optional[InputTerm] = None
     model_injection: Optional[ca.Function] = None
+    memory: Optional[Memory] = None
 
 
 def _hook(path: str) -> Any:
@@ -209,6 +245,11 @@ def plain_maps(spec: MapsSpec, arrays: Mapping[str, Any], window: int,
 
 def window_free(decoder: ca.Function, window: int, nu: int) -> ca.Function:
     """``decoder(z) -> xhat`` as ``(z, w (window, nu)) -> xhat``, ignoring the window."""
+    return ignoring_memory(decoder, (window, nu))
+
+
+def ignoring_memory(decoder: ca.Function, shape: tuple[int, int]) -> ca.Function:
+    """``decoder(z) -> xhat`` as ``(z, w) -> xhat`` for a memory ``w`` of ``shape``, ignoring it."""
     z = ca.MX.sym("z", decoder.size1_in(0))
-    w = ca.MX.sym("w", window, nu)
+    w = ca.MX.sym("w", *shape)
     return ca.Function("decoder", [z, w], [decoder(z)], ["z", "w"], ["xhat"])

@@ -1,0 +1,109 @@
+"""Training hooks of the streaming variants ``obs_stream`` and ``dyn_stream``.
+
+The context is the GRU's state after every input sample since ``t = 0`` (one cell per sample), as
+the streaming observer carries it (:mod:`kklcasadi.variants.stream`). Training batches are whole
+Phase-2 trajectories: the GRU runs once over each trajectory's inputs and every sample of it
+enters the loss, instead of one window GRU per sample.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..design import Design
+from ..modelfile import Model
+from ..systems import System
+from ..variants import DynModelSpec, ObsModelSpec
+from .config import DynStreamConfig, ObsStreamConfig
+from .loop import ArrayDataset, fit
+from .nets import LoRAHyperNet, mlp_forward_lora
+from .phase2 import base_nets, check_phase2, make_obs_net, obs_residuals, phase2_data
+from .result import Trained
+
+__all__ = ["train_obs_stream", "train_dyn_stream"]
+
+Tensor = torch.Tensor
+
+
+def train_obs_stream(system: System, design: Design, base: Model | None, config: ObsStreamConfig, *, dt: float,
+                     seed: int, device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
+    """HyperKKL_obs with a streaming context, on a frozen Phase-1 model (batches of trajectories)."""
+    base = check_phase2("obs_stream", base, config, ObsStreamConfig)
+    dtype = torch.float32
+    encoder, decoder = base_nets(base, dtype, device)
+    p2 = phase2_data(system, config.data, dt, seed)
+    n_traj, n = p2.x.shape[:2]
+    flat = {k: np.asarray(getattr(p2, k)).reshape(n_traj * n, -1) for k in ("x", "y", "u", "xdot")}
+    z, residual = obs_residuals(system, design, encoder, decoder, flat["x"], flat["y"], flat["u"], flat["xdot"],
+                                config.model_based_injection)
+    scale = torch.as_tensor(residual.std(0) + 1e-8, dtype=dtype, device=device)
+    net = make_obs_net(system, design, config, z, flat["u"], residual).to(device)
+    data = ArrayDataset({"u": p2.u, "z": z.reshape(n_traj, n, -1), "r": residual.reshape(n_traj, n, -1)},
+                        dtype=dtype, device=device)
+
+    def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        h = net.context.sequence(batch["u"])                                # (B, N, H)
+        injection = torch.einsum("bnij,bnj->bni", net.gain_of_hidden(batch["z"], h), batch["u"])
+        return (((injection - batch["r"]) / scale) ** 2).mean(), {}
+
+    baseline = float(((residual / (residual.std(0) + 1e-8)) ** 2).mean())
+    result = fit(list(net.parameters()), loss_fn, data, config.loop, name="obs_stream", seed=seed,
+                 progress=progress, resume=resume, checkpoint=workdir / "obs_stream.ckpt.npz" if workdir else None)
+    net = net.cpu().double()
+    maps = base.spec.architecture
+    spec = ObsModelSpec(maps.encoder, maps.decoder, net.spec, bool(config.model_based_injection))
+    training = {"config": config, "data": {"trajectories": n_traj, "samples": n_traj * n,
+                                           "dropped": len(p2.dropped)},
+                "obs_stream": result.summary(), "loss_without_injection": baseline}
+    return Trained({**base.arrays, **net.to_arrays()}, spec, design, training, {"obs_stream": result.history}, 1,
+                   base.spec.measurement_std)
+
+
+def train_dyn_stream(system: System, design: Design, base: Model | None, config: DynStreamConfig, *, dt: float,
+                     seed: int, device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
+    """HyperKKL_dyn with a streaming context, on a frozen Phase-1 model (batches of trajectories).
+
+    Loss: reconstruction + ``nu_pde`` * the PDE residual ``dT/dx xdot - A T - B y`` of the modulated
+    encoder, with the context held over the sample interval (it changes at the samples only).
+    """
+    base = check_phase2("dyn_stream", base, config, DynStreamConfig)
+    dtype = torch.float32
+    encoder, decoder = base_nets(base, dtype, device)
+    p2 = phase2_data(system, config.data, dt, seed)
+    n_enc = len(encoder.layers)
+    hyper = LoRAHyperNet(encoder.spec.layer_shapes + decoder.spec.layer_shapes, system.nu, config.hidden,
+                         config.embed, config.backbone, config.rank, config.scale_init).to(dtype=dtype, device=device)
+    A = torch.tensor(design.A, dtype=dtype, device=device)
+    B = torch.tensor(design.B, dtype=dtype, device=device)
+    x_scale = torch.as_tensor(p2.x.reshape(-1, system.nx).std(0), dtype=dtype, device=device)
+    z_scale = torch.tensor(np.array(base.arrays["encoder/out_std"]), dtype=dtype, device=device)
+    data = ArrayDataset({k: getattr(p2, k) for k in ("x", "y", "u", "xdot")}, dtype=dtype, device=device)
+
+    def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        h = hyper.gru.sequence(batch["u"])                                   # (B, N, H)
+        flat = {k: v.reshape(-1, v.shape[-1]) for k, v in batch.items()}
+        factors = hyper.factors_of_hidden(h.reshape(-1, h.shape[-1]))
+
+        def maps(x: Tensor) -> tuple[Tensor, Tensor]:
+            zz = mlp_forward_lora(encoder, x, factors[:n_enc], hyper.scale)
+            return zz, mlp_forward_lora(decoder, zz, factors[n_enc:], hyper.scale)
+
+        (z, xhat), (dz, _) = torch.func.jvp(maps, (flat["x"],), (flat["xdot"],))
+        res = dz - z @ A.T - flat["y"] @ B.T
+        recon = (((xhat - flat["x"]) / x_scale) ** 2).mean()
+        pde = ((res / z_scale) ** 2).mean()
+        return recon + config.nu_pde * pde, {"recon": recon.item(), "pde": pde.item()}
+
+    result = fit(list(hyper.parameters()), loss_fn, data, config.loop, name="dyn_stream", seed=seed,
+                 progress=progress, resume=resume, checkpoint=workdir / "dyn_stream.ckpt.npz" if workdir else None)
+    hyper = hyper.cpu().double()
+    maps_spec = base.spec.architecture
+    spec = DynModelSpec(maps_spec.encoder, maps_spec.decoder, hyper.spec, system.nu)
+    n_traj, n = p2.x.shape[:2]
+    training = {"config": config, "data": {"trajectories": n_traj, "samples": n_traj * n,
+                                           "dropped": len(p2.dropped)}, "dyn_stream": result.summary()}
+    return Trained({**base.arrays, **hyper.to_arrays()}, spec, design, training, {"dyn_stream": result.history}, 1,
+                   base.spec.measurement_std)
