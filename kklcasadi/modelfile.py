@@ -40,7 +40,7 @@ if TYPE_CHECKING:
     from .systems import System
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "WEIGHTS_FILE", "CARD_FILE", "Model", "ModelSpec",
-           "SystemSpec", "BaseRef", "load_model", "save_model", "make_card", "derive_model",
+           "SystemSpec", "BaseRef", "Domain", "load_model", "save_model", "make_card", "derive_model",
            "parse_card", "model_array_shapes"]
 
 FORMAT = "kklcasadi.model"
@@ -75,12 +75,38 @@ def _matrix(value: Any, where: str, field_name: str, n_cols: Optional[int], fix:
 
 @dataclass(frozen=True)
 class SystemSpec:
-    """The plant a model was trained for: its name and sizes."""
+    """The plant a model was trained for: its name, sizes and :attr:`kklcasadi.System.fingerprint`
+    (None in cards written before fingerprints)."""
 
     name: str
     nx: int
     nu: int
     ny: int
+    fingerprint: Optional[str] = None
+
+
+@dataclass(frozen=True, eq=False)
+class Domain:
+    """Where a model's maps were trained: the state box and the latent box of its training data.
+
+    Card entry ``"domain": {"x_lo": [nx], "x_hi": [nx], "z_lo": [nz], "z_hi": [nz]}``; the
+    observer's domain monitor (:meth:`kklcasadi.KKLObserver.in_domain`) compares estimates with it.
+    """
+
+    x_lo: np.ndarray
+    x_hi: np.ndarray
+    z_lo: np.ndarray
+    z_hi: np.ndarray
+
+    @classmethod
+    def of(cls, x: Any, z: Any) -> Domain:
+        """The componentwise range of training states ``x`` (M, nx) and their latents ``z`` (M, nz)."""
+        x, z = np.asarray(x, dtype=float), np.asarray(z, dtype=float)
+        return cls(x.min(0), x.max(0), z.min(0), z.max(0))
+
+    def to_card(self) -> dict:
+        """The card entry."""
+        return {k: np.asarray(getattr(self, k)).tolist() for k in ("x_lo", "x_hi", "z_lo", "z_hi")}
 
 
 @dataclass(frozen=True)
@@ -111,6 +137,8 @@ class ModelSpec:
     base : BaseRef or None
     measurement_std : float
         The noise level the decoder was fit for (0: noise-free).
+    domain : Domain or None
+        Where the maps were trained (None in cards written before domains were recorded).
     """
 
     method: str
@@ -122,6 +150,7 @@ class ModelSpec:
     architecture: Any
     base: Optional[BaseRef]
     measurement_std: float
+    domain: Optional[Domain] = None
 
     @property
     def variant(self) -> variants.Variant:
@@ -191,6 +220,10 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
         raise field_error(where, "system.name", "a string", system["name"], fix_sys)
     nx, nu, ny = (_positive_field(system[key], where, f"system.{key}", fix_sys)
                   for key in ("nx", "nu", "ny"))
+    fingerprint = system.get("fingerprint")
+    if fingerprint is not None and (not isinstance(fingerprint, str) or not _SHA256.match(fingerprint)):
+        raise field_error(where, "system.fingerprint", "64 lowercase hex digits (kklcasadi.System.fingerprint)",
+                          fingerprint, fix_sys)
 
     design = card["design"]
     fix_design = 'Write "design" as {"A": nz x nz list of lists, "B": nz x ny list of lists}.'
@@ -244,10 +277,31 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
                           f"{', '.join(map(repr, owners))} take it)", card[name],
                           "Remove the field, or use a method that takes it.")
     spec = variant.parse(card, variants.Sizes(nx, nu, ny, a.shape[0]), where)
+    domain = _domain(card.get("domain"), nx, a.shape[0], where)
     for matrix in (a, b):
         matrix.setflags(write=False)
-    return ModelSpec(card["method"], SystemSpec(system["name"], nx, nu, ny), a, b, float(card["dt"]),
-                     window, spec, base, float(noise["measurement_std"]))
+    return ModelSpec(card["method"], SystemSpec(system["name"], nx, nu, ny, fingerprint), a, b, float(card["dt"]),
+                     window, spec, base, float(noise["measurement_std"]), domain)
+
+
+def _domain(entry: Any, nx: int, nz: int, where: str) -> Optional[Domain]:
+    if entry is None:
+        return None
+    fix = 'Write "domain" as {"x_lo": [nx], "x_hi": [nx], "z_lo": [nz], "z_hi": [nz]} (lo <= hi), or remove it.'
+    keys = ("x_lo", "x_hi", "z_lo", "z_hi")
+    if not isinstance(entry, Mapping) or set(entry) != set(keys):
+        raise field_error(where, "domain", f"an object with exactly the keys {list(keys)}", entry, fix)
+    arrays = {}
+    for key, n in zip(keys, (nx, nx, nz, nz)):
+        value = entry[key]
+        if (not isinstance(value, list) or len(value) != n or not all(is_number(v) for v in value)
+                or not all(math.isfinite(v) for v in value)):
+            raise field_error(where, f"domain.{key}", f"a list of {n} finite numbers", value, fix)
+        arrays[key] = np.array(value, dtype=float)
+        arrays[key].setflags(write=False)
+    if np.any(arrays["x_lo"] > arrays["x_hi"]) or np.any(arrays["z_lo"] > arrays["z_hi"]):
+        raise field_error(where, "domain", "lo <= hi componentwise", entry, fix)
+    return Domain(**arrays)
 
 
 #: Top-level card fields some variant reads (another method's card must not carry them).
@@ -264,7 +318,8 @@ def model_array_shapes(card: Mapping[str, Any], where: str = CARD_FILE) -> dict[
 
 def make_card(system: System | SystemSpec, design: Design, method: str, spec: Any, *, dt: float,
               window: int = 1, training: Optional[Mapping[str, Any]] = None,
-              base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0) -> dict:
+              base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0,
+              domain: Optional[Domain] = None) -> dict:
     """The card of a model: the one way training, :func:`derive_model` and tests write one.
 
     Parameters
@@ -288,6 +343,8 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
         ``{"path": relative path, "weights_sha256": hex}`` of the model this one was built on.
     measurement_std : float
         The noise level the decoder was fit for.
+    domain : Domain, optional
+        Where the maps were trained (recorded for the observer's domain monitor).
 
     Returns
     -------
@@ -295,13 +352,16 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
         Ready for :func:`save_model` (which adds the format fields and the SHA-256).
     """
     variant = variants.get(method)
-    return {"method": method,
-            "system": {"name": system.name, "nx": system.nx, "nu": system.nu, "ny": system.ny},
+    plant = {"name": system.name, "nx": system.nx, "nu": system.nu, "ny": system.ny}
+    if system.fingerprint is not None:
+        plant["fingerprint"] = system.fingerprint
+    return {"method": method, "system": plant,
             "design": {"A": np.asarray(design.A).tolist(), "B": np.asarray(design.B).tolist()},
             "dt": float(dt), "window": int(window), "architecture": spec.to_card(),
             "base": None if base is None else dict(base),
             "noise": {"measurement_std": float(measurement_std)},
-            "training": dict(training or {}), **variant.card_entries(spec)}
+            "training": dict(training or {}), **variant.card_entries(spec),
+            **({} if domain is None else {"domain": domain.to_card()})}
 
 
 @dataclass(frozen=True)
@@ -586,6 +646,7 @@ def derive_model(base: str | os.PathLike, out_dir: str | os.PathLike, method: st
     spec, arrays, training = variant.derive(source.method, source.spec.architecture, source.arrays)
     card = make_card(source.spec.system, Design(source.A, source.B), method, spec, dt=source.dt,
                      window=1, training=training, measurement_std=source.spec.measurement_std,
+                     domain=source.spec.domain,
                      base={"path": os.path.relpath(source.path, out),
                            "weights_sha256": source.card["weights_sha256"]})
     return save_model(out, arrays, card, overwrite=overwrite)

@@ -49,8 +49,11 @@ if TYPE_CHECKING:
     import control
 
 __all__ = ["KKLObserver", "Estimate", "Estimator", "load_observer", "make_inject_model",
-           "DISCRETIZATIONS", "INTEGRATOR_SOLVERS", "MODEL_BASED_INJECTION"]
+           "DISCRETIZATIONS", "INTEGRATOR_SOLVERS", "MODEL_BASED_INJECTION", "DOMAIN_MARGIN"]
 
+#: Relative margin of the domain monitor: estimates up to this share of the trained range outside
+#: it still count as in the domain (a transient grazing the edge is not flagged).
+DOMAIN_MARGIN = 0.1
 #: Discretisations of the latent ODE over one sample interval.
 DISCRETIZATIONS = ("exact", "rk4")
 #: ``ca.integrator`` plugins accepted by :meth:`KKLObserver.integrator`.
@@ -71,11 +74,15 @@ class Estimate:
         State estimates ``xhat_k``; ``(M, N, nx)`` for M trials.
     z : numpy.ndarray, shape (N, nz) or (M, N, nz)
         Latent states ``z_k``, ``z_0 = 0``.
+    in_domain : numpy.ndarray of bool, shape (N,) or (M, N), or None
+        Whether ``(xhat_k, z_k)`` lies in the domain the maps were trained on (with the margin
+        :data:`DOMAIN_MARGIN`); None when the model records no domain.
     """
 
     t: np.ndarray
     xhat: np.ndarray
     z: np.ndarray
+    in_domain: Optional[np.ndarray] = None
 
 
 def _foh_matrices(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
@@ -179,6 +186,8 @@ class KKLObserver:
         self.substeps = positive_int(substeps, "substeps")
         self.foh_matrices = (_foh_matrices(self.A, self.B, self.dt)
                              if self.discretization == "exact" else None)
+        self.domain = spec.domain
+        self._domain_bounds = None if self.domain is None else _domain_bounds(self.domain)
 
         nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
         self.memory = nets.memory if nets.memory is not None else variants.window_memory(self.window, self.nu)
@@ -196,6 +205,7 @@ class KKLObserver:
         self.rhs = ca.Function("rhs", [z, y, u, w], [self._field(z, y, u, self._context_of(w))],
                                ["z", "y", "u", "w"], ["zdot"])
         self.step = self._build_step()
+        self.domain_check = self._build_domain_check()
 
     # ------------------------------------------------------------------ construction
     def _context_of(self, w: ca.MX) -> Optional[ca.MX]:
@@ -225,6 +235,35 @@ class KKLObserver:
         return ca.Function("step", [z, w, y, y_next, u_next],
                            [z_next, w_next, self.decode(z_next, w_next)],
                            ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
+
+    def _build_domain_check(self) -> Optional[ca.Function]:
+        if self._domain_bounds is None:
+            return None
+        lo, hi = (ca.DM(b) for b in self._domain_bounds)
+        z, xhat = ca.MX.sym("z", self.nz), ca.MX.sym("xhat", self.nx)
+        point = ca.vertcat(xhat, z)
+        inside = ca.mmin(ca.vertcat(point - lo, hi - point)) >= 0
+        return ca.Function("domain_check", [z, xhat], [inside], ["z", "xhat"], ["in_domain"])
+
+    def in_domain(self, xhat: Any, z: Any) -> Optional[np.ndarray]:
+        """Whether estimates lie in the domain the maps were trained on (the domain monitor).
+
+        Parameters
+        ----------
+        xhat : array_like, shape (..., nx)
+        z : array_like, shape (..., nz)
+
+        Returns
+        -------
+        numpy.ndarray of bool, shape (...), or None
+            True where ``xhat`` and ``z`` are within the card's state and latent boxes, widened by
+            :data:`DOMAIN_MARGIN` of their ranges; None when the model records no domain.
+        """
+        if self._domain_bounds is None:
+            return None
+        point = np.concatenate([np.asarray(xhat, dtype=float), np.asarray(z, dtype=float)], axis=-1)
+        lo, hi = self._domain_bounds
+        return np.all((point >= lo) & (point <= hi), axis=-1)
 
     def __repr__(self) -> str:
         return (f"KKLObserver(method={self.method!r}, system={self.system.name!r}, nz={self.nz}, "
@@ -327,11 +366,12 @@ class KKLObserver:
                 us[:, 1:].reshape(columns, nu).T)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)
             xhat[:, 1:] = np.asarray(xhat_out).T.reshape(m, n - 1, self.nx)
-        for array in (xhat, z):
+        flags = self.in_domain(xhat, z)
+        for array in (xhat, z) if flags is None else (xhat, z, flags):
             array.setflags(write=False)
         if batched_y:
-            return Estimate(t, xhat, z)
-        return Estimate(t, xhat[0], z[0])
+            return Estimate(t, xhat, z, flags)
+        return Estimate(t, xhat[0], z[0], None if flags is None else flags[0])
 
     def estimator(self) -> Estimator:
         """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample."""
@@ -384,6 +424,8 @@ class Estimator:
         self._w: Optional[np.ndarray] = None
         self._y: Optional[np.ndarray] = None
         self.k = 0
+        self._in_domain: Optional[bool] = None
+        self._out_of_domain = 0
 
     @property
     def z(self) -> Optional[np.ndarray]:
@@ -419,10 +461,29 @@ class Estimator:
             z, w = np.asarray(z_next).ravel(), np.asarray(w)
         self._z, self._w, self._y = z, w, y
         self.k += 1
-        return np.asarray(xhat).ravel()
+        xhat = np.asarray(xhat).ravel()
+        inside = obs.in_domain(xhat, z)
+        self._in_domain = None if inside is None else bool(inside)
+        self._out_of_domain += inside is not None and not inside
+        return xhat
+
+    @property
+    def stats(self) -> dict:
+        """What the last :meth:`make_step` did: ``k`` (samples taken), ``in_domain`` (whether the
+        last estimate lies in the trained domain, None without a recorded domain) and
+        ``out_of_domain_steps`` (how many estimates so far did not)."""
+        return {"k": self.k, "in_domain": self._in_domain, "out_of_domain_steps": self._out_of_domain}
 
 
 # ---------------------------------------------------------------------- checks
+def _domain_bounds(domain: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``[x; z]`` lower and upper bounds of the domain monitor, widened by :data:`DOMAIN_MARGIN`."""
+    lo = np.concatenate([domain.x_lo, domain.z_lo])
+    hi = np.concatenate([domain.x_hi, domain.z_hi])
+    margin = DOMAIN_MARGIN * np.maximum(hi - lo, 1e-9)
+    return lo - margin, hi + margin
+
+
 def _check_system(spec: ModelSpec, system: System, where: str) -> None:
     expected = spec.system
     if system.name != expected.name:
@@ -434,6 +495,11 @@ def _check_system(spec: ModelSpec, system: System, where: str) -> None:
             raise ValueError(f"{where}: 'system.{key}': the model expects {key} = "
                              f"{getattr(expected, key)}, the system {system.name!r} has {key} = "
                              f"{getattr(system, key)}. Pass the plant the model was trained for.")
+    if expected.fingerprint is not None and system.fingerprint != expected.fingerprint:
+        raise ValueError(f"{where}: 'system.fingerprint': the model was trained for a plant {expected.name!r} "
+                         f"with other dynamics or another box (fingerprint {expected.fingerprint[:12]}..., the plant "
+                         f"passed has {system.fingerprint[:12]}...). Pass the plant the model was trained for, "
+                         "or train a model for this plant.")
 
 
 def _check_discretization(discretization: Optional[str], linear: bool, method: str) -> str:

@@ -8,6 +8,10 @@ Jacobians as :class:`casadi.Function` objects, built once from SX symbols. The r
 
 from __future__ import annotations
 
+import hashlib
+import importlib
+import importlib.util
+from pathlib import Path
 from typing import Callable, Sequence
 
 import casadi as ca
@@ -15,7 +19,7 @@ import numpy as np
 
 from .validation import Text, error, one_of, positive_int
 
-__all__ = ["System", "get", "names", "register"]
+__all__ = ["System", "get", "names", "register", "load_plant"]
 
 
 def _column_symbol(value: object, arg: str) -> ca.SX:
@@ -128,6 +132,24 @@ class System:
     def __repr__(self) -> str:
         return f"System({self.name!r}, nx={self.nx}, nu={self.nu}, ny={self.ny})"
 
+    @property
+    def fingerprint(self) -> str:
+        """SHA-256 of what the plant computes: ``f`` and ``h`` on fixed points, the sizes and the box.
+
+        The points are 64 seeded draws over the X0 box (inputs in [-1, 1]); values are rounded to
+        10 significant digits, so the fingerprint does not depend on symbol names, on how the
+        expressions are written or on the CasADi version, but changes with the dynamics. Model
+        cards record it, and a model refuses to load against a plant with another fingerprint.
+        """
+        rng = np.random.default_rng(20261127)
+        lo, hi = self.x0_box[:, 0], self.x0_box[:, 1]
+        x = lo + (hi - lo) * rng.random((64, self.nx))
+        u = rng.uniform(-1.0, 1.0, (64, self.nu))
+        values = np.concatenate([self.f_batch(x, u).ravel(), self.h_batch(x).ravel(), self.x0_box.ravel()])
+        text = f"{self.nx},{self.nu},{self.ny};" + ",".join(np.format_float_scientific(v, precision=9)
+                                                             for v in values)
+        return hashlib.sha256(text.encode()).hexdigest()
+
     def f_batch(self, x: object, u: object = None) -> np.ndarray:
         """``f`` on many points in one mapped call.
 
@@ -206,6 +228,57 @@ def names() -> list[str]:
 def get(name: str) -> System:
     """Build the registered system ``name`` (e.g. ``"duffing"``)."""
     return _REGISTRY[one_of(name, "name", names())]()
+
+
+def load_plant(spec: str) -> System:
+    """A user's plant from a file or module: ``"path/to/plant.py:make_plant"`` or ``"pkg.mod:make_plant"``.
+
+    The attribute after ``:`` is a :class:`System` or a function with no arguments that returns
+    one (default ``make_plant``).
+
+    Parameters
+    ----------
+    spec : str
+        ``FILE.py[:NAME]`` or ``MODULE[:NAME]``.
+
+    Returns
+    -------
+    System
+
+    Raises
+    ------
+    ValueError
+        The file or module cannot be found or imported, the name is missing, or it does not give a
+        System (the message says which and what to write).
+    """
+    if not isinstance(spec, str) or not spec:
+        raise error("plant", "'path/to/plant.py:make_plant' or 'module:make_plant'", spec, kind=TypeError)
+    source, _, attribute = spec.rpartition(":") if ":" in spec else (spec, ":", "make_plant")
+    attribute = attribute or "make_plant"
+    fix = "Write a function make_plant() that returns a kklcasadi.System and pass 'plant.py:make_plant'."
+    if source.endswith(".py") or Path(source).is_file():
+        path = Path(source)
+        if not path.is_file():
+            raise error("plant", "an existing Python file", str(path), fix)
+        module_spec = importlib.util.spec_from_file_location(f"kklcasadi_user_plant_{path.stem}", path)
+        module = importlib.util.module_from_spec(module_spec)
+        try:
+            module_spec.loader.exec_module(module)
+        except Exception as exc:
+            raise ValueError(f"plant: importing {path} failed: {type(exc).__name__}: {exc}") from exc
+    else:
+        try:
+            module = importlib.import_module(source)
+        except ImportError as exc:
+            raise error("plant", "an importable module or a .py file", source, fix) from exc
+    if not hasattr(module, attribute):
+        raise error("plant", f"a name {attribute!r} in {source}", Text("no such name"), fix)
+    value = getattr(module, attribute)
+    plant = value() if callable(value) and not isinstance(value, System) else value
+    if not isinstance(plant, System):
+        raise error("plant", f"{source}:{attribute} to give a kklcasadi.System", Text(type(plant).__name__), fix,
+                    kind=TypeError)
+    return plant
 
 
 def _symbols(nx: int) -> tuple[ca.SX, ca.SX]:

@@ -78,12 +78,30 @@ def test_unregistered_system_needs_the_plant(model_dir_factory):
     path = model_dir_factory("autonomous")
     card = json.loads((path / CARD_FILE).read_text())
     card["system"]["name"] = "pend"
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u")
+    pend = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-1, 1], [-2, 2]])
+    card["system"]["fingerprint"] = pend.fingerprint
     (path / CARD_FILE).write_text(json.dumps(card))
     with pytest.raises(ValueError, match=r"'pend' is not a registered system.*system="):
         load_observer(path)
-    x, u = ca.SX.sym("x", 2), ca.SX.sym("u")
-    pend = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-1, 1], [-2, 2]])
     assert load_observer(path, system=pend).system is pend
+
+
+def test_a_plant_with_other_dynamics_is_refused_whatever_its_name(model_dir_factory):
+    path = model_dir_factory("autonomous")
+    x, u = ca.SX.sym("s", 2), ca.SX.sym("v")
+    same = kc.System("duffing", x, u, [x[1], -(x[0] ** 3 + x[0]) + u], x[0], [[-1, 1], [-1, 1]])
+    assert load_observer(path, system=same).system is same             # other symbols, same plant
+    other = kc.System("duffing", x, u, [x[1], -x[0] - 2 * x[0] ** 3 + u], x[0], [[-1, 1], [-1, 1]])
+    with pytest.raises(ValueError, match=r"'system\.fingerprint': .* plant 'duffing' with other"):
+        load_observer(path, system=other)
+    wider = kc.System("duffing", x, u, [x[1], -x[0] - x[0] ** 3 + u], x[0], [[-2, 2], [-1, 1]])
+    with pytest.raises(ValueError, match="fingerprint"):
+        load_observer(path, system=wider)
+    card = json.loads((path / CARD_FILE).read_text())               # cards without one still load
+    del card["system"]["fingerprint"]
+    (path / CARD_FILE).write_text(json.dumps(card))
+    assert load_observer(path, system=other).system is other
 
 
 def test_unknown_method_and_bad_options(model_dir_factory):
@@ -493,3 +511,46 @@ def test_closed_loop_example_writes_a_png(model_dir_factory, tmp_path, monkeypat
     runpy.run_path(str(ROOT / "examples" / "closed_loop.py"), run_name="__main__")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "inject observer in the loop" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- domain monitor
+
+def _with_domain(path, x_lo, x_hi, z_lo, z_hi):
+    card = json.loads((path / CARD_FILE).read_text())
+    card["domain"] = {"x_lo": x_lo, "x_hi": x_hi, "z_lo": z_lo, "z_hi": z_hi}
+    (path / CARD_FILE).write_text(json.dumps(card))
+    return path
+
+
+def test_domain_monitor_flags_estimates_outside_the_trained_domain(model_dir_factory, rng):
+    path = model_dir_factory("autonomous")
+    assert load_observer(path).in_domain(np.zeros(2), np.zeros(5)) is None      # no domain recorded
+    obs = load_observer(_with_domain(path, [-1, -1], [1, 1], [-50] * 5, [50] * 5))
+    # the margin is DOMAIN_MARGIN of the range: x1 in [-1.2, 1.2]
+    assert obs.in_domain([1.19, 0.0], np.zeros(5)) and not obs.in_domain([1.21, 0.0], np.zeros(5))
+    assert not obs.in_domain([0.0, 0.0], [0, 0, 0, 0, 61.0])
+    points = rng.uniform(-1.5, 1.5, (40, 2))
+    flags = obs.in_domain(points, np.zeros((40, 5)))
+    checked = [bool(np.asarray(obs.domain_check(np.zeros(5), p))) for p in points]
+    assert flags.tolist() == checked and 0 < flags.sum() < 40
+    tr = plant_run(T=2.0)
+    est = obs.simulate(tr.t, tr.y, tr.u)
+    assert est.in_domain.shape == (40,)
+    np.testing.assert_array_equal(est.in_domain, obs.in_domain(est.xhat, est.z))
+    batch = obs.simulate(tr.t, np.stack([tr.y, tr.y]), np.stack([tr.u, tr.u]))
+    assert batch.in_domain.shape == (2, 40)
+    live = obs.estimator()
+    for k in range(tr.t.size):
+        live.make_step(tr.y[k], tr.u[k])
+        assert live.stats["in_domain"] == est.in_domain[k]
+    assert live.stats == {"k": 40, "in_domain": bool(est.in_domain[-1]),
+                          "out_of_domain_steps": int((~est.in_domain).sum())}
+
+
+def test_a_bad_domain_entry_names_the_field(model_dir_factory):
+    path = _with_domain(model_dir_factory("autonomous"), [1, 1], [-1, -1], [0] * 5, [1] * 5)
+    with pytest.raises(ValueError, match=r"'domain': expected lo <= hi"):
+        load_observer(path)
+    path = _with_domain(model_dir_factory("autonomous"), [1], [2], [0] * 5, [1] * 5)
+    with pytest.raises(ValueError, match=r"'domain\.x_lo': expected a list of 2 finite numbers"):
+        load_observer(path)

@@ -115,6 +115,12 @@ def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     hist = json.loads((phase1_dir / "history.json").read_text())
     assert hist["encoder"]["val"][-1] < hist["encoder"]["val"][0]
     assert hist["decoder"]["val"][-1] < hist["decoder"]["val"][0]
+    # the card records the plant's fingerprint and where the maps were trained
+    import kklcasadi as kc
+
+    assert model.spec.system.fingerprint == kc.systems.get("duffing").fingerprint
+    domain = model.spec.domain
+    assert np.all(domain.x_lo <= -0.9) and np.all(domain.x_hi >= 0.9) and np.all(domain.z_lo < domain.z_hi)
     # the saved arrays rebuild the same network bitwise
     net = MLP.from_arrays(model.arrays, "encoder", model.spec.architecture.encoder)
     again = {k: v for k, v in net.to_arrays("encoder").items()}

@@ -143,7 +143,7 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     training = {**_jsonable(trained.training), "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1),
                 "device": device}
     card = make_card(plant, trained.design, method, trained.spec, dt=dt, window=trained.window,
-                     training=training, measurement_std=trained.measurement_std,
+                     training=training, measurement_std=trained.measurement_std, domain=trained.domain,
                      base=None if base_model is None else _base_reference(out, base_model))
     path = save_model(out, trained.arrays, card, overwrite=overwrite or resume)
     if trained.histories:

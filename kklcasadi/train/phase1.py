@@ -18,7 +18,7 @@ from scipy.linalg import solve_continuous_lyapunov
 from .. import data as kdata
 from ..architecture import DECODER, ENCODER
 from ..design import Design
-from ..modelfile import Model
+from ..modelfile import Domain, Model
 from ..systems import System
 from ..variants import MapsSpec
 from .config import Phase1Config
@@ -39,6 +39,7 @@ class Phase1Result:
     decoder_fit: FitResult
     n_labelled: int
     n_pde: int
+    domain: Domain
 
 
 def latent_noise_covariance(design: Design, measurement_std: float, dt: float) -> np.ndarray:
@@ -140,7 +141,8 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
         for layer in decoder.layers:
             torch.nn.utils.parametrize.remove_parametrizations(layer, "weight", leave_parametrized=True)
     decoder.requires_grad_(False)
-    return Phase1Result(encoder.cpu().double(), decoder.cpu().double(), enc_fit, dec_fit, n_lab, n_pde)
+    return Phase1Result(encoder.cpu().double(), decoder.cpu().double(), enc_fit, dec_fit, n_lab, n_pde,
+                        Domain.of(x_dec, z_all))
 
 
 def train_autonomous(system: System, design: Design, base: Model | None, config: Phase1Config, *,
@@ -165,4 +167,4 @@ def train_autonomous(system: System, design: Design, base: Model | None, config:
                 **{k: (f.summary() if f is not None else "kept from the base model") for k, f in fits.items()}}
     return Trained(arrays, MapsSpec(result.encoder.spec, result.decoder.spec), design, training,
                    {k: f.history for k, f in fits.items() if f is not None},
-                   measurement_std=config.measurement_std)
+                   measurement_std=config.measurement_std, domain=result.domain)

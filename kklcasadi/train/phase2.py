@@ -14,7 +14,7 @@ from .. import data as kdata
 from .. import signals as sig
 from ..architecture import DECODER, ENCODER, lora_target_shapes
 from ..design import Design
-from ..modelfile import Model
+from ..modelfile import Domain, Model
 from ..systems import System
 from ..variants import DynModelSpec, MapsSpec, ObsModelSpec
 from .config import CurriculumConfig, DynConfig, ObsConfig
@@ -164,7 +164,7 @@ def train_obs(system: System, design: Design, base: Model | None, config: ObsCon
                                            "dropped": len(p2.dropped)},
                 "obs": result.summary(), "loss_without_injection": baseline}
     return Trained(arrays, spec, design, training, {"obs": result.history}, config.data.window,
-                   base.spec.measurement_std)
+                   base.spec.measurement_std, base.spec.domain)
 
 
 def train_dyn(system: System, design: Design, base: Model | None, config: DynConfig, *, dt: float, seed: int,
@@ -206,7 +206,7 @@ def train_dyn(system: System, design: Design, base: Model | None, config: DynCon
     training = {"config": config, "data": {"trajectories": int(p2.x.shape[0]), "samples": p2.n_samples,
                                            "dropped": len(p2.dropped)}, "dyn": result.summary()}
     return Trained(arrays, spec, design, training, {"dyn": result.history}, config.data.window,
-                   base.spec.measurement_std)
+                   base.spec.measurement_std, base.spec.domain)
 
 
 def train_curriculum(system: System, design: Design, base: Model | None, config: CurriculumConfig, *, dt: float,
@@ -258,5 +258,7 @@ def train_curriculum(system: System, design: Design, base: Model | None, config:
                                   "decoder": dec_fit.summary()}
     encoder, decoder = encoder.cpu().double(), decoder.cpu().double()
     arrays = {**encoder.to_arrays(ENCODER), **decoder.to_arrays(DECODER)}
+    with torch.no_grad():                           # the domain of the last (widest) stage's data
+        domain = Domain.of(lab.x, encoder(torch.as_tensor(lab.x, dtype=torch.float64)).numpy())
     return Trained(arrays, MapsSpec(encoder.spec, decoder.spec), design, {"config": config, "stages": summaries},
-                   histories, 1, base.spec.measurement_std)
+                   histories, 1, base.spec.measurement_std, domain)

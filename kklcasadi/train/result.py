@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Optional
 
 from ..design import Design
+from ..modelfile import Domain
 
 __all__ = ["Trained"]
 
@@ -30,6 +31,8 @@ class Trained:
         Input-window length of the card.
     measurement_std : float
         The noise level the decoder was fit for.
+    domain : Domain or None
+        Where the maps were trained (states and latents of the training data).
     """
 
     arrays: dict
@@ -39,3 +42,4 @@ class Trained:
     histories: dict = field(default_factory=dict)
     window: int = 1
     measurement_std: float = 0.0
+    domain: Optional[Domain] = None

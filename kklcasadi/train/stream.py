@@ -59,7 +59,7 @@ def train_obs_stream(system: System, design: Design, base: Model | None, config:
                                            "dropped": len(p2.dropped)},
                 "obs_stream": result.summary(), "loss_without_injection": baseline}
     return Trained({**base.arrays, **net.to_arrays()}, spec, design, training, {"obs_stream": result.history}, 1,
-                   base.spec.measurement_std)
+                   base.spec.measurement_std, base.spec.domain)
 
 
 def train_dyn_stream(system: System, design: Design, base: Model | None, config: DynStreamConfig, *, dt: float,
@@ -106,4 +106,4 @@ def train_dyn_stream(system: System, design: Design, base: Model | None, config:
     training = {"config": config, "data": {"trajectories": n_traj, "samples": n_traj * n,
                                            "dropped": len(p2.dropped)}, "dyn_stream": result.summary()}
     return Trained({**base.arrays, **hyper.to_arrays()}, spec, design, training, {"dyn_stream": result.history}, 1,
-                   base.spec.measurement_std)
+                   base.spec.measurement_std, base.spec.domain)
