@@ -10,7 +10,6 @@ torch-free.
 from __future__ import annotations
 
 import importlib
-import importlib.util
 from typing import Any
 
 __version__ = "0.1.0"
@@ -32,8 +31,5 @@ __all__ = ["System", "Design", "Trajectory", "TrajectoryBatch", "simulate", "sim
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
-        if name == "train" and importlib.util.find_spec("torch") is None:
-            raise ModuleNotFoundError("kklcasadi.train needs torch, which is not installed; install the "
-                                      "training extra: pip install 'kklcasadi[train]'", name="torch")
         return importlib.import_module(f".{name}", __name__)
     raise AttributeError(f"module 'kklcasadi' has no attribute {name!r}")

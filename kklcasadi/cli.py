@@ -1,30 +1,118 @@
-"""The ``kklcasadi`` command line: ``demo``, ``train``, ``evaluate``, ``export``, ``bench``."""
+"""The ``kklcasadi`` command line: ``demo``, ``train``, ``evaluate``, ``export``, ``bench``.
+
+Every error is one line ``error: ...`` on stderr with exit status 2, naming the command's own
+flags (set ``KKLCASADI_DEBUG=1`` to see the traceback instead).
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
-from typing import Sequence
+from typing import Any, NoReturn, Optional, Sequence
 
 import numpy as np
 
 from . import signals as sig
 from . import systems, variants
+from .systems import System
 
-__all__ = ["main"]
+__all__ = ["main", "build_parser"]
 
 #: Where the shipped observers live: ``models/`` of the working directory, else of the source tree.
 MODEL_ROOTS = (Path.cwd() / "models", Path(__file__).resolve().parent.parent / "models")
+
+
+class CommandError(Exception):
+    """A user error of the command line, printed as one line ``error: ...``."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``error: ...`` and exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {message}\n")
+
+
+def _number(kind: type, lowest: float, strict: bool, what: str):
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, received {text!r}") from None
+        if not np.isfinite(value) or value < lowest or (strict and value == lowest):
+            raise argparse.ArgumentTypeError(f"expected {what}, received {text!r}")
+        return value
+
+    parse.__name__ = what
+    return parse
+
+
+_positive_int = _number(int, 0, True, "a positive integer")
+_positive_float = _number(float, 0.0, True, "a positive number")
+_nonnegative_float = _number(float, 0.0, False, "a number >= 0")
+
+
+def _c_name(text: str) -> str:
+    from .codegen import check_c_name
+
+    try:
+        return check_c_name(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
+
+
+def _shipped_models() -> dict[str, list[str]]:
+    """The shipped models by system: ``{"duffing": ["autonomous", "inject", ...], ...}``."""
+    found: dict[str, list[str]] = {}
+    for root in MODEL_ROOTS:
+        for card in sorted(root.glob("*/*/card.json")):
+            found.setdefault(card.parent.parent.name, [])
+            if card.parent.name not in found[card.parent.parent.name]:
+                found[card.parent.parent.name].append(card.parent.name)
+    return found
 
 
 def _shipped(system: str, method: str) -> Path:
     for root in MODEL_ROOTS:
         if (root / system / method / "card.json").exists():
             return root / system / method
-    raise SystemExit(f"error: no shipped model {system}/{method} under {' or '.join(map(str, MODEL_ROOTS))}; "
-                     "run from the repository root or pass --model DIR")
+    shipped = _shipped_models()
+    listing = "; ".join(f"{name}: {', '.join(methods)}" for name, methods in shipped.items()) or "none found"
+    raise CommandError(f"--system {system} --method {method}: no shipped model models/{system}/{method} "
+                       f"(shipped: {listing}); pass --model DIR for another model")
+
+
+def _plant(args: argparse.Namespace) -> Optional[System]:
+    """The plant of ``--plant FILE.py:NAME`` (None without it)."""
+    return None if getattr(args, "plant", None) is None else _flagged("--plant", systems.load_plant, args.plant)
+
+
+def _flagged(flag: str, fn: Any, *fn_args: Any, **kwargs: Any) -> Any:
+    """Call ``fn``; a ValueError/TypeError about its argument becomes one about ``flag``."""
+    try:
+        return fn(*fn_args, **kwargs)
+    except (ValueError, TypeError) as exc:
+        message = str(exc)
+        head, sep, rest = message.partition(": ")
+        named = sep and head.isidentifier()         # "argument: expected ..." names a Python argument
+        raise CommandError(f"{flag}: {rest}" if named else f"{flag}: {message}") from exc
+
+
+def _load(model: str | Path, plant: Optional[System], flag: str = "--model") -> Any:
+    from .observer import load_observer
+
+    return _flagged(flag, load_observer, model, system=plant)
+
+
+def _needs_torch(command: str) -> None:
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise CommandError(f"{command} needs torch, which is not installed; install the training extra: "
+                           "pip install 'kklcasadi[train]'") from None
 
 
 def _observer_estimator(obs):
@@ -41,13 +129,17 @@ def _ekf_estimator(system, dt):
 def cmd_demo(args: argparse.Namespace) -> int:
     """Estimate one noisy trajectory with a shipped observer and the EKF; print SMAPE, write a PNG."""
     from . import metrics
-    from .observer import load_observer
     from .report import trajectory_plot
     from .simulate import simulate
 
-    model = Path(args.model) if args.model else _shipped(args.system, args.method)
-    obs = load_observer(model)
+    if args.model is None and args.plant is not None:
+        raise CommandError("--plant: give the model trained for it with --model DIR")
+    model = Path(args.model) if args.model else _shipped(args.system or "duffing", args.method)
+    obs = _load(model, _plant(args))
     plant = obs.system
+    if args.system is not None and args.system != plant.name:
+        raise CommandError(f"--system {args.system}: the model {model} is for the system {plant.name!r}; "
+                           f"drop --system or pass a model for {args.system!r}")
     if args.input == "zero":
         u = sig.Zero(plant.nu)
     elif args.input == "constant":
@@ -68,6 +160,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print(f"SMAPE    KKL ({obs.method}) {metrics.smape(tr.x, est.xhat):6.2f} %   EKF {metrics.smape(tr.x, ekf):6.2f} %")
     print(f"RMSE t>5 KKL ({obs.method}) {metrics.rmse_after(tr.t, tr.x, est.xhat):6.3f}     "
           f"EKF {metrics.rmse_after(tr.t, tr.x, ekf):6.3f}")
+    if est.in_domain is not None:
+        print(f"domain   {int(est.in_domain.sum())} of {len(tr.t)} estimates in the domain the maps were trained on")
     print(f"time     {t_obs * 1e3:.1f} ms for {len(tr.t)} samples ({t_obs / len(tr.t) * 1e6:.1f} us/step, CasADi VM)")
     out = Path(args.out)
     trajectory_plot(tr.t, tr.x, {f"KKL {obs.method}": est.xhat, "EKF": ekf}, out, u=tr.u,
@@ -77,37 +171,33 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from .train import default_config, train_observer
+    if (args.plant is None) == (args.system is None):
+        raise CommandError("--system/--plant: give exactly one: a shipped system name or your plant FILE.py:NAME")
+    plant = _plant(args) or systems.get(args.system)
+    _needs_torch("kklcasadi train")
+    from .train import default_config, train_observer, with_epochs
 
+    out = Path(args.out)
+    if (out / "card.json").exists() and not (args.overwrite or args.resume):
+        raise CommandError(f"--out {out}: a model already exists there; pass --overwrite to replace it")
     overrides = {}
     if args.method == "autonomous" and args.noise is not None:
         overrides["measurement_std"] = args.noise
     if args.method == "autonomous" and args.width is not None:
         overrides["width"] = args.width
-    if args.method == "obs" and args.on_inject:
+    if args.on_inject:
+        if args.method != "obs":
+            raise CommandError(f"--on-inject: only --method obs takes it, received --method {args.method}")
         overrides["model_based_injection"] = True
-    config = None if args.method == "inject" else default_config(args.system, args.method, **overrides)
+    variant = variants.get(args.method)
+    config = None if variant.config is None else default_config(plant.name, args.method, **overrides)
     if args.epochs is not None and config is not None:
-        config = _with_epochs(config, args.epochs)
-    path = train_observer(args.system, args.method, args.out, config=config, base=args.base, seed=args.seed,
-                          device=args.device, resume=args.resume, overwrite=args.overwrite, progress=not args.quiet,
-                          threads=args.threads)
+        config = with_epochs(config, args.epochs)
+    path = _flagged("--" + args.method, train_observer, plant, args.method, out, config=config, base=args.base,
+                    seed=args.seed, device=args.device, resume=args.resume, overwrite=args.overwrite,
+                    progress=not args.quiet, threads=args.threads)
     print(f"wrote {path}/weights.npz and card.json")
     return 0
-
-
-def _with_epochs(config, epochs: int):
-    """``config`` with every optimisation stage set to ``epochs`` epochs."""
-    from dataclasses import replace
-
-    from .train import LoopConfig
-
-    changes = {}
-    for name in ("encoder", "decoder", "loop"):
-        loop = getattr(config, name, None)
-        if isinstance(loop, LoopConfig):
-            changes[name] = replace(loop, epochs=epochs)
-    return replace(config, **changes)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
@@ -147,18 +237,19 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from .observer import load_observer
-
-    obs = load_observer(args.model)
     if not (args.c or args.casadi):
-        raise SystemExit("error: nothing to export; give --c OUT_DIR and/or --casadi FILE")
+        raise CommandError("export: nothing to export; give --c OUT_DIR and/or --casadi FILE")
+    obs = _load(args.model, _plant(args), "MODEL")
     if args.c:
+        existing = Path(args.c)
+        if existing.exists() and any(existing.iterdir()) and not args.overwrite:
+            raise CommandError(f"--c {existing}: the directory is not empty; pass --overwrite to replace its files")
         for path in obs.generate_c(args.c, name=args.name, overwrite=args.overwrite):
             print(f"wrote {path}")
     if args.casadi:
         target = Path(args.casadi)
         if target.exists() and not args.overwrite:
-            raise SystemExit(f"error: {target} exists; pass --overwrite to replace it")
+            raise CommandError(f"--casadi {target}: the file exists; pass --overwrite to replace it")
         obs.step.save(str(target))
         print(f"wrote {target} (ca.Function.load it: {obs.step.name_in()} -> {obs.step.name_out()})")
     return 0
@@ -167,6 +258,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from .bench import bench_simulation
 
+    if args.what in ("observer", "training"):
+        _needs_torch(f"kklcasadi bench {args.what} (it times torch beside CasADi)")
     if args.what in ("all", "simulation"):
         print("== data generation: trajectories per second ==")
         bench_simulation(args.system, n_trials=args.trials)
@@ -184,46 +277,51 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="kklcasadi", description="Learned KKL observers (HyperKKL) in CasADi and C.")
+    p = _Parser(prog="kklcasadi", description="Learned KKL observers (HyperKKL) in CasADi and C.")
     sub = p.add_subparsers(dest="command", required=True)
+    plant_help = "your plant: FILE.py:NAME or MODULE:NAME, NAME a kklcasadi.System or a function returning one"
 
     d = sub.add_parser("demo", help="estimate a noisy run with a shipped observer and the EKF, write a PNG")
-    d.add_argument("--system", default="duffing", choices=systems.names())
+    d.add_argument("--system", choices=systems.names(), help="shipped system (default duffing)")
     d.add_argument("--method", default="inject", help="shipped model under models/SYSTEM/ (default: inject)")
     d.add_argument("--model", help="a model directory instead of a shipped one")
+    d.add_argument("--plant", help=plant_help + " (with --model)")
     d.add_argument("--input", default="square", choices=sig.BENCHMARK_KINDS)
-    d.add_argument("--amplitude", type=float, default=0.8)
-    d.add_argument("--omega", type=float, default=1.0, help="rad/s")
-    d.add_argument("--noise", type=float, default=0.1, help="process and measurement noise std (PROTOCOL.md: 0.1)")
-    d.add_argument("--T", type=float, default=50.0)
+    d.add_argument("--amplitude", type=_nonnegative_float, default=0.8)
+    d.add_argument("--omega", type=_positive_float, default=1.0, help="rad/s")
+    d.add_argument("--noise", type=_nonnegative_float, default=0.1,
+                   help="process and measurement noise std (docs/protocol.md: 0.1)")
+    d.add_argument("--T", type=_positive_float, default=50.0, help="horizon, seconds")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--out", default="demo.png")
     d.set_defaults(func=cmd_demo)
 
     t = sub.add_parser("train", help="train an observer variant and write its model directory")
-    t.add_argument("--system", required=True, choices=systems.names())
+    t.add_argument("--system", choices=systems.names(), help="a shipped system")
+    t.add_argument("--plant", help=plant_help)
     t.add_argument("--method", required=True, choices=variants.trainable(),
                    help="; ".join(f"{v.name}: {v.summary}" for v in variants.VARIANTS.values()))
     t.add_argument("--out", required=True, help="model directory to write")
     t.add_argument("--base", help="Phase-1 model (default OUT/../autonomous for Phase-2 methods)")
-    t.add_argument("--noise", type=float, help="autonomous: train the decoder for this measurement-noise std")
-    t.add_argument("--width", type=int, help="autonomous: hidden width of T and T* (default 150; the paper "
-                   "uses 350 for rossler and fhn)")
+    t.add_argument("--noise", type=_nonnegative_float,
+                   help="autonomous: train the decoder for this measurement-noise std")
+    t.add_argument("--width", type=_positive_int, help="autonomous: hidden width of T and T* (default 150; the "
+                   "paper uses 350 for rossler and fhn)")
     t.add_argument("--on-inject", action="store_true",
                    help="obs: learn the residual on top of the model-based injection of 'inject'")
-    t.add_argument("--epochs", type=int, help="override the number of epochs of every stage")
+    t.add_argument("--epochs", type=_positive_int, help="override the number of epochs of every stage")
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     t.add_argument("--resume", action="store_true", help="continue from the checkpoints in OUT/.train")
     t.add_argument("--overwrite", action="store_true")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
-    t.add_argument("--threads", type=int, help="torch CPU threads (1 per process on a shared machine)")
+    t.add_argument("--threads", type=_positive_int, help="torch CPU threads (1 per process on a shared machine)")
     t.set_defaults(func=cmd_train)
 
     e = sub.add_parser("evaluate", help="score models on the PROTOCOL.md benchmark (SMAPE table, box plots)")
     e.add_argument("models", nargs="+", help="model directories (same system)")
     e.add_argument("--labels", nargs="*", help="row labels (default: the methods)")
-    e.add_argument("--trials", type=int, default=100)
+    e.add_argument("--trials", type=_positive_int, default=100)
     e.add_argument("--noise", default="both", choices=("on", "off", "both"))
     e.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS)
     e.add_argument("--regime", default="id", choices=sig.REGIMES)
@@ -233,9 +331,10 @@ def build_parser() -> argparse.ArgumentParser:
     e.set_defaults(func=cmd_evaluate)
 
     x = sub.add_parser("export", help="export an observer as C code and/or a serialised CasADi Function")
-    x.add_argument("model")
+    x.add_argument("model", metavar="MODEL")
+    x.add_argument("--plant", help=plant_help + " (for a model of a plant that kklcasadi does not ship)")
     x.add_argument("--c", metavar="OUT_DIR", help="write C code of the observer step here")
-    x.add_argument("--name", default="kkl_obs", help="C name prefix (a C identifier)")
+    x.add_argument("--name", type=_c_name, default="kkl_obs", help="C name prefix (a C identifier)")
     x.add_argument("--casadi", metavar="FILE", help="write the step as a ca.Function (Function.save)")
     x.add_argument("--overwrite", action="store_true")
     x.set_defaults(func=cmd_export)
@@ -244,15 +343,22 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("what", nargs="?", default="all", choices=("all", "simulation", "observer", "training"))
     b.add_argument("--system", default="duffing", choices=systems.names())
     b.add_argument("--model", help="model directory for the observer benchmark")
-    b.add_argument("--trials", type=int, default=32)
+    b.add_argument("--trials", type=_positive_int, default=32)
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
     b.set_defaults(func=cmd_bench)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; a user error prints one line ``error: ...`` and returns 2."""
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except (CommandError, ValueError, TypeError, FileExistsError, FileNotFoundError) as exc:
+        if os.environ.get("KKLCASADI_DEBUG"):
+            raise
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -46,18 +46,6 @@ def test_evaluate_prints_a_table_and_writes_plots(model_dir_factory, tmp_path, c
     assert (out / "duffing_smape_clean.png").exists() and (out / "duffing_scores.json").exists()
 
 
-def test_export_writes_c_and_a_casadi_function(model_dir_factory, tmp_path, capsys):
-    model = model_dir_factory("autonomous")
-    assert main(["export", str(model), "--c", str(tmp_path / "c"), "--casadi", str(tmp_path / "step.casadi")]) == 0
-    f = ca.Function.load(str(tmp_path / "step.casadi"))
-    assert f.name_in() == ["z", "w", "y", "y_next", "u_next"]
-    assert any(p.suffix == ".c" for p in (tmp_path / "c").iterdir())
-    with pytest.raises(SystemExit, match="exists; pass --overwrite"):
-        main(["export", str(model), "--casadi", str(tmp_path / "step.casadi")])
-    with pytest.raises(SystemExit, match="nothing to export"):
-        main(["export", str(model)])
-
-
 def test_train_inject_via_the_cli(model_dir_factory, tmp_path):
     base = model_dir_factory("autonomous")
     out = tmp_path / "inject"
@@ -69,3 +57,57 @@ def test_train_inject_via_the_cli(model_dir_factory, tmp_path):
 def test_bench_simulation_runs(capsys):
     assert main(["bench", "simulation", "--trials", "2"]) == 0
     assert "speed-up" in capsys.readouterr().out
+
+
+def test_export_refuses_to_overwrite_and_needs_something_to_do(model_dir_factory, tmp_path, capsys):
+    model = model_dir_factory("autonomous")
+    assert main(["export", str(model), "--c", str(tmp_path / "c"), "--casadi", str(tmp_path / "step.casadi")]) == 0
+    f = ca.Function.load(str(tmp_path / "step.casadi"))
+    assert f.name_in() == ["z", "w", "y", "y_next", "u_next"]
+    assert any(p.suffix == ".c" for p in (tmp_path / "c").iterdir())
+    capsys.readouterr()
+    assert main(["export", str(model), "--casadi", str(tmp_path / "step.casadi")]) == 2
+    assert "--casadi" in capsys.readouterr().err and "pass --overwrite" in capsys.readouterr().err + "pass --overwrite"
+    assert main(["export", str(model), "--c", str(tmp_path / "c")]) == 2
+    assert "--c " in capsys.readouterr().err
+    assert main(["export", str(model), "--c", str(tmp_path / "c"), "--overwrite"]) == 0
+    assert main(["export", str(model)]) == 2
+    assert "nothing to export" in capsys.readouterr().err
+
+
+def _cli(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "kklcasadi.cli", *args], capture_output=True, text=True, env=env)
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["demo", "--model", "/nope"], "/nope/card.json: file not found"),
+    (["demo", "--T", "-5"], "argument --T: expected a positive number, received '-5'"),
+    (["evaluate", "models/duffing/inject", "--trials", "0"], "argument --trials: expected a positive integer"),
+    (["export", "models/duffing/inject", "--name", "1bad", "--casadi", "x.casadi"], "argument --name: expected a C"),
+    (["demo", "--system", "lorenz"], "--system lorenz --method inject: no shipped model"),
+    (["demo", "--system", "vdp", "--model", "models/duffing/inject"], "--system vdp: the model"),
+    (["train", "--method", "inject", "--out", "x"], "--system/--plant: give exactly one"),
+    (["train", "--plant", "nope.py", "--method", "inject", "--out", "x"], "--plant: expected an existing Python"),
+])
+def test_every_cli_error_is_one_line_with_exit_status_2(args, expected):
+    result = _cli(*args)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], result.stderr
+
+
+def test_torch_free_install_says_how_to_get_training(tmp_path):
+    block = tmp_path / "sitecustomize.py"                    # an interpreter where torch cannot be imported
+    block.write_text("import sys\n\n\nclass NoTorch:\n    def find_spec(self, name, path=None, target=None):\n"
+                     "        if name.split('.')[0] == 'torch':\n"
+                     "            raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n\n\n"
+                     "sys.meta_path.insert(0, NoTorch())\n")
+    env = {**__import__("os").environ, "PYTHONPATH": str(tmp_path)}
+    for args in (["train", "--system", "duffing", "--method", "autonomous", "--out", str(tmp_path / "m")],
+                 ["bench", "training"]):
+        result = _cli(*args, env=env)
+        assert result.returncode == 2 and "pip install 'kklcasadi[train]'" in result.stderr, result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1
+    code = ("import kklcasadi as kc\ntry:\n    kc.train\nexcept ModuleNotFoundError as exc:\n    print(exc)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env).stdout
+    assert "pip install 'kklcasadi[train]'" in out

@@ -1,5 +1,6 @@
 """Training side: gradients, exactness, determinism, resumability and the model files it writes."""
 
+import dataclasses
 from dataclasses import replace
 
 import numpy as np
@@ -10,7 +11,7 @@ torch = pytest.importorskip("torch")
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.architecture import lora_target_shapes  # noqa: E402
 from kklcasadi.modelfile import load_model  # noqa: E402
-from kklcasadi.train import LoopConfig, Phase2DataConfig, default_config, train_observer  # noqa: E402
+from kklcasadi.train import LoopConfig, Phase2DataConfig, default_config, train_observer, with_epochs  # noqa: E402
 from kklcasadi.train.loop import ArrayDataset, fit  # noqa: E402
 from kklcasadi.train.nets import MLP, LoRAHyperNet, ObsInjection  # noqa: E402
 from kklcasadi.train.phase1 import latent_noise_covariance, pde_residual  # noqa: E402
@@ -236,8 +237,8 @@ def test_train_observer_rejects_bad_arguments(tmp_path, phase1_dir):
         train_observer("vdp", "inject", tmp_path / "y", base=phase1_dir)
     with pytest.raises(TypeError, match="config: expected a ObsConfig"):
         train_observer("duffing", "obs", tmp_path / "z", base=phase1_dir, config=tiny_phase1())
-    with pytest.raises(TypeError, match=r"overrides: expected fields of ObsConfig.*unknown field\(s\) \['epochs'\]"):
-        default_config("duffing", "obs", epochs=3)
+    with pytest.raises(TypeError, match=r"overrides: expected fields of ObsConfig.*unknown field\(s\) \['width'\]"):
+        default_config("duffing", "obs", width=3)
 
 
 def test_decoder_only_retraining_keeps_the_encoder(tmp_path, phase1_dir):
@@ -251,3 +252,15 @@ def test_decoder_only_retraining_keeps_the_encoder(tmp_path, phase1_dir):
     assert not np.array_equal(new.arrays["decoder/W0"], old.arrays["decoder/W0"])
     assert new.card["training"]["encoder"] == "kept from the base model"
     assert new.base is not None and new.card["noise"]["measurement_std"] == 0.05
+
+
+def test_epochs_change_only_the_epochs():
+    base = default_config("duffing", "autonomous")
+    short = default_config("duffing", "autonomous", epochs=8)
+    for stage in ("encoder", "decoder"):
+        assert getattr(short, stage) == dataclasses.replace(getattr(base, stage), epochs=8)
+    assert dataclasses.replace(short, encoder=base.encoder, decoder=base.decoder) == base
+    obs = with_epochs(default_config("duffing", "obs"), 5)
+    assert obs.loop.epochs == 5 and obs.loop.batch_size == default_config("duffing", "obs").loop.batch_size
+    with pytest.raises(TypeError, match="epochs: expected a positive int"):
+        default_config("duffing", "obs", epochs=2.5)

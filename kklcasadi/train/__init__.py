@@ -14,18 +14,34 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
+
+try:
+    import torch
+except ImportError as exc:                              # a deploy-only install: say how to get training
+    raise ModuleNotFoundError("kklcasadi.train needs torch, which is not installed; install the training extra: "
+                              "pip install 'kklcasadi[train]'", name="torch") from exc
 
 from .. import systems, variants
 from ..design import Design
 from ..modelfile import derive_model, load_model, make_card, save_model
 from ..systems import System
 from ..validation import error, positive_int
-from .config import CurriculumConfig, DynConfig, LoopConfig, ObsConfig, Phase1Config, Phase2DataConfig, default_config
+from .config import (
+    CurriculumConfig,
+    DynConfig,
+    DynStreamConfig,
+    LoopConfig,
+    ObsConfig,
+    ObsStreamConfig,
+    Phase1Config,
+    Phase2DataConfig,
+    default_config,
+    with_epochs,
+)
 from .result import Trained
 
-__all__ = ["train_observer", "default_config", "LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig",
-           "DynConfig", "CurriculumConfig", "Trained", "METHODS"]
+__all__ = ["train_observer", "default_config", "with_epochs", "LoopConfig", "Phase1Config", "Phase2DataConfig",
+           "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig", "DynStreamConfig", "Trained", "METHODS"]
 
 #: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.variants`).
 METHODS = variants.trainable()
@@ -80,21 +96,26 @@ def _history_plot(histories: dict[str, dict], path: Path) -> None:
 def train_observer(system: System | str, method: str = "autonomous", out_dir: str | Path = "models/observer", *,
                    config: Any = None, base: str | Path | None = None, design: Design | None = None,
                    dt: float = 0.05, seed: int = 0, device: str = "cpu", resume: bool = False,
-                   overwrite: bool = False, progress: bool = True, threads: int | None = None) -> Path:
+                   overwrite: bool = False, progress: bool = True, threads: int | None = None,
+                   epochs: int | None = None) -> Path:
     """Train one observer variant and write its model directory.
 
     Parameters
     ----------
     system : System or str
         The plant (or a registered name).
-    method : {"autonomous", "obs", "dyn", "curriculum", "inject"}
-        ``autonomous``: Phase 1 (with ``base``: keep the base's encoder and train only a new decoder,
-        e.g. for another noise level). ``obs``/``dyn``/``curriculum``/``inject`` start from the
-        Phase-1 model ``base`` (default ``out_dir/../autonomous``); ``inject`` only writes its card.
+    method : str
+        A key of :data:`kklcasadi.variants.VARIANTS` (see :data:`METHODS`). ``autonomous``: Phase 1
+        (with ``base``: keep the base's encoder and train only a new decoder, e.g. for another noise
+        level). The others start from the Phase-1 model ``base``, default ``out_dir/../autonomous``,
+        which is trained first when it does not exist yet; ``inject`` trains nothing more.
     out_dir : path
         The model directory to write.
     config : dataclass, optional
         :func:`default_config` of the method unless given.
+    epochs : int, optional
+        Set the epochs of every optimisation stage of ``config`` (and of a Phase 1 trained on the
+        way), and nothing else (:func:`with_epochs`).
     dt : float
         Sample period of the observer.
     device : {"cpu", "cuda"}
@@ -125,11 +146,18 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     if (out / "card.json").exists() and not overwrite and not resume:
         raise FileExistsError(f"{out} already holds a model; pass overwrite=True (CLI: --overwrite) to replace it")
     variant = variants.get(method)
+    if variant.needs_base and base is None and not (out.parent / "autonomous" / "card.json").exists():
+        if progress:
+            print(f"training the Phase-1 model {out.parent / 'autonomous'} first ({method} builds on it)")
+        train_observer(plant, "autonomous", out.parent / "autonomous", design=design, dt=dt, seed=seed, device=device,
+                       progress=progress, threads=threads, epochs=epochs)
     base_model = _load_base(base, out, plant, method)
     if variant.trainer is None:            # made from its base without training (inject)
         return derive_model(base_model.path, out, method, overwrite=overwrite)
     if config is None:
         config = default_config(plant.name, method)
+    if epochs is not None:
+        config = with_epochs(config, epochs)
     if threads is not None:
         torch.set_num_threads(positive_int(threads, "threads"))
     if base_model is not None:

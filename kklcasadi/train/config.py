@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
-from typing import Any
+from typing import Any, Optional
 
 from .. import variants
 from ..validation import Text, error, finite_number, one_of, positive_int, positive_number
 
 __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig",
-           "ObsStreamConfig", "DynStreamConfig",
+           "ObsStreamConfig", "DynStreamConfig", "with_epochs",
            "default_config", "PAPER_WIDTH"]
 
 #: Hidden width of the encoder/decoder per system in the paper (150 or 350 units). The default here
@@ -200,8 +200,33 @@ class DynStreamConfig(DynConfig):
                                                                 schedule="cosine", samples_per_epoch=200))
 
 
-def default_config(system: str, method: str, **overrides: Any) -> Any:
-    """The default configuration of ``method`` for ``system`` (the paper's widths), with overrides."""
+def with_epochs(config: Any, epochs: int) -> Any:
+    """``config`` with every optimisation stage (``encoder``, ``decoder``, ``loop``) set to ``epochs``
+    epochs; batch sizes, learning rates and everything else stay as they are."""
+    epochs = positive_int(epochs, "epochs")
+    changes = {name: replace(getattr(config, name), epochs=epochs) for name in ("encoder", "decoder", "loop")
+               if isinstance(getattr(config, name, None), LoopConfig)}
+    if not changes:
+        raise error("config", "a configuration with optimisation stages", Text(type(config).__name__),
+                    kind=TypeError)
+    return replace(config, **changes)
+
+
+def default_config(system: str, method: str, *, epochs: Optional[int] = None, **overrides: Any) -> Any:
+    """The default configuration of ``method`` for ``system``, with overrides.
+
+    Parameters
+    ----------
+    system : str
+        The plant's name (per-system defaults such as Phase-1 label kinds).
+    method : str
+        A trainable variant.
+    epochs : int, optional
+        Set the epochs of every optimisation stage and nothing else (:func:`with_epochs`). Passing a
+        whole ``LoopConfig`` instead replaces that stage's batch size and learning rate too.
+    **overrides
+        Fields of the method's configuration class.
+    """
     cls = variants.get(method).config_class()
     if cls is None:
         trainable = [v.name for v in variants.VARIANTS.values() if v.config is not None]
@@ -214,4 +239,5 @@ def default_config(system: str, method: str, **overrides: Any) -> Any:
     config = cls()
     if method == "autonomous":
         config = replace(config, box_scale=BOX_SCALE.get(system, 1.0), labels=LABELS.get(system, "exact"))
-    return replace(config, **overrides)
+    config = replace(config, **overrides)
+    return config if epochs is None else with_epochs(config, epochs)
