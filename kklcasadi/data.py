@@ -24,7 +24,7 @@ from . import signals as sig
 from .design import Design
 from .simulate import TrajectoryBatch, simulate_batch, time_grid
 from .systems import System
-from .validation import Text, error, finite_number, one_of
+from .validation import Text, error, finite_array, finite_number, one_of
 from .windows import input_windows
 
 __all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "driven_labels", "input_windows"]
@@ -46,6 +46,10 @@ class PDEPoints(NamedTuple):
     x: np.ndarray
     f: np.ndarray
     y: np.ndarray
+
+
+#: Largest domain (scale of the X0 box) the automatic choice of :func:`phase1` holds a past in.
+MAX_DOMAIN_SCALE = 1000.0
 
 
 def _latent_system(system: System, design: Design, *, driven: bool = False) -> System:
@@ -77,12 +81,13 @@ def _reversed(system: System) -> System:
 
 
 def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, t_keep: float = 10.0,
-           dt: float = 0.05, tol: float = 1e-7, domain_scale: float = 2.0, box_scale: float = 1.0,
-           labels: str = "exact") -> Phase1Data:
+           dt: float = 0.05, tol: float = 1e-7, domain_scale: float | None = None, box_scale: float = 1.0,
+           labels: str = "exact", starts: np.ndarray | None = None, progress: bool = False) -> Phase1Data:
     """States over the X0 box and their exact latent labels ``z = T(x)`` under ``u = 0``.
 
-    Each trajectory starts at a Latin-hypercube state ``x0``, runs backward in time for ``t_b``
-    (or until it leaves the domain, the X0 box scaled by ``domain_scale``), and then forward from
+    Each trajectory starts at a Latin-hypercube state ``x0`` (or at ``starts``), runs backward in
+    time for ``t_b`` (or until it leaves the domain, the X0 box scaled by ``domain_scale``), and then
+    forward from
     there with the latent system, ``t_keep`` seconds past ``x0``. The forward pass starts from the
     latent equilibrium ``z = -A^{-1} B h(x_b)``; a trajectory that left the domain is held frozen at
     its exit state until its remaining backward time has passed. So the labels are those of the
@@ -111,12 +116,22 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
     tol : float
         Relative label accuracy: the burn-in ``t_b`` makes ``kappa exp(-lam t_b) * 2 <= tol``,
         2 bounding ``|z0 - T(x_b)|`` relative to the latent bound ``kappa |B| max|y| / lam``.
-    domain_scale : float
+    domain_scale : float, optional
         Size of the domain (scale of the X0 box about its centre) outside which the past is frozen.
+        Default: 2 for ``labels="frozen"``; for ``"exact"`` the smallest scale >= 2 (at most
+        :data:`MAX_DOMAIN_SCALE`) that holds every backward run that stays within that cap. So on a
+        stable plant, whose past grows without escaping, the labelled windows start at the sampled
+        states and cover the box, instead of being released at once and kept far along the flow,
+        near the equilibrium.
     box_scale : float
         Scale of the sampling box about its centre.
     labels : {"exact", "frozen", "cold"}
         How the past is treated (see above).
+    starts : numpy.ndarray, shape (M, nx), optional
+        The starting states instead of a Latin hypercube over the box (``n_traj`` is then M), e.g.
+        states an input-driven plant visits.
+    progress : bool
+        Show a progress bar (the trajectories are simulated in chunks).
 
     Returns
     -------
@@ -128,17 +143,24 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         raise error("design", "a kklcasadi.Design", Text(type(design).__name__), kind=TypeError)
     if not 0 < finite_number(tol, "tol") < 1:
         raise error("tol", "a number in (0, 1)", tol)
-    if finite_number(domain_scale, "domain_scale") < 1:
+    if domain_scale is not None and finite_number(domain_scale, "domain_scale") < 1:
         raise error("domain_scale", "a number >= 1 (the domain contains the X0 box)", domain_scale)
     one_of(labels, "labels", ("exact", "frozen", "cold"))
-    x0 = system.sample_box(n_traj, seed, scale=box_scale)
+    if starts is None:
+        x0 = system.sample_box(n_traj, seed, scale=box_scale)
+    else:
+        x0 = finite_array(starts, "starts")
+        if x0.ndim != 2 or x0.shape[1] != system.nx or len(x0) == 0:
+            raise error("starts", f"states of shape (M, {system.nx}), M >= 1", Text(f"shape {x0.shape}"))
+        n_traj = len(x0)
     n_keep = time_grid(t_keep, dt).size
+    run = _chunked(progress, "phase-1 labels")
     if labels == "cold":
-        fwd = simulate_batch(_latent_system(system, design), np.hstack([x0, np.zeros((n_traj, design.nz))]),
-                             [np.ones(n_keep)] * n_traj, n_keep * dt, dt)
+        fwd = run(_latent_system(system, design), np.hstack([x0, np.zeros((n_traj, design.nz))]),
+                  [np.ones(n_keep)] * n_traj, n_keep * dt, dt)
         return _kept(system, design, fwd, n_keep, n_traj)
     centre = system.x0_box.mean(axis=1)
-    half = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0]) * domain_scale
+    unit = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0])
     y_ref = float(np.max(np.abs(system.h_batch(x0)))) or 1.0
     growth = 1.0
     for _attempt in range(6):
@@ -147,7 +169,15 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         # Backward pass: only the starting point is sought, so RK4 is enough; escapes end in inf/NaN.
         back = simulate_batch(_reversed(system), x0, sig.Zero(system.nu), (n_back + 1) * dt, dt, method="rk",
                               blowup=np.inf)
-        inside = np.all(np.abs(back.x - centre) <= half, axis=2)           # (n_traj, n_back + 1); NaN -> False
+        reach = np.max(np.abs(back.x - centre) / unit, axis=(1, 2))      # scale each past needs; NaN if it escapes
+        if domain_scale is not None:
+            scale = domain_scale
+        elif labels == "exact":
+            held = reach[np.isfinite(reach) & (reach <= MAX_DOMAIN_SCALE)]
+            scale = float(max(2.0, 1.01 * held.max())) if held.size else 2.0
+        else:
+            scale = 2.0
+        inside = np.all(np.abs(back.x - centre) <= scale * unit, axis=2)  # (n_traj, n_back + 1); NaN -> False
         n_in = np.where(inside.all(axis=1), n_back + 1, np.argmin(inside, axis=1))  # samples before the exit
         y_past = float(np.max(np.abs(np.where(inside[..., None], back.y, 0.0))))
         if y_past <= growth * y_ref:
@@ -168,8 +198,27 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
     # "frozen": hold the exit state until the kept window starts at x0 (labels of the frozen plant).
     gates = [np.ones(n_total) if labels == "exact" else np.r_[np.zeros(n_back - (k - 1)), np.ones(n_keep + k - 1)]
              for k in n_in]
-    fwd = simulate_batch(_latent_system(system, design), np.hstack([x_b, z_b]), gates, n_total * dt, dt)
+    fwd = run(_latent_system(system, design), np.hstack([x_b, z_b]), gates, n_total * dt, dt)
     return _kept(system, design, fwd, n_keep, n_traj)
+
+
+def _chunked(progress: bool, label: str, chunk: int = 32):
+    """``simulate_batch`` over chunks of trajectories, with a progress bar when ``progress``."""
+    if not progress:
+        return simulate_batch
+
+    def run(system: System, x0: np.ndarray, inputs: list, T: float, dt: float) -> TrajectoryBatch:
+        from tqdm.auto import tqdm
+
+        parts = []
+        with tqdm(total=len(x0), desc=label, unit="traj") as bar:
+            for i in range(0, len(x0), chunk):
+                parts.append(simulate_batch(system, x0[i:i + chunk], inputs[i:i + chunk], T, dt))
+                bar.update(len(parts[-1].x))
+        return TrajectoryBatch(parts[0].t, np.concatenate([p.x for p in parts]), np.concatenate([p.u for p in parts]),
+                               np.concatenate([p.y for p in parts]), np.concatenate([p.ok for p in parts]))
+
+    return run
 
 
 def _kept(system: System, design: Design, fwd: TrajectoryBatch, n_keep: int, n_traj: int) -> Phase1Data:

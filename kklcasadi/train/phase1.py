@@ -76,7 +76,7 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
     """
     dtype = torch_dtype(config.dtype)
     labelled = kdata.phase1(system, design, config.n_traj, seed, t_keep=config.t_keep, dt=dt,
-                            box_scale=config.box_scale, labels=config.labels)
+                            box_scale=config.box_scale, labels=config.labels, progress=progress)
     pde = kdata.pde_points(system, config.n_pde, seed + 1, box_scale=config.box_scale)
     n_lab, n_pde = len(labelled.x), len(pde.x)
     x = np.vstack([labelled.x, pde.x])
