@@ -614,9 +614,11 @@ def derive_model(base: str | os.PathLike, out_dir: str | os.PathLike, method: st
                  overwrite: bool = False) -> Path:
     """Write a model that its variant makes from a base model without training (e.g. ``inject``).
 
-    The new card has the base model's system, design, sample period and noise level, window 1, the
-    arrays and architecture the variant keeps (:meth:`kklcasadi.variants.Variant.derive`), and
-    ``base`` pointing at ``base`` (relative path, SHA-256).
+    The new card has the base model's system, design, sample period, noise level and domain,
+    window 1, and the arrays and architecture the variant keeps
+    (:meth:`kklcasadi.variants.Variant.derive`). The model is self-contained: its ``base`` is null
+    and ``training.derived_from`` records the base (path relative to the new model, SHA-256 and
+    method), so it loads and deploys without the base directory.
 
     Parameters
     ----------
@@ -644,9 +646,9 @@ def derive_model(base: str | os.PathLike, out_dir: str | os.PathLike, method: st
                           source.method, "Point base at a Phase-1 model.")
     out = Path(out_dir).resolve()
     spec, arrays, training = variant.derive(source.method, source.spec.architecture, source.arrays)
+    training = {**training, "derived_from": {"path": os.path.relpath(source.path, out),
+                                             "weights_sha256": source.card["weights_sha256"], "method": source.method}}
     card = make_card(source.spec.system, Design(source.A, source.B), method, spec, dt=source.dt,
                      window=1, training=training, measurement_std=source.spec.measurement_std,
-                     domain=source.spec.domain,
-                     base={"path": os.path.relpath(source.path, out),
-                           "weights_sha256": source.card["weights_sha256"]})
+                     domain=source.spec.domain)
     return save_model(out, arrays, card, overwrite=overwrite)

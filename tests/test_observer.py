@@ -5,6 +5,7 @@ argument errors, and the closed-loop example (torch-free)."""
 
 import json
 import runpy
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -468,7 +469,9 @@ def test_inject_recovers_the_exact_observer_of_a_linear_plant(tmp_path):
     plant, auto_dir, inject_dir = exact_linear_models(tmp_path)
     inject_model = load_model(inject_dir)
     assert inject_model.method == "inject" and inject_model.window == 1
-    assert inject_model.base is not None and inject_model.card["base"]["path"] == "../autonomous"
+    derived = inject_model.card["training"]["derived_from"]                 # self-contained: no base to load
+    assert inject_model.base is None and derived["path"] == "../autonomous" and derived["method"] == "autonomous"
+    assert derived["weights_sha256"] == load_model(auto_dir).card["weights_sha256"]
     tr = kc.simulate(plant, [0.8, -0.5], square_input(np.arange(200) * DT, 1.0, 1.5), T=10.0,
                      dt=DT)
     auto, inject = load_observer(auto_dir), load_observer(inject_dir, substeps=2)
@@ -554,3 +557,22 @@ def test_a_bad_domain_entry_names_the_field(model_dir_factory):
     path = _with_domain(model_dir_factory("autonomous"), [1], [2], [0] * 5, [1] * 5)
     with pytest.raises(ValueError, match=r"'domain\.x_lo': expected a list of 2 finite numbers"):
         load_observer(path)
+
+
+def test_float32_sample_times_are_accepted_within_their_rounding(model_dir_factory):
+    obs = load_observer(model_dir_factory("autonomous"))
+    tr = plant_run(T=50.0)
+    t32 = np.arange(tr.t.size, dtype=np.float32) * np.float32(DT)
+    np.testing.assert_array_equal(obs.simulate(t32, tr.y, tr.u).xhat, obs.simulate(tr.t, tr.y, tr.u).xhat)
+    with pytest.raises(ValueError, match="t: expected samples spaced by the observer's dt"):
+        obs.simulate(t32 * np.float32(1.001), tr.y, tr.u)
+
+
+def test_an_inject_model_deploys_without_its_base(tmp_path):
+    plant, auto_dir, inject_dir = exact_linear_models(tmp_path)
+    moved = tmp_path / "deployed" / "inject"
+    moved.parent.mkdir()
+    inject_dir.rename(moved)
+    shutil.rmtree(auto_dir)
+    obs = load_observer(moved)
+    assert obs.method == "inject" and obs.model_injection is not None

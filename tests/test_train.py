@@ -164,7 +164,11 @@ def test_phase2_methods_write_models_that_refer_to_their_base(tmp_path, phase1_d
     train_observer("duffing", method, out, config=config, base=phase1_dir, progress=False)
     model = load_model(out)
     assert model.method == method
-    assert model.base is not None and model.base.card["weights_sha256"] == load_model(phase1_dir).card["weights_sha256"]
+    base_sha = load_model(phase1_dir).card["weights_sha256"]
+    if method == "inject":                     # self-contained: the base is recorded, not needed
+        assert model.base is None and model.card["training"]["derived_from"]["weights_sha256"] == base_sha
+    else:
+        assert model.base is not None and model.base.card["weights_sha256"] == base_sha
     if method in ("obs", "dyn", "obs_stream", "dyn_stream"):
         assert model.window == (1 if method.endswith("_stream") else 10)
         # the frozen maps are the base's, bitwise
