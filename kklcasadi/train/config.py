@@ -189,8 +189,8 @@ class ObsStreamConfig(ObsConfig):
     ``data.T / dt`` samples); ``data.window`` is not used.
     """
 
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=8, lr=1e-3,
-                                                                schedule="cosine"))
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=8, lr=1e-3,
+                                                                schedule="cosine", samples_per_epoch=200))
 
 
 @dataclass(frozen=True)
