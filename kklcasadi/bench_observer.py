@@ -177,8 +177,9 @@ def _hand_written(observer: KKLObserver, build: Path, math: str) -> Optional[tup
                      f"{weight.shape[1]}, {int(i < len(layers) - 1)});\n")
         source = target
     if math == "vector":
-        math_code = codegen._VECTOR_MATH + codegen._VECTOR_TANH
-        tanh = "kklc_vtanh(out, n_out, out);"
+        math_code = codegen._MATH_CONSTANTS + codegen._versions(
+            lambda version: codegen._MATH_CORE + codegen._VECTOR_TANH, dispatch=False)
+        tanh = "kklc_c_vtanh(out, n_out, out);"
     else:
         math_code, tanh = "", "for (j = 0; j < n_out; j++) out[j] = tanh(out[j]);"
     name = f"{_NAME}_hand_{math}"
@@ -403,6 +404,7 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
     timings: list[Timing] = []
     runs: list[Timing] = []
     counts: dict[str, float] = {}
+    limits: list[tuple[str, str]] = []
     print(f"observer step: {obs!r}")
 
     gcc = shutil.which("gcc")
@@ -415,7 +417,8 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
             print("gcc not found: skipping the compiled C timings")
         else:
             c_runs, external = _bench_c(obs, Path(tmp), gcc, valgrind, flags, dm_args,
-                                        reference, n_calls, repeat, timings, checks, counts)
+                                        reference, n_calls, repeat, timings, checks, counts,
+                                        limits)
             runs += c_runs
             cases.append(_Case("C default via ca.external (Function.call)",
                                lambda: external.call(dm_args)))
@@ -432,15 +435,48 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
         print(f"{label:<48s} max |difference| from the CasADi VM: {error:.2e}")
     for timing in timings:
         print(f"{timing.label:<48s} {timing.seconds:10.2f} s")
-    _print_ratios(runs, torch_runs, counts)
+    _print_ratios(runs, torch_runs, counts, limits)
     return timings + runs
+
+
+def _c_builds(obs: KKLObserver, build: Path, gcc: str, flags: tuple[str, ...],
+              files: dict[str, list[Path]], limits: list[tuple[str, str]]) -> list[_CBuild]:
+    """The C loops to time: the generated code in its variants, and the hand-written limit
+    (``limits`` gets the pairs of labels to compare: same math, flags and instruction set)."""
+
+    def loop(key: str) -> tuple[Path, Path]:
+        return files[key][0], build / key / "loop.c"
+
+    default = _CBuild(f"C default, {' '.join(flags)}", loop("default"), flags)
+    native = (_CBuild(f"C default, {' '.join(NATIVE_FLAGS)}", loop("default"), NATIVE_FLAGS)
+              if _native_supported(gcc) else None)
+    no_dispatch = (*flags, "-DKKLC_NO_DISPATCH")
+    portable = _CBuild(f"C portable, {' '.join(no_dispatch)}", loop("default"), no_dispatch)
+    bitwise = _CBuild(f"C math=libm (bitwise), {' '.join(no_dispatch)}", loop("libm"),
+                      no_dispatch)
+    builds = [b for b in (default, native, portable, bitwise) if b is not None]
+    builds.append(_CBuild("C as CasADi writes it, -std=c99 -O2", loop("casadi"),
+                          ("-std=c99", "-O2")))
+    # the hand-written limit, each against the generated C of the same math, flags and ISA
+    comparable = [("vector", flags, portable), ("libm", flags, bitwise)]
+    if native is not None:
+        comparable.append(("vector", NATIVE_FLAGS, native))
+    for math, hand_flags, generated in comparable:
+        hand = _hand_written(obs, build, math)
+        if hand is not None:
+            builds.append(_CBuild(f"hand-written dense C, {math} tanh, {' '.join(hand_flags)}",
+                                  hand, hand_flags))
+            limits.append((generated.label, builds[-1].label))
+    return builds
 
 
 def _bench_c(obs: KKLObserver, build: Path, gcc: str, valgrind: Optional[str],
              flags: tuple[str, ...], dm_args: list[ca.DM], reference: list[np.ndarray],
              n_calls: Optional[int], repeat: int, timings: list[Timing], checks: dict[str, float],
-             counts: dict[str, float]) -> tuple[list[Timing], ca.Function]:
-    """Time the C loops; fill ``timings`` (compile), ``checks`` and ``counts`` (callgrind).
+             counts: dict[str, float],
+             limits: list[tuple[str, str]]) -> tuple[list[Timing], ca.Function]:
+    """Time the C loops; fill ``timings`` (compile), ``checks``, ``counts`` (callgrind) and
+    ``limits`` (pairs of labels: generated C, hand-written C of the same math and flags).
 
     Returns the timings and the default build loaded with ``ca.external``.
     """
@@ -460,19 +496,7 @@ def _bench_c(obs: KKLObserver, build: Path, gcc: str, valgrind: Optional[str],
     external = ca.external(f"{_NAME}_step", str(library))
     checks["C default (ca.external)"] = _check("C", external.call(dm_args), reference,
                                                codegen.VECTOR_MATH_TOLERANCE)
-    builds = [_CBuild(f"C default, {flag_text}", (files["default"][0], build / "default/loop.c"),
-                      flags),
-              _CBuild(f"C math=libm (bitwise), {flag_text}",
-                      (files["libm"][0], build / "libm/loop.c"), flags),
-              _CBuild("C as CasADi writes it, -std=c99 -O2",
-                      (files["casadi"][0], build / "casadi/loop.c"), ("-std=c99", "-O2"))]
-    if _native_supported(gcc):
-        builds.insert(1, _CBuild(f"C default, {' '.join(NATIVE_FLAGS)}",
-                                 (files["default"][0], build / "default/loop.c"), NATIVE_FLAGS))
-    for math in ("vector", "libm"):
-        hand = _hand_written(obs, build, math)
-        if hand is not None:
-            builds.append(_CBuild(f"hand-written dense C, {math} tanh, {flag_text}", hand, flags))
+    builds = _c_builds(obs, build, gcc, flags, files, limits)
     binaries, best = {}, {}
     for i, c_build in enumerate(builds):
         binaries[c_build.label] = build / f"loop{i}"
@@ -550,7 +574,8 @@ def _torch_call(implementation: Callable[..., Any], tensors: Sequence[Any]) -> C
     return call
 
 
-def _print_ratios(runs: list[Timing], torch_runs: list[Timing], counts: dict[str, float]) -> None:
+def _print_ratios(runs: list[Timing], torch_runs: list[Timing], counts: dict[str, float],
+                  limits: list[tuple[str, str]]) -> None:
     per_step = {run.label: run.seconds / run.items for run in runs}
     base = runs[0]
     for run in runs:
@@ -568,10 +593,6 @@ def _print_ratios(runs: list[Timing], torch_runs: list[Timing], counts: dict[str
     for what, run in summary:
         print(f"{base.label} is {per_step[run.label] / per_step[base.label]:.2f}x as fast as "
               f"{what} ({run.label})")
-    for run in runs:        # the generated C against the hand-written limit, same math and flags
-        if run.label.startswith("hand-written"):
-            math = "libm" if "libm" in run.label else "vector"
-            label = next(r.label for r in runs if r.label.startswith("C ")
-                         and ("math=libm" in r.label) == (math == "libm"))
-            print(f"{label} takes {per_step[label] / per_step[run.label]:.2f}x the time of "
-                  f"{run.label}")
+    for c_label, hand_label in limits:             # the same math, flags and instruction set
+        print(f"{c_label} takes {per_step[c_label] / per_step[hand_label]:.2f}x the time of "
+              f"{hand_label}")

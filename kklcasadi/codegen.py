@@ -45,7 +45,7 @@ import os
 import re
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence, Union
+from typing import TYPE_CHECKING, Callable, Sequence, Union
 
 import casadi as ca
 
@@ -124,7 +124,7 @@ def _work_sizes(casadi_header: str, names: list[str]) -> dict[str, int]:
 
 
 def _header(observer: "KKLObserver", name: str, casadi_header: str,
-            sizes: dict[str, int], build: str, matvec: str, math: str) -> str:
+            sizes: dict[str, int], build: str, matvec: str, math: str, dispatch: bool) -> str:
     macro = name.upper()
     defines = {"NX": observer.nx, "NU": observer.nu, "NY": observer.ny, "NZ": observer.nz,
                "WINDOW": observer.window, **sizes}
@@ -150,7 +150,8 @@ def _header(observer: "KKLObserver", name: str, casadi_header: str,
  * Work arrays: arg[{macro}_SZ_ARG], res[{macro}_SZ_RES], iw[{macro}_SZ_IW],
  * w[{macro}_SZ_W] (enough for both functions); outputs must not alias inputs; mem = 0.
  *
- * Code: matvec={matvec!r}, math={math!r} (kklcasadi.codegen.generate_c). Build:
+ * Code: matvec={matvec!r}, math={math!r}, dispatch={dispatch!r} (kklcasadi.codegen).
+ * Build:
  *   {build}
  */
 #ifndef {macro}_H
@@ -288,6 +289,28 @@ _MATH_INCLUDE = "#include <math.h>\n"
 #: Outputs per register block of the axpy kernels (8 SSE2 or 4 AVX2 registers).
 _BLOCK = 16
 
+# The helpers below are C text. Functions named KKLCV_* come in versions: portable (kklc_c_*)
+# and, under KKLC_DISPATCH, an AVX2 copy (kklc_avx2_*); the kklc_* entry points pick one.
+_DISPATCH = """
+/* kklcasadi: with gcc or clang on x86 the kernels below also come in an AVX2 version (gcc
+ * vector extensions; the same results bit for bit, as long as no FMA contraction), used where
+ * the CPU has AVX2: always when the build targets it (-march=native on a recent CPU), else
+ * as __builtin_cpu_supports finds at run time. -DKKLC_NO_DISPATCH compiles the portable C99
+ * version only. */
+#if defined(__GNUC__) && (defined(__x86_64__) || defined(__i386__)) \\
+    && !defined(KKLC_NO_DISPATCH)
+#define KKLC_DISPATCH 1
+typedef double kklc_v4 __attribute__((vector_size(32)));
+#ifdef __AVX2__
+#define KKLC_AVX2
+#define KKLC_HAS_AVX2 1
+#else
+#define KKLC_AVX2 __attribute__((target("avx2")))
+#define KKLC_HAS_AVX2 __builtin_cpu_supports("avx2")
+#endif
+#endif
+"""
+
 _OVERLAP = """
 /* kklcasadi: whether the arrays a[0..na-1] and b[0..nb-1] share memory */
 static int kklc_overlap(const casadi_real* a, casadi_int na, const casadi_real* b, casadi_int nb) {
@@ -297,13 +320,21 @@ static int kklc_overlap(const casadi_real* a, casadi_int na, const casadi_real* 
 }
 """
 
-_VECTOR_MATH = """
+_MATH_CONSTANTS = """
 /* kklcasadi: exp and tanh as C99 arithmetic without branches or library calls, so that loops
  * over them vectorise. Range reduction x = k ln2 + r (|r| <= ln2/2, Cody-Waite), Taylor
  * polynomial of expm1(r) to degree 13, 2^k assembled from the exponent bits. Relative error
  * within 1 ulp (exp) and 3 ulp (tanh) of a correctly rounded result; NaN and infinities as the
  * C library; exp overflows to HUGE_VAL and underflows through the subnormals to 0. */
-static casadi_real kklc_expm1_reduced(casadi_real r) {
+#define KKLC_SHIFTER 6755399441055744.0         /* 0x1.8p52: x + it rounds x to an integer */
+#define KKLC_LOG2E 1.4426950408889634
+#define KKLC_LN2HI 6.93147180369123816490e-01   /* ln 2 = LN2HI + LN2LO, k LN2HI exact */
+#define KKLC_LN2LO 1.90821492927058770002e-10
+"""
+
+_MATH_CORE = """
+/* expm1(r) for |r| <= 0.35: Taylor polynomial to degree 13 (truncation below 1e-18) */
+static inline casadi_real KKLCV_expm1_reduced(casadi_real r) {
   casadi_real q = 1.0 / 6227020800.0;
   q = q * r + 1.0 / 479001600.0;
   q = q * r + 1.0 / 39916800.0;
@@ -320,7 +351,7 @@ static casadi_real kklc_expm1_reduced(casadi_real r) {
 }
 
 /* 2^k for an integer -1022 <= k <= 1023 held as kd = k + 0x1.8p52 */
-static casadi_real kklc_pow2(casadi_real kd) {
+static inline casadi_real KKLCV_pow2(casadi_real kd) {
   uint64_t bits;
   casadi_real scale;
   memcpy(&bits, &kd, sizeof bits);
@@ -328,48 +359,43 @@ static casadi_real kklc_pow2(casadi_real kd) {
   memcpy(&scale, &bits, sizeof scale);
   return scale;
 }
-
-#define KKLC_SHIFTER 6755399441055744.0         /* 0x1.8p52: x + it rounds x to an integer */
-#define KKLC_LOG2E 1.4426950408889634
-#define KKLC_LN2HI 6.93147180369123816490e-01   /* ln 2 = LN2HI + LN2LO, k LN2HI exact */
-#define KKLC_LN2LO 1.90821492927058770002e-10
-
-/* tanh(a) = expm1(2a) / (expm1(2a) + 2) for a in [0, 20] or NaN (tanh(20) rounds to 1) */
-static casadi_real kklc_tanh_clamped(casadi_real a) {
-  casadi_real b = 2.0 * a, kd = b * KKLC_LOG2E + KKLC_SHIFTER, k = kd - KKLC_SHIFTER;
-  casadi_real r = (b - k * KKLC_LN2HI) - k * KKLC_LN2LO, s = kklc_pow2(kd);
-  casadi_real e = s * kklc_expm1_reduced(r) + (s - 1.0);
-  return e / (e + 2.0);
-}
 """
 
 _VECTOR_EXP = """
 /* exp(x) for x in [-746, 710] or NaN: 2^k split in two factors that stay normal numbers */
-static casadi_real kklc_exp_clamped(casadi_real x) {
+static inline casadi_real KKLCV_exp_clamped(casadi_real x) {
   casadi_real kd = x * KKLC_LOG2E + KKLC_SHIFTER, k = kd - KKLC_SHIFTER;
   casadi_real r = (x - k * KKLC_LN2HI) - k * KKLC_LN2LO;
   casadi_real hd = k * 0.5 + KKLC_SHIFTER, h = hd - KKLC_SHIFTER;
-  return (1.0 + kklc_expm1_reduced(r)) * kklc_pow2(hd) * kklc_pow2((k - h) + KKLC_SHIFTER);
+  return (1.0 + KKLCV_expm1_reduced(r)) * KKLCV_pow2(hd) * KKLCV_pow2((k - h) + KKLC_SHIFTER);
 }
 
 /* y[i] = exp(x[i]) for i < n; y is x or does not overlap it. Passes over y that vectorise. */
-static void kklc_vexp(const casadi_real* x, casadi_int n, casadi_real* y) {
+static void KKLCV_vexp(const casadi_real* x, casadi_int n, casadi_real* y) {
   casadi_int i;
   if (y != x) for (i = 0; i < n; ++i) y[i] = x[i];
   for (i = 0; i < n; ++i) y[i] = y[i] > 710.0 ? 710.0 : y[i];
   for (i = 0; i < n; ++i) y[i] = y[i] < -746.0 ? -746.0 : y[i];
-  for (i = 0; i < n; ++i) y[i] = kklc_exp_clamped(y[i]);
+  for (i = 0; i < n; ++i) y[i] = KKLCV_exp_clamped(y[i]);
 }
 """
 
 _VECTOR_TANH = """
+/* tanh(a) = expm1(2a) / (expm1(2a) + 2) for a in [0, 20] or NaN (tanh(20) rounds to 1) */
+static inline casadi_real KKLCV_tanh_clamped(casadi_real a) {
+  casadi_real b = 2.0 * a, kd = b * KKLC_LOG2E + KKLC_SHIFTER, k = kd - KKLC_SHIFTER;
+  casadi_real r = (b - k * KKLC_LN2HI) - k * KKLC_LN2LO, s = KKLCV_pow2(kd);
+  casadi_real e = s * KKLCV_expm1_reduced(r) + (s - 1.0);
+  return e / (e + 2.0);
+}
+
 /* y[i] = tanh(x[i]) for i < n; y is x or does not overlap it. Passes over y that vectorise. */
-static void kklc_vtanh(const casadi_real* x, casadi_int n, casadi_real* y) {
+static void KKLCV_vtanh(const casadi_real* x, casadi_int n, casadi_real* y) {
   casadi_int i;
   if (y != x) for (i = 0; i < n; ++i) y[i] = x[i];
   for (i = 0; i < n; ++i) y[i] = y[i] > 20.0 ? 20.0 : y[i];
   for (i = 0; i < n; ++i) y[i] = y[i] < -20.0 ? -20.0 : y[i];
-  for (i = 0; i < n; ++i) y[i] = copysign(kklc_tanh_clamped(fabs(y[i])), y[i]);
+  for (i = 0; i < n; ++i) y[i] = copysign(KKLCV_tanh_clamped(fabs(y[i])), y[i]);
 }
 """
 
@@ -382,79 +408,100 @@ static casadi_real kklc_FUNCTION(casadi_real x) {
 """
 
 
-def _block_code(rows: int, cols: int, indent: str) -> list[str]:
-    """``z[j..j+rows-1] += x[j.., :] y`` with ``rows`` accumulators (``j``, ``x``, ``y``, ``z``,
-    ``xk`` and ``k`` in scope); each sum runs over ``k`` in ascending order, as CasADi's."""
-    acc = [f"a{r}" for r in range(rows)]
-    lines = [f"{indent}{a} = z[j + {r}];" for r, a in enumerate(acc)]
-    lines.append(f"{indent}for (k = 0, xk = x + j; k < {cols}; ++k, xk += NROW) {{")
+def _accumulators(rows: int, width: int) -> tuple[int, range]:
+    """The vector accumulators (count) and the rows summed in scalars of a block of ``rows``."""
+    vectors = rows // width if width > 1 else 0
+    return vectors, range(vectors * width, rows)
+
+
+def _block_code(rows: int, ncol: int, nrow: int, width: int, indent: str) -> list[str]:
+    """``z[j..j+rows-1] += x[j.., :] y``, with ``rows // width`` vector accumulators of
+    ``width`` doubles (``kklc_v4``, when ``width`` is 4) and scalars for the rest (``j``,
+    ``x``, ``y``, ``z``, ``xk``, ``k`` in scope). Every sum runs over ``k`` in ascending order
+    from ``z``'s value, as casadi_mtimes_dense's does: the same results bit for bit."""
+    vectors, scalars = _accumulators(rows, width)
+    lines = [f"{indent}memcpy(&v{r}, z + j + {r * width}, sizeof yv);" for r in range(vectors)]
+    lines += [f"{indent}a{r} = z[j + {r}];" for r in scalars]
+    lines.append(f"{indent}for (k = 0, xk = x + j; k < {ncol}; ++k, xk += {nrow}) {{")
     lines.append(f"{indent}  yk = y[k];")
-    lines += [f"{indent}  {a} += xk[{r}] * yk;" for r, a in enumerate(acc)]
+    if vectors:
+        lines.append(f"{indent}  yv = (kklc_v4) {{yk, yk, yk, yk}};")
+    for r in range(vectors):
+        lines += [f"{indent}  memcpy(&w{r}, xk + {r * width}, sizeof yv);",
+                  f"{indent}  v{r} += w{r} * yv;"]
+    lines += [f"{indent}  a{r} += xk[{r}] * yk;" for r in scalars]
     lines.append(f"{indent}}}")
-    lines += [f"{indent}z[j + {r}] = {a};" for r, a in enumerate(acc)]
+    lines += [f"{indent}memcpy(z + j + {r * width}, &v{r}, sizeof yv);" for r in range(vectors)]
+    lines += [f"{indent}z[j + {r}] = a{r};" for r in scalars]
     return lines
 
 
-def _matvec_kernel(name: str, nrow: int, ncol: int, ncol_y: int) -> str:
-    """C source of ``name(x, y, z)``: ``z += x y`` for a dense ``nrow``-by-``ncol`` ``x``
-    (column-major), exactly as ``casadi_mtimes_dense(x, nrow, ncol, y, ncol_y, z, 0)``."""
-    block, tail = min(_BLOCK, nrow), nrow % min(_BLOCK, nrow)
-    body = []
-    if nrow >= block:
-        body.append(f"    for (j = 0; j + {block} <= {nrow}; j += {block}) {{")
-        body += _block_code(block, ncol, "      ")
-        body.append("    }")
+def _matvec_kernel(name: str, nrow: int, ncol: int, ncol_y: int, version: str) -> str:
+    """C source of ``KKLCV_<name>(x, y, z)``: ``z += x y`` for a dense ``nrow``-by-``ncol``
+    ``x`` (column-major), exactly as ``casadi_mtimes_dense(x, nrow, ncol, y, ncol_y, z, 0)``
+    when ``z`` overlaps neither ``x`` nor ``y``. A block of outputs is summed in registers:
+    scalars that compilers pair into SSE2 vectors in the portable version (``"c"``), explicit
+    AVX2 vectors (gcc vector extensions) in the ``"avx2"`` version."""
+    width = 4 if version == "avx2" else 1
+    block = min(_BLOCK, nrow)
+    tail = nrow % block
+    n_vectors, scalars = _accumulators(block, width)
     if tail:
-        body.append(f"    j = {nrow - tail};")
-        body += _block_code(tail, ncol, "    ")
-    accumulators = ", ".join(f"a{r}" for r in range(block))
-    lines = [
-        f"/* kklcasadi: z += x*y for a dense {nrow}x{ncol} x (column-major), y {ncol}x{ncol_y}: "
-        f"casadi_mtimes_dense's",
-        " * sums, in column (axpy) order with a block of outputs in registers */",
-        f"static void {name}(const casadi_real* x, const casadi_real* y, casadi_real* z) {{",
-        "  casadi_int i, j, k;",
-        "  const casadi_real* xk;",
-        f"  casadi_real yk, {accumulators};",
-        f"  if (kklc_overlap(z, {nrow * ncol_y}, x, {nrow * ncol}) "
-        f"|| kklc_overlap(z, {nrow * ncol_y}, y, {ncol * ncol_y})) {{",
-        f"    casadi_mtimes_dense(x, {nrow}, {ncol}, y, {ncol_y}, z, 0);",
-        "    return;",
-        "  }",
-        f"  for (i = 0; i < {ncol_y}; ++i, y += {ncol}, z += {nrow}) {{",
-        *body,
-        "  }",
-        "}",
-    ]
-    return "\n".join(lines).replace("NROW", str(nrow)) + "\n"
+        scalars = sorted(set(scalars) | set(_accumulators(tail, width)[1]))
+    declarations = [f"  casadi_real yk{''.join(f', a{r}' for r in scalars)};"]
+    if n_vectors:
+        vectors = ", ".join(f"v{r}, w{r}" for r in range(n_vectors))
+        declarations.append(f"  kklc_v4 yv, {vectors};")
+    lines = [f"/* z += x*y, x {nrow}x{ncol} dense column-major, y {ncol}x{ncol_y}: every output "
+             "summed over k in",
+             " * ascending order (casadi_mtimes_dense's), a block of outputs in registers */",
+             f"static void KKLCV_{name}(const casadi_real* x, const casadi_real* y, "
+             "casadi_real* z) {",
+             "  casadi_int i, j, k;",
+             "  const casadi_real* xk;",
+             *declarations,
+             f"  for (i = 0; i < {ncol_y}; ++i, y += {ncol}, z += {nrow}) {{",
+             f"    for (j = 0; j + {block} <= {nrow}; j += {block}) {{",
+             *_block_code(block, ncol, nrow, width, "      "),
+             "    }"]
+    if tail:
+        lines += [f"    j = {nrow - tail};", *_block_code(tail, ncol, nrow, width, "    ")]
+    lines += ["  }", "}"]
+    return "\n".join(lines) + "\n"
 
 
-def _axpy_matvec(source: str) -> str:
-    """Replace every dense mat-vec call by a call of a fixed-size axpy kernel (bitwise equal)."""
+def _entry(name: str, params: str, args: str, dispatch: bool, guard: str = "") -> str:
+    """The kklc_<name> entry point: the AVX2 version where the CPU has it, else the portable."""
+    avx2 = (f"#ifdef KKLC_DISPATCH\n  if (KKLC_HAS_AVX2) {{\n"
+            f"    kklc_avx2_{name}({args});\n    return;\n  }}\n#endif\n") if dispatch else ""
+    return (f"\nstatic void kklc_{name}({params}) {{\n{guard}{avx2}"
+            f"  kklc_c_{name}({args});\n}}\n")
+
+
+def _versions(code: Callable[[str], str], dispatch: bool) -> str:
+    """``code(version)``'s KKLCV_ functions as the portable kklc_c_ and, under KKLC_DISPATCH, as
+    the AVX2 kklc_avx2_ functions."""
+    portable = code("c").replace("KKLCV_", "kklc_c_")
+    if not dispatch:
+        return portable
+    avx2 = (code("avx2").replace("KKLCV_", "kklc_avx2_")
+            .replace("\nstatic ", "\nKKLC_AVX2 static "))
+    return f"{portable}\n#ifdef KKLC_DISPATCH\n{avx2}#endif\n"
+
+
+def _rewrite(source: str, matvec: bool, math: bool, dispatch: bool) -> str:
+    """Replace the dense mat-vec calls by axpy kernels (``matvec``, bitwise equal) and the C
+    library's exp and tanh by vectorisable ones (``math``, within 3 ulp); ``dispatch`` adds the
+    AVX2 versions. Returns ``source`` unchanged when there is nothing to replace."""
     shapes: dict[tuple[int, int, int], str] = {}
-
-    def replace(match: re.Match) -> str:
-        x, nrow, ncol, y, ncol_y, z = match.groups()
-        shape = (int(nrow), int(ncol), int(ncol_y))
-        name = shapes.setdefault(shape, "kklc_mv_" + "x".join(map(str, shape)))
-        return f"{name}({x}, {y}, {z});"
-
-    source = _MTIMES_CALL.sub(replace, source)
-    if not shapes:
-        return source
-    definition = _MTIMES_DEF.search(source)
-    if definition is None:
-        raise RuntimeError(f"CasADi {ca.__version__} calls casadi_mtimes_dense but wrote no "
-                           "definition kklcasadi.codegen recognises; it needs updating for it.")
-    kernels = _OVERLAP + "".join("\n" + _matvec_kernel(name, *shape)
-                                 for shape, name in sorted(shapes.items()))
-    return source[:definition.end()] + kernels + source[definition.end():]
-
-
-def _vector_math(source: str) -> str:
-    """Replace the C library's exp and tanh by the vectorisable ones (within 3 ulp)."""
     used: set[str] = set()
     scalar: set[str] = set()
+
+    def mtimes(match: re.Match) -> str:
+        x, nrow, ncol, y, ncol_y, z = match.groups()
+        shape = (int(nrow), int(ncol), int(ncol_y))
+        name = shapes.setdefault(shape, "mv_" + "x".join(map(str, shape)))
+        return f"kklc_{name}({x}, {y}, {z});"
 
     def loop(match: re.Match) -> str:
         rr, cs, n, function = match.groups()
@@ -466,25 +513,45 @@ def _vector_math(source: str) -> str:
         scalar.add(match.group(1))
         return f"kklc_{match.group(1)}("
 
-    source = _MATH_CALL.sub(call, _MATH_LOOP.sub(loop, source))
-    if not used:
+    if matvec:
+        source = _MTIMES_CALL.sub(mtimes, source)
+    if math:
+        source = _MATH_CALL.sub(call, _MATH_LOOP.sub(loop, source))
+    if not (shapes or used):
         return source
-    int_type = _INT_TYPE.search(source)
-    if int_type is None or _MATH_INCLUDE not in source:
-        raise RuntimeError(f"CasADi {ca.__version__} wrote a source preamble that "
-                           "kklcasadi.codegen does not recognise; it needs updating for it.")
-    helpers = [_VECTOR_MATH]
-    for function, code in (("exp", _VECTOR_EXP), ("tanh", _VECTOR_TANH)):
-        if function in used:
-            helpers.append(code)
-        if function in scalar:
-            helpers.append(_VECTOR_SCALAR.replace("FUNCTION", function))
-    return source[:int_type.end()] + "".join(helpers) + source[int_type.end():]
+    # after CasADi's runtime functions (the kernels fall back to casadi_mtimes_dense)
+    anchor = _MTIMES_DEF.search(source) if shapes else _INT_TYPE.search(source)
+    if anchor is None or _MATH_INCLUDE not in source:
+        raise RuntimeError(f"CasADi {ca.__version__} wrote a source that kklcasadi.codegen does "
+                           "not recognise (its preamble or casadi_mtimes_dense); it needs "
+                           "updating for it.")
+    math_code, entries = "", ""
+    if used:
+        math_code += _MATH_CORE
+        vector = "const casadi_real* x, casadi_int n, casadi_real* y"
+        for function, text in (("exp", _VECTOR_EXP), ("tanh", _VECTOR_TANH)):
+            if function in used:
+                math_code += text
+                entries += _entry(f"v{function}", vector, "x, n, y", dispatch)
+            if function in scalar:
+                entries += _VECTOR_SCALAR.replace("FUNCTION", function)
+    for (nrow, ncol, ncol_y), name in sorted(shapes.items()):
+        guard = (f"  if (kklc_overlap(z, {nrow * ncol_y}, x, {nrow * ncol}) "
+                 f"|| kklc_overlap(z, {nrow * ncol_y}, y, {ncol * ncol_y})) {{\n"
+                 f"    casadi_mtimes_dense(x, {nrow}, {ncol}, y, {ncol_y}, z, 0);\n"
+                 "    return;\n  }\n")
+        entries += _entry(name, "const casadi_real* x, const casadi_real* y, casadi_real* z",
+                          "x, y, z", dispatch, guard)
 
+    def code(version: str) -> str:
+        return math_code + "".join("\n" + _matvec_kernel(name, *shape, version)
+                                   for shape, name in sorted(shapes.items()))
 
-def _preamble(source: str) -> str:
-    """Add the C99 headers the kklcasadi helpers use."""
-    return source.replace(_MATH_INCLUDE, _MATH_INCLUDE + "#include <stdint.h>\n#include <string.h>\n", 1)
+    helpers = ((_DISPATCH if dispatch else "") + (_OVERLAP if shapes else "")
+               + (_MATH_CONSTANTS if used else "") + _versions(code, dispatch) + entries)
+    source = source[:anchor.end()] + helpers + source[anchor.end():]
+    return source.replace(_MATH_INCLUDE, _MATH_INCLUDE + "#include <stdint.h>\n"
+                          "#include <string.h>\n", 1)
 
 
 _PRAGMA_PUSH = """#if defined(__GNUC__)
@@ -518,7 +585,7 @@ def _check_flags(flags: object) -> tuple[str, ...]:
 
 def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
                *, overwrite: bool = False, matvec: str = "axpy", math: str = "vector",
-               flags: Sequence[str] = DEFAULT_FLAGS) -> list[Path]:
+               dispatch: bool = True, flags: Sequence[str] = DEFAULT_FLAGS) -> list[Path]:
     """Write the observer step as C99 source, a header and a ``main`` example.
 
     Parameters
@@ -540,6 +607,12 @@ def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: 
         library, so that the step is within :data:`VECTOR_MATH_TOLERANCE` of the CasADi VM
         (default); or the C library's functions, bitwise as the CasADi VM (with
         ``matvec="axpy"`` or ``"casadi"``).
+    dispatch : bool
+        With gcc or clang on x86 (and a build that does not target AVX2 already), also compile
+        the kernels and the vector exp/tanh for AVX2 and pick that version at run time where the
+        CPU has it (``__builtin_cpu_supports``). AVX2 without FMA gives the same results bit for
+        bit; ``-DKKLC_NO_DISPATCH`` at compile time, or ``dispatch=False``, leaves portable C99
+        only.
     flags : sequence of str
         The compiler options written into the build lines of ``name.h`` and ``name_main.c``
         (``gcc FLAGS name.c name_main.c -lm -o name``); default :data:`DEFAULT_FLAGS`
@@ -570,6 +643,8 @@ def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: 
     name = check_c_name(name)
     matvec = _check_choice(matvec, "matvec", MATVECS)
     math = _check_choice(math, "math", MATHS)
+    if not isinstance(dispatch, bool):
+        raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
     flags = _check_flags(flags)
     if not isinstance(out_dir, (str, os.PathLike)):
         raise TypeError(f"out_dir: expected a path, received {type(out_dir).__name__}.")
@@ -592,20 +667,15 @@ def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: 
         generator.generate(tmp + os.sep)
         source = (Path(tmp) / f"{name}.c").read_text()
         casadi_header = (Path(tmp) / f"{name}.h").read_text()
-    rewritten = source
-    if matvec == "axpy":
-        rewritten = _axpy_matvec(rewritten)
-    if math == "vector":
-        rewritten = _vector_math(rewritten)
-    if rewritten != source:
-        source = _preamble(rewritten)
+    source = _rewrite(source, matvec == "axpy", math == "vector", dispatch)
     build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
 
     out.mkdir(parents=True, exist_ok=True)
     paths[0].write_text(f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h."
                         f" */\n{_PRAGMA_PUSH}{source}{_PRAGMA_POP}")
     sizes = _work_sizes(casadi_header, [f.name() for f in functions])
-    paths[1].write_text(_header(observer, name, casadi_header, sizes, build, matvec, math))
+    paths[1].write_text(_header(observer, name, casadi_header, sizes, build, matvec,
+                                math, dispatch))
     paths[2].write_text(_MAIN.replace("__BUILD__", build).replace("__NAME__", name)
                         .replace("__MACRO__", name.upper()))
     return paths

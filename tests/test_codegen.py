@@ -47,6 +47,17 @@ def native_supported():
     return result.returncode == 0
 
 
+def cpu_has_avx2(tmp_path):
+    """Whether gcc targets x86 and this CPU has AVX2 (so the dispatched kernels run)."""
+    probe = tmp_path / "probe.c"
+    probe.write_text('#include <stdio.h>\nint main(void) {\n#if defined(__x86_64__)\n'
+                     '  printf("%d", __builtin_cpu_supports("avx2") != 0);\n#else\n'
+                     '  printf("0");\n#endif\n  return 0;\n}\n')
+    compile_c([probe], tmp_path / "probe")
+    return subprocess.run([str(tmp_path / "probe")], capture_output=True, text=True,
+                          check=True).stdout == "1"
+
+
 def c_work_sizes(library, function):
     """``(sz_arg, sz_res, sz_iw, sz_w)`` as the compiled ``<function>_work`` reports them."""
     lib = ctypes.CDLL(str(library))
@@ -133,6 +144,22 @@ def test_default_code_is_within_the_vector_math_tolerance(model_dir_factory, tmp
 
 
 @needs_gcc
+@pytest.mark.parametrize("method", ["obs", "dyn"])
+def test_portable_version_is_bitwise_too(model_dir_factory, tmp_path, method):
+    """-DKKLC_NO_DISPATCH (the C99 kernels only) and dispatch=False (no gcc extensions)."""
+    obs = model(model_dir_factory, method)
+    files = generate_c(obs, tmp_path / "a", "kkl_obs", math="libm")
+    assert "KKLC_HAS_AVX2" in files[0].read_text()
+    library, _ = shared_library(files, tmp_path, flags=(*DEFAULT_FLAGS, "-DKKLC_NO_DISPATCH"))
+    assert_matches_vm(obs, library, "kkl_obs", tol=0)
+    files = generate_c(obs, tmp_path / "b", "plain", dispatch=False)
+    code = re.sub(r"/\*.*?\*/", "", files[0].read_text(), flags=re.DOTALL)
+    assert "kklc_mv_" in code and not re.search(r"KKLC_DISPATCH|__builtin|avx2|kklc_v4", code)
+    library, _ = shared_library(files, tmp_path, flags=DEFAULT_FLAGS)
+    assert_matches_vm(obs, library, "plain", tol=VECTOR_MATH_TOLERANCE)
+
+
+@needs_gcc
 @pytest.mark.parametrize("options", [{"matvec": "casadi", "math": "libm"},
                                      {"matvec": "casadi", "math": "vector"}])
 def test_casadi_loops_remain_available(model_dir_factory, tmp_path, options):
@@ -189,12 +216,17 @@ int main(void) {{
 
 
 @needs_gcc
-def test_vector_exp_and_tanh_against_numpy(tmp_path):
-    """Within 1 ulp (exp) and 3 ulp (tanh), NaN and infinities as the C library, every length."""
+@pytest.mark.parametrize("isa", ["portable", "avx2"])
+def test_vector_exp_and_tanh_against_numpy(tmp_path, isa):
+    """Within 1 ulp (exp) and 3 ulp (tanh), NaN and infinities as the C library, every length;
+    compiled for the baseline and (where the CPU has it) for AVX2, as the dispatch does."""
+    if isa == "avx2" and not cpu_has_avx2(tmp_path):
+        pytest.skip("no AVX2 here")
+    helpers = codegen._MATH_CORE + codegen._VECTOR_EXP + codegen._VECTOR_TANH
     (tmp_path / "vmath.c").write_text(
         "#include <math.h>\n#include <stdint.h>\n#include <stdio.h>\n#include <stdlib.h>\n"
         "#include <string.h>\n#define casadi_real double\n#define casadi_int long long int\n"
-        + codegen._VECTOR_MATH + codegen._VECTOR_EXP + codegen._VECTOR_TANH + """
+        + codegen._MATH_CONSTANTS + helpers.replace("KKLCV_", "kklc_") + """
 int main(int argc, char** argv) {
   long n = atol(argv[1]), i, j;
   double *x = malloc(n * sizeof *x), *e = malloc(n * sizeof *e), *t = malloc(n * sizeof *t);
@@ -212,7 +244,8 @@ int main(int argc, char** argv) {
 }
 """)
     binary = tmp_path / "vmath"
-    compile_c([tmp_path / "vmath.c"], binary, flags=DEFAULT_FLAGS)
+    compile_c([tmp_path / "vmath.c"], binary,
+              flags=(*DEFAULT_FLAGS, "-mavx2") if isa == "avx2" else DEFAULT_FLAGS)
     rng = np.random.default_rng(0)
     special = [0.0, -0.0, np.inf, -np.inf, np.nan, 709.78, 709.79, 710.0, -707.0, -708.5, -745.0,
                -745.2, -746.0, 5e-324, 1e-300, -1e-300, 19.06, 19.1, 20.0, -20.0, 0.3465, -0.3466]
@@ -343,6 +376,7 @@ def test_rejects_a_file_as_out_dir_and_bad_argument_types(model_dir_factory, tmp
     ({"matvec": "fast"}, ValueError, r"matvec: expected one of \['axpy', 'casadi'\], received 'fast'"),
     ({"matvec": None}, ValueError, r"matvec: expected one of .*received None"),
     ({"math": "fast"}, ValueError, r"math: expected one of \['vector', 'libm'\], received 'fast'"),
+    ({"dispatch": "yes"}, TypeError, r"dispatch: expected a bool, received str"),
     ({"flags": "-O3"}, TypeError, r"flags: expected a sequence of strings.*received str"),
     ({"flags": 3}, TypeError, r"flags: expected a sequence of strings.*received int"),
     ({"flags": ["O3"]}, ValueError, r"flags: expected compiler options .*received 'O3'"),
@@ -361,7 +395,7 @@ def test_flags_go_into_the_build_lines(model_dir_factory, tmp_path):
     files = generate_c(obs, tmp_path, "flagged", flags=["-std=c99", "-O2", "-funroll-loops"])
     build = "gcc -std=c99 -O2 -funroll-loops flagged.c flagged_main.c -lm -o flagged"
     assert build in files[1].read_text() and build in files[2].read_text()
-    assert "matvec='axpy', math='vector'" in files[1].read_text()
+    assert "matvec='axpy', math='vector', dispatch=True" in files[1].read_text()
 
 
 @needs_gcc
