@@ -4,24 +4,28 @@
 and decoder) on the same inputs as
 
 * the generated C (:func:`kklcasadi.codegen.generate_c`) in a standalone C loop (the deployment
-  cost): the default code (``matvec="axpy"``, ``math="vector"``) at the default flags and at
-  ``-march=native``, the bitwise variant (``math="libm"``), and CasADi's own code at ``-O2``
-  (what ``generate_c`` wrote before the axpy kernels); the default code also through
-  ``ca.external`` (adds the Python call overhead);
+  cost): the default code (axpy kernels, vector exp/tanh, AVX2 dispatch) at the default flags
+  and at ``-march=native``; the portable version alone (``-DKKLC_NO_DISPATCH``), also with the
+  C library's exp/tanh (``math="libm"``, bitwise the VM); and CasADi's own code at ``-O2``
+  (what ``generate_c`` wrote before). The default build also through ``ca.external`` (adds the
+  Python call overhead);
 * for the linear observers (``autonomous``, ``curriculum``: the exact step plus the decoder), a
-  hand-written dense C loop of the same network (the limit), compiled with the same flags and
-  with the same ``tanh``;
+  hand-written dense C loop of the same network (the limit: column order, ``restrict``),
+  compiled with the same flags and instruction set and with the same ``tanh`` as the
+  generated build it is compared with;
 * the CasADi virtual machine (``Function.call``);
 * torch (float64, batch 1, no autograd) at its best: eager at 1 thread and at torch's default
   thread count, the same step traced with TorchScript (``torch.jit.trace``), and optionally
   ``torch.compile``; the window GRU of ``obs`` and ``dyn`` is a plain ``torch.nn.GRU`` with the
   model's bias-free weights (not the Python loop over the window that training uses);
 
-checks that every implementation returns the CasADi VM's result, and prints absolute times
-(best of ``repeat`` short runs: the machine may be shared), ``valgrind --tool=callgrind``
-instruction counts of the C loops (repeatable under load; not for ``-march=native`` builds,
-which valgrind may not decode), and ratios. Nothing here asserts a speed. Torch is imported
-inside the functions only.
+checks that every implementation returns the CasADi VM's result, and prints absolute times, the
+``valgrind --tool=callgrind`` instruction counts of the C loops (repeatable on a loaded machine;
+not for ``-march=native`` builds, which valgrind may not decode) and ratios. A time is the best
+of ``repeat`` short runs (about 2 ms each), the implementations taking turns, so that on a
+shared machine every one gets its share of undisturbed runs; torch at more than one thread runs
+last, alone (its idle workers spin and would slow what follows). Nothing here asserts a speed.
+Torch is imported inside the functions only.
 """
 
 from __future__ import annotations
@@ -40,11 +44,10 @@ from typing import Any, Callable, Optional, Sequence
 import casadi as ca
 import numpy as np
 
-from . import codegen
 from .bench import Timing
-from .codegen import DEFAULT_FLAGS, NATIVE_FLAGS, generate_c
-from .export import _folded_layers
-from .modelfile import DECODER, ENCODER, HYPER, MLPSpec
+from .codegen import (DEFAULT_FLAGS, NATIVE_FLAGS, VECTOR_MATH_TOLERANCE, check_flags, generate_c,
+                      vector_math_c)
+from .modelfile import DECODER, ENCODER, HYPER
 from .observer import KKLObserver, load_observer
 from .rk4 import rk4_step
 from .systems import System
@@ -158,15 +161,30 @@ def _c_array(name: str, values: np.ndarray) -> str:
     return f"static const double {name}[{max(values.size, 1)}] = {{{flat}}};\n"
 
 
+def _decoder_layers(arrays: Any) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The decoder's ``(W, b)`` with the input and output normalisation folded in, as the export
+    folds them (``docs/model-format.md`` names)."""
+    def array(name: str) -> np.ndarray:
+        return np.asarray(arrays[f"{DECODER}/{name}"], dtype=np.float64)
+
+    n_layers = sum(1 for key in arrays if re.fullmatch(rf"{DECODER}/W\d+", key))
+    weights = [array(f"W{i}") for i in range(n_layers)]
+    biases = [array(f"b{i}") for i in range(n_layers)]
+    in_std, out_std = array("in_std"), array("out_std")
+    biases[0] = biases[0] - weights[0] @ (array("in_mean") / in_std)
+    weights[0] = weights[0] / in_std[None, :]
+    weights[-1] = out_std[:, None] * weights[-1]
+    biases[-1] = out_std * biases[-1] + array("out_mean")
+    return list(zip(weights, biases))
+
+
 def _hand_written(observer: KKLObserver, build: Path, math: str) -> Optional[tuple[Path, Path]]:
-    """Write the hand-written dense C step of a linear observer (None for other methods)."""
-    if observer.method not in ("autonomous", "curriculum") or observer.foh_matrices is None:
+    """Write the hand-written dense C step of a linear observer with a tanh decoder (None for
+    other observers)."""
+    if (observer.method not in ("autonomous", "curriculum") or observer.foh_matrices is None
+            or observer.model.card["architecture"][DECODER]["activation"] != "tanh"):
         return None
-    arch = observer.model.card["architecture"][DECODER]
-    layers = [(np.array(w), np.array(b)) for w, b in _folded_layers(
-        observer.model.arrays, DECODER, MLPSpec.from_card(arch, "architecture", DECODER))]
-    if arch["activation"] != "tanh":
-        return None
+    layers = _decoder_layers(observer.model.arrays)
     ad, gy, gy_next = observer.foh_matrices
     constants = [_c_array("AD", ad), _c_array("GY", gy), _c_array("GYN", gy_next)]
     calls, source = [], "z_next"
@@ -177,9 +195,7 @@ def _hand_written(observer: KKLObserver, build: Path, math: str) -> Optional[tup
                      f"{weight.shape[1]}, {int(i < len(layers) - 1)});\n")
         source = target
     if math == "vector":
-        math_code = codegen._MATH_CONSTANTS + codegen._versions(
-            lambda version: codegen._MATH_CORE + codegen._VECTOR_TANH, dispatch=False)
-        tanh = "kklc_c_vtanh(out, n_out, out);"
+        math_code, tanh = vector_math_c(["tanh"]), "kklc_vtanh(out, n_out, out);"
     else:
         math_code, tanh = "", "for (j = 0; j < n_out; j++) out[j] = tanh(out[j]);"
     name = f"{_NAME}_hand_{math}"
@@ -329,11 +345,13 @@ def _native_supported(gcc: str) -> bool:
 
 @dataclass(frozen=True)
 class _Case:
-    """One Python-side implementation to time: ``setup()`` before each run, then ``n`` ``call()``."""
+    """One Python-side implementation to time: ``setup()`` before each run, then ``n`` ``call()``
+    (``threads``: the torch threads it uses)."""
 
     label: str
     call: Callable[[], object]
     setup: Callable[[], object] = lambda: None
+    threads: int = 1
 
 
 def _calls_per_run(seconds_per_call: float, n_calls: Optional[int]) -> int:
@@ -393,7 +411,7 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
         ``items`` = steps in the run, so ``seconds / items`` is the time per step; the gcc
         compile of the default build (``items = 1``) comes first when gcc is installed.
     """
-    flags = codegen._check_flags(flags)
+    flags = check_flags(flags)
     obs = load_observer(model_dir, system=system)
     rng = np.random.default_rng(0)
     args = [0.5 * rng.normal(size=size) for size in
@@ -425,7 +443,12 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
         cases.append(_Case("CasADi VM (Function.call)", lambda: obs.step.call(dm_args)))
         torch_cases, restore_threads = _torch_cases(obs, args, reference, torch_compile, checks)
         try:
-            python_runs = _time_interleaved(cases + torch_cases, n_calls, repeat)
+            # one thread each, taking turns; then torch's own thread count alone, as its idle
+            # workers keep spinning for a while and would slow whatever runs next
+            serial = [case for case in torch_cases if case.threads == 1]
+            python_runs = _time_interleaved(cases + serial, n_calls, repeat)
+            python_runs += _time_interleaved([case for case in torch_cases if case.threads > 1],
+                                             n_calls, repeat)
         finally:
             restore_threads()
     runs += python_runs
@@ -495,7 +518,7 @@ def _bench_c(obs: KKLObserver, build: Path, gcc: str, valgrind: Optional[str],
                                    "-shared"), 1))
     external = ca.external(f"{_NAME}_step", str(library))
     checks["C default (ca.external)"] = _check("C", external.call(dm_args), reference,
-                                               codegen.VECTOR_MATH_TOLERANCE)
+                                               VECTOR_MATH_TOLERANCE)
     builds = _c_builds(obs, build, gcc, flags, files, limits)
     binaries, best = {}, {}
     for i, c_build in enumerate(builds):
@@ -560,7 +583,7 @@ def _torch_cases(obs: KKLObserver, args: list[np.ndarray], reference: list[np.nd
         for threads in sorted({1, default_threads} if label == "torch eager" else {1}):
             cases.append(_Case(f"{label} ({threads} thread{'s' if threads > 1 else ''})",
                                _torch_call(implementation, tensors),
-                               lambda threads=threads: torch.set_num_threads(threads)))
+                               lambda threads=threads: torch.set_num_threads(threads), threads))
     return cases, lambda: torch.set_num_threads(default_threads)
 
 

@@ -8,8 +8,8 @@
     ``f(arg, res, iw, w, mem)`` with caller-provided work arrays; no dynamic allocation). The
     CasADi source is written between ``#pragma GCC diagnostic`` lines that silence
     ``-Wunused-parameter`` (CasADi's generated functions keep unused ``iw``/``mem`` arguments),
-    so it compiles with ``gcc -std=c99 -Wall -Wextra -Werror``. Two rewrites make it fast
-    (:func:`generate_c`'s ``matvec`` and ``math``):
+    so it compiles with ``gcc -std=c99 -Wall -Wextra -Werror``. Three rewrites make it fast
+    (:func:`generate_c`'s ``matvec``, ``math`` and ``dispatch``):
 
     * ``matvec="axpy"``: every dense matrix-vector product ``casadi_mtimes_dense`` (about 90 %
       of a step as CasADi writes it: one serial chain of additions per output, reading the
@@ -23,6 +23,11 @@
       (``exp``) and 3 ulp (``tanh``) of the C library; the step then differs from the CasADi VM
       by at most :data:`VECTOR_MATH_TOLERANCE` (tested). ``math="libm"`` keeps the C library
       calls and the bitwise equality.
+    * ``dispatch=True``: with gcc or clang on x86, the kernels and the vector exp/tanh also
+      come in an AVX2 version (gcc vector extensions, under ``#if``), used where the CPU has
+      AVX2 (``__builtin_cpu_supports``, or always when the build targets AVX2). The portable
+      C99 version stays the fallback, and ``-DKKLC_NO_DISPATCH`` compiles it alone; both give
+      the same results bit for bit.
 
     Bitwise equality needs a build without floating-point contraction (no fused multiply-add
     across the products and sums): the ISO modes (``-std=c99``) of gcc and clang default to
@@ -52,8 +57,8 @@ import casadi as ca
 if TYPE_CHECKING:
     from .observer import KKLObserver
 
-__all__ = ["generate_c", "check_c_name", "C_FLAGS", "DEFAULT_FLAGS", "NATIVE_FLAGS", "MATVECS",
-           "MATHS", "VECTOR_MATH_TOLERANCE"]
+__all__ = ["generate_c", "check_c_name", "check_flags", "vector_math_c", "C_FLAGS", "DEFAULT_FLAGS",
+           "NATIVE_FLAGS", "MATVECS", "MATHS", "VECTOR_MATH_TOLERANCE"]
 
 #: The warning flags the generated code is tested with, at -O2 (it is also tested at
 #: ``DEFAULT_FLAGS`` with the same warnings).
@@ -68,8 +73,8 @@ NATIVE_FLAGS = ("-std=c99", "-O3", "-march=native")
 MATVECS = ("axpy", "casadi")
 #: ``generate_c(math=...)``: vectorisable exp and tanh, or the C library's.
 MATHS = ("vector", "libm")
-#: Largest difference between the C step with ``math="vector"`` and the CasADi VM that the
-#: tests allow (absolute, on outputs of order one).
+#: With ``math="vector"`` the C step and the CasADi VM agree to
+#: ``|C - VM| <= VECTOR_MATH_TOLERANCE * (1 + |VM|)`` (tested on every method).
 VECTOR_MATH_TOLERANCE = 1e-14
 
 # A C identifier that CasADi also accepts as a function name: a letter first, then letters, digits
@@ -414,6 +419,34 @@ def _accumulators(rows: int, width: int) -> tuple[int, range]:
     return vectors, range(vectors * width, rows)
 
 
+def vector_math_c(functions: Sequence[str] = ("exp", "tanh")) -> str:
+    """The portable C99 source of kklcasadi's vectorisable exp and tanh, for use in other C.
+
+    It defines ``static void kklc_vexp(const casadi_real* x, casadi_int n, casadi_real* y)``
+    and ``kklc_vtanh`` (same signature): ``y[i] = exp(x[i])`` or ``tanh(x[i])`` for ``i < n``,
+    where ``y`` is ``x`` or does not overlap it. Include ``<math.h>``, ``<stdint.h>`` and
+    ``<string.h>`` and define ``casadi_real`` as ``double`` and ``casadi_int`` before it.
+
+    Parameters
+    ----------
+    functions : sequence of {"exp", "tanh"}
+        The functions to define (others would be unused static functions).
+
+    Returns
+    -------
+    str
+    """
+    if isinstance(functions, str) or not isinstance(functions, Sequence):
+        raise TypeError(f"functions: expected a sequence such as ('exp', 'tanh'), received "
+                        f"{type(functions).__name__}.")
+    for function in functions:
+        _check_choice(function, "functions", ("exp", "tanh"))
+    code = _MATH_CORE + "".join(text for function, text in
+                                (("exp", _VECTOR_EXP), ("tanh", _VECTOR_TANH))
+                                if function in functions)
+    return _MATH_CONSTANTS + code.replace("KKLCV_", "kklc_")
+
+
 def _block_code(rows: int, ncol: int, nrow: int, width: int, indent: str) -> list[str]:
     """``z[j..j+rows-1] += x[j.., :] y``, with ``rows // width`` vector accumulators of
     ``width`` doubles (``kklc_v4``, when ``width`` is 4) and scalars for the rest (``j``,
@@ -571,8 +604,16 @@ def _check_choice(value: object, argument: str, choices: Sequence[str]) -> str:
     return value
 
 
-def _check_flags(flags: object) -> tuple[str, ...]:
-    """``flags`` as a tuple of compiler options, each one word starting with ``-``."""
+def check_flags(flags: object) -> tuple[str, ...]:
+    """Return ``flags`` as a tuple of compiler options, each one word starting with ``-``.
+
+    Raises
+    ------
+    TypeError
+        If ``flags`` is a string or not a sequence.
+    ValueError
+        If a flag is not a string, does not start with ``-`` or holds blanks or quotes.
+    """
     if isinstance(flags, str) or not isinstance(flags, Sequence):
         raise TypeError(f"flags: expected a sequence of strings such as {DEFAULT_FLAGS}, "
                         f"received {type(flags).__name__}.")
@@ -608,11 +649,12 @@ def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: 
         (default); or the C library's functions, bitwise as the CasADi VM (with
         ``matvec="axpy"`` or ``"casadi"``).
     dispatch : bool
-        With gcc or clang on x86 (and a build that does not target AVX2 already), also compile
-        the kernels and the vector exp/tanh for AVX2 and pick that version at run time where the
-        CPU has it (``__builtin_cpu_supports``). AVX2 without FMA gives the same results bit for
-        bit; ``-DKKLC_NO_DISPATCH`` at compile time, or ``dispatch=False``, leaves portable C99
-        only.
+        With gcc or clang on x86, also compile the kernels and the vector exp/tanh for AVX2
+        (gcc vector extensions, under ``#if``) and use that version where the CPU has it:
+        chosen at run time (``__builtin_cpu_supports``), or always when the build targets AVX2
+        (``-march=native`` on a recent CPU). The results are the same bit for bit.
+        ``-DKKLC_NO_DISPATCH`` at compile time, or ``dispatch=False`` (no extensions in the
+        source), leaves the portable C99 version only.
     flags : sequence of str
         The compiler options written into the build lines of ``name.h`` and ``name_main.c``
         (``gcc FLAGS name.c name_main.c -lm -o name``); default :data:`DEFAULT_FLAGS`
@@ -632,7 +674,8 @@ def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: 
         ``name`` is not a valid C identifier, ``out_dir`` exists and is not a directory,
         ``matvec`` or ``math`` is not one of the choices, or a flag is not an option word.
     TypeError
-        ``flags`` is not a sequence of strings (or another argument has the wrong type).
+        ``flags`` is not a sequence of strings, ``dispatch`` not a bool, or another argument
+        has the wrong type.
     FileExistsError
         One of the files exists and ``overwrite`` is False.
     """
@@ -645,7 +688,7 @@ def generate_c(observer: "KKLObserver", out_dir: Union[str, os.PathLike], name: 
     math = _check_choice(math, "math", MATHS)
     if not isinstance(dispatch, bool):
         raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
-    flags = _check_flags(flags)
+    flags = check_flags(flags)
     if not isinstance(out_dir, (str, os.PathLike)):
         raise TypeError(f"out_dir: expected a path, received {type(out_dir).__name__}.")
     out = Path(out_dir)

@@ -15,9 +15,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from kklcasadi import codegen
 from kklcasadi.codegen import (C_FLAGS, DEFAULT_FLAGS, NATIVE_FLAGS, VECTOR_MATH_TOLERANCE,
-                               check_c_name, generate_c)
+                               check_c_name, generate_c, vector_math_c)
 from kklcasadi.observer import load_observer
 
 GCC = shutil.which("gcc")
@@ -222,11 +221,10 @@ def test_vector_exp_and_tanh_against_numpy(tmp_path, isa):
     compiled for the baseline and (where the CPU has it) for AVX2, as the dispatch does."""
     if isa == "avx2" and not cpu_has_avx2(tmp_path):
         pytest.skip("no AVX2 here")
-    helpers = codegen._MATH_CORE + codegen._VECTOR_EXP + codegen._VECTOR_TANH
     (tmp_path / "vmath.c").write_text(
         "#include <math.h>\n#include <stdint.h>\n#include <stdio.h>\n#include <stdlib.h>\n"
         "#include <string.h>\n#define casadi_real double\n#define casadi_int long long int\n"
-        + codegen._MATH_CONSTANTS + helpers.replace("KKLCV_", "kklc_") + """
+        + vector_math_c() + """
 int main(int argc, char** argv) {
   long n = atol(argv[1]), i, j;
   double *x = malloc(n * sizeof *x), *e = malloc(n * sizeof *e), *t = malloc(n * sizeof *t);
@@ -388,6 +386,15 @@ def test_rejects_bad_code_options(model_dir_factory, tmp_path, options, error, m
     with pytest.raises(error, match=message):
         generate_c(obs, tmp_path / "out", **options)
     assert not (tmp_path / "out").exists()
+
+
+def test_vector_math_c_rejects_unknown_functions():
+    assert "kklc_vtanh" in vector_math_c(["tanh"]) and "kklc_vexp" not in vector_math_c(["tanh"])
+    with pytest.raises(ValueError, match=r"functions: expected one of \['exp', 'tanh'\], "
+                                         r"received 'log'"):
+        vector_math_c(["log"])
+    with pytest.raises(TypeError, match="functions: expected a sequence.*received str"):
+        vector_math_c("tanh")
 
 
 def test_flags_go_into_the_build_lines(model_dir_factory, tmp_path):
