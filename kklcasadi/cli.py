@@ -255,7 +255,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from .bench import bench_simulation
+    from .bench.simulation import bench_simulation
 
     if args.what in ("observer", "training"):
         _needs_torch(f"kklcasadi bench {args.what} (it times torch beside CasADi)")
@@ -263,12 +263,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
         print("== data generation: trajectories per second ==")
         bench_simulation(args.system, n_trials=args.trials)
     if args.what in ("all", "observer"):
-        from .bench_observer import bench_observer_step
+        from .bench.observer_step import bench_observer_step
 
         print("== observer step: generated C vs CasADi VM vs torch eager ==")
         bench_observer_step(args.model or _shipped(args.system, "obs"))
     if args.what in ("all", "training"):
-        from .bench import bench_training
+        from .bench.training import bench_training
 
         print("== training throughput: samples per second per stage ==")
         bench_training(args.system, device=args.device)

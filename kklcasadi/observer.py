@@ -394,12 +394,13 @@ class KKLObserver:
 
         return to_iosys(self, name)
 
-    def generate_c(self, out_dir: PathLike, name: str = "kkl_obs", *,
-                   overwrite: bool = False) -> list[Path]:
-        """Write C code for the observer step (see :func:`kklcasadi.codegen.generate_c`)."""
+    def generate_c(self, out_dir: PathLike, name: str = "kkl_obs", *, overwrite: bool = False,
+                   **options: Any) -> list[Path]:
+        """Write C code for the observer step (see :func:`kklcasadi.codegen.generate_c`; the
+        keyword options ``matvec``, ``math``, ``dispatch`` and ``flags`` pass through)."""
         from .codegen import generate_c
 
-        return generate_c(self, out_dir, name, overwrite=overwrite)
+        return generate_c(self, out_dir, name, overwrite=overwrite, **options)
 
 
 class Estimator:

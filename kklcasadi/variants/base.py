@@ -142,11 +142,6 @@ class Networks:
     memory: Optional[Memory] = None
 
 
-def _hook(path: str) -> Any:
-    module, _, attribute = path.partition(":")
-    return getattr(importlib.import_module(module), attribute)
-
-
 class Variant:
     """Base class of the observer variants; subclasses set the class attributes and override
     :meth:`parse` and :meth:`networks`.
@@ -173,6 +168,9 @@ class Variant:
         Extra top-level card fields it reads.
     derives_from : tuple of str
         The methods whose models it is made from without training (:meth:`derive`).
+    torch_parts : str or None
+        ``"module:function"`` giving its parts of the torch observer step
+        (:func:`kklcasadi.train.step.torch_step`, the benchmark's torch baseline), or None.
     """
 
     name: ClassVar[str]
@@ -185,6 +183,7 @@ class Variant:
     config: ClassVar[Optional[str]] = None
     card_fields: ClassVar[tuple[str, ...]] = ()
     derives_from: ClassVar[tuple[str, ...]] = ()
+    torch_parts: ClassVar[Optional[str]] = None
 
     def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> Any:
         """The typed spec of a card whose common fields are valid.
@@ -226,11 +225,17 @@ class Variant:
         """Import and return the training hook (imports torch)."""
         if self.trainer is None:
             raise ValueError(f"method: {self.name!r} has no training hook.")
-        return _hook(self.trainer)
+        return self.load_hook(self.trainer)
+
+    @staticmethod
+    def load_hook(path: str) -> Any:
+        """Import ``"module:attribute"`` and return the attribute."""
+        module, _, attribute = path.partition(":")
+        return getattr(importlib.import_module(module), attribute)
 
     def config_class(self) -> Optional[type]:
         """Import and return the configuration class, or None when there is nothing to train."""
-        return None if self.config is None else _hook(self.config)
+        return None if self.config is None else self.load_hook(self.config)
 
     def __repr__(self) -> str:
         return f"<variant {self.name!r}: {self.summary}>"

@@ -40,6 +40,7 @@ class Dyn(Variant):
     entries = ("encoder", "decoder", "hyper")
     windowed = True
     trainer = "kklcasadi.train.phase2:train_dyn"
+    torch_parts = "kklcasadi.train.step:dyn_parts"
     config = "kklcasadi.train.config:DynConfig"
 
     def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> DynModelSpec:

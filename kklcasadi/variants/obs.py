@@ -47,6 +47,7 @@ class Obs(Variant):
     linear = False
     windowed = True
     trainer = "kklcasadi.train.phase2:train_obs"
+    torch_parts = "kklcasadi.train.step:obs_parts"
     config = "kklcasadi.train.config:ObsConfig"
     card_fields = (MODEL_BASED_INJECTION,)
 
