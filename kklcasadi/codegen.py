@@ -156,7 +156,8 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
  *   arg[4] u_next  (NU)               input u_k+1 (u is held at u_k, which w_k holds)
  *   res[0] z_next  (NZ), res[1] w_next (NW), res[2] xhat_next (NX)
  * {name}_decode(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w -> res[0] xhat (NX).
- * {name}_init(arg, res, iw, w, mem): arg[0] u_0 (NU) -> res[0] w_0 (NW), the memory at the start.
+ * {name}_init(arg, res, iw, w, mem): arg[0] y_0 (NY), arg[1] u_0 (NU) -> res[0] w_0 (NW), the
+ *   memory at the start.
  * Start: z_0 = 0, w_0 = init(u_0), xhat_0 = decode(z_0, w_0).
  * Work arrays: arg[{macro}_SZ_ARG], res[{macro}_SZ_RES], iw[{macro}_SZ_IW],
  * w[{macro}_SZ_W] (enough for both functions); outputs must not alias inputs; mem = 0.
@@ -254,9 +255,9 @@ int main(int argc, char** argv) {
     }
     y = values + 1;
     u = values + 1 + __MACRO___NY;
-    if (k == 0) {                 /* z_0 = 0, w_0 = init(u_0) */
+    if (k == 0) {                 /* z_0 = 0, w_0 = init(y_0, u_0) */
       for (i = 0; i < __MACRO___NZ; i++) z[i] = 0;
-      arg[0] = u; res[0] = win;
+      arg[0] = y; arg[1] = u; res[0] = win;
       if (__NAME___init(arg, res, iw, work, 0)) {
         fprintf(stderr, "sample %ld: __NAME___init failed\n", k);
         return 1;

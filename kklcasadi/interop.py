@@ -22,7 +22,7 @@ def to_iosys(observer: KKLObserver, name: str = "kkl_observer") -> control.Nonli
     knew before it: ``[z_k-1; vec(w_k-1); y_k-1; started]`` (``vec`` column-major; ``w`` is the
     observer's input memory, the window for windowed variants). With the default initial state 0
     (``started = 0``) the first sample initialises ``z_0 = 0`` and the memory from ``u_0``
-    (``observer.memory_init``), and :func:`control.input_output_response` reproduces
+    (``observer.memory_init(y_0, u_0)``), and :func:`control.input_output_response` reproduces
     :meth:`KKLObserver.simulate`.
 
     Parameters
@@ -49,7 +49,7 @@ def to_iosys(observer: KKLObserver, name: str = "kkl_observer") -> control.Nonli
         """``(z_k, vec w_k, xhat_k)`` from the state before sample k and the inputs at k."""
         y, u = inputs[:ny], inputs[ny:]
         if x[-1] < 0.5:                                      # not started: first sample
-            z, w = np.zeros(nz), np.asarray(observer.memory_init(u))
+            z, w = np.zeros(nz), np.asarray(observer.memory_init(y, u))
             xhat = observer.decode(z, w)
             return z, w.ravel(order="F"), np.asarray(xhat).ravel()
         w = x[nz:nz + n_window].reshape(rows, cols, order="F")

@@ -198,7 +198,7 @@ class KKLObserver:
         self._domain_bounds = None if self.domain is None else _domain_bounds(self.domain)
 
         nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
-        self.memory = nets.memory if nets.memory is not None else variants.window_memory(self.window, self.nu)
+        self.memory = nets.memory if nets.memory is not None else variants.window_memory(self.window, self.nu, self.ny)
         self.memory_shape: tuple[int, int] = self.memory.shape
         self.memory_init: ca.Function = self.memory.init
         self.encoder = nets.encoder
@@ -239,7 +239,7 @@ class KKLObserver:
             context = self._context_of(w)
             z_next = rk4_step(lambda s, zz: self._field(zz, y + s * (y_next - y), u, context),
                               z, self.dt, self.substeps)
-        w_next = self.memory.next(w, u_next)
+        w_next = self.memory.next(w, y_next, u_next)
         return ca.Function("step", [z, w, y, y_next, u_next],
                            [z_next, w_next, self.decode(z_next, w_next)],
                            ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
@@ -357,7 +357,7 @@ class KKLObserver:
         m, nz, nu = ys.shape[0], self.nz, self.nu
         z_start = _check_initial(z0, m, nz, batched_y)                          # (nz, M)
 
-        w0_cols = self.memory_init.map(m)(us[:, 0].T)                      # (rows, M cols)
+        w0_cols = self.memory_init.map(m)(ys[:, 0].T, us[:, 0].T)          # (rows, M cols)
         xhat = np.empty((m, n, self.nx))
         z = np.empty((m, n, nz))
         xhat[:, 0] = np.asarray(self.decode.map(m)(z_start, w0_cols)).T
@@ -463,7 +463,7 @@ class Estimator:
         y = _check_sample(y, "y", obs.ny, self.k)
         u = _check_sample(u, "u", obs.nu, self.k)
         if self._z is None:
-            z, w = np.zeros(obs.nz), np.asarray(obs.memory_init(u))
+            z, w = np.zeros(obs.nz), np.asarray(obs.memory_init(y, u))
             xhat = obs.decode(z, w)
         else:
             z_next, w, xhat = obs.step(self._z, self._w, self._y, y, u)

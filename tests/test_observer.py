@@ -177,7 +177,7 @@ def test_step_updates_the_memory_and_decodes_the_new_state(model_dir_factory, rn
     obs = load_observer(model_dir_factory(method, window=4))
     z, w, y, y_next, u_next = random_step_args(obs, rng)
     z_next, w_next, xhat_next = obs.step(z, w, y, y_next, u_next)
-    assert np.array_equal(np.array(w_next), np.array(obs.memory.next(w, u_next)))
+    assert np.array_equal(np.array(w_next), np.array(obs.memory.next(w, y_next, u_next)))
     if obs.memory_shape == (4, 1):                                     # the window shifts
         assert np.array_equal(np.array(w_next), np.vstack([w[1:], u_next[None]]))
     else:                                                              # [h; u]: one GRU cell
@@ -252,9 +252,9 @@ def test_streaming_context_is_the_window_gru_over_the_whole_history(model_dir_fa
     tr = plant_run(T=0.6)
     n = tr.t.size
     windowed = load_observer(model_dir_factory(method.split("_")[0], window=n, seed=3))
-    w = stream.memory_init(tr.u[0])
+    w = stream.memory_init(tr.y[0], tr.u[0])
     for k in range(1, n):
-        w = stream.memory.next(w, tr.u[k])
+        w = stream.memory.next(w, tr.y[k], tr.u[k])
     h = np.array(w)[:-1]
     if method == "obs_stream":
         expected = windowed._context(tr.u)
@@ -273,7 +273,7 @@ def test_simulate_is_the_step_repeated_from_zero(model_dir_factory, method):
     tr = plant_run(T=1.0)
     est = obs.simulate(tr.t, tr.y, tr.u)
     assert np.array_equal(est.t, tr.t) and est.xhat.shape == (20, 2) and est.z.shape == (20, 5)
-    z, w = np.zeros(5), obs.memory_init(tr.u[0])
+    z, w = np.zeros(5), obs.memory_init(tr.y[0], tr.u[0])
     if obs.variant.windowed or method in ("autonomous", "curriculum", "inject"):
         assert np.array_equal(np.array(w), np.repeat(tr.u[:1], 4, axis=0))      # filled with u_0
     assert np.array_equal(est.z[0], z)

@@ -193,9 +193,9 @@ def test_phase2_methods_write_models_that_refer_to_their_base(tmp_path, phase1_d
         net = ObsInjection.from_arrays(model.arrays, "", model.spec.architecture.obs)
         u = np.sin(np.arange(30.0) / 3)[:, None]
         h = net.context.sequence(torch.as_tensor(u)[None])[0].detach().numpy()
-        w = obs.memory_init(u[0])
+        w = obs.memory_init(0.0, u[0])
         for k in range(1, len(u)):
-            w = obs.memory.next(w, u[k])
+            w = obs.memory.next(w, 0.0, u[k])
         np.testing.assert_allclose(np.array(w)[:-1].ravel(), h[-1], rtol=0, atol=1e-13)
         z = np.linspace(-1, 1, 5)
         gain = net.gain_of_hidden(torch.as_tensor(z)[None], torch.as_tensor(h[-1])[None])[0].detach().numpy()

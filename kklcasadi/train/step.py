@@ -38,7 +38,7 @@ class TorchParts:
     input_term : callable or None
         ``input_term(z (nz,), u (nu,), context) -> dz (nz,)``; None for a linear latent.
     memory_next : callable or None
-        ``memory_next(w, u_next) -> w_next``; None for the input window (shifted by one).
+        ``memory_next(w, y_next, u_next) -> w_next``; None for the input window (shifted by one).
     held : callable or None
         ``held(w) -> u_k``; None for the window's newest entry.
     """
@@ -46,7 +46,7 @@ class TorchParts:
     decode: Callable[[Tensor, Tensor], Tensor]
     context: Optional[Callable[[Tensor], Any]] = None
     input_term: Optional[Callable[[Tensor, Tensor, Any], Tensor]] = None
-    memory_next: Optional[Callable[[Tensor, Tensor], Tensor]] = None
+    memory_next: Optional[Callable[[Tensor, Tensor, Tensor], Tensor]] = None
     held: Optional[Callable[[Tensor], Tensor]] = None
 
 
@@ -78,7 +78,7 @@ def _stream(gru: torch.nn.GRU, nu: int) -> tuple[Callable, Callable]:
     """``memory_next`` and ``held`` of a streaming memory ``w = [h; u_k]`` (H + nu, 1)."""
     cell, hidden = _cell(gru), gru.hidden_size
 
-    def memory_next(w: Tensor, u_next: Tensor) -> Tensor:
+    def memory_next(w: Tensor, y_next: Tensor, u_next: Tensor) -> Tensor:
         return torch.cat([cell(w[:hidden, 0], u_next), u_next])[:, None]
 
     return memory_next, lambda w: w[hidden:, 0]
@@ -175,7 +175,7 @@ def torch_step(observer: Any) -> Optional[Callable[..., tuple[Tensor, Tensor, Te
     if parts is None:
         return None
     held = parts.held or (lambda w: w[-1])
-    memory_next = parts.memory_next or (lambda w, u_next: torch.cat([w[1:], u_next[None]]))
+    memory_next = parts.memory_next or (lambda w, y_next, u_next: torch.cat([w[1:], u_next[None]]))
     if observer.foh_matrices is not None:
         ad, gy, gy_next = (torch.as_tensor(np.array(m)) for m in observer.foh_matrices)
 
@@ -196,7 +196,7 @@ def torch_step(observer: Any) -> Optional[Callable[..., tuple[Tensor, Tensor, Te
 
     def step(z: Tensor, w: Tensor, y: Tensor, y_next: Tensor, u_next: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         z_next = advance(z, w, y, y_next)
-        w_next = memory_next(w, u_next)
+        w_next = memory_next(w, y_next, u_next)
         return z_next, w_next, parts.decode(z_next, w_next)
 
     return step

@@ -92,9 +92,10 @@ class Memory:
     shape : (int, int)
         Shape of ``w``.
     init : casadi.Function
-        ``init(u0 (nu,1)) -> w0``: the memory at the first sample.
+        ``init(y0 (ny,1), u0 (nu,1)) -> w0``: the memory at the first sample.
     next : casadi.Function
-        ``next(w, u_next (nu,1)) -> w_next``: the memory at the next sample.
+        ``next(w, y_next (ny,1), u_next (nu,1)) -> w_next``: the memory at the next sample (a
+        memory may keep the newest measurement, for a decoder that reads it).
     held : callable
         ``held(w) -> u_k`` (nu, 1), the input held over the current sample interval (MX).
     """
@@ -105,11 +106,12 @@ class Memory:
     held: Callable[[ca.MX], ca.MX]
 
 
-def window_memory(window: int, nu: int) -> Memory:
+def window_memory(window: int, nu: int, ny: int) -> Memory:
     """The input window of ``docs/design.md``: ``(window, nu)``, oldest first, filled with ``u_0``."""
-    u, w = ca.MX.sym("u", nu), ca.MX.sym("w", window, nu)
-    init = ca.Function("memory_init", [u], [ca.repmat(u.T, window, 1)], ["u0"], ["w0"])
-    shift = ca.Function("memory_next", [w, u], [ca.vertcat(w[1:, :], u.T)], ["w", "u_next"], ["w_next"])
+    y, u, w = ca.MX.sym("y", ny), ca.MX.sym("u", nu), ca.MX.sym("w", window, nu)
+    init = ca.Function("memory_init", [y, u], [ca.repmat(u.T, window, 1)], ["y0", "u0"], ["w0"])
+    shift = ca.Function("memory_next", [w, y, u], [ca.vertcat(w[1:, :], u.T)], ["w", "y_next", "u_next"],
+                        ["w_next"])
     return Memory((window, nu), init, shift, lambda m: m[window - 1, :].T)
 
 

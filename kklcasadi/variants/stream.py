@@ -28,15 +28,16 @@ from .obs import Obs, ObsModelSpec
 __all__ = ["ObsStream", "DynStream", "stream_memory"]
 
 
-def stream_memory(cell: ca.Function) -> Memory:
+def stream_memory(cell: ca.Function, ny: int) -> Memory:
     """The memory ``w = [h; u_k]`` of a GRU ``cell (h, u) -> h'`` applied once per sample.
 
-    ``init(u0) = [cell(0, u0); u0]``, ``next(w, u') = [cell(h, u'); u']``, ``held(w) = u_k``.
+    ``init(y0, u0) = [cell(0, u0); u0]``, ``next(w, y', u') = [cell(h, u'); u']``, ``held(w) = u_k``.
     """
     hidden, nu = cell.size1_in(0), cell.size1_in(1)
-    u, w = ca.MX.sym("u", nu), ca.MX.sym("w", hidden + nu)
-    init = ca.Function("memory_init", [u], [ca.vertcat(cell(ca.DM.zeros(hidden), u), u)], ["u0"], ["w0"])
-    step = ca.Function("memory_next", [w, u], [ca.vertcat(cell(w[:hidden], u), u)], ["w", "u_next"],
+    y, u, w = ca.MX.sym("y", ny), ca.MX.sym("u", nu), ca.MX.sym("w", hidden + nu)
+    init = ca.Function("memory_init", [y, u], [ca.vertcat(cell(ca.DM.zeros(hidden), u), u)], ["y0", "u0"],
+                       ["w0"])
+    step = ca.Function("memory_next", [w, y, u], [ca.vertcat(cell(w[:hidden], u), u)], ["w", "y_next", "u_next"],
                        ["w_next"])
     return Memory((hidden + nu, 1), init, step, lambda m: m[hidden:])
 
@@ -54,7 +55,7 @@ class ObsStream(Obs):
     def networks(self, spec: ObsModelSpec, arrays: Mapping[str, Any], system: System,
                  window: int) -> Networks:
         obs = spec.obs
-        memory = stream_memory(gru_cell_function(arrays, OBS_GRU, system.nu, obs.hidden, "obs_context_cell"))
+        memory = stream_memory(gru_cell_function(arrays, OBS_GRU, system.nu, obs.hidden, "obs_context_cell"), system.ny)
         encoder = mlp_function(spec.encoder, arrays, ENCODER, "encoder")
         decoder = ignoring_memory(mlp_function(spec.decoder, arrays, DECODER, "decoder"), memory.shape)
         w = ca.MX.sym("w", *memory.shape)
@@ -83,7 +84,8 @@ class DynStream(Dyn):
     def networks(self, spec: DynModelSpec, arrays: Mapping[str, Any], system: System,
                  window: int) -> Networks:
         hyper = spec.hyper
-        memory = stream_memory(gru_cell_function(arrays, f"{HYPER}/gru", system.nu, hyper.hidden, "hyper_cell"))
+        cell = gru_cell_function(arrays, f"{HYPER}/gru", system.nu, hyper.hidden, "hyper_cell")
+        memory = stream_memory(cell, system.ny)
         encoder = mlp_function(spec.encoder, arrays, ENCODER, "encoder")
         modulated = lora_mlp_of_hidden(spec.encoder, spec.decoder, hyper, arrays, DECODER, "decoder_of_h")
         z, w = ca.MX.sym("z", modulated.size1_in(0)), ca.MX.sym("w", *memory.shape)
