@@ -42,7 +42,7 @@ from . import export
 from .modelfile import DECODER, MLPSpec, check_arrays
 
 __all__ = ["FilterBank", "FOHMatrices", "decoder_features", "decode", "decoder_function", "estimate",
-           "bank_arrays", "bank_from_arrays", "ASINH_SCALE"]
+           "bank_arrays", "bank_from_arrays", "observer_step", "ASINH_SCALE"]
 
 #: Array name of the per-state output transform scales (0: identity, > 0: asinh scale).
 ASINH_SCALE = "decoder/asinh_scale"
@@ -372,6 +372,32 @@ def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: s
     scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
     out = ca.vertcat(*[float(s) * ca.sinh(v[i]) if s > 0 else v[i] for i, s in enumerate(scale)])
     return ca.Function(name, [z, y, u], [out], ["z", "y", "u"], ["xhat"])
+
+
+def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float, name: str = "step") -> ca.Function:
+    """The whole observer step in the signature of :attr:`kklcasadi.observer.KKLObserver.step` (window 1).
+
+    ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` with ``w = u_k`` (1, nu), the input
+    held over the interval: ``z_next`` from the exact FOH map, ``w_next = u_next``,
+    ``xhat_next = D(z_next, y_next, u_next)``.
+
+    Parameters
+    ----------
+    arrays, arch
+        As in :func:`decoder_function`.
+    dt : float
+        Sample period.
+    name : str
+        Function name.
+    """
+    bank = bank_from_arrays(arrays)
+    latent = bank.step_function(dt)
+    dec = decoder_function(arrays, arch)
+    z, w = ca.MX.sym("z", bank.nz), ca.MX.sym("w", 1, bank.nu)
+    y, y_next, u_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny), ca.MX.sym("u_next", bank.nu)
+    z_next = latent(z, y, y_next, w.T)
+    return ca.Function(name, [z, w, y, y_next, u_next], [z_next, u_next.T, dec(z_next, y_next, u_next)],
+                       ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
 
 
 def bank_arrays(bank: FilterBank) -> dict[str, np.ndarray]:

@@ -120,3 +120,16 @@ def test_validation_errors() -> None:
     arrays, arch = _decoder_arrays(bank, 2, np.random.default_rng(5), np.array([0.0, -1.0]))
     with pytest.raises(ValueError, match="asinh_scale"):
         fb.decode(arrays, arch, np.zeros((1, bank.nz + 2)))
+
+
+def test_observer_step_reproduces_estimate() -> None:
+    bank = _bank()
+    rng = np.random.default_rng(6)
+    arrays, arch = _decoder_arrays(bank, 2, rng, np.array([0.0, 0.1]))
+    y, u = rng.normal(size=(25, 1)), rng.normal(size=(25, 1))
+    ref = fb.estimate(arrays, arch, y, u, 0.05)
+    step = fb.observer_step(arrays, arch, 0.05)
+    traj = step.mapaccum("traj", 24, 2)   # z and w are carried
+    z_all, _, xhat = traj(np.zeros(bank.nz), u[0], y[:-1].T, y[1:].T, u[1:].T)
+    np.testing.assert_allclose(np.asarray(xhat).T, ref[1:], rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(z_all).T, bank.run(y, u, 0.05)[1:], atol=1e-12)
