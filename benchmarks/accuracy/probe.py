@@ -32,6 +32,8 @@ from common import cached_rollouts, kind_of_rollouts, score, table_row
 PAPER_BEST = {"duffing": [5.6, 21.1, 22.7, 21.3], "vdp": [5.0, 26.0, 15.5, 17.9],
               "rossler": [52.7, 55.4, 53.5, 54.0], "fhn": [9.8, 42.1, 30.9, 32.5]}
 OUT = Path("results/accuracy")
+#: Probe weights stay out of the repository (the final models go to results/accuracy/weights).
+WEIGHTS = Path("/tmp/acc_weights")
 
 
 def floats(text: str) -> list[float]:
@@ -102,13 +104,13 @@ def main() -> None:
         print(f"  per-state {k}: ours {np.round(noisy[k]['ours_per_state'], 2).tolist()} "
               f"ekf {np.round(noisy[k]['ekf_per_state'], 2).tolist()}")
     (OUT / "probes").mkdir(parents=True, exist_ok=True)
-    (OUT / "weights").mkdir(parents=True, exist_ok=True)
+    WEIGHTS.mkdir(parents=True, exist_ok=True)
     record = {"system": args.system, "tag": args.tag, "args": vars(args), "nz": bank.nz,
               "config": config_record(RolloutConfig(n_traj=args.n_traj), dec), "fit_seconds": result.seconds,
               "best_epoch": result.fit.best_epoch, "history": result.fit.history, "domain": result.domain,
               "validation": val_scores, "noisy": noisy, "clean": clean, "arch": arch}
     (OUT / "probes" / f"{args.system}_{args.tag}.json").write_text(json.dumps(record, indent=1))
-    np.savez(OUT / "weights" / f"{args.system}_{args.tag}.npz", **arrays)
+    np.savez(WEIGHTS / f"{args.system}_{args.tag}.npz", **arrays)
 
 
 if __name__ == "__main__":
