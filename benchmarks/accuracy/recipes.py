@@ -10,8 +10,8 @@ PAPER_BEST = {"duffing": [5.6, 21.1, 22.7, 21.3], "vdp": [5.0, 26.0, 15.5, 17.9]
 GENERAL = {"y_poles": "0.2,0.4,0.8,1.5,3,6,12,25", "u_poles": "0.3,1,3", "clock": 0.2}
 
 RECIPES = {
-    "duffing": {**GENERAL, "n_traj": 2000, "epochs": 20},
-    "vdp": {**GENERAL, "n_traj": 2000, "epochs": 20},
-    "fhn": {**GENERAL, "n_traj": 2000, "epochs": 20},
-    "rossler": {**GENERAL, "n_traj": 2000, "epochs": 20, "asinh": "0,0,0.01"},
+    "duffing": {**GENERAL, "n_traj": 2000, "epochs": 40},
+    "vdp": {**GENERAL, "n_traj": 2000, "epochs": 40},
+    "fhn": {**GENERAL, "n_traj": 2000, "epochs": 40},
+    "rossler": {**GENERAL, "n_traj": 2000, "epochs": 40, "asinh": "0,0,0.01"},
 }
