@@ -1,0 +1,55 @@
+"""Cache the PROTOCOL.md benchmark trials (noise on and off, 100 per cell) and the EKF on them.
+
+Writes ``<cache>/<system>_<noisy|clean>.npz`` with, per input regime ``k``: ``k/t`` (N,),
+``k/x`` (M, N, nx), ``k/y`` (M, N, ny), ``k/u`` (M, N, nu), ``k/ok`` (M,) and ``k/ekf`` (M, N, nx),
+the EKF estimate of :class:`kklcasadi.ekf.EKF` (the unchanged baseline) on the same trials.
+
+Usage: ``python benchmarks/accuracy/cache_trials.py [--cache DIR] [--trials 100] SYSTEM...``
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+import kklcasadi as kc
+from kklcasadi.ekf import EKF
+from kklcasadi.protocol import Protocol
+from kklcasadi.signals import BENCHMARK_KINDS
+
+
+def cache_system(name: str, cache: Path, n_trials: int) -> None:
+    """Simulate and store both noise settings of ``name`` (skips files that exist)."""
+    system = kc.systems.get(name)
+    for label, protocol in (("noisy", Protocol(n_trials=n_trials)), ("clean", Protocol(n_trials=n_trials).noise_free())):
+        path = cache / f"{name}_{label}.npz"
+        if path.exists():
+            continue
+        arrays = {}
+        for kind in BENCHMARK_KINDS:
+            t0 = time.time()
+            batch = protocol.trials(system, kind)
+            ekf = EKF(system, dt=protocol.dt).simulate(batch.t, batch.y, batch.u).xhat
+            arrays.update({f"{kind}/t": batch.t, f"{kind}/x": batch.x, f"{kind}/y": batch.y, f"{kind}/u": batch.u,
+                           f"{kind}/ok": batch.ok, f"{kind}/ekf": ekf})
+            print(f"{name} {label} {kind}: {time.time() - t0:.0f} s, ok {batch.ok.sum()}/{len(batch)}, "
+                  f"EKF SMAPE {np.mean(kc.metrics.smape(batch.x[batch.ok], ekf[batch.ok])):.2f}", flush=True)
+        np.savez(path, **arrays)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("systems", nargs="+")
+    parser.add_argument("--cache", type=Path, default=Path("/tmp/acc_cache"))
+    parser.add_argument("--trials", type=int, default=100)
+    args = parser.parse_args()
+    args.cache.mkdir(parents=True, exist_ok=True)
+    for name in args.systems:
+        cache_system(name, args.cache, args.trials)
+
+
+if __name__ == "__main__":
+    main()
