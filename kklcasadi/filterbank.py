@@ -38,8 +38,8 @@ import casadi as ca
 import numpy as np
 from scipy.linalg import expm
 
-from . import export
-from .modelfile import DECODER, MLPSpec, check_arrays
+from . import casadi_nets
+from .architecture import DECODER, MLPSpec, check_arrays
 
 __all__ = ["FilterBank", "FOHMatrices", "decoder_features", "decode", "decoder_function", "estimate",
            "bank_arrays", "bank_from_arrays", "observer_step", "ASINH_SCALE"]
@@ -366,7 +366,7 @@ def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: s
     spec = _check_decoder(arrays, arch)
     if spec.n_in != bank.nz + bank.ny + bank.nu:
         raise ValueError(f"decoder input size {spec.n_in} != nz + ny + nu = {bank.nz + bank.ny + bank.nu}")
-    mlp = export.mlp_function(arrays, DECODER, arch, f"{name}_mlp")
+    mlp = casadi_nets.mlp_function(MLPSpec.from_card(arch, "architecture", DECODER), arrays, DECODER, f"{name}_mlp")
     z, y, u = ca.MX.sym("z", bank.nz), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
     v = mlp(ca.vertcat(z, y, u))
     scale = np.asarray(arrays[ASINH_SCALE], dtype=float)

@@ -29,6 +29,7 @@ ALLOWED = {
     "ekf": {"systems", "rk4", "validation"},
     "protocol": {"signals", "simulate", "systems", "metrics", "validation"},
     "report": {"protocol", "signals", "metrics", "systems"},
+    "filterbank": {"architecture", "casadi_nets"},
 }
 #: modules that may import torch at module level
 TORCH = {"train"}

@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from kklcasadi import filterbank as fb
-from kklcasadi.modelfile import DECODER
+from kklcasadi.architecture import DECODER
 
 
 def _bank() -> fb.FilterBank:

@@ -10,11 +10,11 @@ torch = pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
 from kklcasadi import filterbank as fb  # noqa: E402
-from kklcasadi.modelfile import DECODER  # noqa: E402
+from kklcasadi.architecture import DECODER  # noqa: E402
 from kklcasadi.train.config import LoopConfig  # noqa: E402
 from kklcasadi.train.operational import (DecoderConfig, RolloutConfig, fit_bank_decoder, fold_whitening,  # noqa: E402
                                          rollouts, torch_decoder)
-from kklcasadi.torch_nets import MLP  # noqa: E402
+from kklcasadi.train.nets import MLP  # noqa: E402
 
 
 def _bank() -> fb.FilterBank:
@@ -45,7 +45,7 @@ def test_fold_whitening_gives_the_same_map() -> None:
     folded = fold_whitening(arrays, mean, white)
     f = rng.normal(size=(30, 4))
     ref = mlp(torch.as_tensor((f - mean) @ white.T)).detach().numpy()
-    got = MLP.from_arrays(folded, DECODER, mlp.architecture())(torch.as_tensor(f)).detach().numpy()
+    got = MLP.from_arrays(folded, DECODER, mlp.spec)(torch.as_tensor(f)).detach().numpy()
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
     arrays[f"{DECODER}/in_std"] = np.full(4, 2.0)
     with pytest.raises(ValueError, match="in_std = 1"):
@@ -61,7 +61,7 @@ def test_torch_and_casadi_decoders_agree(scale: tuple[float, float]) -> None:
     mlp = MLP((d, 16, 16, 2)).to(torch.float64)
     mlp.set_normalisation(rng.normal(size=d), rng.uniform(0.5, 2, d), rng.normal(size=2), rng.uniform(0.5, 2, 2))
     arrays = {**mlp.to_arrays(DECODER), fb.ASINH_SCALE: np.array(scale), **fb.bank_arrays(bank)}
-    arch = mlp.architecture()
+    arch = mlp.spec.to_card()
     dec_t = torch_decoder(arrays, arch)
     dec_c = fb.decoder_function(arrays, arch)
     for _ in range(5):

@@ -22,12 +22,12 @@ import torch
 
 from .. import filterbank as fb
 from .. import signals as sig
-from ..modelfile import DECODER
+from ..architecture import DECODER, MLPSpec
 from ..simulate import TrajectoryBatch, simulate_batch
 from ..systems import System
-from ..torch_nets import MLP
 from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
+from .nets import MLP
 
 __all__ = ["RolloutConfig", "DecoderConfig", "rollouts", "fit_bank_decoder", "BankFit", "LOSSES", "config_record",
            "fold_whitening", "torch_decoder"]
@@ -232,7 +232,7 @@ def torch_decoder(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object]) 
 
     The same map as :func:`kklcasadi.filterbank.decode` and :func:`kklcasadi.filterbank.decoder_function`.
     """
-    mlp = MLP.from_arrays(arrays, DECODER, arch, dtype=torch.float64)
+    mlp = MLP.from_arrays(arrays, DECODER, MLPSpec.from_card(arch, "architecture", DECODER), dtype=torch.float64)
     scale = torch.as_tensor(np.asarray(arrays[fb.ASINH_SCALE], dtype=float))
     pos = scale > 0
     safe = torch.where(pos, scale, torch.ones_like(scale))
@@ -314,7 +314,7 @@ def fit_bank_decoder(bank: fb.FilterBank, train: TrajectoryBatch, config: Decode
     arrays.update(fb.bank_arrays(bank))
     pct = np.percentile(train.x.reshape(-1, nx), [0.1, 50.0, 99.9], axis=0)
     domain = {"x_p0.1": pct[0].tolist(), "x_p50": pct[1].tolist(), "x_p99.9": pct[2].tolist()}
-    return BankFit(arrays, mlp.architecture(), result, int(len(x)), time.perf_counter() - t0, domain)
+    return BankFit(arrays, mlp.spec.to_card(), result, int(len(x)), time.perf_counter() - t0, domain)
 
 
 def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:
