@@ -127,7 +127,7 @@ class FilterBank:
 
     @classmethod
     def design(cls, ny: int, nu: int, y_poles: Sequence[float], u_poles: Sequence[float] = (),
-               *, y_resonators: Sequence[tuple[float, float]] = (), clock: float | None = None) -> "FilterBank":
+               *, y_resonators: Sequence[tuple[float, float]] = (), clock: float | None = None) -> FilterBank:
         """Block-diagonal bank: unit-DC-gain filters of every output and input channel.
 
         Parameters

@@ -149,16 +149,17 @@ class KKLObserver:
     A, B : numpy.ndarray
         The latent design, (nz, nz) and (nz, ny).
     linear : bool
-        Whether the latent dynamics are linear (no input term).
+        Whether the latent dynamics are linear, so that the exact discretisation applies.
     model_based_injection : bool
         Whether ``zdot`` holds the model-based term (``inject``, or ``obs`` with the card field).
     discretization : str
     substeps : int
     foh_matrices : tuple of numpy.ndarray or None
         ``(Ad, Gy, Gy_next)`` with ``z_k+1 = Ad z_k + Gy y_k + Gy_next y_k+1`` when
-        ``discretization == "exact"``, else None.
-    encoder : casadi.Function
-        ``encoder(x) -> z``, the exported T (the window-free one).
+        ``discretization == "exact"`` and the latent is ``A z + B y`` (else None; a variant with
+        more linear terms, such as ``bank``, brings its own exact step).
+    encoder : casadi.Function or None
+        ``encoder(x) -> z``, the exported T (the window-free one); None for ``bank``.
     rhs : casadi.Function
         ``rhs(z (nz,1), y (ny,1), u (nu,1), w (window,nu)) -> zdot (nz,1)``.
     decode : casadi.Function
@@ -192,12 +193,14 @@ class KKLObserver:
         self.linear = self.variant.linear
         self.discretization = _check_discretization(discretization, self.linear, self.method)
         self.substeps = positive_int(substeps, "substeps")
-        self.foh_matrices = (_foh_matrices(self.A, self.B, self.dt)
-                             if self.discretization == "exact" else None)
         self.domain = spec.domain
         self._domain_bounds = None if self.domain is None else _domain_bounds(self.domain)
 
         nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
+        exact = self.discretization == "exact"
+        self._exact_step = nets.exact_step if exact else None
+        self.foh_matrices = (_foh_matrices(self.A, self.B, self.dt)
+                             if exact and nets.exact_step is None else None)
         self.memory = nets.memory if nets.memory is not None else variants.window_memory(self.window, self.nu, self.ny)
         self.memory_shape: tuple[int, int] = self.memory.shape
         self.memory_init: ca.Function = self.memory.init
@@ -234,6 +237,8 @@ class KKLObserver:
         if self.foh_matrices is not None:
             ad, gy, gy_next = (ca.sparsify(ca.DM(m)) for m in self.foh_matrices)
             z_next = ca.mtimes(ad, z) + ca.mtimes(gy, y) + ca.mtimes(gy_next, y_next)
+        elif self._exact_step is not None:
+            z_next = self._exact_step(z, y, y_next, self.memory.held(w))
         else:
             u = self.memory.held(w)
             context = self._context_of(w)

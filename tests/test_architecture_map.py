@@ -20,7 +20,7 @@ ALLOWED = {
     "simulate": {"systems", "signals", "rk4", "validation"},
     "architecture": {"validation"},
     "casadi_nets": {"architecture", "validation"},
-    "variants": {"architecture", "casadi_nets", "systems", "validation", "variants"},
+    "variants": {"architecture", "casadi_nets", "filterbank", "systems", "validation", "variants"},
     "modelfile": {"variants", "architecture", "validation", "design", "systems"},
     "observer": {"modelfile", "variants", "systems", "rk4", "windows", "validation"},
     "codegen": {"observer", "validation", "casadi_nets"},
@@ -29,7 +29,7 @@ ALLOWED = {
     "ekf": {"systems", "rk4", "validation"},
     "protocol": {"signals", "simulate", "systems", "metrics", "validation"},
     "report": {"protocol", "signals", "metrics", "systems"},
-    "filterbank": {"architecture", "casadi_nets"},
+    "filterbank": {"architecture", "casadi_nets", "validation"},
 }
 #: modules that may import torch at module level
 TORCH = {"train"}

@@ -209,8 +209,13 @@ def with_epochs(config: Any, epochs: int) -> Any:
     """``config`` with every optimisation stage (``encoder``, ``decoder``, ``loop``) set to ``epochs``
     epochs; batch sizes, learning rates and everything else stay as they are."""
     epochs = positive_int(epochs, "epochs")
-    changes = {name: replace(getattr(config, name), epochs=epochs) for name in ("encoder", "decoder", "loop")
-               if isinstance(getattr(config, name, None), LoopConfig)}
+    changes = {}
+    for name in ("encoder", "decoder", "loop"):
+        stage = getattr(config, name, None)
+        if isinstance(stage, LoopConfig):
+            changes[name] = replace(stage, epochs=epochs)
+        elif isinstance(getattr(stage, "loop", None), LoopConfig):      # a stage with its own settings
+            changes[name] = replace(stage, loop=replace(stage.loop, epochs=epochs))
     if not changes:
         raise error("config", "a configuration with optimisation stages", Text(type(config).__name__),
                     kind=TypeError)
@@ -243,7 +248,7 @@ def default_config(system: str, method: str, *, epochs: Optional[int] = None, **
     if unknown:
         raise error("overrides", f"fields of {cls.__name__} among {sorted(names)}", Text(f"unknown field(s) {unknown}"),
                     kind=TypeError)
-    config = cls()
+    config = cls.for_system(system) if hasattr(cls, "for_system") else cls()
     if method == "autonomous":
         config = replace(config, box_scale=BOX_SCALE.get(system, 1.0), labels=LABELS.get(system, "exact"))
         if system not in PAPER_WIDTH:

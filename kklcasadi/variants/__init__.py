@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from ..validation import error
 from .autonomous import Autonomous, Curriculum
+from .bank import Bank, BankSpec
 from .base import MapsSpec, Memory, Networks, Sizes, Variant, window_memory
 from .dyn import Dyn, DynModelSpec
 from .inject import Inject, model_injection_function
@@ -17,7 +18,7 @@ from .obs import MODEL_BASED_INJECTION, Obs, ObsModelSpec
 from .stream import DynStream, ObsStream
 
 __all__ = ["VARIANTS", "get", "names", "trainable", "Variant", "Networks", "Memory", "window_memory", "Sizes",
-           "MapsSpec",
+           "MapsSpec", "BankSpec",
            "ObsModelSpec", "DynModelSpec", "MODEL_BASED_INJECTION", "model_injection_function"]
 
 #: Every observer variant, by card ``method``.
@@ -29,6 +30,7 @@ VARIANTS: dict[str, Variant] = {v.name: v for v in (
     Inject(),
     ObsStream(),
     DynStream(),
+    Bank(),
 )}
 
 

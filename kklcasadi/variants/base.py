@@ -121,8 +121,8 @@ class Networks:
 
     Attributes
     ----------
-    encoder : casadi.Function
-        ``encoder(x) -> z`` (the window-free T).
+    encoder : casadi.Function or None
+        ``encoder(x) -> z`` (the window-free T); None for a latent that is not a map of the state.
     decoder : casadi.Function
         ``decoder(z (nz,1), w (window,nu)) -> xhat (nx,1)``.
     context : casadi.Function or None
@@ -134,14 +134,18 @@ class Networks:
         ``model_injection(z, u) -> dz``, the model-based term, when the variant uses it.
     memory : Memory or None
         The observer's input memory ``w``; None for the input window of ``docs/design.md``.
+    exact_step : casadi.Function or None
+        ``exact_step(z, y, y_next, u) -> z_next``: the exact step of a linear latent with more
+        than ``A z + B y`` (e.g. an input term); None for the first-order-hold step of ``(A, B)``.
     """
 
-    encoder: ca.Function
+    encoder: Optional[ca.Function]
     decoder: ca.Function
     context: Optional[ca.Function] = None
     input_term: Optional[InputTerm] = None
     model_injection: Optional[ca.Function] = None
     memory: Optional[Memory] = None
+    exact_step: Optional[ca.Function] = None
 
 
 class Variant:
