@@ -21,7 +21,9 @@ def _random_model_arrays(card, seed):
     arrays = {}
     for name, shape in model_array_shapes(card).items():
         rng = np.random.default_rng([seed, zlib.crc32(name.encode())])
-        if name.endswith("_std"):
+        if name.endswith("asinh_scale"):
+            arrays[name] = np.zeros(shape)                     # no output transform
+        elif name.endswith("_std"):
             arrays[name] = rng.uniform(0.5, 2.0, shape)
         elif name.endswith("/scale"):
             arrays[name] = np.array(1.0)                 # make the LoRA modulation visible
@@ -48,7 +50,7 @@ def model_dir_factory(tmp_path_factory):
     import kklcasadi
     from kklcasadi.architecture import HyperSpec, MLPSpec, ObsSpec
     from kklcasadi.modelfile import make_card, save_model
-    from kklcasadi.variants import DynModelSpec, MapsSpec, ObsModelSpec
+    from kklcasadi.variants import BankSpec, DynModelSpec, MapsSpec, ObsModelSpec
 
     counter = iter(range(10**6))
 
@@ -62,7 +64,9 @@ def model_dir_factory(tmp_path_factory):
         obs = lambda: ObsModelSpec(maps.encoder, maps.decoder,  # noqa: E731
                                    ObsSpec(4, 3, MLPSpec((nz + 3, 6, nz * nu))))
         dyn = lambda: DynModelSpec(maps.encoder, maps.decoder, HyperSpec(4, 3, (5, 5), 2), nu)  # noqa: E731
-        spec = {"obs": obs, "obs_stream": obs, "dyn": dyn, "dyn_stream": dyn}.get(method, lambda: maps)()
+        bank = lambda: BankSpec(MLPSpec((nz + plant.ny + nu, *hidden, nx)), design.A, design.B, dt, nu,  # noqa: E731
+                                {"y_poles": [1.0], "u_poles": [], "y_resonators": [], "clock": None})
+        spec = {"obs": obs, "obs_stream": obs, "dyn": dyn, "dyn_stream": dyn, "bank": bank}.get(method, lambda: maps)()
         card = {**make_card(plant, design, method, spec, dt=dt, window=window, training={"seed": seed}),
                 **(card_extra or {})}
         root = tmp_path_factory.mktemp(f"model{next(counter)}")

@@ -27,6 +27,9 @@ def make_card(method="autonomous", nu=NU, base=None):
     if method in ("obs", "obs_stream"):
         arch.update({"context": {"hidden": 6, "proj": 3},
                      "gain": {"sizes": [NZ + 3, 7, NZ * nu], "activation": "tanh"}})
+    if method == "bank":
+        arch = {"decoder": {"sizes": [NZ + NY + nu, 8, NX], "activation": "tanh"},
+                "bank": {"y_poles": [1.0], "u_poles": [], "y_resonators": [], "clock": None}}
     if method in ("dyn", "dyn_stream"):
         arch["hyper"] = {"hidden": 6, "embed": 4, "backbone": [9, 9], "rank": 2}
     return {

@@ -56,7 +56,7 @@ def test_every_method_loads_with_named_functions(model_dir_factory, method):
     assert (obs.decode.name_in(), obs.decode.name_out()) == (["z", "w"], ["xhat"])
     assert obs.step.name_in() == ["z", "w", "y", "y_next", "u_next"]
     assert obs.step.name_out() == ["z_next", "w_next", "xhat_next"]
-    memory = (3, 1) if obs.variant.windowed or method in ("autonomous", "curriculum", "inject") else (4 + 1, 1)
+    memory = {"obs_stream": (4 + 1, 1), "dyn_stream": (4 + 1, 1), "bank": (1 + 1, 1)}.get(method, (3, 1))
     assert obs.memory_shape == memory and obs.step.size_in(1) == memory and obs.step.size_out(1) == memory
     assert obs.step.is_a("MXFunction")
 
@@ -180,6 +180,8 @@ def test_step_updates_the_memory_and_decodes_the_new_state(model_dir_factory, rn
     assert np.array_equal(np.array(w_next), np.array(obs.memory.next(w, y_next, u_next)))
     if obs.memory_shape == (4, 1):                                     # the window shifts
         assert np.array_equal(np.array(w_next), np.vstack([w[1:], u_next[None]]))
+    elif method == "bank":                                             # [y_k+1; u_k+1]
+        assert np.array_equal(np.array(w_next).ravel(), np.r_[y_next, u_next])
     else:                                                              # [h; u]: one GRU cell
         assert obs.memory_shape == (5, 1) and np.array_equal(np.array(w_next)[4:], u_next[None])
     assert np.array_equal(np.array(xhat_next), np.array(obs.decode(z_next, w_next)))

@@ -16,7 +16,8 @@ from kklcasadi.variants.base import MapsSpec, Networks, Variant, plain_maps
 
 
 def test_registry_lists_every_method_and_names_unknown_ones():
-    assert variants.names() == ("autonomous", "curriculum", "obs", "dyn", "inject", "obs_stream", "dyn_stream")
+    assert variants.names() == ("autonomous", "curriculum", "obs", "dyn", "inject", "obs_stream", "dyn_stream",
+                                "bank")
     assert set(variants.trainable()) == set(variants.names())
     with pytest.raises(ValueError, match=r"method: expected one of \['autonomous'.*received 'lstm'"):
         variants.get("lstm")
