@@ -64,7 +64,8 @@ from .observer import KKLObserver
 from .protocol import Protocol
 from .simulate import simulate_batch
 
-__all__ = ["Certificate", "certificate", "decoder_lipschitz_upper"]
+__all__ = ["Certificate", "certificate", "decoder_lipschitz_upper", "cmd_certificate",
+           "add_certificate_parser"]
 
 _ACTIVATION_LIPSCHITZ = {"tanh": 1.0, "relu": 1.0, "softplus": 1.0, "identity": 1.0}
 _KINDS = ("zero", "constant", "sinusoid", "square")
@@ -165,6 +166,22 @@ class Certificate:
     def holds_sampled(self) -> bool:
         """``observed <= bound_sampled + transient_sampled``."""
         return bool(self.observed <= self.bound_sampled + self.transient_sampled)
+
+    def to_json(self) -> dict:
+        """The terms, bounds and verdicts as plain JSON values (``inf`` as the string "inf")."""
+        out: dict = {}
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            if isinstance(value, np.ndarray):
+                value = value.tolist()
+            elif isinstance(value, tuple):
+                value = list(value)
+            elif isinstance(value, float) and not np.isfinite(value):
+                value = str(value)
+            out[name] = value
+        for name in ("vacuous", "vacuous_sampled", "holds", "holds_sampled"):
+            out[name] = bool(getattr(self, name))
+        return out
 
     def __str__(self) -> str:
         def verdict(bound: float, vacuous: bool, holds: bool, why: str) -> str:
@@ -443,3 +460,42 @@ def certificate(observer: KKLObserver, *, kinds: Sequence[str] = _KINDS, n_point
                        float(transient), eps_step, rho, float(gain), float(bound_sampled),
                        float(transient_sampled), observed, float(t_settle), kinds, n_trials,
                        n_points, int(n_lab), domain, diameter)
+
+
+# ---------------------------------------------------------------------- command line
+def cmd_certificate(args: Any) -> int:
+    """``kklcasadi certificate MODEL...``: print each model's certificate; ``--json`` saves them."""
+    import json
+    from pathlib import Path
+
+    from .observer import load_observer
+
+    records = []
+    for model in args.models:
+        cert = certificate(load_observer(model), kinds=tuple(args.kinds), n_points=args.points,
+                           n_labels=args.labels, n_trials=args.trials, T=args.T,
+                           t_settle=args.settle, seed=args.seed)
+        print(f"{model}\n{cert}\n")
+        records.append({"model": str(model), **cert.to_json()})
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(records, indent=1))
+    return 0
+
+
+def add_certificate_parser(sub: Any) -> Any:
+    """Add the ``certificate`` subcommand to a ``kklcasadi`` subparsers object; returns its parser."""
+    c = sub.add_parser("certificate", help="estimate Proposition 1's error bound for models and "
+                                           "compare it with their observed error")
+    c.add_argument("models", nargs="+", help="model directories")
+    c.add_argument("--kinds", nargs="+", default=list(_KINDS), choices=_KINDS,
+                   help="input regimes of the input set and the runs (zero: u = 0 only)")
+    c.add_argument("--points", type=int, default=4000, help="domain sample size")
+    c.add_argument("--labels", type=int, default=40, help="held-out label trajectories")
+    c.add_argument("--trials", type=int, default=10, help="noise-free runs per regime")
+    c.add_argument("--T", type=float, default=30.0, help="run duration (s)")
+    c.add_argument("--settle", type=float, default=10.0, help="settle time (s)")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--json", help="write the certificates to this JSON file")
+    c.set_defaults(func=cmd_certificate)
+    return c

@@ -127,3 +127,23 @@ def test_bad_arguments_are_named(tmp_path, kwargs, error, fragment):
 def test_observer_type_is_checked():
     with pytest.raises(TypeError, match="observer"):
         certificate("models/duffing/inject")
+
+
+def test_certificate_command_prints_and_saves(tmp_path, capsys):
+    import argparse
+    import json
+
+    from kklcasadi.certificate import add_certificate_parser
+
+    model = _linear_model(tmp_path / "exact")
+    parser = argparse.ArgumentParser(prog="kklcasadi")
+    add_certificate_parser(parser.add_subparsers(dest="command", required=True))
+    out = tmp_path / "cert.json"
+    args = parser.parse_args(["certificate", str(model), "--kinds", "zero", "--points", "300",
+                              "--labels", "2", "--trials", "2", "--T", "6", "--settle", "4",
+                              "--json", str(out)])
+    assert args.func(args) == 0
+    assert "Proposition 1 certificate: linear / autonomous" in capsys.readouterr().out
+    record = json.loads(out.read_text())[0]
+    assert record["model"] == str(model) and record["holds_sampled"] is True
+    assert record["eps_pde"] < 1e-12 and len(record["domain"]) == 2

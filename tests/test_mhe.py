@@ -165,3 +165,21 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
     table = (out / "table.md").read_text()
     assert table.strip() == markdown_table([comparison], ("zero",))
     assert "| duffing (1 trials) | MHE N=3 |" in table
+
+
+def test_mhe_example_runs_reduced(model_dir_factory, tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "mhe_estimation.py"
+    spec = importlib.util.spec_from_file_location("mhe_example", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    model = model_dir_factory("autonomous", "duffing", seed=3)
+    png = tmp_path / "mhe.png"
+    results = example.main(["--model", str(model), "--T", "0.5", "--horizon", "3",
+                            "--primed-horizon", "2", "--calibration-trials", "1",
+                            "--out", str(png)])
+    assert list(results) == ["KKL (autonomous)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
+    assert all(xhat.shape == (10, 2) and np.all(np.isfinite(xhat)) for xhat in results.values())
+    assert png.stat().st_size > 0
