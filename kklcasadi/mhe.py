@@ -239,6 +239,8 @@ class MHE:
     arrival : casadi.Function
         ``arrival(x, P, u) -> P_next``: EKF propagation of the prior covariance from a node to the
         next (update with ``h``'s Jacobian, then the time update with ``phi``'s Jacobians).
+    last_stats : MHEStats or None
+        Statistics of the last :meth:`__call__`.
     """
 
     def __init__(self, system: System, dt: float, horizon: int = 10, *, process_std: float = 0.1,
@@ -285,6 +287,7 @@ class MHE:
         self.arrival = ca.Function("arrival", [x, P, u], [0.5 * (P_next + P_next.T)],
                                    ["x", "P", "u"], ["P_next"])
         self._solvers: dict[int, ca.Function] = {}
+        self.last_stats: Optional[MHEStats] = None
 
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(system={self.system.name!r}, horizon={self.horizon}, "
@@ -471,6 +474,8 @@ class KKLPrimedMHE:
     observer : KKLObserver
     mhe : MHE
     error_std : numpy.ndarray
+    last_stats : MHEStats or None
+        Statistics of the last :meth:`__call__`.
     """
 
     def __init__(self, observer: Any, error_std: Any, horizon: int = 5, **mhe_options: Any) -> None:
@@ -487,6 +492,7 @@ class KKLPrimedMHE:
                              f"({observer.nx},), received shape {std.shape}"
                              f"{'' if std.size == 0 or np.all(std > 0) else ' with values <= 0'}.")
         self.error_std = std
+        self.last_stats: Optional[MHEStats] = None
 
     def __repr__(self) -> str:
         return (f"KKLPrimedMHE(method={self.observer.method!r}, system="
