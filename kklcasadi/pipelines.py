@@ -247,7 +247,7 @@ def _model_dir(root: Optional[str], system: str, method: str) -> Path:
 
 def _load_all(out: Path) -> list[SystemComparison]:
     found = []
-    for name in systems.names():
+    for name in list(DEFAULT_METHODS) + [n for n in systems.names() if n not in DEFAULT_METHODS]:
         path = out / f"{name}.json"
         if path.exists():
             found.append(SystemComparison.from_json(json.loads(path.read_text())))
