@@ -22,14 +22,20 @@ from .systems import System
 
 #: Submodules reachable as attributes of the package, imported when first used.
 _LAZY = ("train", "ekf", "protocol", "report", "codegen", "interop", "modelfile", "casadi_nets",
-         "architecture")
+         "architecture", "mhe", "nmpc", "certificate", "pipelines", "filterbank")
+#: Names of those submodules reachable from the package: ``kc.MHE``, ``kc.NMPC``, ``kc.Certificate``
+#: (a model's certificate: ``obs.certificate()``).
+_LAZY_NAMES = {"MHE": "mhe", "KKLPrimedMHE": "mhe", "NMPC": "nmpc", "Certificate": "certificate",
+               "make_inject_model": "observer"}
 
 __all__ = ["System", "Design", "Trajectory", "TrajectoryBatch", "simulate", "simulate_batch",
            "KKLObserver", "Estimate", "load_observer",
-           "systems", "signals", "data", "metrics", "variants", "__version__", *_LAZY]
+           "systems", "signals", "data", "metrics", "variants", "__version__", *_LAZY, *_LAZY_NAMES]
 
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
         return importlib.import_module(f".{name}", __name__)
+    if name in _LAZY_NAMES:
+        return getattr(importlib.import_module(f".{_LAZY_NAMES[name]}", __name__), name)
     raise AttributeError(f"module 'kklcasadi' has no attribute {name!r}")

@@ -1,4 +1,5 @@
-"""The ``kklcasadi`` command line: ``demo``, ``train``, ``evaluate``, ``export``, ``bench``.
+"""The ``kklcasadi`` command line: ``demo``, ``train``, ``evaluate``, ``export``, ``bench``, ``compare``
+(the observer beside the EKF and MHE), ``certificate`` (Proposition 1 of the paper for a model).
 
 Every error is one line ``error: ...`` on stderr with exit status 2, naming the command's own
 flags (set ``KKLCASADI_DEBUG=1`` to see the traceback instead).
@@ -345,6 +346,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--trials", type=_positive_int, default=32)
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
     b.set_defaults(func=cmd_bench)
+
+    from .certificate import add_certificate_parser
+    from .pipelines import add_compare_parser
+
+    add_compare_parser(sub)        # kklcasadi compare  [--systems ...] [--trials 100] [--out results/estimators]
+    add_certificate_parser(sub)    # kklcasadi certificate MODEL... [--kinds zero] [--json FILE]
     return p
 
 

@@ -56,6 +56,8 @@ from .variants import MODEL_BASED_INJECTION
 if TYPE_CHECKING:
     import control
 
+    from .certificate import Certificate
+
 __all__ = ["KKLObserver", "Estimate", "Estimator", "load_observer", "make_inject_model",
            "DISCRETIZATIONS", "INTEGRATOR_SOLVERS", "MODEL_BASED_INJECTION", "DOMAIN_MARGIN"]
 
@@ -385,6 +387,16 @@ class KKLObserver:
         if batched_y:
             return Estimate(t, xhat, z, flags)
         return Estimate(t, xhat[0], z[0], None if flags is None else flags[0])
+
+    def certificate(self, **options: Any) -> Certificate:
+        """Proposition 1 of the paper estimated for this model and set beside its observed error.
+
+        See :func:`kklcasadi.certificate.certificate` (options: ``kinds``, ``n_points``,
+        ``n_labels``, ``n_trials``, ``T``, ``t_settle``, ``seed``, ``label_seed``).
+        """
+        from .certificate import certificate
+
+        return certificate(self, **options)
 
     def estimator(self) -> Estimator:
         """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample."""

@@ -30,6 +30,11 @@ ALLOWED = {
     "protocol": {"signals", "simulate", "systems", "metrics", "validation"},
     "report": {"protocol", "signals", "metrics", "systems"},
     "filterbank": {"architecture", "casadi_nets", "validation"},
+    "mhe": {"rk4", "systems", "validation"},
+    "nmpc": {"ekf", "mhe", "rk4", "systems", "validation"},
+    "certificate": {"architecture", "casadi_nets", "data", "design", "observer", "protocol", "simulate",
+                    "validation", "windows"},
+    "pipelines": {"metrics", "systems", "ekf", "mhe", "observer", "protocol", "validation"},
 }
 #: modules that may import torch at module level
 TORCH = {"train"}
