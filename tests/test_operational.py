@@ -12,9 +12,15 @@ import kklcasadi as kc  # noqa: E402
 from kklcasadi import filterbank as fb  # noqa: E402
 from kklcasadi.architecture import DECODER  # noqa: E402
 from kklcasadi.train.config import LoopConfig  # noqa: E402
-from kklcasadi.train.operational import (DecoderConfig, RolloutConfig, fit_bank_decoder, fold_whitening,  # noqa: E402
-                                         rollouts, torch_decoder)
 from kklcasadi.train.nets import MLP  # noqa: E402
+from kklcasadi.train.operational import (  # noqa: E402
+    DecoderConfig,
+    RolloutConfig,
+    fit_bank_decoder,
+    fold_whitening,
+    rollouts,
+    torch_decoder,
+)
 
 
 def _bank() -> fb.FilterBank:

@@ -4,7 +4,7 @@ Writes ``<cache>/<system>_<noisy|clean>.npz`` with, per input regime ``k``: ``k/
 ``k/x`` (M, N, nx), ``k/y`` (M, N, ny), ``k/u`` (M, N, nu), ``k/ok`` (M,) and ``k/ekf`` (M, N, nx),
 the EKF estimate of :class:`kklcasadi.ekf.EKF` (the unchanged baseline) on the same trials.
 
-Usage: ``python benchmarks/accuracy/cache_trials.py [--cache DIR] [--trials 100] SYSTEM...``
+Usage: ``python benchmarks/accuracy/cache_trials.py [--cache DIR] [--trials 100] [--regime ood] SYSTEM...``
 """
 
 from __future__ import annotations
@@ -21,11 +21,16 @@ from kklcasadi.protocol import Protocol
 from kklcasadi.signals import BENCHMARK_KINDS
 
 
-def cache_system(name: str, cache: Path, n_trials: int) -> None:
-    """Simulate and store both noise settings of ``name`` (skips files that exist)."""
+def cache_system(name: str, cache: Path, n_trials: int, regime: str = "id") -> None:
+    """Simulate and store both noise settings of ``name`` (skips files that exist).
+
+    ``regime="ood"`` stores the out-of-distribution cells as ``<system>_ood_<noisy|clean>.npz``.
+    """
     system = kc.systems.get(name)
-    for label, protocol in (("noisy", Protocol(n_trials=n_trials)), ("clean", Protocol(n_trials=n_trials).noise_free())):
-        path = cache / f"{name}_{label}.npz"
+    base = Protocol(n_trials=n_trials, regime=regime)
+    prefix = name if regime == "id" else f"{name}_{regime}"
+    for label, protocol in (("noisy", base), ("clean", base.noise_free())):
+        path = cache / f"{prefix}_{label}.npz"
         if path.exists():
             continue
         arrays = {}
@@ -45,10 +50,11 @@ def main() -> None:
     parser.add_argument("systems", nargs="+")
     parser.add_argument("--cache", type=Path, default=Path("/tmp/acc_cache"))
     parser.add_argument("--trials", type=int, default=100)
+    parser.add_argument("--regime", default="id", choices=("id", "ood"))
     args = parser.parse_args()
     args.cache.mkdir(parents=True, exist_ok=True)
     for name in args.systems:
-        cache_system(name, args.cache, args.trials)
+        cache_system(name, args.cache, args.trials, args.regime)
 
 
 if __name__ == "__main__":

@@ -64,7 +64,7 @@ def score(system: str, label: str, estimator: Estimator) -> dict[str, dict[str, 
                      "ekf_per_state": np.mean(kc.metrics.smape(cell["x"][ok], cell["ekf"][ok], per_state=True),
                                               axis=0).tolist(),
                      "wins": int(np.sum(ours < ekf)), "n": int(ok.sum()),
-                     "ours_trials": ours.tolist()}
+                     "ours_trials": ours.tolist(), "ekf_trials": ekf.tolist()}
     return out
 
 

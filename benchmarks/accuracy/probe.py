@@ -22,15 +22,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from common import cached_rollouts, kind_of_rollouts, score, table_row
+from recipes import PAPER_BEST, RECIPES
 
 import kklcasadi as kc
 from kklcasadi import filterbank as fb
 from kklcasadi.signals import BENCHMARK_KINDS
 from kklcasadi.train.config import LoopConfig
 from kklcasadi.train.operational import DecoderConfig, RolloutConfig, config_record, fit_bank_decoder
-
-from common import cached_rollouts, kind_of_rollouts, score, table_row
-from recipes import PAPER_BEST, RECIPES
 
 OUT = Path("results/accuracy")
 #: Probe weights stay out of the repository (the final models go to results/accuracy/weights).

@@ -12,12 +12,12 @@ import json
 from pathlib import Path
 
 import numpy as np
+from common import protocol_trials, score, table_row
 
 import kklcasadi as kc
 from kklcasadi import filterbank as fb
-from kklcasadi.modelfile import DECODER, MLPSpec, load_model
-
-from common import protocol_trials, score, table_row
+from kklcasadi.architecture import DECODER, MLPSpec
+from kklcasadi.modelfile import load_model
 
 
 def estimator(system: str):

@@ -10,9 +10,9 @@ import json
 from pathlib import Path
 
 import numpy as np
+from recipes import PAPER_BEST
 
 from kklcasadi.signals import BENCHMARK_KINDS
-from recipes import PAPER_BEST
 
 PROBES = Path("results/accuracy/probes")
 SYSTEMS = ("duffing", "vdp", "fhn", "rossler")
@@ -31,8 +31,11 @@ def final_table(tag: str) -> str:
             continue
         r = json.loads(path.read_text())
         noisy, clean = r["noisy"], r["clean"]
-        row = lambda label, cells: lines.append(f"| {system if label.startswith('bank, noise on') else ''} | "
-                                                f"{label} | " + " | ".join(cells) + " |")
+
+        def row(label: str, cells: list[str], system: str = system) -> None:
+            first = system if label == "bank, noise on" else ""
+            lines.append(f"| {first} | {label} | " + " | ".join(cells) + " |")
+
         row("bank, noise on", [f"{noisy[k]['ours']:.2f}" for k in BENCHMARK_KINDS])
         row("EKF, noise on", [f"{noisy[k]['ekf']:.2f}" for k in BENCHMARK_KINDS])
         row("ratio bank / EKF", [f"**{noisy[k]['ours'] / noisy[k]['ekf']:.2f}x**" for k in BENCHMARK_KINDS])
@@ -74,6 +77,25 @@ def lever_table(system: str, rows: dict[str, str]) -> str:
     return "\n".join(lines)
 
 
+def domain_table(tag: str) -> str:
+    """Per system and state: 0.1-99.9 percentile of the training states vs the protocol's noisy trials."""
+    from common import protocol_trials
+
+    lines = ["| system | state | training rollouts (0.1 / 50 / 99.9 %) | protocol trials, noise on, all regimes |",
+             "|---|---|---|---|"]
+    for system in SYSTEMS:
+        path = PROBES / f"{system}_{tag}.json"
+        if not path.exists():
+            continue
+        dom = json.loads(path.read_text())["domain"]
+        x = np.concatenate([c["x"].reshape(-1, c["x"].shape[-1]) for c in protocol_trials(system, "noisy").values()])
+        pct = np.percentile(x, [0.1, 50, 99.9], axis=0)
+        for i in range(x.shape[1]):
+            lines.append(f"| {system if i == 0 else ''} | x{i + 1} | {dom['x_p0.1'][i]:.3g} / {dom['x_p50'][i]:.3g} / "
+                         f"{dom['x_p99.9'][i]:.3g} | {pct[0, i]:.3g} / {pct[1, i]:.3g} / {pct[2, i]:.3g} |")
+    return "\n".join(lines)
+
+
 ABLATION = {
     "KKL latent (poles 1-5), operational decoder on [z, y_k, u_k]": "abl_kkl",
     "+ input filters (0.3, 1, 3)": "abl_kkl_u",
@@ -90,11 +112,14 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--final", default=None)
     p.add_argument("--ablation", action="store_true")
+    p.add_argument("--domain", default=None)
     args = p.parse_args()
     if args.final:
         print(final_table(args.final))
     if args.ablation:
         print(lever_table("duffing", ABLATION))
+    if args.domain:
+        print(domain_table(args.domain))
 
 
 if __name__ == "__main__":

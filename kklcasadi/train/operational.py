@@ -285,7 +285,6 @@ def fit_bank_decoder(bank: fb.FilterBank, train: TrajectoryBatch, config: Decode
     mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), v.mean(axis=0), v.std(axis=0) + 1e-12)
     mlp = mlp.to(dtype)
     data = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v, "x": x}, dtype=dtype)
-    out_mean = torch.as_tensor(mlp.out_mean.detach().clone())
     out_std = torch.as_tensor(mlp.out_std.detach().clone())
     scale_t = torch.as_tensor(scale, dtype=dtype)
     pos = scale_t > 0
