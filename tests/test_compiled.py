@@ -130,3 +130,19 @@ def test_arguments_are_checked(model_dir_factory):
         Compiler().compile(obs)
     with pytest.raises(TypeError, match="abstract"):
         TrajectoryEstimator(2, 1, 1, 0.05)
+
+
+@needs_gcc
+def test_bench_protocol_times_each_method_against_the_vm(model_dir_factory, tmp_path):
+    from kklcasadi.bench_protocol import bench_protocol, shipped_models
+
+    result = bench_protocol("duffing", models=[model_dir_factory("autonomous")], n_trials=2, vm_trials=1,
+                            kinds=("zero",), cache_dir=tmp_path, progress=False)
+    assert result.cells == 2 and [m.label for m in result.methods] == ["autonomous", "EKF"]
+    assert all(m.bitwise and m.trials == 4 and m.vm_trials == 2 for m in result.methods)
+    assert result.warm_s < result.cold_s
+    table = result.table()
+    assert "| autonomous |" in table and "full protocol, warm caches" in table
+    assert [p.name for p in shipped_models("duffing")][:3] == ["autonomous", "inject", "obs"]
+    with pytest.raises(ValueError, match="vm_trials: expected an int in"):
+        bench_protocol("duffing", n_trials=2, vm_trials=3)
