@@ -16,7 +16,6 @@ for s in "${systems[@]}"; do
   for m in autonomous inject obs obs-inject dyn curriculum; do
     if [ -f "models/$s/$m/card.json" ]; then models+=("models/$s/$m"); fi
   done
-  start=$SECONDS
-  "${PYTHON:-python}" -m kklcasadi.cli evaluate "${models[@]}" --trials "$trials" --ekf --out "results/$s"
-  echo "$s: $trials trials per cell in $((SECONDS - start)) s" >&2
+  TIMEFORMAT="$s: $trials trials per cell in %R s wall, %U s user + %S s system CPU"
+  time "${PYTHON:-python}" -m kklcasadi.cli evaluate "${models[@]}" --trials "$trials" --ekf --out "results/$s"
 done
