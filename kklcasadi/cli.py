@@ -201,28 +201,49 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from .observer import load_observer
+    """Score model directories (and the EKF) on the PROTOCOL.md cells: table, JSON, box plots.
+
+    Trials come from the on-disk trial cache (simulated once per cell); observers and the EKF run
+    as compiled trajectories mapped over the trials (``--vm``: the CasADi VM, same values).
+    """
+    from .compiled import Compiler, ekf_estimator, observer_estimator
+    from .ekf import EKF
     from .protocol import Protocol
     from .report import markdown_table, save_scores, score, smape_boxplot
+    from .trialcache import TrialCache, cache_root
 
+    if args.labels is not None and len(args.labels) != len(args.models):
+        raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
+                           f"received {len(args.labels)}")
     protocol = Protocol(n_trials=args.trials, seed=args.seed, regime=args.regime)
     noise = {"on": (True,), "off": (False,), "both": (False, True)}[args.noise]
     kinds = tuple(args.kinds)
+    root = Path(args.cache_dir) if args.cache_dir else cache_root()
+    trial_cache = None if args.no_cache else TrialCache(root / "trials")
+    compiler = None if args.vm else Compiler(cache_dir=root / "compiled")
+    print(f"trials: {'simulated, not cached' if trial_cache is None else trial_cache.directory}; observers: "
+          f"{'CasADi VM' if compiler is None else 'compiled (' + str(compiler.directory) + ')'}", file=sys.stderr)
     scores = []
     cache: dict = {}
-    plant = None
-    for model in args.models:
-        obs = load_observer(model)
-        if plant is not None and obs.system.name != plant.name:
-            raise SystemExit(f"error: {model} is for {obs.system.name!r}, the other models for {plant.name!r}")
+    plant, own_plant = None, _plant(args)
+    for i, model in enumerate(args.models):
+        obs = _load(model, own_plant, "MODELS")
+        if plant is not None and obs.system.fingerprint != plant.fingerprint:
+            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
+                               f"after models for {plant.name!r}")
         plant = obs.system
-        label = args.labels[len(scores)] if args.labels and len(args.labels) > len(scores) else obs.method
+        label = args.labels[i] if args.labels else Path(model).resolve().name
+        estimator = observer_estimator(obs, compiler=compiler, n_threads=args.threads)
         t0 = time.perf_counter()
-        scores.append(score(label, _observer_estimator(obs), plant, protocol, noise=noise, kinds=kinds, cache=cache))
+        scores.append(score(label, estimator, plant, protocol, noise=noise, kinds=kinds, cache=cache,
+                            trial_cache=trial_cache, progress=True))
         print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     if args.ekf:
-        scores.append(score("EKF", _ekf_estimator(plant, protocol.dt), plant, protocol, noise=noise, kinds=kinds,
-                            cache=cache))
+        estimator = ekf_estimator(EKF(plant, protocol.dt), compiler=compiler, n_threads=args.threads)
+        t0 = time.perf_counter()
+        scores.append(score("EKF", estimator, plant, protocol, noise=noise, kinds=kinds, cache=cache,
+                            trial_cache=trial_cache, progress=True))
+        print(f"EKF: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     print(markdown_table(scores, kinds))
     if args.out:
         out = Path(args.out)
@@ -262,7 +283,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         _needs_torch(f"kklcasadi bench {args.what} (it times torch beside CasADi)")
     if args.what in ("all", "simulation"):
         print("== data generation: trajectories per second ==")
-        bench_simulation(args.system, n_trials=args.trials)
+        bench_simulation(args.system, n_trials=args.trials or 32)
     if args.what in ("all", "observer"):
         from .bench.observer_step import bench_observer_step
 
@@ -273,6 +294,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         print("== training throughput: samples per second per stage ==")
         bench_training(args.system, device=args.device)
+    if args.what in ("all", "protocol"):
+        from .bench.protocol import bench_protocol
+
+        print("== the full protocol of one system: trial cache, compiled observers, the VM beside them ==")
+        print(_flagged("--system", bench_protocol, args.system, n_trials=args.trials or 100).table())
     return 0
 
 
@@ -320,14 +346,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     e = sub.add_parser("evaluate", help="score models on the PROTOCOL.md benchmark (SMAPE table, box plots)")
     e.add_argument("models", nargs="+", help="model directories (same system)")
-    e.add_argument("--labels", nargs="*", help="row labels (default: the methods)")
+    e.add_argument("--labels", nargs="*", help="row labels, one per model (default: the model directories' names)")
     e.add_argument("--trials", type=_positive_int, default=100)
+    e.add_argument("--plant", help=plant_help + " (for models of a plant that kklcasadi does not ship)")
     e.add_argument("--noise", default="both", choices=("on", "off", "both"))
     e.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS)
     e.add_argument("--regime", default="id", choices=sig.REGIMES)
     e.add_argument("--ekf", action="store_true", help="add the EKF baseline")
     e.add_argument("--seed", type=int, default=2026)
     e.add_argument("--out", help="directory for the JSON scores, table and box plots")
+    e.add_argument("--cache-dir", help="root of the trial and compiled-code caches (default: $KKLCASADI_CACHE, "
+                   "else ~/.cache/kklcasadi)")
+    e.add_argument("--no-cache", action="store_true", help="simulate the trials instead of reading/writing the "
+                   "trial cache")
+    e.add_argument("--vm", action="store_true", help="run the observers in the CasADi VM instead of compiled C "
+                   "(the reference path; same values, slower)")
+    e.add_argument("--threads", type=_positive_int, help="worker threads over trials (default: the CPU count)")
     e.set_defaults(func=cmd_evaluate)
 
     x = sub.add_parser("export", help="export an observer as C code and/or a serialised CasADi Function")
@@ -340,10 +374,11 @@ def build_parser() -> argparse.ArgumentParser:
     x.set_defaults(func=cmd_export)
 
     b = sub.add_parser("bench", help="speed benchmarks, each against its alternative in the same run")
-    b.add_argument("what", nargs="?", default="all", choices=("all", "simulation", "observer", "training"))
+    b.add_argument("what", nargs="?", default="all", choices=("all", "simulation", "observer", "training", "protocol"))
     b.add_argument("--system", default="duffing", choices=systems.names())
     b.add_argument("--model", help="model directory for the observer benchmark")
-    b.add_argument("--trials", type=_positive_int, default=32)
+    b.add_argument("--trials", type=_positive_int,
+                   help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100)")
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
     b.set_defaults(func=cmd_bench)
 

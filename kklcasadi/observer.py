@@ -321,9 +321,9 @@ class KKLObserver:
                  n_threads: Optional[int] = None) -> Estimate:
         """Run the observer on sampled measurements and inputs.
 
-        ``z_0 = 0`` (or ``z0``), ``w_0`` filled with ``u_0``, ``xhat_0 = decode(z_0, w_0)``;
-        then :attr:`step` over every interval, as one ``mapaccum`` call per trajectory and one
-        ``map(M, "thread")`` over trials.
+        ``z_0 = 0`` (or ``z0``), ``w_0 = memory_init(y_0, u_0)`` (the window filled with ``u_0``),
+        ``xhat_0 = decode(z_0, w_0)``; then :attr:`step` over every interval, as one ``mapaccum``
+        call per trajectory and one ``map(M, "thread")`` over trials.
 
         Parameters
         ----------

@@ -3,21 +3,31 @@
 Every method sees the same trials: initial states from a seeded Latin hypercube over X0, input
 parameters and noise draws from seeds derived from ``(seed, regime index, trial)``. Noise-free and
 noisy runs share the initial states, inputs and (unit) noise draws, scaled by the noise levels.
+
+The trials of a cell are deterministic, so :func:`evaluate` can take them from an in-memory dict
+(shared by the methods of one run) and from a :class:`~kklcasadi.trialcache.TrialCache` on disk
+(shared by every run). An estimator is any callable ``(t, y, u) -> xhat``; the fast ones
+(:func:`kklcasadi.compiled.observer_estimator`, :func:`kklcasadi.compiled.ekf_estimator`) run
+compiled trajectories mapped over the trials.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Optional, Sequence, Union
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from . import metrics
 from . import signals as sig
 from .simulate import TrajectoryBatch, simulate_batch
 from .systems import System
 
-__all__ = ["Protocol", "CellResult", "evaluate", "Estimator"]
+if TYPE_CHECKING:
+    from .trialcache import TrialCache
+
+__all__ = ["Protocol", "CellResult", "evaluate", "cell_trials", "Estimator"]
 
 #: An estimator maps measured trials to estimates: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``.
 Estimator = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
@@ -84,24 +94,64 @@ class CellResult:
         return metrics.summarize(self.smape)
 
 
+def cell_trials(system: System, protocol: Protocol, kind: str, *, trials: Optional[dict] = None,
+                trial_cache: Optional[TrialCache] = None) -> TrajectoryBatch:
+    """The trials of the cell ``(system, kind)``: from ``trials``, else ``trial_cache``, else simulated.
+
+    Parameters
+    ----------
+    system : System
+    protocol : Protocol
+    kind : str
+        Input regime (:data:`kklcasadi.signals.BENCHMARK_KINDS`).
+    trials : dict, optional
+        In-memory cache ``{kind: TrajectoryBatch}`` of this protocol (filled on a miss).
+    trial_cache : TrialCache, optional
+        On-disk cache (read, or written on a miss).
+
+    Returns
+    -------
+    TrajectoryBatch
+        Bitwise :meth:`Protocol.trials` ``(system, kind)``.
+    """
+    batch = trials.get(kind) if trials is not None else None
+    if batch is None:
+        batch = protocol.trials(system, kind) if trial_cache is None else trial_cache.trials(system, protocol, kind)
+        if trials is not None:
+            trials[kind] = batch
+    return batch
+
+
 def evaluate(estimator: Estimator, system: System, protocol: Protocol = Protocol(),
-             kinds: Sequence[str] = sig.BENCHMARK_KINDS, *, trials: dict | None = None) -> list[CellResult]:
+             kinds: Sequence[str] = sig.BENCHMARK_KINDS, *, trials: Optional[dict] = None,
+             trial_cache: Optional[TrialCache] = None, progress: Union[bool, str] = False) -> list[CellResult]:
     """Score ``estimator`` on every input regime of ``system`` under ``protocol``.
 
     Parameters
     ----------
     estimator : callable ``(t, y, u) -> xhat``
-        ``y`` (M, N, ny), ``u`` (M, N, nu) -> ``xhat`` (M, N, nx).
+        ``t`` (N,), ``y`` (M, N, ny), ``u`` (M, N, nu) -> ``xhat`` (M, N, nx); e.g. a
+        :class:`kklcasadi.compiled.TrajectoryEstimator`.
+    system : System
+    protocol : Protocol
+    kinds : sequence of str
+        Input regimes to score.
     trials : dict, optional
         Cache ``{kind: TrajectoryBatch}`` reused across estimators (filled when given empty).
+    trial_cache : TrialCache, optional
+        On-disk cache of the cells' trials (see :func:`cell_trials`).
+    progress : bool or str
+        Show a progress bar over the cells; a str labels it.
+
+    Returns
+    -------
+    list of CellResult
+        One per kind, in order; trials that failed in the simulation (``ok`` False) are left out.
     """
     results = []
-    for kind in kinds:
-        batch = trials.get(kind) if trials is not None else None
-        if batch is None:
-            batch = protocol.trials(system, kind)
-            if trials is not None:
-                trials[kind] = batch
+    label = progress if isinstance(progress, str) else system.name
+    for kind in tqdm(kinds, desc=label, unit="cell", disable=not progress):
+        batch = cell_trials(system, protocol, kind, trials=trials, trial_cache=trial_cache)
         ok = batch.ok
         xhat = np.asarray(estimator(batch.t, batch.y[ok], batch.u[ok]), dtype=float)
         if xhat.shape != batch.x[ok].shape:

@@ -5,13 +5,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from . import signals as sig
 from .protocol import CellResult, Estimator, Protocol, evaluate
 from .systems import System
+
+if TYPE_CHECKING:
+    from .trialcache import TrialCache
 
 __all__ = ["MethodScores", "score", "markdown_table", "smape_boxplot", "trajectory_plot", "save_scores"]
 
@@ -30,15 +34,42 @@ class MethodScores:
 
 def score(label: str, estimator: Estimator, system: System, protocol: Protocol, *,
           noise: Sequence[bool] = (False, True), kinds: Sequence[str] = sig.BENCHMARK_KINDS,
-          cache: dict | None = None) -> MethodScores:
-    """Evaluate ``estimator`` on the noise-free and/or noisy protocol; ``cache`` shares trials across methods."""
+          cache: dict | None = None, trial_cache: TrialCache | None = None,
+          progress: bool = False) -> MethodScores:
+    """Evaluate ``estimator`` on the noise-free and/or noisy protocol.
+
+    Parameters
+    ----------
+    label : str
+        The method's row label.
+    estimator : callable ``(t, y, u) -> xhat``
+        See :func:`kklcasadi.protocol.evaluate`.
+    system : System
+    protocol : Protocol
+        The noisy protocol; its :meth:`~Protocol.noise_free` variant gives the clean cells.
+    noise : sequence of bool
+        Which columns: False noise-free, True noisy.
+    kinds : sequence of str
+        Input regimes.
+    cache : dict, optional
+        In-memory trials shared across methods (filled on a miss).
+    trial_cache : TrialCache, optional
+        On-disk trials shared across runs.
+    progress : bool
+        A progress bar over the cells, labelled ``label``.
+
+    Returns
+    -------
+    MethodScores
+    """
     cache = {} if cache is None else cache
     results = {}
-    for noisy in noise:
+    cells = [(noisy, kind) for noisy in noise for kind in kinds]
+    for noisy, kind in tqdm(cells, desc=label, unit="cell", disable=not progress):
         prot = protocol if noisy else protocol.noise_free()
         trials = cache.setdefault((system.name, noisy, prot), {})
-        for r in evaluate(estimator, system, prot, kinds, trials=trials):
-            results[(noisy, r.kind)] = r
+        (result,) = evaluate(estimator, system, prot, (kind,), trials=trials, trial_cache=trial_cache)
+        results[(noisy, kind)] = result
     return MethodScores(label, system.name, results)
 
 

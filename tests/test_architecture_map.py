@@ -34,6 +34,8 @@ ALLOWED = {
     "nmpc": {"ekf", "mhe", "rk4", "systems", "validation"},
     "certificate": {"architecture", "casadi_nets", "data", "design", "observer", "protocol", "simulate",
                     "validation", "windows"},
+    "trialcache": {"simulate", "systems", "__version__"},
+    "compiled": {"trialcache"},
     "pipelines": {"metrics", "systems", "ekf", "mhe", "observer", "protocol", "validation"},
 }
 #: modules that may import torch at module level

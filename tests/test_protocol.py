@@ -1,4 +1,7 @@
+import shutil
+
 import numpy as np
+import pytest
 
 import kklcasadi as kc
 from kklcasadi.protocol import Protocol, evaluate
@@ -28,3 +31,45 @@ def test_evaluate_scores_a_zero_estimator_at_200_percent():
     np.testing.assert_allclose(res[0].smape, 200.0)
     assert set(cache) == {"zero", "constant"}
     np.testing.assert_array_equal(cache["zero"].x, truth["zero"].x)
+
+
+def test_evaluate_with_a_trial_cache_scores_exactly_as_without(tmp_path):
+    from kklcasadi.trialcache import TrialCache
+
+    s = kc.systems.get("vdp")
+    p = Protocol(n_trials=2, T=6.0, method="rk")
+    kinds = ("zero", "sinusoid")
+
+    def first_state_is_y(t, y, u):
+        return np.concatenate([y, np.zeros_like(y)], axis=2)
+
+    plain = evaluate(first_state_is_y, s, p, kinds)
+    cache = TrialCache(tmp_path)
+    filled = evaluate(first_state_is_y, s, p, kinds, trial_cache=cache)
+    assert sorted(f.name for f in tmp_path.iterdir()) == sorted(cache.path(s, p, k).name for k in kinds)
+    read = evaluate(first_state_is_y, s, p, kinds, trial_cache=cache, progress="vdp test")
+    for a, b, c in zip(plain, filled, read):
+        np.testing.assert_array_equal(a.smape, b.smape)
+        np.testing.assert_array_equal(a.smape, c.smape)
+        np.testing.assert_array_equal(a.rmse_after, c.rmse_after)
+
+
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
+def test_the_fast_estimators_score_exactly_as_the_reference_path(model_dir_factory, tmp_path):
+    from kklcasadi.compiled import Compiler, ekf_estimator, observer_estimator
+    from kklcasadi.ekf import EKF
+    from kklcasadi.observer import load_observer
+    from kklcasadi.report import score
+
+    obs = load_observer(model_dir_factory("inject", base=True))
+    p = Protocol(n_trials=3, T=6.0, method="rk")
+    kinds = ("constant", "square")
+    fast = score("inject", observer_estimator(obs, compiler=Compiler(cache_dir=tmp_path)), obs.system, p, kinds=kinds)
+    slow = score("inject", lambda t, y, u: obs.simulate(t, y, u).xhat, obs.system, p, kinds=kinds)
+    ekf = EKF(obs.system, p.dt)
+    fast_ekf = score("EKF", ekf_estimator(ekf, compiler=Compiler(cache_dir=tmp_path)), obs.system, p, kinds=kinds)
+    slow_ekf = score("EKF", lambda t, y, u: ekf.simulate(t, y, u).xhat, obs.system, p, kinds=kinds)
+    for a, b in ((fast, slow), (fast_ekf, slow_ekf)):
+        assert list(a.results) == list(b.results) == [(n, k) for n in (False, True) for k in kinds]
+        for cell in a.results:
+            np.testing.assert_array_equal(a.results[cell].smape, b.results[cell].smape)
