@@ -206,6 +206,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     Trials come from the on-disk trial cache (simulated once per cell); observers and the EKF run
     as compiled trajectories mapped over the trials (``--vm``: the CasADi VM, same values).
     """
+    from .codegen import axpy_matvec
     from .compiled import Compiler, ekf_estimator, observer_estimator
     from .ekf import EKF
     from .protocol import Protocol
@@ -220,7 +221,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     kinds = tuple(args.kinds)
     root = Path(args.cache_dir) if args.cache_dir else cache_root()
     trial_cache = None if args.no_cache else TrialCache(root / "trials")
-    compiler = None if args.vm else Compiler(cache_dir=root / "compiled")
+    compiler = None if args.vm else Compiler(cache_dir=root / "compiled", postprocess=axpy_matvec)
     print(f"trials: {'simulated, not cached' if trial_cache is None else trial_cache.directory}; observers: "
           f"{'CasADi VM' if compiler is None else 'compiled (' + str(compiler.directory) + ')'}", file=sys.stderr)
     scores = []

@@ -59,7 +59,7 @@ from .validation import one_of
 if TYPE_CHECKING:
     from .observer import KKLObserver
 
-__all__ = ["generate_c", "check_c_name", "check_flags", "vector_math_c", "C_FLAGS", "DEFAULT_FLAGS",
+__all__ = ["generate_c", "axpy_matvec", "check_c_name", "check_flags", "vector_math_c", "C_FLAGS", "DEFAULT_FLAGS",
            "NATIVE_FLAGS", "MATVECS", "MATHS", "VECTOR_MATH_TOLERANCE"]
 
 #: The warning flags the generated code is tested with, at -O2 (it is also tested at
@@ -138,6 +138,17 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
                "WINDOW": observer.window, "NW": rows * cols, **sizes}
     lines = [f"#define {macro}_{key} {value}" for key, value in defines.items()]
     lines.append(f"#define {macro}_DT {observer.dt!r}")
+    if observer.domain_check is not None:
+        from .observer import DOMAIN_MARGIN
+
+        lines.append(f"#define {macro}_HAS_DOMAIN 1")
+        monitor = (f"""
+ * {name}_in_domain(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] xhat (NX) -> res[0] 1.0 if the
+ *   estimate and the latent lie in the domain the maps were trained on (the card's state and
+ *   latent boxes widened by {DOMAIN_MARGIN!r} of their ranges), else 0.0: the domain
+ *   monitor, to call after a step where wanted ({macro}_HAS_DOMAIN is defined).""")
+    else:
+        monitor = "\n * (The model records no training domain: no domain monitor.)"
     scheme = ("exact (matrix exponential, first-order hold)" if observer.discretization == "exact"
               else f"RK4 with {observer.substeps} substep(s)")
     memory = ("the input window, WINDOW x NU column-major: w[i + WINDOW*j] is input j at sample "
@@ -157,7 +168,7 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
  *   res[0] z_next  (NZ), res[1] w_next (NW), res[2] xhat_next (NX)
  * {name}_decode(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w -> res[0] xhat (NX).
  * {name}_init(arg, res, iw, w, mem): arg[0] y_0 (NY), arg[1] u_0 (NU) -> res[0] w_0 (NW), the
- *   memory at the start.
+ *   memory at the start.{monitor}
  * Start: z_0 = 0, w_0 = init(u_0), xhat_0 = decode(z_0, w_0).
  * Work arrays: arg[{macro}_SZ_ARG], res[{macro}_SZ_RES], iw[{macro}_SZ_IW],
  * w[{macro}_SZ_W] (enough for both functions); outputs must not alias inputs; mem = 0.
@@ -597,6 +608,16 @@ def _rewrite(source: str, matvec: bool, math: bool, dispatch: bool) -> str:
                           "#include <string.h>\n", 1)
 
 
+def axpy_matvec(source: str) -> str:
+    """``source`` (C from ``ca.CodeGenerator``) with every dense mat-vec in axpy order.
+
+    The kernels keep each output's summation order, so results are bitwise CasADi's; for
+    :class:`kklcasadi.compiled.Compiler`'s ``postprocess`` (the evaluation path of
+    ``kklcasadi evaluate``).
+    """
+    return _rewrite(source, matvec=True, math=False, dispatch=False)
+
+
 _PRAGMA_PUSH = """#if defined(__GNUC__)
 #pragma GCC diagnostic push
 #pragma GCC diagnostic ignored "-Wunused-parameter"
@@ -708,6 +729,8 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     functions = [_renamed(observer.step, f"{name}_step"), _renamed(observer.decode, f"{name}_decode"),
                  # the start only, once: as SX, so that it has no nested calls (gcc's -Wdangling-pointer)
                  _renamed(observer.memory_init, f"{name}_init", ca.SX)]
+    if observer.domain_check is not None:          # the domain monitor, where the card records a domain
+        functions.append(_renamed(observer.domain_check, f"{name}_in_domain"))
     generator = ca.CodeGenerator(f"{name}.c", {"with_header": True, "casadi_real": "double"})
     for f in functions:
         generator.add(f)

@@ -2,6 +2,15 @@ import numpy as np
 import pytest
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _private_cache(tmp_path_factory):
+    """The trial and compiled-code caches of the test run live in a temporary directory, not the user's."""
+    patch = pytest.MonkeyPatch()
+    patch.setenv("KKLCASADI_CACHE", str(tmp_path_factory.mktemp("kklcasadi-cache")))
+    yield
+    patch.undo()
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -427,3 +427,29 @@ def test_bench_observer_step_runs_once(model_dir_factory, capsys):
     assert all(t.seconds > 0 for t in timings)
     out = capsys.readouterr().out
     assert "as fast as torch eager at its best thread count" in out and "the time of hand" in out
+
+
+# ----------------------------------------------------------------------------- domain monitor in C
+
+@needs_gcc
+def test_the_domain_monitor_is_an_optional_c_function(model_dir_factory, tmp_path, rng):
+    """A model that records its training domain gets ``name_in_domain`` (and ``NAME_HAS_DOMAIN``),
+    equal to the observer's ``domain_check`` inside, outside and on the widened edges."""
+    import json
+
+    path = model_dir_factory("autonomous")
+    plain = generate_c(load_observer(path), tmp_path / "plain", "plain")
+    assert "plain_in_domain" not in plain[0].read_text() and "HAS_DOMAIN" not in plain[1].read_text()
+    card = json.loads((path / "card.json").read_text())
+    card["domain"] = {"x_lo": [-1, -2], "x_hi": [1, 2], "z_lo": [-3] * 5, "z_hi": [3] * 5}
+    (path / "card.json").write_text(json.dumps(card))
+    obs = load_observer(path)
+    files = generate_c(obs, tmp_path / "build", "mon")
+    assert "#define MON_HAS_DOMAIN 1" in files[1].read_text()
+    library, _ = shared_library(files, tmp_path)
+    check = ca.external("mon_in_domain", str(library))
+    points = [(rng.uniform(-1.5, 1.5, 2) * [1, 2], rng.uniform(-4, 4, 5)) for _ in range(200)]
+    points += [(np.array([1.19, 0.0]), np.zeros(5)), (np.array([1.21, 0.0]), np.zeros(5))]
+    flags = [float(check(z, x)) for x, z in points]
+    assert flags == [float(obs.domain_check(z, x)) for x, z in points]
+    assert flags[-2:] == [1.0, 0.0] and 0 < sum(flags) < len(points) - 1

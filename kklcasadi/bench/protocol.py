@@ -30,6 +30,7 @@ import numpy as np
 
 from .. import signals as sig
 from .. import systems
+from ..codegen import axpy_matvec
 from ..compiled import DEFAULT_FLAGS, Compiler, TrajectoryEstimator, ekf_estimator, observer_estimator
 from ..protocol import Protocol, evaluate
 from ..trialcache import TrialCache
@@ -237,7 +238,7 @@ def bench_protocol(system: str = "duffing", *, models: Optional[Sequence[PathLik
         raise ValueError(f"vm_trials: expected an int in [1, n_trials = {n_trials}], received {vm_trials!r}.")
     plant = systems.get(system)
     models = [Path(m) for m in (shipped_models(system) if models is None else models)]
-    base = compiler if compiler is not None else Compiler()
+    base = compiler if compiler is not None else Compiler(postprocess=axpy_matvec)
     with tempfile.TemporaryDirectory(prefix="kklcasadi-bench-") as tmp:
         root = Path(cache_dir) if cache_dir is not None else Path(tmp)
         trial_cache = TrialCache(root / "trials")
@@ -312,9 +313,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--threads", type=int, help="worker threads over trials (default: the CPU count)")
     p.add_argument("--flags", default=" ".join(DEFAULT_FLAGS),
                    help=f"C compiler flags, one string (default '{' '.join(DEFAULT_FLAGS)}'; write --flags='-O2')")
-    p.add_argument("--postprocess", help="MODULE:FUNCTION rewriting the generated C source before compiling")
+    p.add_argument("--postprocess", default="kklcasadi.codegen:axpy_matvec",
+                   help="MODULE:FUNCTION rewriting the generated C source before compiling (default: the "
+                   "axpy mat-vec kernels, bitwise CasADi's; 'none': CasADi's own loops)")
     args = p.parse_args(argv)
-    hook = _hook(args.postprocess) if args.postprocess else None
+    hook = None if args.postprocess == "none" else _hook(args.postprocess)
     compiler = Compiler(flags=tuple(args.flags.split()), postprocess=hook)
     result = bench_protocol(args.system, models=args.models, n_trials=args.trials, vm_trials=args.vm_trials,
                             ekf=not args.no_ekf, compiler=compiler, n_threads=args.threads)
