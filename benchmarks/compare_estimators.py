@@ -1,6 +1,6 @@
 """The estimator comparison of the README: KKL observer vs EKF vs MHE (N = 10, 30) vs KKL-primed MHE.
 
-PROTOCOL.md benchmark (four systems, four input regimes, noise off and on, fixed seed 2026), with
+docs/protocol.md benchmark (four systems, four input regimes, noise off and on, fixed seed 2026), with
 the computation time per sample of every estimator measured in the same run. The full protocol
 (100 trials per cell) is
 

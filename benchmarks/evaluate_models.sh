@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Score the shipped observers and the EKF on the PROTOCOL.md benchmark; writes results/<system>/
+# Score the shipped observers and the EKF on the docs/protocol.md benchmark; writes results/<system>/
 # (table.md, per-trial scores.json, SMAPE box plots). The trials of each cell are simulated once and
 # kept in the trial cache ($KKLCASADI_CACHE, default ~/.cache/kklcasadi); observers and the EKF run as
 # compiled trajectories mapped over the trials (bitwise the CasADi VM's estimates).

@@ -1,6 +1,6 @@
 """Moving-horizon estimation with and without a learned KKL observer, on one noisy run.
 
-Estimates one PROTOCOL.md run (noise std 0.1 on ``xdot`` and ``y``) of a plant with
+Estimates one docs/protocol.md run (noise std 0.1 on ``xdot`` and ``y``) of a plant with
 
 * the learned KKL observer (``obs.simulate``),
 * the EKF (``kklcasadi.ekf.EKF``),

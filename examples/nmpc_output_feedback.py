@@ -9,7 +9,7 @@ The NMPC (:class:`kklcasadi.nmpc.NMPC`: Opti, multiple shooting with RK4, ipopt,
 (b) the shipped EKF (:class:`kklcasadi.nmpc.EKFEstimator`), or
 (c) the learned KKL observer (``obs.estimator().make_step``),
 
-with the plant simulated by CVODES under the PROTOCOL.md noise (process std 0.1 on ``xdot`` held
+with the plant simulated by CVODES under the docs/protocol.md noise (process std 0.1 on ``xdot`` held
 per interval, measurement std 0.1), the same noise for every feed. The script writes one table
 (markdown and JSON) and one PNG::
 
@@ -132,7 +132,7 @@ def plot(runs: dict[str, dict[str, ClosedLoop]], out: Path) -> Path:
         axes[row, 0].legend(fontsize=7, loc="lower left")
     for ax in axes[-1]:
         ax.set_xlabel("t (s)")
-    fig.suptitle("Output-feedback NMPC, noise on (PROTOCOL.md): true state vs EKF vs KKL observer")
+    fig.suptitle("Output-feedback NMPC, noise on (docs/protocol.md): true state vs EKF vs KKL observer")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)

@@ -313,7 +313,7 @@ def certificate(observer: KKLObserver, *, kinds: Sequence[str] = _KINDS, n_point
     ----------
     observer : KKLObserver
     kinds : sequence of str
-        Input regimes (PROTOCOL.md, ``id`` ranges) defining the input set and the runs;
+        Input regimes (docs/protocol.md, ``id`` ranges) defining the input set and the runs;
         ``("zero",)`` certifies the autonomous case ``u = 0``.
     n_points : int
         Latin-hypercube states of the domain, each with a window drawn from the runs' inputs.

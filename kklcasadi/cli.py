@@ -201,7 +201,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    """Score model directories (and the EKF) on the PROTOCOL.md cells: table, JSON, box plots.
+    """Score model directories (and the EKF) on the docs/protocol.md cells: table, JSON, box plots.
 
     Trials come from the on-disk trial cache (simulated once per cell); observers and the EKF run
     as compiled trajectories mapped over the trials (``--vm``: the CasADi VM, same values).
@@ -310,7 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="estimate a noisy run with a shipped observer and the EKF, write a PNG")
     d.add_argument("--system", choices=systems.names(), help="shipped system (default duffing)")
-    d.add_argument("--method", default="inject", help="shipped model under models/SYSTEM/ (default: inject)")
+    d.add_argument("--method", default="bank",
+                   help="shipped model under models/SYSTEM/ (default: bank, the observer fit for noisy measurements)")
     d.add_argument("--model", help="a model directory instead of a shipped one")
     d.add_argument("--plant", help=plant_help + " (with --model)")
     d.add_argument("--input", default="square", choices=sig.BENCHMARK_KINDS)
@@ -345,7 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--threads", type=_positive_int, help="torch CPU threads (1 per process on a shared machine)")
     t.set_defaults(func=cmd_train)
 
-    e = sub.add_parser("evaluate", help="score models on the PROTOCOL.md benchmark (SMAPE table, box plots)")
+    e = sub.add_parser("evaluate", help="score models on the docs/protocol.md benchmark (SMAPE table, box plots)")
     e.add_argument("models", nargs="+", help="model directories (same system)")
     e.add_argument("--labels", nargs="*", help="row labels, one per model (default: the model directories' names)")
     e.add_argument("--trials", type=_positive_int, default=100)

@@ -2,7 +2,7 @@
 
 Phase-1 labels ``z = T(x)`` come from simulating the plant at ``u = 0`` backward and then forward
 together with the latent system ``zdot = A z + B h(x)``, long enough that the initial latent is
-forgotten: the decay bound ``kappa exp(-lam t_b) |z0 - T(x)|`` is below ``tol`` (DESIGN.md
+forgotten: the decay bound ``kappa exp(-lam t_b) |z0 - T(x)|`` is below ``tol`` (docs/design.md
 "Phase-1 labels"; see :func:`phase1`).
 
 The input window convention (shared by training, evaluation, export and C) lives in

@@ -1,7 +1,7 @@
 """Extended Kalman filter with exact CasADi Jacobians: the baseline a control engineer would pick.
 
 The plant is discretised with RK4 over each sample interval (input held), and the state-transition
-Jacobian is the exact derivative of that RK4 step (``casadi.jacobian``). PROTOCOL.md settings:
+Jacobian is the exact derivative of that RK4 step (``casadi.jacobian``). docs/protocol.md settings:
 ``Q = (0.1 dt)^2 I``, ``R = 0.01``, started at the X0 box centre with the box's variance.
 A whole trajectory is one ``mapaccum`` call and many trials one ``map`` over it.
 """
@@ -39,7 +39,7 @@ class EKF:
     dt : float
         Sample period.
     Q : array_like, shape (nx, nx), optional
-        Process noise covariance per step; default ``(0.1 dt)^2 I`` (PROTOCOL.md).
+        Process noise covariance per step; default ``(0.1 dt)^2 I`` (docs/protocol.md).
     R : array_like, shape (ny, ny), optional
         Measurement noise covariance; default ``0.01 I``.
     x0 : array_like, shape (nx,), optional

@@ -7,7 +7,7 @@ output, the applied input and a constant,
 
 and decodes the state with a static map of the latent, the newest measurement and the current
 input, ``xhat_k = D(z_k, y_k, u_k)``. Over ``[t_k, t_k+1]`` the output is interpolated linearly
-between ``y_k`` and ``y_k+1`` (first-order hold, PROTOCOL.md) and the input held at ``u_k``; the
+between ``y_k`` and ``y_k+1`` (first-order hold, docs/protocol.md) and the input held at ``u_k``; the
 discretisation is exact (:meth:`FilterBank.discretise`):
 
     z_k+1 = Ad z_k + Gy y_k + Gy_next y_k+1 + Gu u_k + g.

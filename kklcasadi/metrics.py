@@ -1,4 +1,4 @@
-"""Accuracy metrics of PROTOCOL.md: SMAPE (the table's number), RMSE, RMSE after a settle time."""
+"""Accuracy metrics of docs/protocol.md: SMAPE (the table's number), RMSE, RMSE after a settle time."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def _pair(x_true: object, xhat: object) -> tuple[np.ndarray, np.ndarray]:
 
 
 def smape(x_true: object, xhat: object, *, per_state: bool = False) -> np.ndarray | float:
-    """Symmetric mean absolute percentage error per trial, in percent (PROTOCOL.md).
+    """Symmetric mean absolute percentage error per trial, in percent (docs/protocol.md).
 
     ``100 / (N nx) * sum_k sum_i 2 |x_ik - xhat_ik| / (|x_ik| + |xhat_ik| + 1e-8)``
 
@@ -53,7 +53,7 @@ def rmse(x_true: object, xhat: object) -> np.ndarray | float:
 
 
 def rmse_after(t: object, x_true: object, xhat: object, t_settle: float = 5.0) -> np.ndarray | float:
-    """RMSE over the samples with ``t >= t_settle`` (PROTOCOL.md reports ``t_settle = 5`` s).
+    """RMSE over the samples with ``t >= t_settle`` (docs/protocol.md reports ``t_settle = 5`` s).
 
     Parameters
     ----------
@@ -72,7 +72,7 @@ def rmse_after(t: object, x_true: object, xhat: object, t_settle: float = 5.0) -
 
 @dataclass(frozen=True)
 class Summary:
-    """Mean, median and interquartile range of per-trial values (PROTOCOL.md reporting)."""
+    """Mean, median and interquartile range of per-trial values (docs/protocol.md reporting)."""
 
     mean: float
     median: float

@@ -7,7 +7,7 @@ sample intervals (nodes ``x_{k-n}, ..., x_k`` with ``n = min(k, N)``)::
     s.t. x_{j+1} = Phi(x_j, u_j, w_j),   j = k-n, ..., k-1
 
 where ``Phi`` is RK4 (``substeps`` steps) over one sample interval of ``xdot = f(x, u) + w`` with
-``u`` and the process noise ``w`` held on the interval: the noise model of PROTOCOL.md and
+``u`` and the process noise ``w`` held on the interval: the noise model of docs/protocol.md and
 :func:`kklcasadi.simulate` (``qw = process_std``, ``rv = measurement_std``). The estimate is
 ``x_k``. Before ``N`` intervals exist the horizon grows (``n = k``): one problem per length
 ``n = 0..N``, each built once with :class:`casadi.Opti` and compiled with

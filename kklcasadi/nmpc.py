@@ -13,7 +13,7 @@ Function call::
 The previous solution, shifted by one sample, warm-starts the next solve (primal and dual).
 
 :func:`closed_loop` runs the loop the way a deployed controller does: the plant is a CVODES
-integrator with the PROTOCOL.md process noise held on each interval and measurement noise on
+integrator with the docs/protocol.md process noise held on each interval and measurement noise on
 ``y``; at sample ``k`` the estimator receives ``y_k`` and the input ``u_k`` already applied
 from ``t_k`` (``make_step(y_k, u_k)``, the :class:`kklcasadi.observer.Estimator` convention)
 and returns ``xhat_k``; the controller then predicts ``x_{k+1}`` from ``xhat_k`` and ``u_k``
@@ -87,7 +87,7 @@ def steady_state(system: System, r: float, index: int = 0) -> tuple[np.ndarray, 
 def plant_step(system: System, dt: float, *, rtol: float = 1e-8, atol: float = 1e-10) -> ca.Function:
     """The plant over one sample interval: CVODES, ``(x, u, w) -> x_next``, ``xdot = f(x, u) + w``.
 
-    ``u`` and the process noise ``w`` are held on the interval (PROTOCOL.md tolerances).
+    ``u`` and the process noise ``w`` are held on the interval (docs/protocol.md tolerances).
     """
     x, u, w = ca.SX.sym("x", system.nx), ca.SX.sym("u", system.nu), ca.SX.sym("w", system.nx)
     p = ca.vertcat(u, w)
@@ -404,7 +404,7 @@ def closed_loop(controller: NMPC, estimator: Any, reference: Callable[[float], t
     u0 : array_like, shape (nu,), optional
         Input on the first interval (before any estimate); default 0.
     process_std, measurement_std : float
-        PROTOCOL.md noise (process noise on ``xdot`` held per interval).
+        docs/protocol.md noise (process noise on ``xdot`` held per interval).
     seed : int
         Noise seed (the same seed gives the same noise to every estimator).
     plant : casadi.Function, optional

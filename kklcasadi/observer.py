@@ -334,7 +334,7 @@ class KKLObserver:
         u : array_like, shape (N, nu) or (M, N, nu)
             Inputs, held over ``[t_k, t_k+1)`` (``(N,)`` is accepted when nu = 1).
         z0 : array_like, shape (nz,) or (M, nz), optional
-            Initial latent state; default 0 (PROTOCOL.md). ``(nz,)`` is used for every trial.
+            Initial latent state; default 0 (docs/protocol.md). ``(nz,)`` is used for every trial.
         n_threads : int, optional
             Worker threads for M trials (default: the CPU count).
 

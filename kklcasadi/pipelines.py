@@ -1,4 +1,4 @@
-"""The estimator comparison of PROTOCOL.md: learned KKL observer, EKF, MHE and KKL-primed MHE.
+"""The estimator comparison of docs/protocol.md: learned KKL observer, EKF, MHE and KKL-primed MHE.
 
 :func:`compare_system` scores every estimator on the same protocol trials of one system (four
 input regimes, noise off and on) and times each in the same run. The table (:func:`markdown_table`)
@@ -37,7 +37,7 @@ __all__ = ["EstimatorCell", "SystemComparison", "compare_system", "markdown_tabl
 KINDS = ("zero", "constant", "sinusoid", "square")
 #: The learned observer compared per system: the best noisy-protocol variant of the README's
 #: results table (``results/<system>/``).
-DEFAULT_METHODS = {"duffing": "inject", "vdp": "inject", "fhn": "dyn", "rossler": "dyn"}
+DEFAULT_METHODS = {"duffing": "bank", "vdp": "bank", "fhn": "bank", "rossler": "bank"}
 #: RK4 steps per sample interval in the MHE model: FitzHugh-Nagumo is stiff at the box edge.
 MHE_SUBSTEPS = {"fhn": 4}
 
@@ -287,7 +287,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def add_compare_parser(sub: Any) -> argparse.ArgumentParser:
     """Add the ``compare`` subcommand to a ``kklcasadi`` subparsers object; returns its parser."""
     c = sub.add_parser("compare", help="KKL observer vs EKF vs MHE vs KKL-primed MHE on the "
-                                       "PROTOCOL.md benchmark (SMAPE and time per sample)")
+                                       "docs/protocol.md benchmark (SMAPE and time per sample)")
     c.add_argument("--systems", nargs="+", default=list(DEFAULT_METHODS), choices=systems.names())
     c.add_argument("--method", action="append", metavar="SYSTEM=METHOD",
                    help="learned observer per system (default: "
@@ -295,7 +295,7 @@ def add_compare_parser(sub: Any) -> argparse.ArgumentParser:
     c.add_argument("--models-root", help="directory holding SYSTEM/METHOD model directories "
                                          "(default: ./models, else the source tree's)")
     c.add_argument("--trials", type=int, default=100)
-    c.add_argument("--T", type=float, default=50.0, help="horizon in seconds (PROTOCOL.md: 50)")
+    c.add_argument("--T", type=float, default=50.0, help="horizon in seconds (docs/protocol.md: 50)")
     c.add_argument("--seed", type=int, default=2026)
     c.add_argument("--noise", default="both", choices=("on", "off", "both"))
     c.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)

@@ -1,4 +1,4 @@
-"""The benchmark protocol of PROTOCOL.md: trials per (system, input regime) cell and their scoring.
+"""The benchmark protocol of docs/protocol.md: trials per (system, input regime) cell and their scoring.
 
 Every method sees the same trials: initial states from a seeded Latin hypercube over X0, input
 parameters and noise draws from seeds derived from ``(seed, regime index, trial)``. Noise-free and
@@ -35,7 +35,7 @@ Estimator = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 @dataclass(frozen=True)
 class Protocol:
-    """Settings of the benchmark (defaults: PROTOCOL.md, noise on).
+    """Settings of the benchmark (defaults: docs/protocol.md, noise on).
 
     Use :meth:`noise_free` for the column comparable with the paper's table.
     """

@@ -1,4 +1,4 @@
-"""Benchmark tables and plots: scores of observers (and the EKF) on the PROTOCOL.md cells."""
+"""Benchmark tables and plots: scores of observers (and the EKF) on the docs/protocol.md cells."""
 
 from __future__ import annotations
 

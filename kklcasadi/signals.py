@@ -240,7 +240,7 @@ _ID_RANGES = {
     "sinusoid": {"amplitude": (0.1, 1.0), "omega": (0.5, 3.0)},
     "square": {"amplitude": (0.1, 1.0), "omega": (0.5, 2.0)},
 }
-#: Per-trial parameter ranges of PROTOCOL.md. ``train`` (the training distribution) equals ``id``.
+#: Per-trial parameter ranges of docs/protocol.md. ``train`` (the training distribution) equals ``id``.
 RANGES: Mapping[str, Mapping[str, Mapping[str, tuple[float, float]]]] = {
     "train": _ID_RANGES,
     "id": _ID_RANGES,
@@ -256,7 +256,7 @@ BENCHMARK_KINDS = ("zero", "constant", "sinusoid", "square")
 
 
 def sample(kind: str, rng: np.random.Generator, regime: str = "id", *, nu: int = 1) -> Signal:
-    """Draw one signal of ``kind`` with parameters from the PROTOCOL.md ranges of ``regime``.
+    """Draw one signal of ``kind`` with parameters from the docs/protocol.md ranges of ``regime``.
 
     Parameters
     ----------

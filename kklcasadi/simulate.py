@@ -1,6 +1,6 @@
 """Simulation of plants with CasADi integrators: zero-order-hold inputs, seeded noise, many trials.
 
-One sample interval is a :func:`casadi.integrator` (CVODES by default, the PROTOCOL.md reference;
+One sample interval is a :func:`casadi.integrator` (CVODES by default, the docs/protocol.md reference;
 fixed-step ``"rk"`` for speed). A trajectory is that step folded with ``mapaccum``, and many trials
 are the folded trajectory mapped over ``"thread"`` workers: no Python loop per step or per trial.
 """
@@ -82,7 +82,7 @@ class TrajectoryBatch:
 
 
 def time_grid(T: float, dt: float) -> np.ndarray:
-    """Sample times ``t_k = k dt``, ``k = 0..N-1`` with ``N = round(T / dt)`` (PROTOCOL.md)."""
+    """Sample times ``t_k = k dt``, ``k = 0..N-1`` with ``N = round(T / dt)`` (docs/protocol.md)."""
     dt = positive_number(dt, "dt")
     T = finite_number(T, "T")
     if T < 2 * dt:
@@ -125,7 +125,7 @@ def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: fl
     Parameters
     ----------
     method : {"cvodes", "rk"}
-        ``"cvodes"``: adaptive BDF with tolerances ``rtol``/``atol`` (PROTOCOL.md: 1e-8 / 1e-10).
+        ``"cvodes"``: adaptive BDF with tolerances ``rtol``/``atol`` (docs/protocol.md: 1e-8 / 1e-10).
         ``"rk"``: RK4 (:func:`kklcasadi.rk4.rk4_step`, SX) with ``substeps`` fixed steps per interval.
     """
     one_of(method, "method", INTEGRATORS)

@@ -3,7 +3,7 @@
 A :class:`System` holds the exact right-hand side ``f(x, u)``, the output map ``h(x)`` and their
 Jacobians as :class:`casadi.Function` objects, built once from SX symbols. The registry
 (:func:`get`, :func:`names`) provides the four systems of the HyperKKL paper exactly as in
-``PROTOCOL.md``, plus Lorenz and a linear test plant with a known KKL map.
+``docs/protocol.md``, plus Lorenz and a linear test plant with a known KKL map.
 """
 
 from __future__ import annotations

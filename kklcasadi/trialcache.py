@@ -1,6 +1,6 @@
 """On-disk cache of the protocol's simulated plant trials (one ``.npz`` per cell).
 
-The trials of a PROTOCOL.md cell ``(system, input regime, noise)`` are seeded and deterministic,
+The trials of a docs/protocol.md cell ``(system, input regime, noise)`` are seeded and deterministic,
 so they are simulated once and reused by every method and every later run. A cell file holds the
 arrays of a :class:`~kklcasadi.simulate.TrajectoryBatch` (``t``, ``x``, ``u``, ``y``, ``ok``) as a
 plain ``.npz`` (read with ``allow_pickle=False``), the JSON description of what it was simulated

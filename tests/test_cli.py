@@ -84,7 +84,7 @@ def _cli(*args, env=None):
     (["demo", "--T", "-5"], "argument --T: expected a positive number, received '-5'"),
     (["evaluate", "models/duffing/inject", "--trials", "0"], "argument --trials: expected a positive integer"),
     (["export", "models/duffing/inject", "--name", "1bad", "--casadi", "x.casadi"], "argument --name: expected a C"),
-    (["demo", "--system", "lorenz"], "--system lorenz --method inject: no shipped model"),
+    (["demo", "--system", "lorenz"], "--system lorenz --method bank: no shipped model"),
     (["demo", "--system", "vdp", "--model", "models/duffing/inject"], "--system vdp: the model"),
     (["train", "--method", "inject", "--out", "x"], "--system/--plant: give exactly one"),
     (["train", "--plant", "nope.py", "--method", "inject", "--out", "x"], "--plant: expected an existing Python"),

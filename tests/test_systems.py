@@ -4,7 +4,7 @@ import pytest
 
 import kklcasadi as kc
 
-PAPER = {  # PROTOCOL.md table: (nx, nz, y index, box)
+PAPER = {  # docs/protocol.md table: (nx, nz, y index, box)
     "duffing": (2, 5, 0, [[-1, 1], [-1, 1]]),
     "vdp": (2, 5, 0, [[-3, 3], [-3, 3]]),
     "rossler": (3, 7, 1, [[-10, 10]] * 3),

@@ -1,4 +1,4 @@
-"""Cache the PROTOCOL.md benchmark trials (noise on and off, 100 per cell) and the EKF on them.
+"""Cache the docs/protocol.md benchmark trials (noise on and off, 100 per cell) and the EKF on them.
 
 Writes ``<cache>/<system>_<noisy|clean>.npz`` with, per input regime ``k``: ``k/t`` (N,),
 ``k/x`` (M, N, nx), ``k/y`` (M, N, ny), ``k/u`` (M, N, nu), ``k/ok`` (M,) and ``k/ekf`` (M, N, nx),

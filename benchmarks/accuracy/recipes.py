@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-#: The paper's best noise-free SMAPE per cell (PROTOCOL.md Table I), zero/constant/sinusoid/square.
+#: The paper's best noise-free SMAPE per cell (docs/protocol.md Table I), zero/constant/sinusoid/square.
 PAPER_BEST = {"duffing": [5.6, 21.1, 22.7, 21.3], "vdp": [5.0, 26.0, 15.5, 17.9],
               "rossler": [52.7, 55.4, 53.5, 54.0], "fhn": [9.8, 42.1, 30.9, 32.5]}
 

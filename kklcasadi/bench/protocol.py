@@ -1,4 +1,4 @@
-"""Benchmark of the full PROTOCOL.md run of one system: every shipped method, every cell, fast path vs VM.
+"""Benchmark of the full docs/protocol.md run of one system: every shipped method, every cell, fast path vs VM.
 
 ``python -m kklcasadi.bench.protocol duffing`` times, in one run:
 
@@ -209,7 +209,7 @@ def bench_protocol(system: str = "duffing", *, models: Optional[Sequence[PathLik
     models : sequence of path-like, optional
         Model directories (default :func:`shipped_models`); rows are labelled by directory name.
     n_trials : int
-        Trials per cell (PROTOCOL.md: 100).
+        Trials per cell (docs/protocol.md: 100).
     vm_trials : int
         Trials per cell run in the VM for the per-trial comparison and the bitwise check.
     ekf : bool
@@ -307,7 +307,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p = argparse.ArgumentParser(prog="python -m kklcasadi.bench.protocol", description=__doc__.split("\n")[0])
     p.add_argument("system", nargs="?", default="duffing", choices=systems.names())
     p.add_argument("--models", nargs="+", help="model directories (default: the shipped ones)")
-    p.add_argument("--trials", type=int, default=100, help="trials per cell (default 100, PROTOCOL.md)")
+    p.add_argument("--trials", type=int, default=100, help="trials per cell (default 100, docs/protocol.md)")
     p.add_argument("--vm-trials", type=int, default=4, help="trials per cell run in the VM (default 4)")
     p.add_argument("--no-ekf", action="store_true", help="leave the EKF out")
     p.add_argument("--threads", type=int, help="worker threads over trials (default: the CPU count)")

@@ -47,7 +47,7 @@ class RolloutConfig:
     n_traj : int
         Number of runs, spread evenly over ``kinds`` (round-robin).
     T, dt : float
-        Horizon and sample period (PROTOCOL.md: 50 s, 0.05 s).
+        Horizon and sample period (docs/protocol.md: 50 s, 0.05 s).
     process_std, measurement_std : float
         Noise levels the decoder is fitted for.
     kinds : tuple of str
