@@ -59,8 +59,8 @@ from .validation import one_of
 if TYPE_CHECKING:
     from .observer import KKLObserver
 
-__all__ = ["generate_c", "axpy_matvec", "check_c_name", "check_flags", "vector_math_c", "C_FLAGS", "DEFAULT_FLAGS",
-           "NATIVE_FLAGS", "MATVECS", "MATHS", "VECTOR_MATH_TOLERANCE"]
+__all__ = ["generate_c", "axpy_matvec", "fast_kernels", "check_c_name", "check_flags", "vector_math_c", "C_FLAGS",
+           "DEFAULT_FLAGS", "NATIVE_FLAGS", "MATVECS", "MATHS", "VECTOR_MATH_TOLERANCE"]
 
 #: The warning flags the generated code is tested with, at -O2 (it is also tested at
 #: ``DEFAULT_FLAGS`` with the same warnings).
@@ -616,6 +616,16 @@ def axpy_matvec(source: str) -> str:
     ``kklcasadi evaluate``).
     """
     return _rewrite(source, matvec=True, math=False, dispatch=False)
+
+
+def fast_kernels(source: str) -> str:
+    """``source`` with the axpy mat-vec kernels, the vectorisable exp/tanh and their AVX2 versions.
+
+    As :func:`generate_c`'s defaults: within :data:`VECTOR_MATH_TOLERANCE` of CasADi's values
+    (the exp/tanh within 3 ulp) rather than bitwise; the default of ``kklcasadi evaluate``
+    (``--math libm`` keeps it bitwise).
+    """
+    return _rewrite(source, matvec=True, math=True, dispatch=True)
 
 
 _PRAGMA_PUSH = """#if defined(__GNUC__)

@@ -8,7 +8,7 @@
   trajectory into an empty library cache, then scoring every cell with the compiled trajectory
   mapped over the trials;
 - the same estimator in the CasADi VM on the first ``vm_trials`` trials of every cell, and
-  whether the compiled estimates equal the VM's bitwise there.
+  how far the compiled estimates are from the VM's there (0 with ``axpy_matvec``: bitwise).
 
 Wall times on a shared machine vary with the load; CPU times (all threads of this process) are
 printed beside them. Nothing here asserts a speed.
@@ -30,7 +30,7 @@ import numpy as np
 
 from .. import signals as sig
 from .. import systems
-from ..codegen import axpy_matvec
+from ..codegen import fast_kernels
 from ..compiled import DEFAULT_FLAGS, Compiler, TrajectoryEstimator, ekf_estimator, observer_estimator
 from ..protocol import Protocol, evaluate
 from ..trialcache import TrialCache
@@ -64,8 +64,8 @@ class MethodTiming:
     vm_s, vm_cpu_s : float
         The VM on the first ``vm_trials`` trials of every cell.
     vm_trials : int
-    bitwise : bool
-        Whether the compiled estimates equal the VM's bitwise on those trials.
+    max_diff : float
+        ``max |compiled - VM| / (1 + |VM|)`` over those trials (0: bitwise equal).
     """
 
     label: str
@@ -76,7 +76,7 @@ class MethodTiming:
     vm_s: float
     vm_cpu_s: float
     vm_trials: int
-    bitwise: bool
+    max_diff: float
 
     @property
     def per_trial_s(self) -> float:
@@ -151,14 +151,15 @@ class ProtocolBench:
     def table(self) -> str:
         """A markdown table of the per-method timings and the totals."""
         lines = ["| method | compile (s) | run (s) | trials | per trial, compiled: wall / cpu (ms) | "
-                 "per trial, VM: wall / cpu (ms) | VM / compiled: wall / cpu | bitwise | paper's code (ms/trial) |",
+                 "per trial, VM: wall / cpu (ms) | VM / compiled: wall / cpu | max diff vs VM | "
+                 "paper's code (ms/trial) |",
                  "|---|---|---|---|---|---|---|---|---|"]
         for m in self.methods:
             paper = PAPER_SECONDS_PER_TRIAL.get(m.label)
             lines.append(f"| {m.label} | {m.compile_s:.1f} | {m.run_s:.1f} | {m.trials} | "
                          f"{m.per_trial_s * 1e3:.1f} / {m.cpu_per_trial_s * 1e3:.1f} | "
                          f"{m.vm_per_trial_s * 1e3:.1f} / {m.vm_cpu_per_trial_s * 1e3:.1f} | "
-                         f"{m.speedup:.2f}x / {m.cpu_speedup:.2f}x | {'yes' if m.bitwise else 'NO'} | "
+                         f"{m.speedup:.2f}x / {m.cpu_speedup:.2f}x | {m.max_diff:.1e} | "
                          f"{'' if paper is None else f'{paper * 1e3:.0f}'} |")
         verdict = "meets" if self.warm_s < TARGET_SECONDS else "misses"
         lines += ["",
@@ -238,7 +239,7 @@ def bench_protocol(system: str = "duffing", *, models: Optional[Sequence[PathLik
         raise ValueError(f"vm_trials: expected an int in [1, n_trials = {n_trials}], received {vm_trials!r}.")
     plant = systems.get(system)
     models = [Path(m) for m in (shipped_models(system) if models is None else models)]
-    base = compiler if compiler is not None else Compiler(postprocess=axpy_matvec)
+    base = compiler if compiler is not None else Compiler(postprocess=fast_kernels)
     with tempfile.TemporaryDirectory(prefix="kklcasadi-bench-") as tmp:
         root = Path(cache_dir) if cache_dir is not None else Path(tmp)
         trial_cache = TrialCache(root / "trials")
@@ -277,11 +278,11 @@ def bench_protocol(system: str = "duffing", *, models: Optional[Sequence[PathLik
             fast_out = [fast(b.t, b.y[:vm_trials], b.u[:vm_trials]) for b in subsets]
             timing = MethodTiming(label, compile_s, run_s, run_cpu_s, sum(r.smape.size for r in results), vm_s,
                                   vm_cpu_s, vm_trials * len(cells),
-                                  all(np.array_equal(a, b) for a, b in zip(fast_out, vm_out)))
+                                  max(float(np.max(np.abs(a - b) / (1 + np.abs(b)))) for a, b in zip(fast_out, vm_out)))
             timings.append(timing)
             log(f"{label}: compile {compile_s:.1f} s, run {run_s:.1f} s, {timing.per_trial_s * 1e3:.1f} ms/trial "
                 f"(cpu {timing.cpu_per_trial_s * 1e3:.1f}; VM {timing.vm_per_trial_s * 1e3:.1f}, cpu "
-                f"{timing.vm_cpu_per_trial_s * 1e3:.1f}), bitwise {timing.bitwise}")
+                f"{timing.vm_cpu_per_trial_s * 1e3:.1f}), max diff vs VM {timing.max_diff:.1e}")
     return ProtocolBench(plant.name, n_trials, len(cells), simulate_s, load_s, tuple(timings))
 
 
@@ -313,9 +314,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     p.add_argument("--threads", type=int, help="worker threads over trials (default: the CPU count)")
     p.add_argument("--flags", default=" ".join(DEFAULT_FLAGS),
                    help=f"C compiler flags, one string (default '{' '.join(DEFAULT_FLAGS)}'; write --flags='-O2')")
-    p.add_argument("--postprocess", default="kklcasadi.codegen:axpy_matvec",
+    p.add_argument("--postprocess", default="kklcasadi.codegen:fast_kernels",
                    help="MODULE:FUNCTION rewriting the generated C source before compiling (default: the "
-                   "axpy mat-vec kernels, bitwise CasADi's; 'none': CasADi's own loops)")
+                   "axpy mat-vec kernels and vector exp/tanh, within 1e-14 of CasADi's values; "
+                   "kklcasadi.codegen:axpy_matvec: bitwise; 'none': CasADi's own loops)")
     args = p.parse_args(argv)
     hook = None if args.postprocess == "none" else _hook(args.postprocess)
     compiler = Compiler(flags=tuple(args.flags.split()), postprocess=hook)
