@@ -429,6 +429,20 @@ def test_bench_observer_step_runs_once(model_dir_factory, capsys):
     assert "as fast as torch eager at its best thread count" in out and "the time of hand" in out
 
 
+@needs_gcc
+@pytest.mark.parametrize("method", ["obs_stream", "dyn_stream", "bank"])
+def test_bench_observer_step_takes_every_memory_shape(model_dir_factory, capsys, method):
+    """Streaming and feedthrough memories (not a window) are benchmarked and checked like windows."""
+    pytest.importorskip("torch")
+    from kklcasadi.bench.observer_step import bench_observer_step
+
+    timings = bench_observer_step(model_dir_factory(method), n_calls=2, repeat=1, callgrind=False)
+    assert any(t.label.startswith("C default") for t in timings) and all(t.seconds > 0 for t in timings)
+    out = capsys.readouterr().out
+    expected = "torch: skipped (the 'bank' variant has no torch step)" if method == "bank" else "torch eager"
+    assert expected in out
+
+
 # ----------------------------------------------------------------------------- domain monitor in C
 
 @needs_gcc

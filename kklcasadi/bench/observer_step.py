@@ -340,7 +340,7 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
     obs = load_observer(model_dir, system=system)
     rng = np.random.default_rng(0)
     args = [0.5 * rng.normal(size=size) for size in
-            (obs.nz, (obs.window, obs.nu), obs.ny, obs.ny, obs.nu)]   # z, w, y, y_next, u_next
+            (obs.nz, obs.memory_shape, obs.ny, obs.ny, obs.nu)]   # z, w, y, y_next, u_next
     dm_args = [ca.DM(a) for a in args]
     reference = [np.array(v) for v in obs.step.call(dm_args)]
     checks: dict[str, float] = {}
@@ -481,7 +481,9 @@ def _torch_cases(obs: KKLObserver, args: list[np.ndarray], reference: list[np.nd
 
     step = torch_step(obs)
     if step is None:
-        print("torch: skipped (the model-based term needs the CasADi plant)")
+        why = ("the model-based term needs the CasADi plant" if obs.method == "inject" or obs.model_based_injection
+               else f"the {obs.method!r} variant has no torch step")
+        print(f"torch: skipped ({why})")
         return [], lambda: None
     import torch
 
