@@ -241,6 +241,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         scores.append(score(label, estimator, plant, protocol, noise=noise, kinds=kinds, cache=cache,
                             trial_cache=trial_cache, progress=True))
         print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    for horizon in args.mhe or ():
+        scores.append(_mhe_scores(horizon, plant, protocol, noise, kinds, cache, trial_cache))
     if args.ekf:
         estimator = ekf_estimator(EKF(plant, protocol.dt), compiler=compiler, n_threads=args.threads)
         t0 = time.perf_counter()
@@ -258,6 +260,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         (out / f"{plant.name}_table.md").write_text(markdown_table(scores, kinds) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
     return 0
+
+
+def _mhe_scores(horizon: int, plant: System, protocol: Any, noise: tuple, kinds: tuple, cache: dict,
+                trial_cache: Any) -> Any:
+    """The exact-model MHE of ``horizon`` on every cell, weighted by each column's noise levels."""
+    from .mhe import MHE
+    from .pipelines import MHE_SUBSTEPS
+    from .report import MethodScores, score
+
+    label, results = f"MHE N={horizon}", {}
+    t0 = time.perf_counter()
+    for noisy in noise:
+        prot = protocol if noisy else protocol.noise_free()
+        mhe = MHE(plant, protocol.dt, horizon, process_std=prot.process_std, measurement_std=prot.measurement_std,
+                  substeps=MHE_SUBSTEPS.get(plant.name, 1))
+        results.update(score(label, mhe, plant, protocol, noise=(noisy,), kinds=kinds, cache=cache,
+                             trial_cache=trial_cache, progress=True).results)
+    print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    return MethodScores(label, plant.name, results)
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -357,6 +378,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS)
     e.add_argument("--regime", default="id", choices=sig.REGIMES)
     e.add_argument("--ekf", action="store_true", help="add the EKF baseline")
+    e.add_argument("--mhe", nargs="+", type=_positive_int, metavar="N",
+                   help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
     e.add_argument("--seed", type=int, default=2026)
     e.add_argument("--out", help="directory for the JSON scores, table and box plots")
     e.add_argument("--cache-dir", help="root of the trial and compiled-code caches (default: $KKLCASADI_CACHE, "

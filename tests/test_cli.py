@@ -46,6 +46,16 @@ def test_evaluate_prints_a_table_and_writes_plots(model_dir_factory, tmp_path, c
     assert (out / "duffing_smape_clean.png").exists() and (out / "duffing_scores.json").exists()
 
 
+def test_evaluate_scores_the_mhe_beside_the_models(model_dir_factory, tmp_path, capsys):
+    a = model_dir_factory("autonomous")
+    assert main(["evaluate", str(a), "--trials", "1", "--kinds", "zero", "--mhe", "3", "--ekf"]) == 0
+    table = capsys.readouterr().out
+    assert "| duffing MHE N=3 |" in table and "| duffing EKF |" in table
+    rows = {line.split("|")[1].strip(): line for line in table.splitlines() if line.startswith("| duffing")}
+    mhe_clean = float(rows["duffing MHE N=3"].split("|")[2])
+    assert mhe_clean < float(rows["duffing EKF"].split("|")[2])          # noise-free: the exact model wins
+
+
 def test_train_inject_via_the_cli(model_dir_factory, tmp_path):
     base = model_dir_factory("autonomous")
     out = tmp_path / "inject"
