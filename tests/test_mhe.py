@@ -153,14 +153,14 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
     from kklcasadi.pipelines import SystemComparison, main, markdown_table
 
     root = tmp_path / "models"
-    shutil.copytree(model_dir_factory("inject", "duffing", seed=2), root / "duffing" / "inject")
+    shutil.copytree(model_dir_factory("bank", "duffing", seed=2), root / "duffing" / "bank")
     out = tmp_path / "out"
     assert main(["compare", "--systems", "duffing", "--models-root", str(root), "--trials", "1",
                  "--T", "0.5", "--kinds", "zero", "--noise", "off", "--horizons", "3",
                  "--primed-horizon", "2", "--calibration-trials", "1", "--out", str(out),
                  "--quiet"]) == 0
     comparison = SystemComparison.from_json(json.loads((out / "duffing.json").read_text()))
-    assert comparison.estimators == ["KKL (inject)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
+    assert comparison.estimators == ["KKL (bank)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
     assert all(cell.n_samples == 10 and len(cell.smape) == 1 for cell in comparison.cells)
     table = (out / "table.md").read_text()
     assert table.strip() == markdown_table([comparison], ("zero",))
