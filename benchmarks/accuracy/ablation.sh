@@ -2,7 +2,8 @@
 # Lever ablation on Duffing with a cheap configuration (1000 rollouts, 10 epochs, 3x128 decoder),
 # two runs at a time. Results: results/accuracy/probes/duffing_abl_*.json, summary: tables.py.
 set -e
-P="env PYTHONPATH=. /work/main/.venv/bin/python benchmarks/accuracy/probe.py duffing --n-traj 1000 --epochs 10 --hidden 128,128,128"
+cd "$(dirname "$0")/../.."
+P="env PYTHONPATH=. ${PYTHON:-python} benchmarks/accuracy/probe.py duffing --n-traj 1000 --epochs 10 --hidden 128,128,128"
 G="--y-poles 0.2,0.4,0.8,1.5,3,6,12,25"
 $P --tag abl_kkl --y-poles 1,2,3,4,5 --u-poles "" > /tmp/acc_abl_kkl.log 2>&1 &
 $P --tag abl_kkl_u --y-poles 1,2,3,4,5 --u-poles 0.3,1,3 > /tmp/acc_abl_kkl_u.log 2>&1
