@@ -13,7 +13,7 @@ systems=("$@")
 if [ ${#systems[@]} -eq 0 ]; then systems=(duffing vdp fhn rossler); fi
 for s in "${systems[@]}"; do
   models=()
-  for m in autonomous inject obs obs-inject dyn curriculum bank; do
+  for m in autonomous inject obs obs-inject obs_stream dyn dyn_stream curriculum bank; do
     if [ -f "models/$s/$m/card.json" ]; then models+=("models/$s/$m"); fi
   done
   TIMEFORMAT="$s: $trials trials per cell in %R s wall, %U s user + %S s system CPU"
