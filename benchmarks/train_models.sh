@@ -18,8 +18,8 @@ for s in ${systems[@]}; do
   kklcasadi train --system "$s" --method dyn --out "models/$s/dyn" --overwrite --quiet --device "${DEVICE:-cpu}"
   kklcasadi train --system "$s" --method curriculum --out "models/$s/curriculum" --overwrite --quiet
   kklcasadi train --system "$s" --method bank --out "models/$s/bank" --overwrite --quiet --seed 11
-  # the streaming context ships where it is within 10 % of the window GRU (Van der Pol's obs)
-  if [ "$s" = vdp ]; then
+  # the streaming context ships where it is within 10 % of the window GRU (Van der Pol, Roessler)
+  if [ "$s" = vdp ] || [ "$s" = rossler ]; then
     kklcasadi train --system "$s" --method obs_stream --out "models/$s/obs_stream" --overwrite --quiet
   fi
 done
