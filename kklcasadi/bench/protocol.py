@@ -34,6 +34,7 @@ from ..codegen import fast_kernels
 from ..compiled import DEFAULT_FLAGS, Compiler, TrajectoryEstimator, ekf_estimator, observer_estimator
 from ..protocol import Protocol, evaluate
 from ..trialcache import TrialCache
+from ..validation import error, positive_int
 
 __all__ = ["MethodTiming", "ProtocolBench", "bench_protocol", "shipped_models", "PAPER_SECONDS_PER_TRIAL",
            "TARGET_SECONDS", "main"]
@@ -233,10 +234,9 @@ def bench_protocol(system: str = "duffing", *, models: Optional[Sequence[PathLik
     from ..ekf import EKF
     from ..observer import load_observer
 
-    if isinstance(n_trials, bool) or not isinstance(n_trials, int) or n_trials < 1:
-        raise ValueError(f"n_trials: expected a positive int, received {n_trials!r}.")
-    if isinstance(vm_trials, bool) or not isinstance(vm_trials, int) or not 1 <= vm_trials <= n_trials:
-        raise ValueError(f"vm_trials: expected an int in [1, n_trials = {n_trials}], received {vm_trials!r}.")
+    n_trials = positive_int(n_trials, "n_trials")
+    if positive_int(vm_trials, "vm_trials") > n_trials:
+        raise error("vm_trials", f"an int in [1, n_trials = {n_trials}]", vm_trials)
     plant = systems.get(system)
     models = [Path(m) for m in (shipped_models(system) if models is None else models)]
     base = compiler if compiler is not None else Compiler(postprocess=fast_kernels)
