@@ -22,11 +22,9 @@ import numpy as np
 
 from kklcasadi import filterbank as fb
 from kklcasadi import systems
-from kklcasadi.architecture import DECODER, MLPSpec
-from kklcasadi.modelfile import Domain, make_card, save_model
-from kklcasadi.train.bank import BankConfig
+from kklcasadi.modelfile import make_card, save_model
+from kklcasadi.train.bank import BankConfig, bank_model, design_bank
 from kklcasadi.train.operational import config_record, rollouts
-from kklcasadi.variants import BankSpec
 
 SEED = 11
 DT = 0.05
@@ -40,18 +38,12 @@ def ship(system: str, weights: Path, out: Path, overwrite: bool) -> Path:
     config = BankConfig.for_system(system)
     if json.loads(json.dumps(config_record(config.rollouts, config.decoder))) != record["config"]:
         raise SystemExit(f"{system}: the fit's configuration is not BankConfig.for_system({system!r})")
-    bank = fb.FilterBank.design(plant.ny, plant.nu, config.y_poles, config.u_poles,
-                                y_resonators=config.y_resonators, clock=config.clock)
+    bank = design_bank(plant, config)
     for name, value in fb.bank_arrays(bank).items():
         if not np.array_equal(fitted[name], value):
             raise SystemExit(f"{system}: {name} is not the recipe's filter bank")
     runs = rollouts(plant, replace(config.rollouts, dt=DT), SEED)
-    z = bank.run(runs.y, runs.u, DT)
-    arrays = {name: value for name, value in fitted.items() if not name.startswith("bank/")}
-    arrays.update({"bank/Bu": np.array(bank.Bu), "bank/c": np.array(bank.c)})
-    params = {"y_poles": list(config.y_poles), "u_poles": list(config.u_poles),
-              "y_resonators": [list(r) for r in config.y_resonators], "clock": config.clock}
-    spec = BankSpec(MLPSpec.from_card(record["arch"], "architecture", DECODER), bank.A, bank.By, DT, plant.nu, params)
+    arrays, spec, domain = bank_model(plant, bank, config, fitted, record["arch"], runs, DT)
     history = record["history"]
     best = int(np.argmin(history["val"]))
     training = {**record["config"], "decoder_fit": {"epochs": len(history["val"]), "best_epoch": best,
@@ -61,8 +53,7 @@ def ship(system: str, weights: Path, out: Path, overwrite: bool) -> Path:
                 "device": "cpu", "made_by": "benchmarks/accuracy/probe.py --recipe --seed 11 (train_final.sh), "
                 "packaged by benchmarks/accuracy/ship_bank.py"}
     card = make_card(plant, SimpleNamespace(A=bank.A, B=bank.By), "bank", spec, dt=DT, window=1, training=training,
-                     measurement_std=config.rollouts.measurement_std,
-                     domain=Domain.of(runs.x.reshape(-1, plant.nx), z.reshape(-1, bank.nz)))
+                     measurement_std=config.rollouts.measurement_std, domain=domain)
     path = save_model(out / system / "bank", arrays, card, overwrite=overwrite)
     (path / "history.json").write_text(json.dumps({"decoder": history}))
     return path

@@ -14,13 +14,14 @@ from .. import filterbank as fb
 from ..architecture import DECODER, MLPSpec
 from ..design import Design
 from ..modelfile import Domain, Model
+from ..simulate import TrajectoryBatch
 from ..systems import System
 from ..variants import BankSpec
 from .config import LoopConfig
 from .operational import DecoderConfig, RolloutConfig, config_record, fit_bank_decoder, rollouts
 from .result import Trained
 
-__all__ = ["BankConfig", "train_bank", "ASINH"]
+__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "ASINH"]
 
 #: Per-system output transforms: Roessler's x3 sits near 0.007 and spikes to 20-37, so its decoder
 #: predicts ``asinh(x3 / 0.01)`` (per-state SMAPE weighs relative errors).
@@ -62,24 +63,38 @@ class BankConfig:
         return config
 
 
+def design_bank(system: System, config: BankConfig) -> fb.FilterBank:
+    """The filter bank of ``config`` for ``system``'s outputs and inputs."""
+    return fb.FilterBank.design(system.ny, system.nu, config.y_poles, config.u_poles,
+                                y_resonators=config.y_resonators, clock=config.clock)
+
+
+def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, decoder_arrays: dict,
+               decoder_arch: dict, runs: TrajectoryBatch, dt: float) -> tuple[dict, BankSpec, Domain]:
+    """The model file's arrays, spec and domain of a decoder fitted on ``runs`` through ``bank``.
+
+    ``decoder_arrays`` and ``decoder_arch`` are a fit's ``arrays`` (any ``bank/*`` entries are
+    replaced by the bank's own) and ``arch``; the domain is the runs' states and latents.
+    """
+    arrays = {name: value for name, value in decoder_arrays.items() if not name.startswith("bank/")}
+    arrays.update({"bank/Bu": np.array(bank.Bu), "bank/c": np.array(bank.c)})
+    params = {"y_poles": list(config.y_poles), "u_poles": list(config.u_poles),
+              "y_resonators": [list(r) for r in config.y_resonators], "clock": config.clock}
+    spec = BankSpec(MLPSpec.from_card(decoder_arch, "architecture", DECODER), bank.A, bank.By, dt, system.nu, params)
+    z = bank.run(runs.y, runs.u, dt)
+    return arrays, spec, Domain.of(runs.x.reshape(-1, system.nx), z.reshape(-1, bank.nz))
+
+
 def train_bank(system: System, design: Design, base: Model | None, config: BankConfig, *, dt: float, seed: int,
                device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
     """The training hook of ``bank`` (no base model; ``design`` is replaced by the bank's)."""
     if type(config) is not BankConfig:
         raise TypeError(f"config: expected a BankConfig for 'bank', received {type(config).__name__}.")
-    bank = fb.FilterBank.design(system.ny, system.nu, config.y_poles, config.u_poles,
-                                y_resonators=config.y_resonators, clock=config.clock)
+    bank = design_bank(system, config)
     runs = rollouts(system, replace(config.rollouts, dt=dt), seed)
     fit = fit_bank_decoder(bank, runs, config.decoder, seed=seed, progress=progress)
-    arrays = {name: value for name, value in fit.arrays.items() if not name.startswith("bank/")}
-    arrays.update({"bank/Bu": np.array(bank.Bu), "bank/c": np.array(bank.c)})
-    params = {"y_poles": list(config.y_poles), "u_poles": list(config.u_poles),
-              "y_resonators": [list(r) for r in config.y_resonators], "clock": config.clock}
-    decoder = MLPSpec.from_card(fit.arch, "architecture", DECODER)
-    spec = BankSpec(decoder, bank.A, bank.By, dt, system.nu, params)
-    z = bank.run(runs.y, runs.u, dt)
+    arrays, spec, domain = bank_model(system, bank, config, fit.arrays, fit.arch, runs, dt)
     training = {"config": config, **config_record(config.rollouts, config.decoder), "decoder_fit": fit.fit.summary(),
                 "samples": fit.n_samples, "state_percentiles": fit.domain}
     return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, {"decoder": fit.fit.history}, 1,
-                   config.rollouts.measurement_std,
-                   Domain.of(runs.x.reshape(-1, system.nx), z.reshape(-1, bank.nz)))
+                   config.rollouts.measurement_std, domain)
