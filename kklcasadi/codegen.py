@@ -615,7 +615,7 @@ def axpy_matvec(source: str) -> str:
     :class:`kklcasadi.compiled.Compiler`'s ``postprocess`` (the evaluation path of
     ``kklcasadi evaluate``).
     """
-    return _rewrite(source, matvec=True, math=False, dispatch=False)
+    return _rewrite(_source(source), matvec=True, math=False, dispatch=False)
 
 
 def fast_kernels(source: str) -> str:
@@ -625,7 +625,14 @@ def fast_kernels(source: str) -> str:
     (the exp/tanh within 3 ulp) rather than bitwise; the default of ``kklcasadi evaluate``
     (``--math libm`` keeps it bitwise).
     """
-    return _rewrite(source, matvec=True, math=True, dispatch=True)
+    return _rewrite(_source(source), matvec=True, math=True, dispatch=True)
+
+
+def _source(source: object) -> str:
+    if not isinstance(source, str):
+        raise TypeError(f"source: expected the C source as str (ca.CodeGenerator output), received "
+                        f"{type(source).__name__}.")
+    return source
 
 
 _PRAGMA_PUSH = """#if defined(__GNUC__)

@@ -66,6 +66,8 @@ def test_the_evaluation_kernels_keep_the_vm_values(model_dir_factory, tmp_path, 
     fast = observer_estimator(obs, compiler=compiler)(t, y, u)
     tol = 0.0 if kernels == "axpy_matvec" else codegen.VECTOR_MATH_TOLERANCE
     assert np.max(np.abs(fast - reference) / (1 + np.abs(reference))) <= tol
+    with pytest.raises(TypeError, match="source: expected the C source as str"):
+        getattr(codegen, kernels)(b"int x;")
 
 
 @needs_gcc
