@@ -272,8 +272,9 @@ class GRUContext(nn.Module):
         gates_in = nn.functional.linear(w, self.gru.weight_ih_l0)
         h = torch.zeros_like(gates_in[..., 0, :n_hidden])
         states = []
-        for k in range(w.shape[-2]):
-            gi = gates_in[..., k, :]
+        # unbind, not gates_in[..., k, :]: the backward of one unbind is one stack, whereas each
+        # slice's backward fills a zero tensor of the whole window (most of a dyn step's time)
+        for gi in gates_in.unbind(-2):
             gh = nn.functional.linear(h, self.gru.weight_hh_l0)
             r = torch.sigmoid(gi[..., :n_hidden] + gh[..., :n_hidden])
             z = torch.sigmoid(gi[..., n_hidden:2 * n_hidden] + gh[..., n_hidden:2 * n_hidden])
