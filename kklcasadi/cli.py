@@ -318,6 +318,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         print("== training throughput: samples per second per stage ==")
         bench_training(args.system, device=args.device)
+        if "autonomous" in _shipped_models().get(args.system, []):
+            from .bench.training import bench_phase2_epoch
+
+            print("== one default Phase-2 epoch: validation on all held-out samples vs the default subset ==")
+            bench_phase2_epoch(args.system, _shipped(args.system, "autonomous"), device=args.device,
+                               threads=args.threads)
     if args.what in ("all", "protocol"):
         from .bench.protocol import bench_protocol
 
@@ -410,6 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--trials", type=_positive_int,
                    help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100)")
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
+    b.add_argument("--threads", type=_positive_int, help="torch CPU threads of the Phase-2 epoch benchmark")
     b.set_defaults(func=cmd_bench)
 
     from .certificate import add_certificate_parser

@@ -102,6 +102,46 @@ def test_resume_continues_exactly(tmp_path):
     assert len(res2.history["val"]) == 6
 
 
+@pytest.mark.parametrize("epochs", [1, 4])
+def test_validation_subset_scores_fewer_samples_and_the_kept_model_on_all(epochs):
+    data = _regression_problem()                    # 40 held-out samples at val_fraction 0.1
+    cfg = LoopConfig(epochs=epochs, batch_size=32, lr=0.05)
+
+    def run(val_samples):
+        torch.manual_seed(0)
+        w = torch.zeros(3, 1, dtype=torch.float64, requires_grad=True)
+        res = fit([w], lambda b, e: (((b["x"] @ w - b["y"]) ** 2).mean(), {}), data,
+                  replace(cfg, val_samples=val_samples), name="reg", progress=False)
+        return w.detach().clone(), res
+
+    w_all, res_all = run(None)
+    w_sub, res_sub = run(8)
+    assert res_all.val_all == res_all.best_val and res_all.summary()["val_all"] == res_all.best_val
+    # the epochs train on the same batches; only the scores differ (8 of the 40 held-out samples)
+    np.testing.assert_array_equal(res_sub.history["train"], res_all.history["train"])
+    assert res_sub.history["val"] != res_all.history["val"]
+    if res_sub.best_epoch == res_all.best_epoch:    # same kept model: its loss on all held-out samples
+        assert torch.equal(w_sub, w_all) and res_sub.val_all == res_all.best_val
+    assert res_sub.val_all != res_sub.best_val
+
+
+@pytest.mark.parametrize("value, kind", [(0, ValueError), (-5, ValueError), (2.5, TypeError)])
+def test_loop_config_rejects_a_bad_val_samples(value, kind):
+    with pytest.raises(kind, match="val_samples"):
+        LoopConfig(val_samples=value)
+
+
+def test_bench_phase2_epoch_times_both_validation_settings(phase1_dir, capsys):
+    from kklcasadi.bench.training import bench_phase2_epoch
+
+    timings = bench_phase2_epoch("duffing", phase1_dir, methods=("obs",), threads=1,
+                                 data=Phase2DataConfig(n_traj=2, n_signals=2, T=20.0))
+    assert [t.label for t in timings] == ["obs epoch, validation on all held-out", "obs epoch, validation on 8192"]
+    assert all(t.seconds > 0 and t.items == 5 * 256 for t in timings)     # 1436 training samples: 5 batches
+    out = capsys.readouterr().out
+    assert "obs: 160 samples held out, 1280 trained per epoch, 40 epochs by default" in out and "ratio" in out
+
+
 def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     model = load_model(phase1_dir)
     card = model.card

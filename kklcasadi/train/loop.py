@@ -63,19 +63,30 @@ class ArrayDataset:
 
 @dataclass(frozen=True)
 class FitResult:
-    """What a stage did: per-epoch history ``{name: [values]}``, best validation loss and epoch, wall time."""
+    """What a stage did: per-epoch history ``{name: [values]}``, best validation loss and epoch, wall time.
+
+    ``best_val`` is scored on the epochs' validation samples (``LoopConfig.val_samples`` of them);
+    ``val_all`` is the kept parameters' loss on all held-out samples, comparable across settings,
+    scored once after the epochs in ``val_all_seconds`` (0 when the epochs scored all of them).
+    ``seconds`` is the epochs' time (training and their validation) and ``samples_per_second`` the
+    training samples per second of it.
+    """
 
     history: dict
     best_val: float
     best_epoch: int
     seconds: float
     samples_per_second: float
+    val_all: float
+    val_all_seconds: float
 
     def summary(self) -> dict:
         """The numbers recorded in a model card."""
         return {"epochs": len(self.history["val"]), "best_epoch": self.best_epoch, "best_val": self.best_val,
-                "final_train": self.history["train"][-1], "wall_time_s": round(self.seconds, 2),
-                "samples_per_s": round(self.samples_per_second, 1)}
+                "val_all": self.val_all, "final_train": self.history["train"][-1],
+                "wall_time_s": round(self.seconds, 2), "samples_per_s": round(self.samples_per_second, 1),
+                "trained_samples": round(self.samples_per_second * self.seconds),
+                "val_all_s": round(self.val_all_seconds, 2)}
 
 
 def _state_arrays(params: list[Tensor], opt: torch.optim.Optimizer, sched: object, best: list[Tensor],
@@ -189,6 +200,7 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
         best_val, best_epoch = float(meta["best_val"]), int(meta["best_epoch"])
         history = {k[8:]: list(v) for k, v in meta.items() if k.startswith("history/")}
     val_fn = val_loss_fn or loss_fn
+    scored = val_idx if config.val_samples is None else val_idx[:config.val_samples]   # val_idx is shuffled
     per_epoch = min(config.samples_per_epoch or len(train_idx), len(train_idx))
     n_batches = per_epoch // config.batch_size
     t0 = time.perf_counter()
@@ -211,7 +223,7 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
             for k, v in {"train": loss.item(), **parts}.items():
                 sums[k] = sums.get(k, 0.0) + v
         seen += n_batches * config.batch_size
-        val = _evaluate(val_fn, data, val_idx, config.batch_size, epoch)
+        val = _evaluate(val_fn, data, scored, config.batch_size, epoch)
         if not math.isfinite(val):
             raise FloatingPointError(f"{name}: the validation loss became {val} at epoch {epoch}; "
                                      "lower the learning rate")
@@ -238,7 +250,10 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
         for bst, p in zip(best, params):
             p.copy_(bst)
     seconds = time.perf_counter() - t0
-    return FitResult(history, best_val, best_epoch, seconds, seen / seconds if seconds > 0 else math.nan)
+    val_all = best_val if len(scored) == len(val_idx) else _evaluate(val_fn, data, val_idx, config.batch_size,
+                                                                      max(best_epoch, 0))
+    return FitResult(history, best_val, best_epoch, seconds, seen / seconds if seconds > 0 else math.nan, val_all,
+                     time.perf_counter() - t0 - seconds)
 
 
 def _evaluate(loss_fn: LossFn, data: Dataset, index: np.ndarray, batch_size: int, epoch: int) -> float:
