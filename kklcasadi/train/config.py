@@ -198,7 +198,9 @@ class ObsStreamConfig(ObsConfig):
     ``data.T / dt`` samples); ``data.window`` is not used.
     """
 
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=8, lr=1e-3,
+    # 120 epochs (313 s on one CPU thread for Duffing): 40 left Duffing's validation loss at 0.128
+    # against 0.053 and its SMAPE under inputs 1.3-1.7x the window GRU's; after 120 it is within 6 %
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=120, batch_size=8, lr=1e-3,
                                                                 schedule="cosine", samples_per_epoch=200))
 
 

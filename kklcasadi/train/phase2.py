@@ -183,14 +183,15 @@ def train_dyn(system: System, design: Design, base: Model | None, config: DynCon
     x_scale = torch.as_tensor(p2.x.reshape(-1, system.nx).std(0), dtype=dtype, device=device)
     z_scale = torch.tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
 
-    def maps(x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    def encode(x: Tensor, w: Tensor) -> tuple[Tensor, list]:
         factors = hyper(w)
-        z = mlp_forward_lora(encoder, x, factors[:n_enc], hyper.scale)
-        return z, mlp_forward_lora(decoder, z, factors[n_enc:], hyper.scale)
+        return mlp_forward_lora(encoder, x, factors[:n_enc], hyper.scale), factors[n_enc:]
 
     def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
         wdot = (batch["w_next"] - batch["w"]) / dt
-        (z, xhat), (dz, _) = torch.func.jvp(maps, (batch["x"], batch["w"]), (batch["xdot"], wdot))
+        # the PDE needs dT/dt only: the decoder runs outside the JVP (no tangent of T*)
+        (z, decoder_factors), (dz, _) = torch.func.jvp(encode, (batch["x"], batch["w"]), (batch["xdot"], wdot))
+        xhat = mlp_forward_lora(decoder, z, decoder_factors, hyper.scale)
         res = dz - z @ A.T - batch["y"] @ B.T
         recon = (((xhat - batch["x"]) / x_scale) ** 2).mean()
         pde = ((res / z_scale) ** 2).mean()
