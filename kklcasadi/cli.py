@@ -317,7 +317,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         from .bench.training import bench_training
 
         print("== training throughput: samples per second per stage ==")
-        bench_training(args.system, device=args.device)
+        bench_training(args.system, device=args.device, threads=args.threads)
         if "autonomous" in _shipped_models().get(args.system, []):
             from .bench.training import bench_phase2_epoch
 
@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--trials", type=_positive_int,
                    help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100)")
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
-    b.add_argument("--threads", type=_positive_int, help="torch CPU threads of the Phase-2 epoch benchmark")
+    b.add_argument("--threads", type=_positive_int, help="torch CPU threads of the training benchmarks")
     b.set_defaults(func=cmd_bench)
 
     from .certificate import add_certificate_parser
