@@ -142,6 +142,45 @@ def test_bench_phase2_epoch_times_both_validation_settings(phase1_dir, capsys):
     assert "obs: 160 samples held out, 1280 trained per epoch, 40 epochs by default" in out and "ratio" in out
 
 
+@pytest.mark.parametrize("stream", [False, True])
+def test_dyn_loss_differentiates_the_encoder_along_state_and_context(stream):
+    """The PDE part equals the residual of dT/dt by central differences along (xdot, context_dot)."""
+    from kklcasadi.train.nets import mlp_forward_lora
+    from kklcasadi.train.phase2 import make_dyn_loss
+
+    torch.manual_seed(3)
+    design = kc.Design.default(kc.systems.get("duffing"))
+    enc, dec = MLP([2, 7, 7, design.nz]).double(), MLP([design.nz, 7, 2]).double()
+    hyper = LoRAHyperNet(lora_target_shapes(enc.spec, dec.spec), 1, hidden=5, embed=3, backbone=(6,), rank=2,
+                         scale_init=0.7).double()
+    factors_of = hyper.factors_of_hidden if stream else hyper
+    context = torch.randn(6, 5) if stream else torch.randn(6, 4, 1)
+    context, context_dot = context.double(), torch.randn_like(context).double()
+    x, xdot, y = (torch.randn(6, n, dtype=torch.float64) for n in (2, 2, 1))
+    x_scale, z_scale = torch.tensor([1.3, 0.7], dtype=torch.float64), torch.rand(design.nz, dtype=torch.float64) + 0.5
+    loss = make_dyn_loss(design, 0.1, enc, dec, hyper, factors_of, x_scale, z_scale)
+
+    def encode(eps):
+        f = factors_of(context + eps * context_dot)
+        return mlp_forward_lora(enc, x + eps * xdot, f[:len(enc.layers)], hyper.scale)
+
+    def pde_of(dz):
+        res = dz - z @ torch.tensor(design.A).T - y @ torch.tensor(design.B).T
+        return float(((res / z_scale) ** 2).mean())
+
+    with torch.no_grad():
+        z = encode(0.0)
+        xhat = mlp_forward_lora(dec, z, factors_of(context)[len(enc.layers):], hyper.scale)
+        total, parts = loss(x, xdot, y, context, context_dot)
+        _, frozen = loss(x, xdot, y, context, torch.zeros_like(context_dot))
+        eps = 1e-6
+        dz = (encode(eps) - encode(-eps)) / (2 * eps)
+    assert parts["pde"] == pytest.approx(pde_of(dz), rel=1e-7)
+    assert parts["recon"] == pytest.approx(float((((xhat - x) / x_scale) ** 2).mean()), rel=1e-12)
+    assert float(total) == pytest.approx(parts["recon"] + 0.1 * parts["pde"], rel=1e-12)
+    assert abs(frozen["pde"] - parts["pde"]) > 1e-5 * parts["pde"]      # the context's motion counts
+
+
 def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     model = load_model(phase1_dir)
     card = model.card

@@ -23,7 +23,8 @@ from .nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
 from .phase1 import pde_residual
 from .result import Trained
 
-__all__ = ["train_obs", "train_dyn", "train_curriculum", "Phase2Dataset", "model_based_injection"]
+__all__ = ["train_obs", "train_dyn", "train_curriculum", "Phase2Dataset", "model_based_injection", "make_dyn_loss",
+           "dyn_scales"]
 
 Tensor = torch.Tensor
 
@@ -167,6 +168,44 @@ def train_obs(system: System, design: Design, base: Model | None, config: ObsCon
                    base.spec.measurement_std, base.spec.domain)
 
 
+def dyn_scales(system: System, base: Model, p2: kdata.Phase2Data, dtype: torch.dtype,
+               device: str) -> tuple[Tensor, Tensor]:
+    """The reconstruction and PDE scales of the dyn losses: the data's state std, the encoder's output std."""
+    return (torch.as_tensor(p2.x.reshape(-1, system.nx).std(0), dtype=dtype, device=device),
+            torch.tensor(np.array(base.arrays["encoder/out_std"]), dtype=dtype, device=device))
+
+
+def make_dyn_loss(design: Design, nu_pde: float, encoder: MLP, decoder: MLP, hyper: LoRAHyperNet, factors_of: Any,
+                  x_scale: Tensor, z_scale: Tensor) -> Any:
+    """The HyperKKL_dyn loss ``loss(x, xdot, y, context, context_dot) -> (loss, parts)`` on flat rows.
+
+    ``factors_of(context)`` gives the LoRA factors (``hyper`` for a window, ``hyper.factors_of_hidden``
+    for a GRU state). The PDE residual takes the time derivative of the modulated encoder along the
+    state and the context, ``dT/dt = dT/dx xdot + dT/dc cdot`` (one JVP), so that ``T(x(t), c(t))``
+    follows ``A z + B y`` while the input moves the context; the decoder runs outside the JVP.
+    Reconstruction and residual are scaled by ``x_scale`` and ``z_scale`` (:func:`dyn_scales`).
+    """
+    dtype, device = encoder.layers[0].weight.dtype, encoder.layers[0].weight.device
+    n_enc = len(encoder.layers)
+    A = torch.tensor(design.A, dtype=dtype, device=device)
+    B = torch.tensor(design.B, dtype=dtype, device=device)
+
+    def encode(x: Tensor, context: Tensor) -> tuple[Tensor, list]:
+        factors = factors_of(context)
+        return mlp_forward_lora(encoder, x, factors[:n_enc], hyper.scale), factors[n_enc:]
+
+    def loss(x: Tensor, xdot: Tensor, y: Tensor, context: Tensor, context_dot: Tensor
+             ) -> tuple[Tensor, dict[str, float]]:
+        (z, decoder_factors), (dz, _) = torch.func.jvp(encode, (x, context), (xdot, context_dot))
+        xhat = mlp_forward_lora(decoder, z, decoder_factors, hyper.scale)
+        res = dz - z @ A.T - y @ B.T
+        recon = (((xhat - x) / x_scale) ** 2).mean()
+        pde = ((res / z_scale) ** 2).mean()
+        return recon + nu_pde * pde, {"recon": recon.item(), "pde": pde.item()}
+
+    return loss
+
+
 def train_dyn(system: System, design: Design, base: Model | None, config: DynConfig, *, dt: float, seed: int,
               device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
     """The training hook of the ``dyn`` variant: HyperKKL_dyn (Algorithm 3) on a frozen Phase-1 model."""
@@ -174,28 +213,15 @@ def train_dyn(system: System, design: Design, base: Model | None, config: DynCon
     dtype = torch.float32
     encoder, decoder = base_nets(base, dtype, device)
     p2 = phase2_data(system, config.data, dt, seed)
-    n_enc = len(encoder.layers)
     targets = lora_target_shapes(encoder.spec, decoder.spec)
     hyper = LoRAHyperNet(targets, system.nu, config.hidden, config.embed, config.backbone, config.rank,
                          config.scale_init).to(dtype=dtype, device=device)
-    A = torch.tensor(design.A, dtype=dtype, device=device)
-    B = torch.tensor(design.B, dtype=dtype, device=device)
-    x_scale = torch.as_tensor(p2.x.reshape(-1, system.nx).std(0), dtype=dtype, device=device)
-    z_scale = torch.tensor(base.arrays["encoder/out_std"], dtype=dtype, device=device)
-
-    def encode(x: Tensor, w: Tensor) -> tuple[Tensor, list]:
-        factors = hyper(w)
-        return mlp_forward_lora(encoder, x, factors[:n_enc], hyper.scale), factors[n_enc:]
+    dyn_loss = make_dyn_loss(design, config.nu_pde, encoder, decoder, hyper, hyper,
+                             *dyn_scales(system, base, p2, dtype, device))
 
     def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
         wdot = (batch["w_next"] - batch["w"]) / dt
-        # the PDE needs dT/dt only: the decoder runs outside the JVP (no tangent of T*)
-        (z, decoder_factors), (dz, _) = torch.func.jvp(encode, (batch["x"], batch["w"]), (batch["xdot"], wdot))
-        xhat = mlp_forward_lora(decoder, z, decoder_factors, hyper.scale)
-        res = dz - z @ A.T - batch["y"] @ B.T
-        recon = (((xhat - batch["x"]) / x_scale) ** 2).mean()
-        pde = ((res / z_scale) ** 2).mean()
-        return recon + config.nu_pde * pde, {"recon": recon.item(), "pde": pde.item()}
+        return dyn_loss(batch["x"], batch["xdot"], batch["y"], batch["w"], wdot)
 
     result = fit(list(hyper.parameters()), loss_fn, Phase2Dataset(p2, dtype=dtype, device=device), config.loop,
                  name="dyn", seed=seed, progress=progress, resume=resume,

@@ -19,8 +19,8 @@ from ..systems import System
 from ..variants import DynModelSpec, ObsModelSpec
 from .config import DynStreamConfig, ObsStreamConfig
 from .loop import ArrayDataset, fit
-from .nets import LoRAHyperNet, mlp_forward_lora
-from .phase2 import base_nets, check_phase2, make_obs_net, obs_residuals, phase2_data
+from .nets import LoRAHyperNet
+from .phase2 import base_nets, check_phase2, dyn_scales, make_dyn_loss, make_obs_net, obs_residuals, phase2_data
 from .result import Trained
 
 __all__ = ["train_obs_stream", "train_dyn_stream"]
@@ -66,36 +66,29 @@ def train_dyn_stream(system: System, design: Design, base: Model | None, config:
                      seed: int, device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
     """HyperKKL_dyn with a streaming context, on a frozen Phase-1 model (batches of trajectories).
 
-    Loss: reconstruction + ``nu_pde`` * the PDE residual ``dT/dx xdot - A T - B y`` of the modulated
-    encoder, with the context held over the sample interval (it changes at the samples only).
+    Loss: reconstruction + ``nu_pde`` * the PDE residual ``dT/dt - A T - B y`` of the modulated
+    encoder, whose time derivative follows the state and the context, the context's by its forward
+    difference ``(h_{k+1} - h_k) / dt`` (as ``dyn`` differences its window), so that the latent of
+    ``A z + B y`` keeps matching ``T(x, h)`` while the input moves ``h``. The last sample of each
+    trajectory, which has no next context, is left out. Held constant over the sample interval
+    instead, the context lets ``T`` jump at every sample where the latent cannot follow: on Duffing
+    that gave 32.0 / 27.7 % SMAPE under sinusoidal / square inputs against 9.7 / 11.5 for ``dyn``.
     """
     base = check_phase2("dyn_stream", base, config, DynStreamConfig)
     dtype = torch.float32
     encoder, decoder = base_nets(base, dtype, device)
     p2 = phase2_data(system, config.data, dt, seed)
-    n_enc = len(encoder.layers)
     hyper = LoRAHyperNet(encoder.spec.layer_shapes + decoder.spec.layer_shapes, system.nu, config.hidden,
                          config.embed, config.backbone, config.rank, config.scale_init).to(dtype=dtype, device=device)
-    A = torch.tensor(design.A, dtype=dtype, device=device)
-    B = torch.tensor(design.B, dtype=dtype, device=device)
-    x_scale = torch.as_tensor(p2.x.reshape(-1, system.nx).std(0), dtype=dtype, device=device)
-    z_scale = torch.tensor(np.array(base.arrays["encoder/out_std"]), dtype=dtype, device=device)
+    dyn_loss = make_dyn_loss(design, config.nu_pde, encoder, decoder, hyper, hyper.factors_of_hidden,
+                             *dyn_scales(system, base, p2, dtype, device))
     data = ArrayDataset({k: getattr(p2, k) for k in ("x", "y", "u", "xdot")}, dtype=dtype, device=device)
 
     def loss_fn(batch: dict[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
         h = hyper.gru.sequence(batch["u"])                                   # (B, N, H)
-        flat = {k: v.reshape(-1, v.shape[-1]) for k, v in batch.items()}
-        factors = hyper.factors_of_hidden(h.reshape(-1, h.shape[-1]))
-
-        def encode(x: Tensor) -> Tensor:
-            return mlp_forward_lora(encoder, x, factors[:n_enc], hyper.scale)
-
-        z, dz = torch.func.jvp(encode, (flat["x"],), (flat["xdot"],))     # the decoder needs no tangent
-        xhat = mlp_forward_lora(decoder, z, factors[n_enc:], hyper.scale)
-        res = dz - z @ A.T - flat["y"] @ B.T
-        recon = (((xhat - flat["x"]) / x_scale) ** 2).mean()
-        pde = ((res / z_scale) ** 2).mean()
-        return recon + config.nu_pde * pde, {"recon": recon.item(), "pde": pde.item()}
+        rows = {k: v[:, :-1].reshape(-1, v.shape[-1]) for k, v in batch.items()}
+        h_dot = ((h[:, 1:] - h[:, :-1]) / dt).reshape(-1, h.shape[-1])
+        return dyn_loss(rows["x"], rows["xdot"], rows["y"], h[:, :-1].reshape(-1, h.shape[-1]), h_dot)
 
     result = fit(list(hyper.parameters()), loss_fn, data, config.loop, name="dyn_stream", seed=seed,
                  progress=progress, resume=resume, checkpoint=workdir / "dyn_stream.ckpt.npz" if workdir else None)
