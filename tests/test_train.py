@@ -117,6 +117,7 @@ def test_validation_subset_scores_fewer_samples_and_the_kept_model_on_all(epochs
     w_all, res_all = run(None)
     w_sub, res_sub = run(8)
     assert res_all.val_all == res_all.best_val and res_all.summary()["val_all"] == res_all.best_val
+    assert res_all.held_out == res_sub.held_out == 40 and res_sub.summary()["trained_samples"] == epochs * 352
     # the epochs train on the same batches; only the scores differ (8 of the 40 held-out samples)
     np.testing.assert_array_equal(res_sub.history["train"], res_all.history["train"])
     assert res_sub.history["val"] != res_all.history["val"]
@@ -140,6 +141,14 @@ def test_bench_phase2_epoch_times_both_validation_settings(phase1_dir, capsys):
     assert all(t.seconds > 0 and t.items == 5 * 256 for t in timings)     # 1436 training samples: 5 batches
     out = capsys.readouterr().out
     assert "obs: 160 samples held out, 1280 trained per epoch, 40 epochs by default" in out and "ratio" in out
+
+
+@pytest.mark.parametrize("methods", [("autonomous",), (), "obs"])
+def test_bench_phase2_epoch_rejects_other_methods(phase1_dir, methods):
+    from kklcasadi.bench.training import bench_phase2_epoch
+
+    with pytest.raises(ValueError, match=r"methods: expected a non-empty tuple of \('obs', 'dyn'\)"):
+        bench_phase2_epoch("duffing", phase1_dir, methods=methods)
 
 
 @pytest.mark.parametrize("stream", [False, True])

@@ -5,9 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Optional
 
+from ..validation import Text, error
 from . import Timing
 
-__all__ = ["bench_training", "bench_phase2_epoch"]
+__all__ = ["bench_training", "bench_phase2_epoch", "PHASE2_WINDOW_METHODS"]
+
+#: The Phase-2 methods whose epoch :func:`bench_phase2_epoch` times (trained on windowed samples).
+PHASE2_WINDOW_METHODS = ("obs", "dyn")
 
 
 def bench_training(system: str = "duffing", *, device: str = "cpu", threads: Optional[int] = None) -> list[Timing]:
@@ -35,14 +39,13 @@ def bench_training(system: str = "duffing", *, device: str = "cpu", threads: Opt
                            threads=threads)
             stages.append((f"phase 2 {method} (window {data.window})",
                            load_model(f"{tmp}/{method}").card["training"][method]))
-    out = [Timing(label, summary["wall_time_s"], int(summary["samples_per_s"] * summary["wall_time_s"]))
-           for label, summary in stages]
+    out = [Timing(label, summary["wall_time_s"], summary["trained_samples"]) for label, summary in stages]
     for timing in out:
         print(f"{timing.label:<44s} {timing.rate:12.0f} samples/s ({device}, {threads or 'default'} threads)")
     return out
 
 
-def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = ("obs", "dyn"), data: Any = None,
+def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = PHASE2_WINDOW_METHODS, data: Any = None,
                        device: str = "cpu", threads: Optional[int] = None) -> list[Timing]:
     """One epoch of each Phase-2 method at its default loop, scoring validation on all held-out samples
     (``val_samples=None``, the setting before the default subset) and on the default subset.
@@ -53,7 +56,7 @@ def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = ("obs"
     base : path
         The Phase-1 model the methods start from (e.g. ``models/<system>/autonomous``).
     methods : tuple of str
-        Phase-2 methods with a window (``obs``, ``dyn``).
+        Among :data:`PHASE2_WINDOW_METHODS`.
     data : Phase2DataConfig, optional
         The training data (default: each method's default, as a full training run uses).
     device : {"cpu", "cuda"}
@@ -73,6 +76,9 @@ def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = ("obs"
     from ..modelfile import load_model
     from ..train import default_config, train_observer
 
+    unknown = [m for m in methods if m not in PHASE2_WINDOW_METHODS]
+    if isinstance(methods, str) or not methods or unknown:
+        raise error("methods", f"a non-empty tuple of {PHASE2_WINDOW_METHODS}", Text(repr(methods)))
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         for method in methods:
@@ -84,12 +90,10 @@ def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = ("obs"
                 run = replace(cfg, loop=replace(cfg.loop, val_samples=val_samples))
                 train_observer(system, method, f"{tmp}/{method}", config=run, base=base, device=device,
                                progress=False, threads=threads, overwrite=True)
-                training = load_model(f"{tmp}/{method}").card["training"]
-                summary = training[method]
-                held_out = max(1, round(run.loop.val_fraction * training["data"]["samples"]))
+                summary = load_model(f"{tmp}/{method}").card["training"][method]
                 timing = Timing(f"{method} epoch, validation on {label}", summary["wall_time_s"],
                                 summary["trained_samples"])
-                runs.append((timing, summary["val_all_s"], held_out))
+                runs.append((timing, summary["val_all_s"], summary["held_out"]))
             (before, _, held_out), (after, scoring, _) = runs
             epochs = default_config(system, method).loop.epochs
             print(f"{method}: {held_out} samples held out, {after.items} trained per epoch, "

@@ -65,27 +65,33 @@ class ArrayDataset:
 class FitResult:
     """What a stage did: per-epoch history ``{name: [values]}``, best validation loss and epoch, wall time.
 
-    ``best_val`` is scored on the epochs' validation samples (``LoopConfig.val_samples`` of them);
-    ``val_all`` is the kept parameters' loss on all held-out samples, comparable across settings,
-    scored once after the epochs in ``val_all_seconds`` (0 when the epochs scored all of them).
-    ``seconds`` is the epochs' time (training and their validation) and ``samples_per_second`` the
-    training samples per second of it.
+    ``best_val`` is scored on the epochs' validation samples (``LoopConfig.val_samples`` of the
+    ``held_out``); ``val_all`` is the kept parameters' loss on all ``held_out`` samples, comparable
+    across settings, scored once after the epochs in ``val_all_seconds`` (0 when the epochs scored
+    all of them). ``seconds`` is the epochs' time (training and their validation), in which
+    ``trained_samples`` were trained on.
     """
 
     history: dict
     best_val: float
     best_epoch: int
     seconds: float
-    samples_per_second: float
+    trained_samples: int
+    held_out: int
     val_all: float
     val_all_seconds: float
+
+    @property
+    def samples_per_second(self) -> float:
+        """Training samples per second of the epochs' time."""
+        return self.trained_samples / self.seconds if self.seconds > 0 else math.nan
 
     def summary(self) -> dict:
         """The numbers recorded in a model card."""
         return {"epochs": len(self.history["val"]), "best_epoch": self.best_epoch, "best_val": self.best_val,
                 "val_all": self.val_all, "final_train": self.history["train"][-1],
                 "wall_time_s": round(self.seconds, 2), "samples_per_s": round(self.samples_per_second, 1),
-                "trained_samples": round(self.samples_per_second * self.seconds),
+                "trained_samples": self.trained_samples, "held_out": self.held_out,
                 "val_all_s": round(self.val_all_seconds, 2)}
 
 
@@ -252,7 +258,7 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
     seconds = time.perf_counter() - t0
     val_all = best_val if len(scored) == len(val_idx) else _evaluate(val_fn, data, val_idx, config.batch_size,
                                                                       max(best_epoch, 0))
-    return FitResult(history, best_val, best_epoch, seconds, seen / seconds if seconds > 0 else math.nan, val_all,
+    return FitResult(history, best_val, best_epoch, seconds, seen, len(val_idx), val_all,
                      time.perf_counter() - t0 - seconds)
 
 

@@ -23,8 +23,7 @@ from .nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
 from .phase1 import pde_residual
 from .result import Trained
 
-__all__ = ["train_obs", "train_dyn", "train_curriculum", "Phase2Dataset", "model_based_injection", "make_dyn_loss",
-           "dyn_scales"]
+__all__ = ["train_obs", "train_dyn", "train_curriculum", "Phase2Dataset", "model_based_injection"]
 
 Tensor = torch.Tensor
 
