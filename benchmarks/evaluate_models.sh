@@ -17,5 +17,5 @@ for s in "${systems[@]}"; do
     if [ -f "models/$s/$m/card.json" ]; then models+=("models/$s/$m"); fi
   done
   TIMEFORMAT="$s: $trials trials per cell in %R s wall, %U s user + %S s system CPU"
-  time "${PYTHON:-python}" -m kklcasadi.cli evaluate "${models[@]}" --trials "$trials" --ekf --out "results/$s"
+  time "${PYTHON:-python}" -m kklcasadi evaluate "${models[@]}" --trials "$trials" --ekf --out "results/$s"
 done

@@ -26,13 +26,13 @@ from pathlib import Path
 import numpy as np
 
 import kklcasadi as kc
-from kklcasadi.modelfile import CARD_FILE, Domain, load_model
+from kklcasadi.model.files import CARD_FILE, Domain, load_model
 
 PHASE1_STATES = 2000
 PHASE1_TRAJECTORIES = 200
 
 
-def phase1_domain(model: kc.modelfile.Model, plant: kc.System) -> Domain:
+def phase1_domain(model: kc.model.files.Model, plant: kc.System) -> Domain:
     """States of the box and of autonomous trajectories from it, and their latents."""
     config = model.card["training"].get("config", {})
     scale = float(config.get("box_scale", 1.0)) if isinstance(config, dict) else 1.0

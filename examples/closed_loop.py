@@ -14,7 +14,7 @@ estimated states, the reference and the input.
     python examples/closed_loop.py --model models/duffing/inject --out closed_loop.png
 
 Any Duffing model directory works (``autonomous``, ``obs``, ``dyn``, ``inject``); an ``inject``
-model is written from an autonomous one with ``kklcasadi.observer.make_inject_model``.
+model is written from an autonomous one with ``kklcasadi.observer.kkl.make_inject_model``.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi.simulate import step_function, time_grid  # noqa: E402
+from kklcasadi.plant.simulate import step_function, time_grid  # noqa: E402
 
 
 def run(observer: kc.KKLObserver, T: float, *, amplitude: float = 0.5, omega: float = 0.5,

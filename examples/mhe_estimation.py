@@ -3,9 +3,9 @@
 Estimates one docs/protocol.md run (noise std 0.1 on ``xdot`` and ``y``) of a plant with
 
 * the learned KKL observer (``obs.simulate``),
-* the EKF (``kklcasadi.ekf.EKF``),
-* the MHE on the exact model with its EKF arrival cost (:class:`kklcasadi.mhe.MHE`, ``N = 10``),
-* the KKL-primed MHE (:class:`kklcasadi.mhe.KKLPrimedMHE`, ``N = 5``): the observer's estimate is
+* the EKF (``kklcasadi.estimators.ekf.EKF``),
+* the MHE on the exact model with its EKF arrival cost (:class:`kklcasadi.estimators.mhe.MHE`, ``N = 10``),
+* the KKL-primed MHE (:class:`kklcasadi.estimators.mhe.KKLPrimedMHE`, ``N = 5``): the observer's estimate is
   the arrival prior (its error profile calibrated on other runs) and the warm start,
 
 prints SMAPE, time per sample and the solver statistics, and writes a PNG::
@@ -26,9 +26,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi.ekf import EKF  # noqa: E402
-from kklcasadi.mhe import MHE, KKLPrimedMHE, kkl_error_profile  # noqa: E402
-from kklcasadi.protocol import Protocol  # noqa: E402
+from kklcasadi.estimators.ekf import EKF  # noqa: E402
+from kklcasadi.estimators.mhe import MHE, KKLPrimedMHE, kkl_error_profile  # noqa: E402
+from kklcasadi.evaluation.protocol import Protocol  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -1,12 +1,12 @@
 """Output-feedback NMPC on Duffing and Van der Pol: true state vs EKF vs learned KKL observer.
 
-The NMPC (:class:`kklcasadi.nmpc.NMPC`: Opti, multiple shooting with RK4, ipopt, compiled with
+The NMPC (:class:`kklcasadi.estimators.nmpc.NMPC`: Opti, multiple shooting with RK4, ipopt, compiled with
 ``opti.to_function``, warm-started) regulates ``x1`` to a reference that switches between
 ``+r`` and ``-r`` every ``period / 2`` seconds, with ``|u| <= 2`` and the soft bound
 ``|x2| <= x2_max``. It measures only ``y = x1`` and the inputs it applied: the state comes from
 
 (a) the true state (full-information reference),
-(b) the shipped EKF (:class:`kklcasadi.nmpc.EKFEstimator`), or
+(b) the shipped EKF (:class:`kklcasadi.estimators.nmpc.EKFEstimator`), or
 (c) the learned KKL observer (``obs.estimator().make_step``),
 
 with the plant simulated by CVODES under the docs/protocol.md noise (process std 0.1 on ``xdot`` held
@@ -35,7 +35,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi.nmpc import NMPC, ClosedLoop, EKFEstimator, TrueState, closed_loop, steady_state  # noqa: E402
+from kklcasadi.estimators.nmpc import NMPC, ClosedLoop, EKFEstimator, TrueState, closed_loop, steady_state  # noqa: E402
 
 #: Per system: set point magnitude r for x1 and the bound on |x2|.
 SCENARIOS = {"duffing": {"r": 0.8, "x2_max": 1.0}, "vdp": {"r": 1.0, "x2_max": 1.5}}

@@ -1,10 +1,15 @@
 """kklcasadi: learned KKL observers for controlled nonlinear systems, exported to CasADi and C.
 
-The deploy side (systems, signals, simulation, model files, CasADi networks, observer, C code,
-EKF) needs casadi, numpy, scipy and python-control only; torch is imported by
-:mod:`kklcasadi.train` (and the benchmarks that time torch) alone. ``kc.train`` and the other
-submodules listed in :data:`_LAZY` are imported on first use, so ``import kklcasadi`` stays
-torch-free.
+The front door names what a user calls; everything else is reachable by its subpackage, which
+follow the data flow (docs/architecture.md):
+
+``plant`` (systems, signals, simulation, design, training data) -> ``train`` (torch) -> ``model``
+(files, variants) -> ``nets`` (CasADi networks) -> ``observer`` (observer, C code, interop,
+certificate) -> ``estimators`` (EKF, MHE, NMPC) -> ``evaluation`` (protocol, reports, benchmarks)
+-> ``cli``.
+
+The deploy side needs casadi, numpy, scipy and python-control only; ``kc.train`` (torch) is
+imported on first use, so ``import kklcasadi`` stays torch-free.
 """
 
 from __future__ import annotations
@@ -12,30 +17,22 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__version__ = "0.1.0"
-
-from . import data, metrics, signals, systems, variants
-from .design import Design
+from . import metrics
+from .estimators import EKF, MHE, NMPC
 from .observer import Estimate, KKLObserver, load_observer
-from .simulate import Trajectory, TrajectoryBatch, simulate, simulate_batch
-from .systems import System
+from .observer.codegen import generate_c
+from .plant import signals, systems
+from .plant.design import Design
+from .plant.simulate import Trajectory, TrajectoryBatch, simulate, simulate_batch
+from .plant.systems import System
+from .version import __version__
 
-#: Submodules reachable as attributes of the package, imported when first used.
-_LAZY = ("train", "ekf", "protocol", "report", "codegen", "interop", "modelfile", "casadi_nets",
-         "architecture", "mhe", "nmpc", "certificate", "pipelines", "filterbank", "compiled", "trialcache")
-#: Names of those submodules reachable from the package: ``kc.MHE``, ``kc.NMPC``, ``kc.Certificate``
-#: (a model's certificate: ``obs.certificate()``).
-_LAZY_NAMES = {"MHE": "mhe", "KKLPrimedMHE": "mhe", "NMPC": "nmpc", "Certificate": "certificate",
-               "make_inject_model": "observer"}
-
-__all__ = ["System", "Design", "Trajectory", "TrajectoryBatch", "simulate", "simulate_batch",
-           "KKLObserver", "Estimate", "load_observer",
-           "systems", "signals", "data", "metrics", "variants", "__version__", *_LAZY, *_LAZY_NAMES]
+__all__ = ["System", "Design", "simulate", "simulate_batch", "Trajectory", "TrajectoryBatch",
+           "load_observer", "KKLObserver", "Estimate", "generate_c", "EKF", "MHE", "NMPC",
+           "systems", "signals", "metrics", "train", "__version__"]
 
 
 def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        return importlib.import_module(f".{name}", __name__)
-    if name in _LAZY_NAMES:
-        return getattr(importlib.import_module(f".{_LAZY_NAMES[name]}", __name__), name)
+    if name == "train":                       # torch: imported when first used
+        return importlib.import_module(".train", __name__)
     raise AttributeError(f"module 'kklcasadi' has no attribute {name!r}")

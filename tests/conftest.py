@@ -17,7 +17,7 @@ def rng():
 
 
 def _random_model_arrays(card, seed):
-    """Random float64 arrays for every array the card names (kklcasadi.modelfile shapes).
+    """Random float64 arrays for every array the card names (kklcasadi.model.files shapes).
 
     Each array is drawn from its own stream keyed by ``(seed, name)``, so two cards with the same
     encoder/decoder architecture get bitwise-identical encoder/decoder arrays for the same seed.
@@ -25,7 +25,7 @@ def _random_model_arrays(card, seed):
     """
     import zlib
 
-    from kklcasadi.modelfile import model_array_shapes
+    from kklcasadi.model.files import model_array_shapes
 
     arrays = {}
     for name, shape in model_array_shapes(card).items():
@@ -57,15 +57,15 @@ def model_dir_factory(tmp_path_factory):
     named as ``card["base"]``. ``card_extra`` adds top-level card fields.
     """
     import kklcasadi
-    from kklcasadi.architecture import HyperSpec, MLPSpec, ObsSpec
-    from kklcasadi.modelfile import make_card, save_model
-    from kklcasadi.variants import BankSpec, DynModelSpec, MapsSpec, ObsModelSpec
+    from kklcasadi.model.files import make_card, save_model
+    from kklcasadi.model.variants import BankSpec, DynModelSpec, MapsSpec, ObsModelSpec
+    from kklcasadi.nets.specs import HyperSpec, MLPSpec, ObsSpec
 
     counter = iter(range(10**6))
 
     def make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
              card_extra=None, dt=0.05):
-        plant = kklcasadi.systems.get(system) if isinstance(system, str) else system
+        plant = kklcasadi.plant.systems.get(system) if isinstance(system, str) else system
         nx, nu = plant.nx, plant.nu
         design = kklcasadi.Design.default(plant)
         nz = design.nz
@@ -84,7 +84,7 @@ def model_dir_factory(tmp_path_factory):
                                   training={"seed": seed})
             base_dir = save_model(root / "autonomous", _random_model_arrays(base_card, seed),
                                   base_card)
-            sha = kklcasadi.modelfile.load_model(base_dir).card["weights_sha256"]
+            sha = kklcasadi.model.files.load_model(base_dir).card["weights_sha256"]
             card["base"] = {"path": "../autonomous", "weights_sha256": sha}
         return save_model(root / method, _random_model_arrays(card, seed), card)
 

@@ -1,87 +1,182 @@
-"""The dependency rules of docs/architecture.md, checked on the code: every module imports (at
-module level) only the kklcasadi modules its layer allows, and the deploy side never torch."""
+"""The dependency rules of docs/architecture.md, checked on the code: every import of every module
+(inside functions and TYPE_CHECKING blocks too) is one its row of the table allows, the import graph
+has no circle, and torch stays on the training side."""
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "kklcasadi"
-
-#: module -> the kklcasadi modules it may import at module level (docs/architecture.md)
-ALLOWED = {
-    "validation": set(),
-    "rk4": set(),
-    "metrics": set(),
-    "windows": {"validation"},
-    "systems": {"validation"},
-    "signals": {"validation"},
-    "design": {"systems", "validation"},
-    "simulate": {"systems", "signals", "rk4", "validation"},
-    "architecture": {"validation"},
-    "casadi_nets": {"architecture", "validation"},
-    "variants": {"architecture", "casadi_nets", "filterbank", "systems", "validation", "variants"},
-    "modelfile": {"variants", "architecture", "validation", "design", "systems"},
-    "observer": {"modelfile", "variants", "systems", "rk4", "windows", "validation"},
-    "codegen": {"observer", "validation", "casadi_nets"},
-    "interop": {"observer"},
-    "data": {"systems", "design", "simulate", "signals", "windows", "validation"},
-    "ekf": {"systems", "rk4", "validation"},
-    "protocol": {"signals", "simulate", "systems", "metrics", "validation"},
-    "report": {"protocol", "signals", "metrics", "systems"},
-    "filterbank": {"architecture", "casadi_nets", "validation"},
-    "mhe": {"rk4", "systems", "validation"},
-    "nmpc": {"ekf", "mhe", "rk4", "systems", "validation"},
-    "certificate": {"architecture", "casadi_nets", "data", "design", "observer", "protocol", "simulate",
-                    "validation", "windows"},
-    "trialcache": {"simulate", "systems", "__version__"},
-    "compiled": {"trialcache"},
-    "pipelines": {"metrics", "systems", "ekf", "mhe", "observer", "protocol", "validation"},
-}
-#: modules that may import torch at module level
-TORCH = {"train"}
-#: the command line and the benchmarks may import anything (torch only inside functions)
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "kklcasadi"
+DOC = ROOT / "docs" / "architecture.md"
+#: may import torch inside functions (the benchmarks time torch; the CLI trains)
+TORCH_IN_FUNCTIONS = ("train", "evaluation.bench", "cli")
 
 
-def _module_imports(path: Path) -> set[str]:
-    """Absolute names of the modules imported at module level (TYPE_CHECKING blocks excluded)."""
-    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
-    package = parts[:-1]                                   # the package a relative import starts from
-    found = set()
-    for node in ast.parse(path.read_text()).body:
-        if isinstance(node, ast.ImportFrom):
-            start = package[:len(package) - node.level + 1] if node.level else ()
-            module = ".".join([*start, *(node.module.split(".") if node.module else [])])
-            found |= {f"{module}.{a.name}" for a in node.names} if node.module is None else {module}
-        elif isinstance(node, ast.Import):
-            found |= {a.name for a in node.names}
+def _table() -> dict[str, set[str]]:
+    """The table of docs/architecture.md: module or room -> what it may import."""
+    text = DOC.read_text()
+    section = text.split("## Modules and what each may import", 1)[1].split("\n## ", 1)[0]
+    rows = {}
+    for line in section.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 3 or not cells[0].startswith("`"):
+            continue
+        name = cells[0].strip("`")
+        rows[name] = set() if cells[2] == "-" else {c.strip() for c in cells[2].split(",")}
+    return rows
+
+
+TABLE = _table()
+
+
+def _dotted(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _is_module(dotted: str) -> bool:
+    target = PACKAGE.joinpath(*dotted.split("."))
+    return target.with_suffix(".py").exists() or (target / "__init__.py").exists()
+
+
+def _imports(path: Path) -> list[tuple[str, bool]]:
+    """``(module, at_module_level)`` for every import in the file; package modules relative to ``kklcasadi``
+    ("" for the package itself), others absolute with a leading ``!``."""
+    tree = ast.parse(path.read_text())
+    top = {id(node) for node in tree.body}
+    package = _dotted(path).split(".") if path.name == "__init__.py" else _dotted(path).split(".")[:-1]
+    package = [p for p in package if p]
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                name = alias.name
+                inside = name == "kklcasadi" or name.startswith("kklcasadi.")
+                found.append((name[len("kklcasadi."):] if inside and "." in name else ("" if inside else "!" + name),
+                              id(node) in top))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[:len(package) - node.level + 1]
+            elif node.module and (node.module == "kklcasadi" or node.module.startswith("kklcasadi.")):
+                base = []
+                node_module = node.module[len("kklcasadi"):].lstrip(".")
+                module = ".".join([*base, *([node_module] if node_module else [])])
+                found += _from_names(module, node, id(node) in top)
+                continue
+            else:
+                found.append(("!" + (node.module or ""), id(node) in top))
+                continue
+            module = ".".join([*base, *([node.module] if node.module else [])])
+            found += _from_names(module, node, id(node) in top)
     return found
 
 
-def _top(name: str) -> str:
-    parts = name.split(".")
-    return parts[1] if parts[0] == "kklcasadi" and len(parts) > 1 else parts[0]
+def _from_names(module: str, node: ast.ImportFrom, top: bool) -> list[tuple[str, bool]]:
+    """``from module import a, b``: the submodules a, b where they are modules, else the module."""
+    out = []
+    for alias in node.names:
+        sub = f"{module}.{alias.name}" if module else alias.name
+        out.append((sub if _is_module(sub) else module, top))
+    return out
 
 
-@pytest.mark.parametrize("module", sorted(ALLOWED))
-def test_module_imports_follow_the_layers(module):
-    path = PACKAGE / f"{module}.py"
-    paths = [path] if path.exists() else sorted((PACKAGE / module).glob("*.py"))
-    for source in paths:
-        imports = _module_imports(source)
-        internal = {_top(n) for n in imports if n.startswith("kklcasadi")} - {module}
-        assert internal <= ALLOWED[module], f"{source.name} imports {sorted(internal - ALLOWED[module])}"
-        assert not any(n.split(".")[0] == "torch" for n in imports), f"{source.name} imports torch"
+def _row(dotted: str) -> str | None:
+    """The most specific row of the table that covers the module."""
+    parts = dotted.split(".")
+    for n in range(len(parts), 0, -1):
+        if ".".join(parts[:n]) in TABLE:
+            return ".".join(parts[:n])
+    return None
 
 
-def test_every_module_is_in_the_map():
-    modules = {p.stem for p in PACKAGE.glob("*.py")} | {p.name for p in PACKAGE.iterdir()
-                                                        if p.is_dir() and (p / "__init__.py").exists()}
-    unmapped = modules - set(ALLOWED) - TORCH - {"__init__", "cli", "bench"}
-    assert not unmapped, f"add {sorted(unmapped)} to docs/architecture.md and ALLOWED"
+def _covered(target: str, allowed: set[str]) -> bool:
+    return any(target == a or target.startswith(a + ".") for a in allowed)
 
 
-def test_benchmarks_import_torch_only_inside_functions():
-    for source in sorted((PACKAGE / "bench").glob("*.py")) + [PACKAGE / "cli.py"]:
-        imports = _module_imports(source)
-        assert not any(n.split(".")[0] == "torch" or ".train" in n for n in imports), source.name
+SOURCES = sorted(p for p in PACKAGE.rglob("*.py") if p.name != "__main__.py" and p != PACKAGE / "__init__.py")
+
+
+def test_the_table_is_read_from_the_page():
+    assert {"validation", "plant.systems", "observer.kkl", "train", "cli"} <= set(TABLE)
+    assert TABLE["validation"] == set() and "observer.kkl" in TABLE["observer.codegen"]
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda p: _dotted(p) or "__init__")
+def test_every_import_follows_the_table(path):
+    dotted = _dotted(path)
+    row = _row(dotted)
+    room = dotted if path.name == "__init__.py" else None
+    assert row is not None or room is not None, f"{dotted}: add it to the table of docs/architecture.md"
+    allowed = set(TABLE.get(row, ())) | ({room} if room else set())
+    for target, at_top in _imports(path):
+        if target.startswith("!"):
+            name = target[1:].split(".")[0]
+            if name == "torch":
+                assert row in TORCH_IN_FUNCTIONS, f"{dotted} imports torch"
+                assert row == "train" or not at_top, f"{dotted} imports torch at module level (only inside functions)"
+            continue
+        assert target != "", f"{dotted} imports the front door kklcasadi/__init__.py; import the module instead"
+        if row is not None and (target == row or target.startswith(row + ".")):
+            continue                                                  # within its own row
+        assert _covered(target, allowed), f"{dotted} imports {target}, which its row of docs/architecture.md " \
+                                          f"does not allow ({sorted(allowed)})"
+        if target.split(".")[0] == "train" and row != "train":
+            assert not at_top, f"{dotted} imports {target} at module level (the training side, only inside functions)"
+
+
+def _graph() -> dict[str, set[str]]:
+    graph = {}
+    for path in SOURCES:
+        dotted = _dotted(path)
+        graph[dotted] = {t for t, _ in _imports(path) if not t.startswith("!") and t and t != dotted}
+    return graph
+
+
+def test_the_import_graph_has_no_circle():
+    graph = _graph()
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for nxt in sorted(graph.get(node, ())):
+            if state.get(nxt) == 1:
+                circle = stack[stack.index(nxt):] + [nxt]
+                pytest.fail("import circle: " + " -> ".join(circle))
+            if nxt not in state:
+                visit(nxt)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node)
+
+
+def test_the_circle_check_can_fail(monkeypatch, tmp_path):
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}}
+    monkeypatch.setattr(__import__(__name__), "_graph", lambda: graph)
+    with pytest.raises(pytest.fail.Exception, match="a -> b -> c -> a"):
+        test_the_import_graph_has_no_circle()
+
+
+def test_every_row_names_existing_code():
+    for name, allowed in TABLE.items():
+        assert _is_module(name), f"docs/architecture.md names {name}, which is not in kklcasadi/"
+        for target in allowed:
+            assert target == "-" or _is_module(target), f"{name} may import {target}, which does not exist"
+
+
+def test_the_front_door_is_small():
+    import kklcasadi
+
+    assert len(kklcasadi.__all__) <= 20
+    doc = DOC.read_text()
+    for name in re.findall(r"`(\w+)`", doc.split("is the front door:", 1)[1].split(" and nothing", 1)[0]):
+        assert name in kklcasadi.__all__, name

@@ -11,8 +11,9 @@ import pytest
 pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi import filterbank as fb  # noqa: E402
-from kklcasadi.modelfile import load_model  # noqa: E402
+from kklcasadi.model.files import load_model  # noqa: E402
+from kklcasadi.model.variants import filterbank as fb  # noqa: E402
+from kklcasadi.observer.codegen import generate_c
 from kklcasadi.train import LoopConfig, default_config, train_observer  # noqa: E402
 from kklcasadi.train.operational import DecoderConfig, RolloutConfig  # noqa: E402
 
@@ -55,7 +56,7 @@ def test_bank_observer_equals_the_reference_estimator(bank_dir):
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
 def test_bank_compiles_to_c_that_reproduces_simulate(bank_dir, tmp_path):
     obs = kc.load_observer(bank_dir)
-    files = obs.generate_c(tmp_path, "bank", math="libm")
+    files = generate_c(obs, tmp_path, "bank", math="libm")
     subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
                     "-o", str(tmp_path / "bank")], check=True)
     tr = kc.simulate(obs.system, [0.0, 1.0, 0.2], kc.signals.make("sinusoid", amplitude=0.4, omega=1.5), T=3.0,

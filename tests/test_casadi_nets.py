@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from kklcasadi import casadi_nets
-from kklcasadi.architecture import ACTIVATIONS, check_arrays, gru_array_shapes
+from kklcasadi.nets import builders as casadi_nets
+from kklcasadi.nets.specs import ACTIVATIONS, check_arrays, gru_array_shapes
 from kklcasadi.train.nets import MLP, GRUContext, LoRAHyperNet, ObsInjection, mlp_forward_lora
 
 TOL = 1e-10

@@ -8,9 +8,9 @@ import pytest
 import scipy.linalg
 
 import kklcasadi as kc
-from kklcasadi.certificate import Certificate, certificate, decoder_lipschitz_upper
-from kklcasadi.modelfile import save_model
-from kklcasadi.systems import LINEAR_F, LINEAR_H
+from kklcasadi.evaluation.certificate import Certificate, certificate, decoder_lipschitz_upper
+from kklcasadi.model.files import save_model
+from kklcasadi.plant.systems import LINEAR_F, LINEAR_H
 
 SMALL = {"n_points": 600, "n_labels": 4, "n_trials": 3, "T": 12.0, "t_settle": 8.0}
 
@@ -130,19 +130,14 @@ def test_observer_type_is_checked():
 
 
 def test_certificate_command_prints_and_saves(tmp_path, capsys):
-    import argparse
     import json
 
-    from kklcasadi.certificate import add_certificate_parser
+    from kklcasadi.cli import main
 
     model = _linear_model(tmp_path / "exact")
-    parser = argparse.ArgumentParser(prog="kklcasadi")
-    add_certificate_parser(parser.add_subparsers(dest="command", required=True))
     out = tmp_path / "cert.json"
-    args = parser.parse_args(["certificate", str(model), "--kinds", "zero", "--points", "300",
-                              "--labels", "2", "--trials", "2", "--T", "6", "--settle", "4",
-                              "--json", str(out)])
-    assert args.func(args) == 0
+    assert main(["certificate", str(model), "--kinds", "zero", "--points", "300", "--labels", "2", "--trials", "2",
+                 "--T", "6", "--settle", "4", "--out", str(out)]) == 0
     assert "Proposition 1 certificate: linear / autonomous" in capsys.readouterr().out
     record = json.loads(out.read_text())[0]
     assert record["model"] == str(model) and record["holds_sampled"] is True
@@ -153,4 +148,4 @@ def test_certificate_command_prints_and_saves(tmp_path, capsys):
 def test_certificate_refuses_what_proposition_1_does_not_cover(model_dir_factory, method):
     obs = kc.load_observer(model_dir_factory(method))
     with pytest.raises(ValueError, match=f"received method '{method}'"):
-        obs.certificate()
+        certificate(obs)

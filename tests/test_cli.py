@@ -8,7 +8,7 @@ import casadi as ca
 import pytest
 
 from kklcasadi.cli import main
-from kklcasadi.modelfile import load_model
+from kklcasadi.model.files import load_model
 
 
 def test_help_lists_the_subcommands(capsys):
@@ -21,7 +21,7 @@ def test_help_lists_the_subcommands(capsys):
 
 
 def test_console_script_entry_point():
-    out = subprocess.run([sys.executable, "-m", "kklcasadi.cli", "export", "--help"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "kklcasadi", "export", "--help"], capture_output=True, text=True,
                          check=True).stdout
     assert "--casadi" in out and "--c OUT_DIR" in out
 
@@ -86,7 +86,7 @@ def test_export_refuses_to_overwrite_and_needs_something_to_do(model_dir_factory
 
 
 def _cli(*args, env=None):
-    return subprocess.run([sys.executable, "-m", "kklcasadi.cli", *args], capture_output=True, text=True, env=env)
+    return subprocess.run([sys.executable, "-m", "kklcasadi", *args], capture_output=True, text=True, env=env)
 
 
 @pytest.mark.parametrize("args, expected", [

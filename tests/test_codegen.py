@@ -3,7 +3,7 @@ default flags (and -march=native where gcc has it), has no dynamic allocation, a
 CasADi VM through ca.external: bitwise with the axpy mat-vec kernels and the C library's exp/tanh,
 within VECTOR_MATH_TOLERANCE with the vectorisable exp/tanh; the vector exp/tanh against numpy;
 the mat-vec kernels' fallback for overlapping arrays; the standalone main example reproduces
-KKLObserver.simulate from a CSV; argument errors. Speed lives in kklcasadi.bench.observer_step."""
+KKLObserver.simulate from a CSV; argument errors. Speed lives in kklcasadi.evaluation.bench.observer_step."""
 
 import ctypes
 import re
@@ -15,7 +15,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from kklcasadi.codegen import (
+from kklcasadi.observer.codegen import (
     C_FLAGS,
     DEFAULT_FLAGS,
     NATIVE_FLAGS,
@@ -24,7 +24,7 @@ from kklcasadi.codegen import (
     generate_c,
     vector_math_c,
 )
-from kklcasadi.observer import load_observer
+from kklcasadi.observer.kkl import load_observer
 
 GCC = shutil.which("gcc")
 needs_gcc = pytest.mark.skipif(GCC is None, reason="gcc is not installed")
@@ -140,7 +140,7 @@ def test_axpy_kernels_are_bitwise_the_vm(model_dir_factory, tmp_path, method):
 def test_default_code_is_within_the_vector_math_tolerance(model_dir_factory, tmp_path, method):
     """The defaults (axpy kernels, vector exp/tanh) at DEFAULT_FLAGS -Werror."""
     obs = model(model_dir_factory, method)
-    files = obs.generate_c(tmp_path, name="fast")
+    files = generate_c(obs, tmp_path, name="fast")
     code = re.sub(r"/\*.*?\*/", "", files[0].read_text(), flags=re.DOTALL)   # without comments
     assert re.search(r"\bkklc_vtanh\(", code) and not re.search(r"\btanh\(", code)
     if method in ("obs", "dyn"):                            # the GRU gates
@@ -303,7 +303,7 @@ def test_main_example_reproduces_simulate(model_dir_factory, tmp_path, method, m
 @needs_gcc
 def test_two_inputs_and_outputs(model_dir_factory, mimo_plant, tmp_path):
     obs = load_observer(model_dir_factory("obs", system=mimo_plant, window=3), system=mimo_plant)
-    files = obs.generate_c(tmp_path, name="mimo")
+    files = generate_c(obs, tmp_path, name="mimo")
     binary = tmp_path / "mimo"
     compile_c([files[0], files[2]], binary)
     rng = np.random.default_rng(2)
@@ -316,7 +316,7 @@ def test_two_inputs_and_outputs(model_dir_factory, mimo_plant, tmp_path):
 
 @needs_gcc
 def test_main_example_rejects_bad_lines(model_dir_factory, tmp_path):
-    files = load_observer(model_dir_factory("autonomous")).generate_c(tmp_path, name="obs")
+    files = generate_c(load_observer(model_dir_factory("autonomous")), tmp_path, name="obs")
     binary = tmp_path / "obs"
     compile_c([files[0], files[2]], binary)
     for text, message in [("0,0.1,0\n0.05,nan,0\n", "line 2 (sample 1): value 2 is not finite"),
@@ -332,7 +332,7 @@ def test_duffing_sized_decoder_compiles_in_seconds(model_dir_factory, tmp_path):
     """2-5-150-150-150-5/2 maps (the paper's Duffing size): MX layers with DM constants keep the
     C small; the compile time is printed (run pytest -s to see it), not asserted."""
     obs = load_observer(model_dir_factory("autonomous", hidden=(150, 150, 150)))
-    files = obs.generate_c(tmp_path, name="duffing_obs")
+    files = generate_c(obs, tmp_path, name="duffing_obs")
     library, seconds = shared_library(files, tmp_path, flags=DEFAULT_FLAGS)
     print(f"\ngcc {' '.join(DEFAULT_FLAGS)} of the step with a 150-unit 3-layer decoder: "
           f"{seconds:.2f} s, {files[0].stat().st_size / 1e6:.1f} MB of C")
@@ -346,12 +346,12 @@ def test_duffing_sized_decoder_compiles_in_seconds(model_dir_factory, tmp_path):
 
 def test_refuses_to_overwrite_unless_asked(model_dir_factory, tmp_path):
     obs = load_observer(model_dir_factory("autonomous"))
-    first = obs.generate_c(tmp_path)
+    first = generate_c(obs, tmp_path)
     first[1].write_text("edited")
     with pytest.raises(FileExistsError, match=r"kkl_obs\.c: already exists; pass overwrite=True"):
-        obs.generate_c(tmp_path)
+        generate_c(obs, tmp_path)
     assert first[1].read_text() == "edited"
-    assert obs.generate_c(tmp_path, overwrite=True) == first
+    assert generate_c(obs, tmp_path, overwrite=True) == first
     assert first[1].read_text() != "edited"
 
 
@@ -360,7 +360,7 @@ def test_refuses_to_overwrite_unless_asked(model_dir_factory, tmp_path):
 def test_rejects_names_that_are_not_c_identifiers(model_dir_factory, tmp_path, name):
     obs = load_observer(model_dir_factory("autonomous"))
     with pytest.raises(ValueError, match=r"name: expected a C identifier.*received"):
-        obs.generate_c(tmp_path, name=name)
+        generate_c(obs, tmp_path, name=name)
     assert not any(tmp_path.iterdir())
 
 
@@ -369,11 +369,11 @@ def test_rejects_a_file_as_out_dir_and_bad_argument_types(model_dir_factory, tmp
     target = tmp_path / "file.txt"
     target.write_text("")
     with pytest.raises(ValueError, match=r"out_dir: expected a directory.*file\.txt.*is a file"):
-        obs.generate_c(target)
+        generate_c(obs, target)
     with pytest.raises(TypeError, match="name: expected a string"):
-        obs.generate_c(tmp_path, name=3)
+        generate_c(obs, tmp_path, name=3)
     with pytest.raises(TypeError, match="out_dir: expected a path"):
-        obs.generate_c(None)
+        generate_c(obs, None)
     assert check_c_name("kkl_obs2") == "kkl_obs2"
 
 
@@ -415,7 +415,7 @@ def test_flags_go_into_the_build_lines(model_dir_factory, tmp_path):
 @needs_gcc
 def test_bench_observer_step_runs_once(model_dir_factory, capsys):
     pytest.importorskip("torch")
-    from kklcasadi.bench.observer_step import bench_observer_step
+    from kklcasadi.evaluation.bench.observer_step import bench_observer_step
 
     timings = bench_observer_step(model_dir_factory("autonomous", window=4), n_calls=3, repeat=1,
                                   callgrind=False)
@@ -434,7 +434,7 @@ def test_bench_observer_step_runs_once(model_dir_factory, capsys):
 def test_bench_observer_step_takes_every_memory_shape(model_dir_factory, capsys, method):
     """Streaming and feedthrough memories (not a window) are benchmarked and checked like windows."""
     pytest.importorskip("torch")
-    from kklcasadi.bench.observer_step import bench_observer_step
+    from kklcasadi.evaluation.bench.observer_step import bench_observer_step
 
     timings = bench_observer_step(model_dir_factory(method), n_calls=2, repeat=1, callgrind=False)
     assert any(t.label.startswith("C default") for t in timings) and all(t.seconds > 0 for t in timings)

@@ -5,18 +5,18 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
-from kklcasadi import variants
-from kklcasadi.compiled import (
+from kklcasadi.estimators.ekf import EKF
+from kklcasadi.evaluation.compiled import (
+    CompiledEKF,
+    CompiledEstimator,
     Compiler,
     CompilerWarning,
-    EKFEstimator,
-    TrajectoryEstimator,
     compile_function,
     ekf_estimator,
     observer_estimator,
 )
-from kklcasadi.ekf import EKF
-from kklcasadi.observer import load_observer
+from kklcasadi.model import variants
+from kklcasadi.observer.kkl import load_observer
 
 needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
 
@@ -56,7 +56,7 @@ def test_the_compiled_observer_is_bitwise_the_vm_and_simulate(model_dir_factory,
 @pytest.mark.parametrize("kernels", ["axpy_matvec", "fast_kernels"])
 def test_the_evaluation_kernels_keep_the_vm_values(model_dir_factory, tmp_path, variant, kernels):
     """kklcasadi evaluate's sources: axpy mat-vecs bitwise; with the vector exp/tanh within 1e-14 (1 + |VM|)."""
-    from kklcasadi import codegen
+    from kklcasadi.observer import codegen
 
     method, options = VARIANTS[variant]
     obs = load_observer(model_dir_factory(method, **options))
@@ -142,25 +142,26 @@ def test_arguments_are_checked(model_dir_factory):
     with pytest.raises(ValueError, match="y: expected finite values, received nan at trial 1, sample 4"):
         est(t, y_bad, u)
     assert est(t, y[:0], u[:0]).shape == (0, 25, 2)
-    with pytest.raises(TypeError, match="compiler: expected a kklcasadi.compiled.Compiler or None"):
+    with pytest.raises(TypeError, match="compiler: expected a kklcasadi.evaluation.compiled.Compiler or None"):
         observer_estimator(obs, compiler="gcc")
     with pytest.raises(ValueError, match="n_threads: expected a positive int or None, received 0"):
         observer_estimator(obs, n_threads=0)
     with pytest.raises(TypeError, match="observer: expected a kklcasadi.KKLObserver"):
         observer_estimator(EKF(obs.system, 0.05))
-    with pytest.raises(TypeError, match="ekf: expected a kklcasadi.ekf.EKF"):
-        EKFEstimator(obs)
+    with pytest.raises(TypeError, match="ekf: expected a kklcasadi.estimators.ekf.EKF"):
+        CompiledEKF(obs)
     with pytest.raises(TypeError, match="flags: expected a tuple of str"):
         Compiler(flags="-O3")
     with pytest.raises(TypeError, match="f: expected a casadi.Function"):
         Compiler().compile(obs)
     with pytest.raises(TypeError, match="abstract"):
-        TrajectoryEstimator(2, 1, 1, 0.05)
+        CompiledEstimator(2, 1, 1, 0.05)
 
 
 @needs_gcc
 def test_bench_protocol_times_each_method_against_the_vm(model_dir_factory, tmp_path):
-    from kklcasadi.bench.protocol import bench_protocol, shipped_models
+    from kklcasadi.evaluation.bench.protocol import bench_protocol
+    from kklcasadi.model.shipped import shipped_models
 
     result = bench_protocol("duffing", models=[model_dir_factory("autonomous")], n_trials=2, vm_trials=1,
                             kinds=("zero",), cache_dir=tmp_path, progress=False)

@@ -3,8 +3,8 @@ import pytest
 from scipy.linalg import solve_sylvester
 
 import kklcasadi as kc
-from kklcasadi import data
-from kklcasadi import signals as sig
+from kklcasadi.plant import data
+from kklcasadi.plant import signals as sig
 
 
 def test_linear_labels_match_the_sylvester_solution():

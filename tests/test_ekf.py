@@ -3,9 +3,9 @@ import pytest
 from scipy.linalg import expm
 
 import kklcasadi as kc
-from kklcasadi import signals as sig
-from kklcasadi.ekf import EKF
-from kklcasadi.rk4 import rk4_step
+from kklcasadi.estimators.ekf import EKF
+from kklcasadi.plant import signals as sig
+from kklcasadi.plant.rk4 import rk4_step
 
 
 def test_rk4_step_is_the_fourth_order_taylor_polynomial_on_linear_systems():

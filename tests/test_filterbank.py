@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from kklcasadi import filterbank as fb
-from kklcasadi.architecture import DECODER
+from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.nets.specs import DECODER
 
 
 def _bank() -> fb.FilterBank:

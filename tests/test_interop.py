@@ -5,8 +5,8 @@ import control
 import numpy as np
 import pytest
 
-from kklcasadi.interop import to_iosys
-from kklcasadi.observer import load_observer
+from kklcasadi.observer.interop import to_iosys
+from kklcasadi.observer.kkl import load_observer
 
 DT = 0.05
 
@@ -18,7 +18,7 @@ def test_input_output_response_equals_simulate(model_dir_factory, method):
     y = np.sin(1.1 * t)[:, None]
     u = 0.6 * np.sign(np.sin(2.5 * t + 0.2))[:, None]
     expected = obs.simulate(t, y, u).xhat
-    iosys = obs.to_iosys()
+    iosys = to_iosys(obs)
     assert isinstance(iosys, control.NonlinearIOSystem) and iosys.dt == DT
     assert iosys.input_labels == ["y[0]", "u[0]"]
     assert iosys.output_labels == ["xhat[0]", "xhat[1]"]

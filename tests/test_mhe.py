@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
-from kklcasadi.ekf import EKF
-from kklcasadi.mhe import MHE, KKLPrimedMHE, SolveRecord, kkl_error_profile, solve_compiled
-from kklcasadi.protocol import Protocol, evaluate
+from kklcasadi.estimators.ekf import EKF
+from kklcasadi.estimators.mhe import MHE, KKLPrimedMHE, SolveRecord, kkl_error_profile, solve_compiled
+from kklcasadi.evaluation.protocol import Protocol, evaluate
 
 DT = 0.05
 
@@ -150,7 +150,9 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
     import json
     import shutil
 
-    from kklcasadi.pipelines import SystemComparison, main, markdown_table
+    from kklcasadi.cli import main
+    from kklcasadi.evaluation.compare import SystemComparison
+    from kklcasadi.evaluation.report import markdown_table
 
     root = tmp_path / "models"
     shutil.copytree(model_dir_factory("bank", "duffing", seed=2), root / "duffing" / "bank")
@@ -160,10 +162,11 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
                  "--primed-horizon", "2", "--calibration-trials", "1", "--out", str(out),
                  "--quiet"]) == 0
     comparison = SystemComparison.from_json(json.loads((out / "duffing.json").read_text()))
-    assert comparison.estimators == ["KKL (bank)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
-    assert all(cell.n_samples == 10 and len(cell.smape) == 1 for cell in comparison.cells)
+    assert [s.label for s in comparison.scores] == ["KKL (bank)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
+    cells = [cell for s in comparison.scores for cell in s.results.values()]
+    assert len(cells) == 4 and all(cell.n_samples == 10 and len(cell.smape) == 1 for cell in cells)
     table = (out / "table.md").read_text()
-    assert table.strip() == markdown_table([comparison], ("zero",))
+    assert table.strip() == markdown_table(comparison.scores, ("zero",), timing=True)
     assert "| duffing (1 trials) | MHE N=3 |" in table
 
 

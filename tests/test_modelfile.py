@@ -14,8 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kklcasadi import modelfile, variants
-from kklcasadi.modelfile import CARD_FILE, WEIGHTS_FILE, load_model, model_array_shapes, save_model
+from kklcasadi.model import files as modelfile
+from kklcasadi.model import variants
+from kklcasadi.model.files import CARD_FILE, WEIGHTS_FILE, load_model, model_array_shapes, save_model
 
 NX, NU, NY = 2, 1, 1
 NZ = NY * (2 * NX + 1)
@@ -76,7 +77,7 @@ def rewrite_weights(directory, arrays):
 
 
 def test_reading_and_exporting_need_no_torch():
-    code = ("import sys, kklcasadi, kklcasadi.modelfile, kklcasadi.casadi_nets, kklcasadi.observer; "
+    code = ("import sys, kklcasadi, kklcasadi.model.files, kklcasadi.nets.builders, kklcasadi.observer.kkl; "
             "sys.exit('torch was imported' if 'torch' in sys.modules else 0)")
     subprocess.run([sys.executable, "-c", code], check=True,
                    cwd=Path(__file__).resolve().parents[1])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
-from kklcasadi.ekf import EKF
-from kklcasadi.nmpc import NMPC, EKFEstimator, TrueState, closed_loop, plant_step, steady_state
+from kklcasadi.estimators.ekf import EKF
+from kklcasadi.estimators.nmpc import NMPC, EKFEstimator, TrueState, closed_loop, plant_step, steady_state
 
 DT = 0.05
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "nmpc_output_feedback.py"

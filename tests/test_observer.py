@@ -16,12 +16,13 @@ import pytest
 from scipy.linalg import expm, solve_sylvester
 
 import kklcasadi as kc
-from kklcasadi import casadi_nets, variants
-from kklcasadi.modelfile import CARD_FILE, load_model, save_model
-from kklcasadi.observer import KKLObserver, load_observer, make_inject_model
-from kklcasadi.rk4 import rk4_step
-from kklcasadi.simulate import time_grid
-from kklcasadi.systems import LINEAR_F, LINEAR_H
+from kklcasadi.model import variants
+from kklcasadi.model.files import CARD_FILE, load_model, save_model
+from kklcasadi.nets import builders as casadi_nets
+from kklcasadi.observer.kkl import KKLObserver, load_observer, make_inject_model
+from kklcasadi.plant.rk4 import rk4_step
+from kklcasadi.plant.simulate import time_grid
+from kklcasadi.plant.systems import LINEAR_F, LINEAR_H
 
 ROOT = Path(__file__).resolve().parents[1]
 METHODS = variants.names()
@@ -440,7 +441,7 @@ def test_estimator_rejects_bad_samples_and_keeps_its_state(model_dir_factory):
         est.make_step([0.1], [np.nan])
     assert np.array_equal(est.z, z) and est.k == 1
     with pytest.raises(TypeError, match="observer"):
-        kc.observer.Estimator("obs")
+        kc.observer.kkl.Estimator("obs")
 
 
 # ----------------------------------------------------------------------------- inject: exact on a linear plant
@@ -503,7 +504,7 @@ def test_step_serialises_for_the_cli(model_dir_factory, tmp_path, rng):
 
 
 def test_deploy_side_does_not_import_torch():
-    code = ("import sys, kklcasadi, kklcasadi.observer, kklcasadi.codegen, kklcasadi.interop; "
+    code = ("import sys, kklcasadi, kklcasadi.observer.kkl, kklcasadi.observer.codegen, kklcasadi.observer.interop; "
             "sys.exit('torch was imported' if 'torch' in sys.modules else 0)")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 

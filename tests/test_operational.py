@@ -9,8 +9,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi import filterbank as fb  # noqa: E402
-from kklcasadi.architecture import DECODER  # noqa: E402
+from kklcasadi.model.variants import filterbank as fb  # noqa: E402
+from kklcasadi.nets.specs import DECODER  # noqa: E402
 from kklcasadi.train.config import LoopConfig  # noqa: E402
 from kklcasadi.train.nets import MLP  # noqa: E402
 from kklcasadi.train.operational import (  # noqa: E402

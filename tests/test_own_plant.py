@@ -9,8 +9,8 @@ import pytest
 
 pytest.importorskip("torch")
 
-import kklcasadi as kc  # noqa: E402
 from kklcasadi.cli import main  # noqa: E402
+from kklcasadi.model.files import load_model  # noqa: E402
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "own_plant.py"
 
@@ -25,7 +25,7 @@ def test_example_runs_in_a_reduced_form(own_plant, tmp_path, capsys):
     assert len(results) == 5 and (tmp_path / "own_plant.png").stat().st_size > 20000
     assert all(r["state_in_box"] for label, r in results.items() if not label.startswith("resonant"))
     assert not results["resonant square 0.6, 1 rad/s"]["state_in_box"]
-    model = kc.modelfile.load_model(tmp_path / "inject")
+    model = load_model(tmp_path / "inject")
     assert model.spec.system.fingerprint == own_plant["make_plant"]().fingerprint
     assert model.spec.domain is not None
     assert "trained Phase 1 + inject" in capsys.readouterr().out

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
-from kklcasadi.protocol import Protocol, evaluate
+from kklcasadi.evaluation.protocol import Protocol, evaluate
+from kklcasadi.evaluation.trialcache import TrialCache
 
 
 def test_trials_are_shared_and_noise_free_variant_reuses_them():
@@ -24,18 +25,17 @@ def test_trials_are_shared_and_noise_free_variant_reuses_them():
 def test_evaluate_scores_a_zero_estimator_at_200_percent():
     s = kc.systems.get("vdp")
     p = Protocol(n_trials=2, T=6.0, method="rk").noise_free()
-    cache = {}
+    cache = TrialCache(None)
     truth = {kind: p.trials(s, kind) for kind in ("zero", "constant")}
     res = evaluate(lambda t, y, u: np.zeros(y.shape[:2] + (2,)), s, p, ("zero", "constant"), trials=cache)
     assert [r.kind for r in res] == ["zero", "constant"]
     np.testing.assert_allclose(res[0].smape, 200.0)
-    assert set(cache) == {"zero", "constant"}
-    np.testing.assert_array_equal(cache["zero"].x, truth["zero"].x)
+    kept = cache.trials(s, p.cell("zero"))                       # from memory: the very batch evaluate scored
+    assert kept is cache.trials(s, p.cell("zero"))
+    np.testing.assert_array_equal(kept.x, truth["zero"].x)
 
 
 def test_evaluate_with_a_trial_cache_scores_exactly_as_without(tmp_path):
-    from kklcasadi.trialcache import TrialCache
-
     s = kc.systems.get("vdp")
     p = Protocol(n_trials=2, T=6.0, method="rk")
     kinds = ("zero", "sinusoid")
@@ -45,9 +45,9 @@ def test_evaluate_with_a_trial_cache_scores_exactly_as_without(tmp_path):
 
     plain = evaluate(first_state_is_y, s, p, kinds)
     cache = TrialCache(tmp_path)
-    filled = evaluate(first_state_is_y, s, p, kinds, trial_cache=cache)
-    assert sorted(f.name for f in tmp_path.iterdir()) == sorted(cache.path(s, p, k).name for k in kinds)
-    read = evaluate(first_state_is_y, s, p, kinds, trial_cache=cache, progress="vdp test")
+    filled = evaluate(first_state_is_y, s, p, kinds, trials=cache)
+    assert sorted(f.name for f in tmp_path.iterdir()) == sorted(cache.path(s, p.cell(k)).name for k in kinds)
+    read = evaluate(first_state_is_y, s, p, kinds, trials=TrialCache(tmp_path), progress="vdp test")
     for a, b, c in zip(plain, filled, read):
         np.testing.assert_array_equal(a.smape, b.smape)
         np.testing.assert_array_equal(a.smape, c.smape)
@@ -56,10 +56,10 @@ def test_evaluate_with_a_trial_cache_scores_exactly_as_without(tmp_path):
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
 def test_the_fast_estimators_score_exactly_as_the_reference_path(model_dir_factory, tmp_path):
-    from kklcasadi.compiled import Compiler, ekf_estimator, observer_estimator
-    from kklcasadi.ekf import EKF
-    from kklcasadi.observer import load_observer
-    from kklcasadi.report import score
+    from kklcasadi.estimators.ekf import EKF
+    from kklcasadi.evaluation.compiled import Compiler, ekf_estimator, observer_estimator
+    from kklcasadi.evaluation.report import score
+    from kklcasadi.observer.kkl import load_observer
 
     obs = load_observer(model_dir_factory("inject", base=True))
     p = Protocol(n_trials=3, T=6.0, method="rk")

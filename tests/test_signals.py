@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from kklcasadi import signals as sig
+from kklcasadi.plant import signals as sig
 
 
 def test_square_matches_definition():

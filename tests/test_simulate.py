@@ -3,7 +3,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import kklcasadi as kc
-from kklcasadi import signals as sig
+from kklcasadi.plant import signals as sig
 
 
 def reference(system, x0, u, T, dt):

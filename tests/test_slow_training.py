@@ -6,7 +6,7 @@ import pytest
 pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi.protocol import Protocol, evaluate  # noqa: E402
+from kklcasadi.evaluation.protocol import Protocol, evaluate  # noqa: E402
 from kklcasadi.train import default_config, train_observer  # noqa: E402
 
 pytestmark = pytest.mark.slow

@@ -9,8 +9,8 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
-from kklcasadi.architecture import lora_target_shapes  # noqa: E402
-from kklcasadi.modelfile import load_model  # noqa: E402
+from kklcasadi.model.files import load_model  # noqa: E402
+from kklcasadi.nets.specs import lora_target_shapes  # noqa: E402
 from kklcasadi.train import LoopConfig, Phase2DataConfig, default_config, train_observer, with_epochs  # noqa: E402
 from kklcasadi.train.loop import ArrayDataset, fit  # noqa: E402
 from kklcasadi.train.nets import MLP, LoRAHyperNet, ObsInjection  # noqa: E402
@@ -133,7 +133,7 @@ def test_loop_config_rejects_a_bad_val_samples(value, kind):
 
 
 def test_bench_phase2_epoch_times_both_validation_settings(phase1_dir, capsys):
-    from kklcasadi.bench.training import bench_phase2_epoch
+    from kklcasadi.evaluation.bench.training import bench_phase2_epoch
 
     timings = bench_phase2_epoch("duffing", phase1_dir, methods=("obs",), threads=1,
                                  data=Phase2DataConfig(n_traj=2, n_signals=2, T=20.0))
@@ -145,7 +145,7 @@ def test_bench_phase2_epoch_times_both_validation_settings(phase1_dir, capsys):
 
 @pytest.mark.parametrize("methods", [("autonomous",), (), "obs"])
 def test_bench_phase2_epoch_rejects_other_methods(phase1_dir, methods):
-    from kklcasadi.bench.training import bench_phase2_epoch
+    from kklcasadi.evaluation.bench.training import bench_phase2_epoch
 
     with pytest.raises(ValueError, match=r"methods: expected a non-empty tuple of \('obs', 'dyn'\)"):
         bench_phase2_epoch("duffing", phase1_dir, methods=methods)

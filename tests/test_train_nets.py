@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from kklcasadi.architecture import ACTIVATIONS, HyperSpec, MLPSpec, ObsSpec, lora_target_shapes
+from kklcasadi.nets.specs import ACTIVATIONS, HyperSpec, MLPSpec, ObsSpec, lora_target_shapes
 from kklcasadi.train.nets import MLP, GRUContext, LoRAHyperNet, ObsInjection, mlp_forward_lora
 
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
-from kklcasadi import variants
 from kklcasadi.cli import build_parser
-from kklcasadi.modelfile import load_model, make_card, save_model
-from kklcasadi.variants.base import MapsSpec, Networks, Variant, plain_maps
+from kklcasadi.model import variants
+from kklcasadi.model.files import load_model, make_card, save_model
+from kklcasadi.model.variants.base import MapsSpec, Networks, Variant, plain_maps
 
 
 def test_registry_lists_every_method_and_names_unknown_ones():

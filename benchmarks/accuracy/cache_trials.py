@@ -2,7 +2,7 @@
 
 Writes ``<cache>/<system>_<noisy|clean>.npz`` with, per input regime ``k``: ``k/t`` (N,),
 ``k/x`` (M, N, nx), ``k/y`` (M, N, ny), ``k/u`` (M, N, nu), ``k/ok`` (M,) and ``k/ekf`` (M, N, nx),
-the EKF estimate of :class:`kklcasadi.ekf.EKF` (the unchanged baseline) on the same trials.
+the EKF estimate of :class:`kklcasadi.estimators.ekf.EKF` (the unchanged baseline) on the same trials.
 
 Usage: ``python benchmarks/accuracy/cache_trials.py [--cache DIR] [--trials 100] [--regime ood] SYSTEM...``
 """
@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 import kklcasadi as kc
-from kklcasadi.ekf import EKF
-from kklcasadi.protocol import Protocol
-from kklcasadi.signals import BENCHMARK_KINDS
+from kklcasadi.estimators.ekf import EKF
+from kklcasadi.evaluation.protocol import Protocol
+from kklcasadi.plant.signals import BENCHMARK_KINDS
 
 
 def cache_system(name: str, cache: Path, n_trials: int, regime: str = "id") -> None:

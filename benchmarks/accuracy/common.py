@@ -13,8 +13,8 @@ from typing import Callable
 import numpy as np
 
 import kklcasadi as kc
-from kklcasadi.signals import BENCHMARK_KINDS
-from kklcasadi.simulate import TrajectoryBatch
+from kklcasadi.plant.signals import BENCHMARK_KINDS
+from kklcasadi.plant.simulate import TrajectoryBatch
 
 CACHE = Path("/tmp/acc_cache")
 #: RK4 substeps per sample for the rollouts (checked against CVODES: SMAPE difference < 0.1 %).

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from common import CACHE, protocol_trials, score, table_row
 
-from kklcasadi import filterbank as fb
+from kklcasadi.model.variants import filterbank as fb
 
 WEIGHTS = Path("results/accuracy/weights")
 

@@ -26,8 +26,8 @@ from common import cached_rollouts, kind_of_rollouts, score, table_row
 from recipes import PAPER_BEST, RECIPES
 
 import kklcasadi as kc
-from kklcasadi import filterbank as fb
-from kklcasadi.signals import BENCHMARK_KINDS
+from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.plant.signals import BENCHMARK_KINDS
 from kklcasadi.train.config import LoopConfig
 from kklcasadi.train.operational import DecoderConfig, RolloutConfig, config_record, fit_bank_decoder
 

@@ -20,9 +20,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from kklcasadi import filterbank as fb
-from kklcasadi import systems
-from kklcasadi.modelfile import make_card, save_model
+from kklcasadi.model.files import make_card, save_model
+from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.plant import systems
 from kklcasadi.train.bank import BankConfig, bank_model, design_bank
 from kklcasadi.train.operational import config_record, rollouts
 

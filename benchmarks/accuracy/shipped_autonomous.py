@@ -1,7 +1,7 @@
 """Score the shipped ``autonomous`` observers on the cached 100-trial protocol cells (numpy, exact FOH).
 
 Their latent is linear (``zdot = A z + B y``), so the exact FOH recursion of
-:class:`kklcasadi.filterbank.FilterBank` (with no input or constant drive) and the decoder in numpy
+:class:`kklcasadi.model.variants.filterbank.FilterBank` (with no input or constant drive) and the decoder in numpy
 reproduce ``KKLObserver.simulate`` (checked on one trial against the CasADi observer).
 Writes ``results/accuracy/shipped_autonomous.json``.
 """
@@ -15,9 +15,9 @@ import numpy as np
 from common import protocol_trials, score, table_row
 
 import kklcasadi as kc
-from kklcasadi import filterbank as fb
-from kklcasadi.architecture import DECODER, MLPSpec
-from kklcasadi.modelfile import load_model
+from kklcasadi.model.files import load_model
+from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.nets.specs import DECODER, MLPSpec
 
 
 def estimator(system: str):

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from recipes import PAPER_BEST
 
-from kklcasadi.signals import BENCHMARK_KINDS
+from kklcasadi.plant.signals import BENCHMARK_KINDS
 
 PROBES = Path("results/accuracy/probes")
 SYSTEMS = ("duffing", "vdp", "fhn", "rossler")

@@ -21,10 +21,11 @@ except ImportError as exc:                              # a deploy-only install:
     raise ModuleNotFoundError("kklcasadi.train needs torch, which is not installed; install the training extra: "
                               "pip install 'kklcasadi[train]'", name="torch") from exc
 
-from .. import systems, variants
-from ..design import Design
-from ..modelfile import derive_model, load_model, make_card, save_model
-from ..systems import System
+from ..model import variants
+from ..model.files import derive_model, load_model, make_card, save_model
+from ..plant import systems
+from ..plant.design import Design
+from ..plant.systems import System
 from ..validation import error, positive_int
 from .config import (
     CurriculumConfig,
@@ -43,7 +44,7 @@ from .result import Trained
 __all__ = ["train_observer", "default_config", "with_epochs", "LoopConfig", "Phase1Config", "Phase2DataConfig",
            "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig", "DynStreamConfig", "Trained", "METHODS"]
 
-#: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.variants`).
+#: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.model.variants`).
 METHODS = variants.trainable()
 
 
@@ -105,7 +106,7 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     system : System or str
         The plant (or a registered name).
     method : str
-        A key of :data:`kklcasadi.variants.VARIANTS` (see :data:`METHODS`). ``autonomous``: Phase 1
+        A key of :data:`kklcasadi.model.variants.VARIANTS` (see :data:`METHODS`). ``autonomous``: Phase 1
         (with ``base``: keep the base's encoder and train only a new decoder, e.g. for another noise
         level). The others start from the Phase-1 model ``base``, default ``out_dir/../autonomous``,
         which is trained first when it does not exist yet; ``inject`` trains nothing more.

@@ -10,13 +10,13 @@ from typing import Optional
 
 import numpy as np
 
-from .. import filterbank as fb
-from ..architecture import DECODER, MLPSpec
-from ..design import Design
-from ..modelfile import Domain, Model
-from ..simulate import TrajectoryBatch
-from ..systems import System
-from ..variants import BankSpec
+from ..model.files import Domain, Model
+from ..model.variants import BankSpec
+from ..model.variants import filterbank as fb
+from ..nets.specs import DECODER, MLPSpec
+from ..plant.design import Design
+from ..plant.simulate import TrajectoryBatch
+from ..plant.systems import System
 from .config import LoopConfig
 from .operational import DecoderConfig, RolloutConfig, config_record, fit_bank_decoder, rollouts
 from .result import Trained

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Optional
 
-from .. import variants
+from ..model import variants
 from ..validation import Text, error, finite_number, one_of, positive_int, positive_number
 
 __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig",
@@ -17,11 +17,6 @@ __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynCo
 #: per RK4 step of a Roessler inject observer, 2 cores), which the benchmark has to pay 10^5 times.
 #: ``default_config(system, "autonomous", width=PAPER_WIDTH[system])`` gives the paper's size.
 PAPER_WIDTH = {"duffing": 150, "vdp": 150, "rossler": 350, "fhn": 350}
-#: Phase-1 sampling box per system (scale of X0 about its centre; 1 by default). Inputs drive
-#: Duffing to |x| ~ (2.5, 4.9) from the unit box, but sampling 2.5x the box with the default data
-#: and epochs fitted worse everywhere (20 trials, noise-free inject SMAPE 10.5/12.0/9.1 % under
-#: constant/sinusoid/square inputs against 4.3/8.0/9.7 % with the unit box).
-BOX_SCALE: dict = {}
 #: Phase-1 label kind per system (see Phase1Config.labels).
 LABELS = {"fhn": "cold"}
 #: Phase-1 budget of a plant kklcasadi does not ship (a first observer in about a minute on 2 cores):
@@ -88,9 +83,9 @@ class Phase1Config:
         Hidden width and number of hidden layers of T and T*.
     n_traj, t_keep, box_scale
         Phase-1 data: trajectories from a Latin hypercube over the X0 box (scaled by ``box_scale``),
-        each labelled over ``t_keep`` seconds (:func:`kklcasadi.data.phase1`).
+        each labelled over ``t_keep`` seconds (:func:`kklcasadi.plant.data.phase1`).
     labels : {"exact", "frozen", "cold"}
-        Phase-1 labels (:func:`kklcasadi.data.phase1`): ``exact`` match the true map to the
+        Phase-1 labels (:func:`kklcasadi.plant.data.phase1`): ``exact`` match the true map to the
         tolerance; ``cold`` are the latents of a cold-started observer, for plants whose every
         solution settles and whose backward flow escapes (FitzHugh-Nagumo), where exact labels
         exist only at the equilibrium. With ``cold`` labels the PDE term is off (they do not solve it).
@@ -122,6 +117,16 @@ class Phase1Config:
     dtype: str = "float32"
     encoder: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=1024, lr=2e-3))
     decoder: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=1024, lr=2e-3))
+
+    @classmethod
+    def for_system(cls, system: str) -> Phase1Config:
+        """The defaults for ``system``: its label kind (:data:`LABELS`), and for a plant kklcasadi
+        does not ship the smaller budget :data:`NEW_PLANT_PHASE1`."""
+        config = cls(labels=LABELS.get(system, "exact"))
+        if system in PAPER_WIDTH:
+            return config
+        budget = dict(NEW_PLANT_PHASE1)
+        return with_epochs(replace(config, **{k: budget.pop(k) for k in ("n_traj", "n_pde")}), budget["epochs"])
 
 
 @dataclass(frozen=True)
@@ -261,10 +266,5 @@ def default_config(system: str, method: str, *, epochs: Optional[int] = None, **
         raise error("overrides", f"fields of {cls.__name__} among {sorted(names)}", Text(f"unknown field(s) {unknown}"),
                     kind=TypeError)
     config = cls.for_system(system) if hasattr(cls, "for_system") else cls()
-    if method == "autonomous":
-        config = replace(config, box_scale=BOX_SCALE.get(system, 1.0), labels=LABELS.get(system, "exact"))
-        if system not in PAPER_WIDTH:
-            budget = dict(NEW_PLANT_PHASE1)
-            config = with_epochs(replace(config, **{k: budget.pop(k) for k in ("n_traj", "n_pde")}), budget["epochs"])
     config = replace(config, **overrides)
     return config if epochs is None else with_epochs(config, epochs)

@@ -1,6 +1,6 @@
 """Torch networks of the HyperKKL observers.
 
-The torch twin of :mod:`kklcasadi.casadi_nets`; like the rest of :mod:`kklcasadi.train` it
+The torch twin of :mod:`kklcasadi.nets.builders`; like the rest of :mod:`kklcasadi.train` it
 imports torch, which the deploy side never does.
 
 * :class:`MLP` -- encoder ``T``, decoder ``T*``, the obs gain MLP and the hypernetwork backbone.
@@ -10,7 +10,7 @@ imports torch, which the deploy side never does.
   layer, applied by :func:`mlp_forward_lora`.
 
 Every module converts to and from the named float64 arrays of the model file format
-(``to_arrays`` / ``from_arrays``), built from the typed specs of :mod:`kklcasadi.architecture`
+(``to_arrays`` / ``from_arrays``), built from the typed specs of :mod:`kklcasadi.nets.specs`
 (which define the names and shapes, see ``docs/model-format.md``). Windows are
 ``(batch, window, nu)``, oldest sample first.
 """
@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..architecture import (
+from ..nets.specs import (
     HYPER,
     OBS_GAIN,
     OBS_GRU,
@@ -410,7 +410,7 @@ class LoRAHyperNet(nn.Module):
     ----------
     target_shapes : sequence of (d_out, d_in)
         The modulated layers; in model files all encoder layers then all decoder layers
-        (:func:`kklcasadi.architecture.lora_target_shapes`).
+        (:func:`kklcasadi.nets.specs.lora_target_shapes`).
     nu : int
         Input size.
     hidden : int
@@ -503,7 +503,7 @@ class LoRAHyperNet(nn.Module):
             ``"hyper"`` in model files.
         spec : HyperSpec
         targets : sequence of (d_out, d_in)
-            The modulated layers (:func:`kklcasadi.architecture.lora_target_shapes`).
+            The modulated layers (:func:`kklcasadi.nets.specs.lora_target_shapes`).
         nu : int
             Input size.
         dtype : torch.dtype

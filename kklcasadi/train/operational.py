@@ -1,9 +1,9 @@
 """Operational decoders: fit the decoder on the latents the observer really sees.
 
 The observer runs on simulated noisy trajectories (initial states from the X0 box, inputs from the
-``train`` ranges of :mod:`kklcasadi.signals`, process and measurement noise at the design level,
+``train`` ranges of :mod:`kklcasadi.plant.signals`, process and measurement noise at the design level,
 ``z(0) = 0`` as in the benchmark), and the decoder is fitted to the true states along those runs.
-For the linear filter-bank latent of :mod:`kklcasadi.filterbank` the latent trajectory does not
+For the linear filter-bank latent of :mod:`kklcasadi.model.variants.filterbank` the latent trajectory does not
 depend on the decoder, so one pass suffices.
 
 * :func:`rollouts` -- the noisy training trajectories (CasADi, mapped; no torch).
@@ -20,11 +20,11 @@ from typing import Callable, Mapping
 import numpy as np
 import torch
 
-from .. import filterbank as fb
-from .. import signals as sig
-from ..architecture import DECODER, MLPSpec
-from ..simulate import TrajectoryBatch, simulate_batch
-from ..systems import System
+from ..model.variants import filterbank as fb
+from ..nets.specs import DECODER, MLPSpec
+from ..plant import signals as sig
+from ..plant.simulate import TrajectoryBatch, simulate_batch
+from ..plant.systems import System
 from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
@@ -51,11 +51,11 @@ class RolloutConfig:
     process_std, measurement_std : float
         Noise levels the decoder is fitted for.
     kinds : tuple of str
-        Input kinds, drawn with :func:`kklcasadi.signals.sample` from ``regime``.
+        Input kinds, drawn with :func:`kklcasadi.plant.signals.sample` from ``regime``.
     regime : str
         Parameter ranges (``train``; never the protocol's test draws).
     method, substeps : str, int
-        Plant integrator (see :func:`kklcasadi.simulate.step_function`).
+        Plant integrator (see :func:`kklcasadi.plant.simulate.step_function`).
     box_scale : float
         Scale of the X0 box (about its centre) the initial states are drawn from.
     """
@@ -230,7 +230,8 @@ def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np
 def torch_decoder(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object]) -> Callable[[Tensor], Tensor]:
     """The bank decoder in torch (float64): ``features (..., nz + ny + nu) -> xhat (..., nx)``.
 
-    The same map as :func:`kklcasadi.filterbank.decode` and :func:`kklcasadi.filterbank.decoder_function`.
+    The same map as :func:`kklcasadi.model.variants.filterbank.decode` and
+    :func:`kklcasadi.model.variants.filterbank.decoder_function`.
     """
     mlp = MLP.from_arrays(arrays, DECODER, MLPSpec.from_card(arch, "architecture", DECODER), dtype=torch.float64)
     scale = torch.as_tensor(np.asarray(arrays[fb.ASINH_SCALE], dtype=float))

@@ -15,12 +15,12 @@ import numpy as np
 import torch
 from scipy.linalg import solve_continuous_lyapunov
 
-from .. import data as kdata
-from ..architecture import DECODER, ENCODER
-from ..design import Design
-from ..modelfile import Domain, Model
-from ..systems import System
-from ..variants import MapsSpec
+from ..model.files import Domain, Model
+from ..model.variants import MapsSpec
+from ..nets.specs import DECODER, ENCODER
+from ..plant import data as kdata
+from ..plant.design import Design
+from ..plant.systems import System
 from .config import Phase1Config
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
@@ -148,7 +148,7 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
 def train_autonomous(system: System, design: Design, base: Model | None, config: Phase1Config, *,
                      dt: float, seed: int, device: str, progress: bool, workdir: Path | None,
                      resume: bool) -> Trained:
-    """The training hook of the ``autonomous`` variant (see :mod:`kklcasadi.variants`).
+    """The training hook of the ``autonomous`` variant (see :mod:`kklcasadi.model.variants`).
 
     With ``base`` (a Phase-1 model), its encoder and design are kept and only a new decoder is
     trained (e.g. for another noise level).

@@ -10,13 +10,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from .. import data as kdata
-from .. import signals as sig
-from ..architecture import DECODER, ENCODER, lora_target_shapes
-from ..design import Design
-from ..modelfile import Domain, Model
-from ..systems import System
-from ..variants import DynModelSpec, MapsSpec, ObsModelSpec
+from ..model.files import Domain, Model
+from ..model.variants import DynModelSpec, MapsSpec, ObsModelSpec
+from ..nets.specs import DECODER, ENCODER, lora_target_shapes
+from ..plant import data as kdata
+from ..plant import signals as sig
+from ..plant.design import Design
+from ..plant.systems import System
 from .config import CurriculumConfig, DynConfig, ObsConfig
 from .loop import ArrayDataset, fit, torch_dtype
 from .nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
@@ -29,7 +29,7 @@ Tensor = torch.Tensor
 
 
 class Phase2Dataset:
-    """Flat samples of :class:`kklcasadi.data.Phase2Data` (windows gathered per batch) plus extra arrays.
+    """Flat samples of :class:`kklcasadi.plant.data.Phase2Data` (windows gathered per batch) plus extra arrays.
 
     ``extra`` arrays have one row per flat sample (``Phase2Data.n_samples``).
     """

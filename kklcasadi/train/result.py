@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
-from ..design import Design
-from ..modelfile import Domain
+from ..model.files import Domain
+from ..plant.design import Design
 
 __all__ = ["Trained"]
 

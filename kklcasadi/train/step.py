@@ -3,7 +3,7 @@
 :func:`torch_step` builds ``step(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` for a
 :class:`kklcasadi.KKLObserver`, the same computation as ``observer.step``: the exact or RK4 latent
 update and the decoder, batch 1, float64, without autograd. Each variant names the function that
-gives its torch parts (:attr:`kklcasadi.variants.Variant.torch_parts`); a window GRU is a plain
+gives its torch parts (:attr:`kklcasadi.model.variants.Variant.torch_parts`); a window GRU is a plain
 ``torch.nn.GRU`` holding the model's bias-free weights (not the Python loop training uses for its
 JVPs). Variants whose step needs the CasADi plant (the model-based term of ``inject``) have none.
 """
@@ -16,8 +16,8 @@ from typing import Any, Callable, Optional
 import numpy as np
 import torch
 
-from ..architecture import DECODER, HYPER, lora_target_shapes
-from ..rk4 import rk4_step
+from ..nets.specs import DECODER, HYPER, lora_target_shapes
+from ..plant.rk4 import rk4_step
 from .nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
 
 __all__ = ["TorchParts", "torch_step", "maps_parts", "obs_parts", "dyn_parts"]
@@ -177,7 +177,8 @@ def torch_step(observer: Any) -> Optional[Callable[..., tuple[Tensor, Tensor, Te
     held = parts.held or (lambda w: w[-1])
     memory_next = parts.memory_next or (lambda w, y_next, u_next: torch.cat([w[1:], u_next[None]]))
     if observer.foh_matrices is not None:
-        ad, gy, gy_next = (torch.as_tensor(np.array(m)) for m in observer.foh_matrices)
+        m = observer.foh_matrices
+        ad, gy, gy_next = (torch.as_tensor(np.array(a)) for a in (m.Ad, m.Gy, m.Gy_next))
 
         def advance(z: Tensor, w: Tensor, y: Tensor, y_next: Tensor) -> Tensor:
             return ad @ z + gy @ y + gy_next @ y_next

@@ -1,7 +1,7 @@
 """Training hooks of the streaming variants ``obs_stream`` and ``dyn_stream``.
 
 The context is the GRU's state after every input sample since ``t = 0`` (one cell per sample), as
-the streaming observer carries it (:mod:`kklcasadi.variants.stream`). Training batches are whole
+the streaming observer carries it (:mod:`kklcasadi.model.variants.stream`). Training batches are whole
 Phase-2 trajectories: the GRU runs once over each trajectory's inputs and every sample of it
 enters the loss, instead of one window GRU per sample.
 """
@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..design import Design
-from ..modelfile import Model
-from ..systems import System
-from ..variants import DynModelSpec, ObsModelSpec
+from ..model.files import Model
+from ..model.variants import DynModelSpec, ObsModelSpec
+from ..plant.design import Design
+from ..plant.systems import System
 from .config import DynStreamConfig, ObsStreamConfig
 from .loop import ArrayDataset, fit
 from .nets import LoRAHyperNet

@@ -1,0 +1,41 @@
+"""The ``kklcasadi`` command line (also ``python -m kklcasadi``): one module per command, the shared
+flags and the one error path in :mod:`.flags`.
+
+``demo``, ``train``, ``evaluate``, ``export``, ``bench``, ``compare`` (the observer beside the EKF
+and MHE), ``certificate`` (Proposition 1 of the paper for a model). Every error is one line
+``error: ...`` on stderr with exit status 2 (``KKLCASADI_DEBUG=1`` shows the traceback instead).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Sequence
+
+from . import bench, certificate, compare, demo, evaluate, export, train
+from .flags import USER_ERRORS, Parser
+
+__all__ = ["main", "build_parser"]
+
+COMMANDS = (demo, train, evaluate, export, bench, compare, certificate)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(prog="kklcasadi", description="Learned KKL observers (HyperKKL) in CasADi and C.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+    for command in COMMANDS:
+        command.add_parser(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; a user error prints one line ``error: ...`` and returns 2."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except USER_ERRORS as exc:
+        if os.environ.get("KKLCASADI_DEBUG"):
+            raise
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2

@@ -1,0 +1,77 @@
+"""``kklcasadi bench``: speed benchmarks, each against its alternative in the same run."""
+
+from __future__ import annotations
+
+import argparse
+
+from ..model.shipped import shipped as shipped_listing
+from ..plant import systems
+from .flags import CommandError, flagged, needs_torch, positive_int, shipped
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    b = sub.add_parser("bench", help="speed benchmarks, each against its alternative in the same run")
+    b.add_argument("what", nargs="?", default="all", choices=("all", "simulation", "observer", "training", "protocol"))
+    b.add_argument("--system", default="duffing", choices=systems.names())
+    b.add_argument("--model", help="model directory for the observer benchmark")
+    b.add_argument("--models", nargs="+", help="protocol benchmark: model directories (default: the shipped ones)")
+    b.add_argument("--trials", type=positive_int,
+                   help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100)")
+    b.add_argument("--vm-trials", type=positive_int, default=4,
+                   help="protocol benchmark: trials per cell also run in the CasADi VM (default 4)")
+    b.add_argument("--no-ekf", action="store_true", help="protocol benchmark: leave the EKF out")
+    b.add_argument("--flags", help="protocol benchmark: C compiler flags, one string (default '-O3 "
+                                   "-ffp-contract=off'; write --flags='-O2')")
+    b.add_argument("--math", default="vector", choices=("vector", "libm"),
+                   help="protocol benchmark: exp/tanh of the compiled code, vectorised (default) or the C library's")
+    b.add_argument("--matvec", default="axpy", choices=("axpy", "casadi"),
+                   help="protocol benchmark: the axpy mat-vec kernels (default) or CasADi's own loops (with --math "
+                   "libm)")
+    b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
+    b.add_argument("--threads", type=positive_int,
+                   help="training benchmarks: torch CPU threads; protocol benchmark: worker threads over trials")
+    b.set_defaults(func=run)
+
+
+def _compiler(args: argparse.Namespace):
+    from ..evaluation.compiled import DEFAULT_FLAGS, Compiler
+    from ..observer.codegen import axpy_matvec, fast_kernels
+
+    if args.matvec == "casadi" and args.math == "vector":
+        raise CommandError("--matvec casadi: CasADi's own loops keep the C library's exp/tanh; pass --math libm")
+    hook = {("axpy", "vector"): fast_kernels, ("axpy", "libm"): axpy_matvec, ("casadi", "libm"): None}
+    flags = DEFAULT_FLAGS if args.flags is None else tuple(args.flags.split())
+    return flagged("--flags", Compiler, flags=flags, postprocess=hook[(args.matvec, args.math)])
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..evaluation.bench.simulation import bench_simulation
+
+    if args.what in ("observer", "training"):
+        needs_torch(f"kklcasadi bench {args.what} (it times torch beside CasADi)")
+    if args.what in ("all", "simulation"):
+        print("== data generation: trajectories per second ==")
+        bench_simulation(args.system, n_trials=args.trials or 32)
+    if args.what in ("all", "observer"):
+        from ..evaluation.bench.observer_step import bench_observer_step
+
+        print("== observer step: generated C vs CasADi VM vs torch eager ==")
+        bench_observer_step(args.model or shipped(args.system, "obs"))
+    if args.what in ("all", "training"):
+        from ..evaluation.bench.training import bench_phase2_epoch, bench_training
+
+        print("== training throughput: samples per second per stage ==")
+        bench_training(args.system, device=args.device, threads=args.threads)
+        if "autonomous" in shipped_listing().get(args.system, []):
+            print("== one default Phase-2 epoch: validation on all held-out samples vs the default subset ==")
+            bench_phase2_epoch(args.system, shipped(args.system, "autonomous"), device=args.device,
+                               threads=args.threads)
+    if args.what in ("all", "protocol"):
+        from ..evaluation.bench.protocol import bench_protocol
+
+        print("== the full protocol of one system: trial cache, compiled observers, the VM beside them ==")
+        result = flagged("--system", bench_protocol, args.system, models=args.models, n_trials=args.trials or 100,
+                         vm_trials=args.vm_trials, ekf=not args.no_ekf, compiler=_compiler(args),
+                         n_threads=args.threads)
+        print(result.table())
+    return 0

@@ -1,0 +1,78 @@
+"""``kklcasadi compare``: the learned observer beside the EKF, the MHE and the KKL-primed MHE on the
+docs/protocol.md benchmark (SMAPE and time per sample)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from ..plant import systems
+from .flags import NOISE, CommandError, add_kinds, add_noise, load, positive_float, positive_int, shipped
+
+#: The systems compared by default, in the order of the README's table.
+SYSTEMS = ("duffing", "vdp", "fhn", "rossler")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    c = sub.add_parser("compare", help="KKL observer vs EKF vs MHE vs KKL-primed MHE on the docs/protocol.md "
+                                       "benchmark (SMAPE and time per sample)")
+    c.add_argument("--systems", nargs="+", default=list(SYSTEMS), choices=systems.names())
+    c.add_argument("--method", default="bank", help="the learned observer: shipped model models/SYSTEM/METHOD "
+                                                     "of every system (default bank)")
+    c.add_argument("--models-root", help="directory holding SYSTEM/METHOD model directories (default: the shipped "
+                                         "models)")
+    c.add_argument("--trials", type=positive_int, default=100, help="trials per cell (docs/protocol.md: 100)")
+    c.add_argument("--T", type=positive_float, default=50.0, help="horizon in seconds (docs/protocol.md: 50)")
+    c.add_argument("--seed", type=int, default=2026)
+    add_noise(c)
+    add_kinds(c)
+    c.add_argument("--horizons", nargs="+", type=positive_int, default=[10, 30], help="MHE horizons N")
+    c.add_argument("--primed-horizon", type=positive_int, default=5, help="KKL-primed MHE horizon")
+    c.add_argument("--calibration-trials", type=positive_int, default=5,
+                   help="runs per regime (seed + 1) calibrating the KKL error profile")
+    c.add_argument("--out", default="results/estimators")
+    c.add_argument("--quiet", action="store_true")
+    c.set_defaults(func=run)
+
+
+def _model_dir(root: str | None, system: str, method: str) -> Path:
+    if root is None:
+        return shipped(system, method)
+    path = Path(root) / system / method
+    if not (path / "card.json").exists():
+        raise CommandError(f"--models-root {root}: no model {system}/{method} there")
+    return path
+
+
+def _saved(out: Path) -> list:
+    from ..evaluation.compare import SystemComparison
+
+    names = [*SYSTEMS, *(n for n in systems.names() if n not in SYSTEMS)]
+    return [SystemComparison.from_json(json.loads((out / f"{name}.json").read_text()))
+            for name in names if (out / f"{name}.json").exists()]
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run :func:`kklcasadi.evaluation.compare.compare_system` per ``--systems`` entry; write JSON and the table."""
+    from ..evaluation.compare import compare_system
+    from ..evaluation.protocol import Protocol
+    from ..evaluation.report import markdown_table
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    kinds = tuple(args.kinds)
+    for name in args.systems:
+        observer = load(_model_dir(args.models_root, name, args.method), None)
+        protocol = Protocol(n_trials=args.trials, T=args.T, seed=args.seed)
+        log = (lambda line: print(line, file=sys.stderr, flush=True)) if not args.quiet else None
+        comparison = compare_system(observer, protocol, horizons=tuple(args.horizons),
+                                    primed_horizon=args.primed_horizon, calibration_trials=args.calibration_trials,
+                                    kinds=kinds, noise=NOISE[args.noise], log=log)
+        (out / f"{name}.json").write_text(json.dumps(comparison.to_json(), indent=1))
+        every = [s for saved in _saved(out) for s in saved.scores]
+        (out / "table.md").write_text(markdown_table(every, kinds, timing=True) + "\n")
+        print(markdown_table(comparison.scores, kinds, timing=True))
+    print(f"wrote {out}/", file=sys.stderr)
+    return 0

@@ -1,0 +1,80 @@
+"""``kklcasadi demo``: estimate one noisy run with a shipped observer and the EKF, print the errors,
+the domain monitor and the step time, and write a PNG."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..plant import signals as sig
+from ..plant import systems
+from .flags import CommandError, add_plant, load, nonnegative_float, plant_of, positive_float, shipped
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    d = sub.add_parser("demo", help="estimate a noisy run with a shipped observer and the EKF, write a PNG")
+    d.add_argument("--system", choices=systems.names(), help="shipped system (default duffing)")
+    d.add_argument("--method", default="bank",
+                   help="shipped model under models/SYSTEM/ (default: bank, the observer fit for noisy measurements)")
+    d.add_argument("--model", help="a model directory instead of a shipped one")
+    add_plant(d, "with --model")
+    d.add_argument("--input", default="square", choices=sig.BENCHMARK_KINDS)
+    d.add_argument("--amplitude", type=nonnegative_float, default=0.8)
+    d.add_argument("--omega", type=positive_float, default=1.0, help="rad/s")
+    d.add_argument("--process-std", type=nonnegative_float, default=0.1,
+                   help="process noise std on xdot (docs/protocol.md: 0.1)")
+    d.add_argument("--measurement-std", type=nonnegative_float, default=0.1,
+                   help="measurement noise std on y (docs/protocol.md: 0.1)")
+    d.add_argument("--T", type=positive_float, default=50.0, help="horizon, seconds")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--out", default="demo.png")
+    d.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Estimate one noisy trajectory with a shipped observer and the EKF; print SMAPE, write a PNG."""
+    from .. import metrics
+    from ..estimators.ekf import EKF
+    from ..evaluation.report import trajectory_plot
+    from ..plant.simulate import simulate
+
+    if args.model is None and args.plant is not None:
+        raise CommandError("--plant: give the model trained for it with --model DIR")
+    model = Path(args.model) if args.model else shipped(args.system or "duffing", args.method)
+    obs = load(model, plant_of(args))
+    plant = obs.system
+    if args.system is not None and args.system != plant.name:
+        raise CommandError(f"--system {args.system}: the model {model} is for the system {plant.name!r}; "
+                           f"drop --system or pass a model for {args.system!r}")
+    if args.input == "zero":
+        u = sig.Zero(plant.nu)
+    elif args.input == "constant":
+        u = sig.Constant(np.full(plant.nu, args.amplitude))
+    else:
+        u = sig.make(args.input, amplitude=np.full(plant.nu, args.amplitude), omega=args.omega)
+
+    x0 = plant.sample_box(1, args.seed)[0]
+    tr = simulate(plant, x0, u, T=args.T, dt=obs.dt, process_std=args.process_std,
+                  measurement_std=args.measurement_std, seed=args.seed)
+    t0 = time.perf_counter()
+    est = obs.simulate(tr.t, tr.y, tr.u)
+    t_obs = time.perf_counter() - t0
+    ekf = EKF(plant, obs.dt).simulate(tr.t, tr.y, tr.u).xhat
+    print(f"model    {model}  ({obs.method}, system {plant.name}, nz {obs.nz}, window {obs.window})")
+    print(f"input    {args.input} (amplitude {args.amplitude}, omega {args.omega} rad/s), noise std process "
+          f"{args.process_std}, measurement {args.measurement_std}, x0 {np.round(x0, 3).tolist()}, T {args.T} s")
+    print(f"SMAPE    KKL ({obs.method}) {metrics.smape(tr.x, est.xhat):6.2f} %   EKF {metrics.smape(tr.x, ekf):6.2f} %")
+    settle = min(5.0, round(tr.t[-1] / 2, 2))
+    print(f"RMSE t>{settle:g} KKL ({obs.method}) {metrics.rmse_after(tr.t, tr.x, est.xhat, settle):6.3f}     "
+          f"EKF {metrics.rmse_after(tr.t, tr.x, ekf, settle):6.3f}")
+    if est.in_domain is not None:
+        print(f"domain   {int(est.in_domain.sum())} of {len(tr.t)} estimates in the domain the maps were trained on")
+    print(f"time     {t_obs * 1e3:.1f} ms for {len(tr.t)} samples ({t_obs / len(tr.t) * 1e6:.1f} us/step, CasADi VM)")
+    out = Path(args.out)
+    trajectory_plot(tr.t, tr.x, {f"KKL {obs.method}": est.xhat, "EKF": ekf}, out, u=tr.u,
+                    title=f"{plant.name}: {args.input} input, noise std {args.measurement_std}")
+    print(f"plot     {out}")
+    return 0

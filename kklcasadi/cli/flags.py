@@ -1,0 +1,137 @@
+"""What every command of the ``kklcasadi`` command line shares: flag types, the flags that mean the
+same in every command, and the one error path.
+
+One meaning per flag name across commands:
+
+``--system NAME``      a plant kklcasadi ships (``--systems`` for several)
+``--plant FILE.py:NAME`` your plant (a ``kklcasadi.System`` or a function returning one)
+``--model DIR``        a model directory (positional ``MODEL``/``MODELS`` where it is the subject)
+``--method NAME``      an observer variant (``kklcasadi.model.variants``); with ``--system`` it names the
+                       shipped model ``models/SYSTEM/NAME``
+``--noise on|off|both`` which noise columns of the benchmark to run
+``--measurement-std``, ``--process-std`` noise standard deviations of a run
+``--trials N``         trials (per benchmark cell where there are cells)
+``--kinds``            input regimes of the benchmark
+``--seed``             the seed of what the command draws
+``--out``              where the command writes
+``--threads``          CPU threads the command may use
+
+Every error is one line ``error: ...`` on stderr with exit status 2, naming the command's own
+flags (set ``KKLCASADI_DEBUG=1`` to see the traceback instead).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any, Callable, NoReturn, Optional
+
+import numpy as np
+
+from ..model.shipped import shipped_model
+from ..plant import signals as sig
+from ..plant import systems
+from ..plant.systems import System
+
+__all__ = ["CommandError", "Parser", "positive_int", "positive_float", "nonnegative_float", "c_name", "flagged",
+           "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "NOISE",
+           "USER_ERRORS"]
+
+#: ``--noise`` choices -> the benchmark's noise columns (False: noise-free).
+NOISE = {"on": (True,), "off": (False,), "both": (False, True)}
+
+
+class CommandError(Exception):
+    """A user error of the command line, printed as one line ``error: ...``."""
+
+
+#: The exceptions that are user errors: printed as one line, exit status 2.
+USER_ERRORS = (CommandError, ValueError, TypeError, FileExistsError, FileNotFoundError)
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``error: ...`` and exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {message}\n")
+
+
+def _number(kind: type, lowest: float, strict: bool, what: str) -> Callable[[str], Any]:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {what}, received {text!r}") from None
+        if not np.isfinite(value) or value < lowest or (strict and value == lowest):
+            raise argparse.ArgumentTypeError(f"expected {what}, received {text!r}")
+        return value
+
+    parse.__name__ = what
+    return parse
+
+
+positive_int = _number(int, 0, True, "a positive integer")
+positive_float = _number(float, 0.0, True, "a positive number")
+nonnegative_float = _number(float, 0.0, False, "a number >= 0")
+
+
+def c_name(text: str) -> str:
+    """A C identifier (for ``--name``)."""
+    from ..observer.codegen import check_c_name
+
+    try:
+        return check_c_name(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
+
+
+def flagged(flag: str, fn: Callable[..., Any], *fn_args: Any, **kwargs: Any) -> Any:
+    """Call ``fn``; a ValueError/TypeError about its argument becomes one about ``flag``."""
+    try:
+        return fn(*fn_args, **kwargs)
+    except (ValueError, TypeError) as exc:
+        message = str(exc)
+        head, sep, rest = message.partition(": ")
+        named = sep and head.isidentifier()         # "argument: expected ..." names a Python argument
+        raise CommandError(f"{flag}: {rest}" if named else f"{flag}: {message}") from exc
+
+
+def plant_of(args: argparse.Namespace) -> Optional[System]:
+    """The plant of ``--plant FILE.py:NAME`` (None without it)."""
+    return None if getattr(args, "plant", None) is None else flagged("--plant", systems.load_plant, args.plant)
+
+
+def load(model: str | Path, plant: Optional[System], flag: str = "--model") -> Any:
+    """The observer of a model directory, errors naming ``flag``."""
+    from ..observer.kkl import load_observer
+
+    return flagged(flag, load_observer, model, system=plant)
+
+
+def shipped(system: str, method: str) -> Path:
+    """The shipped model ``models/SYSTEM/METHOD``, errors naming ``--system`` and ``--method``."""
+    return flagged(f"--system {system} --method {method}", shipped_model, system, method)
+
+
+def needs_torch(command: str) -> None:
+    """Refuse ``command`` with the install line where torch is missing."""
+    try:
+        import torch  # noqa: F401
+    except ImportError:
+        raise CommandError(f"{command} needs torch, which is not installed; install the training extra: "
+                           "pip install 'kklcasadi[train]'") from None
+
+
+def add_plant(parser: argparse.ArgumentParser, what: str = "") -> None:
+    parser.add_argument("--plant", help="your plant: FILE.py:NAME or MODULE:NAME, NAME a kklcasadi.System or a "
+                                        "function returning one" + (f" ({what})" if what else ""))
+
+
+def add_noise(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--noise", default="both", choices=tuple(NOISE),
+                        help="noise columns of the benchmark: noisy (on), noise-free (off) or both (default)")
+
+
+def add_kinds(parser: argparse.ArgumentParser, help: str = "input regimes of the benchmark") -> None:
+    parser.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS,
+                        help=help)

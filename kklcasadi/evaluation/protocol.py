@@ -1,0 +1,182 @@
+"""The benchmark protocol of docs/protocol.md: trials per (system, input regime) cell and their scoring.
+
+Every method sees the same trials: initial states from a seeded Latin hypercube over X0, input
+parameters and noise draws from seeds derived from ``(seed, regime index, trial)``. Noise-free and
+noisy runs share the initial states, inputs and (unit) noise draws, scaled by the noise levels.
+
+The trials of a cell are deterministic, so :func:`evaluate` takes them from a
+:class:`~kklcasadi.evaluation.trialcache.TrialCache` (in memory, shared by the methods of one run,
+and on disk, shared by every run). An estimator is any callable ``(t, y, u) -> xhat``
+(:data:`BatchEstimator`); the fast ones (:func:`kklcasadi.evaluation.compiled.observer_estimator`,
+:func:`kklcasadi.evaluation.compiled.ekf_estimator`) run compiled trajectories mapped over the trials.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+from typing import Callable, Optional, Sequence, Union
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from .. import metrics
+from ..plant import signals as sig
+from ..plant.simulate import TrajectoryBatch, simulate_batch
+from ..plant.systems import System
+from .trialcache import TrialCache
+
+__all__ = ["Protocol", "Cell", "CellResult", "evaluate", "BatchEstimator"]
+
+#: An estimator of many trials at once: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``.
+BatchEstimator = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Settings of the benchmark (defaults: docs/protocol.md, noise on).
+
+    Use :meth:`noise_free` for the column comparable with the paper's table.
+    """
+
+    n_trials: int = 100
+    T: float = 50.0
+    dt: float = 0.05
+    process_std: float = 0.1
+    measurement_std: float = 0.1
+    seed: int = 2026
+    regime: str = "id"
+    method: str = "cvodes"
+    t_settle: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.n_trials, int) or self.n_trials < 1:
+            raise ValueError(f"n_trials must be a positive integer, got {self.n_trials!r}")
+        if self.regime not in sig.REGIMES:
+            raise ValueError(f"unknown regime {self.regime!r}; known regimes: {', '.join(sig.REGIMES)}")
+
+    @property
+    def noisy(self) -> bool:
+        return self.process_std > 0 or self.measurement_std > 0
+
+    def noise_free(self) -> Protocol:
+        """The same protocol without process or measurement noise."""
+        return replace(self, process_std=0.0, measurement_std=0.0)
+
+    def signals(self, system: System, kind: str) -> list[sig.Signal]:
+        """The per-trial inputs of the ``kind`` column (seeded, identical for every method)."""
+        if kind not in sig.BENCHMARK_KINDS:
+            raise ValueError(f"unknown input regime {kind!r}; known: {', '.join(sig.BENCHMARK_KINDS)}")
+        rng = np.random.default_rng([self.seed, sig.BENCHMARK_KINDS.index(kind)])
+        return [sig.sample(kind, rng, self.regime, nu=system.nu) for _ in range(self.n_trials)]
+
+    def trials(self, system: System, kind: str) -> TrajectoryBatch:
+        """Simulate the cell ``(system, kind)``: ``n_trials`` runs of ``T`` seconds."""
+        x0 = system.sample_box(self.n_trials, self.seed)
+        seeds = np.random.SeedSequence([self.seed, sig.BENCHMARK_KINDS.index(kind)]).spawn(self.n_trials)
+        return simulate_batch(system, x0, self.signals(system, kind), self.T, self.dt, process_std=self.process_std,
+                              measurement_std=self.measurement_std, seed=seeds, method=self.method)
+
+    def cell(self, kind: str) -> Cell:
+        """The cell of input regime ``kind`` (what a :class:`TrialCache` stores)."""
+        if kind not in sig.BENCHMARK_KINDS:
+            raise ValueError(f"unknown input regime {kind!r}; known: {', '.join(sig.BENCHMARK_KINDS)}")
+        return Cell(self, kind)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One cell of the protocol: its input regime under its settings."""
+
+    protocol: Protocol
+    kind: str
+
+    @property
+    def label(self) -> str:
+        """``<kind>-<clean|noisy>``, for file names."""
+        return f"{self.kind}-{'noisy' if self.protocol.noisy else 'clean'}"
+
+    def describe(self) -> dict:
+        """Every field of the protocol and the regime, as plain JSON values."""
+        return {"protocol": {f.name: getattr(self.protocol, f.name) for f in fields(self.protocol)},
+                "kind": self.kind}
+
+    def shape(self) -> tuple[int, int]:
+        """Trials and samples per trial."""
+        return self.protocol.n_trials, round(self.protocol.T / self.protocol.dt)
+
+    def simulate(self, system: System) -> TrajectoryBatch:
+        """:meth:`Protocol.trials` of the cell."""
+        return self.protocol.trials(system, self.kind)
+
+
+@dataclass(frozen=True, eq=False)
+class CellResult:
+    """Scores of one estimator on one cell: per-trial SMAPE (%) and RMSE after ``t_settle``.
+
+    Attributes
+    ----------
+    system, kind : str
+    noisy : bool
+    smape, rmse_after : numpy.ndarray, shape (M,)
+    seconds : float or None
+        Wall time of the estimator over the whole cell, where it was timed.
+    n_samples : int or None
+        Trials x samples estimated, where timed.
+    failed : int
+        Failed solves whose estimate was the fallback (MHE); 0 for the others.
+    solve_ms : float or None
+        Mean wall time of one solver call (MHE), ms.
+    """
+
+    system: str
+    kind: str
+    noisy: bool
+    smape: np.ndarray
+    rmse_after: np.ndarray
+    seconds: Optional[float] = None
+    n_samples: Optional[int] = None
+    failed: int = 0
+    solve_ms: Optional[float] = None
+
+    @property
+    def summary(self) -> metrics.Summary:
+        return metrics.summarize(self.smape)
+
+
+def evaluate(estimator: BatchEstimator, system: System, protocol: Protocol = Protocol(),
+             kinds: Sequence[str] = sig.BENCHMARK_KINDS, *, trials: Optional[TrialCache] = None,
+             progress: Union[bool, str] = False) -> list[CellResult]:
+    """Score ``estimator`` on every input regime of ``system`` under ``protocol``.
+
+    Parameters
+    ----------
+    estimator : callable ``(t, y, u) -> xhat``
+        ``t`` (N,), ``y`` (M, N, ny), ``u`` (M, N, nu) -> ``xhat`` (M, N, nx); e.g. a
+        :class:`kklcasadi.evaluation.compiled.CompiledEstimator`.
+    system : System
+    protocol : Protocol
+    kinds : sequence of str
+        Input regimes to score.
+    trials : TrialCache, optional
+        Where the cells' trials come from (memory, then disk, else simulated and kept); pass one
+        to share them across estimators and runs. Default: simulated for this call.
+    progress : bool or str
+        Show a progress bar over the cells; a str labels it.
+
+    Returns
+    -------
+    list of CellResult
+        One per kind, in order; trials that failed in the simulation (``ok`` False) are left out.
+    """
+    results = []
+    trials = TrialCache(None) if trials is None else trials
+    label = progress if isinstance(progress, str) else system.name
+    for kind in tqdm(kinds, desc=label, unit="cell", disable=not progress):
+        batch = trials.trials(system, protocol.cell(kind))
+        ok = batch.ok
+        xhat = np.asarray(estimator(batch.t, batch.y[ok], batch.u[ok]), dtype=float)
+        if xhat.shape != batch.x[ok].shape:
+            raise ValueError(f"estimator returned shape {xhat.shape}, expected {batch.x[ok].shape}")
+        results.append(CellResult(system.name, kind, protocol.noisy, metrics.smape(batch.x[ok], xhat),
+                                  metrics.rmse_after(batch.t, batch.x[ok], xhat, protocol.t_settle)))
+    return results

@@ -1,0 +1,178 @@
+"""Benchmark tables and plots: scores of observers (and the EKF) on the docs/protocol.md cells.
+
+One result type, :class:`MethodScores` (an estimator's :class:`~kklcasadi.evaluation.protocol.CellResult`
+per cell), and one table, :func:`markdown_table`, serve ``kklcasadi evaluate`` and ``kklcasadi compare``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..plant import signals as sig
+from ..plant.systems import System
+from .protocol import BatchEstimator, CellResult, Protocol, evaluate
+from .trialcache import TrialCache
+
+__all__ = ["MethodScores", "score", "markdown_table", "smape_boxplot", "trajectory_plot", "save_scores"]
+
+
+@dataclass(frozen=True, eq=False)
+class MethodScores:
+    """One method's cells: ``results[(noisy, kind)]``."""
+
+    label: str
+    system: str
+    results: dict
+
+    def cell(self, kind: str, noisy: bool) -> CellResult:
+        return self.results[(noisy, kind)]
+
+    @property
+    def n_trials(self) -> int:
+        """Trials per cell (of the first cell)."""
+        return len(next(iter(self.results.values())).smape)
+
+
+def score(label: str, estimator: BatchEstimator, system: System, protocol: Protocol, *,
+          noise: Sequence[bool] = (False, True), kinds: Sequence[str] = sig.BENCHMARK_KINDS,
+          trials: TrialCache | None = None, progress: bool = False) -> MethodScores:
+    """Evaluate ``estimator`` on the noise-free and/or noisy protocol.
+
+    Parameters
+    ----------
+    label : str
+        The method's row label.
+    estimator : callable ``(t, y, u) -> xhat``
+        See :func:`kklcasadi.evaluation.protocol.evaluate`.
+    system : System
+    protocol : Protocol
+        The noisy protocol; its :meth:`~Protocol.noise_free` variant gives the clean cells.
+    noise : sequence of bool
+        Which columns: False noise-free, True noisy.
+    kinds : sequence of str
+        Input regimes.
+    trials : TrialCache, optional
+        The cells' trials, shared across methods and runs (default: simulated for this call).
+    progress : bool
+        A progress bar over the cells, labelled ``label``.
+
+    Returns
+    -------
+    MethodScores
+    """
+    trials = TrialCache(None) if trials is None else trials
+    results = {}
+    cells = [(noisy, kind) for noisy in noise for kind in kinds]
+    for noisy, kind in tqdm(cells, desc=label, unit="cell", disable=not progress):
+        prot = protocol if noisy else protocol.noise_free()
+        (result,) = evaluate(estimator, system, prot, (kind,), trials=trials)
+        results[(noisy, kind)] = result
+    return MethodScores(label, system.name, results)
+
+
+def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BENCHMARK_KINDS, *,
+                   timing: bool = False) -> str:
+    """Mean SMAPE (%) per cell, noise-free then noisy columns, one row per method.
+
+    With ``timing`` (the estimator comparison) every noise column is shown, the row names the
+    system with its trials and the estimator, and three columns follow: ``ms/sample`` (the
+    estimator's wall time over all cells divided by the samples estimated), ``ipopt ms`` (the
+    mean solver call, MHE) and ``failed`` (solves whose estimate was the fallback).
+    """
+    scores = list(scores)
+    noises = (False, True) if timing else sorted({noisy for s in scores for noisy, _ in s.results})
+    head = ((["system", "estimator"] if timing else ["method"])
+            + [f"{k} {'noisy' if n else 'clean'}" for n in noises for k in kinds]
+            + (["ms/sample", "ipopt ms", "failed"] if timing else []))
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for s in scores:
+        row = [f"{s.system} ({s.n_trials} trials)", s.label] if timing else [f"{s.system} {s.label}"]
+        for n in noises:
+            for k in kinds:
+                r = s.results.get((n, k))
+                row.append(f"{r.summary.mean:.1f}" if r is not None else "")
+        if timing:
+            cells = list(s.results.values())
+            seconds = sum(c.seconds for c in cells)
+            samples = sum(c.n_samples for c in cells)
+            solves = [c.solve_ms for c in cells if c.solve_ms is not None]
+            row += [f"{1e3 * seconds / samples:.3f}", f"{np.mean(solves):.2f}" if solves else "-",
+                    str(sum(c.failed for c in cells)) if solves else "-"]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def save_scores(scores: Iterable[MethodScores], path: str | Path) -> None:
+    """Per-trial SMAPE and RMSE-after-settle of every cell, as JSON."""
+    out = []
+    for s in scores:
+        for (noisy, kind), r in s.results.items():
+            summ = r.summary
+            out.append({"method": s.label, "system": s.system, "kind": kind, "noisy": noisy,
+                        "smape_mean": summ.mean, "smape_median": summ.median, "smape_q25": summ.q25,
+                        "smape_q75": summ.q75, "rmse_after_mean": float(np.nanmean(r.rmse_after)),
+                        "smape": r.smape.tolist()})
+    Path(path).write_text(json.dumps(out, indent=1))
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bool = True,
+                  kinds: Sequence[str] = sig.BENCHMARK_KINDS) -> Path:
+    """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(2.2 * len(kinds) * max(1, len(scores)) / 2 + 3, 4))
+    width = 0.8 / max(1, len(scores))
+    for i, s in enumerate(scores):
+        data = [s.results[(noisy, k)].smape for k in kinds if (noisy, k) in s.results]
+        pos = [j + (i - (len(scores) - 1) / 2) * width for j in range(len(data))]
+        bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False)
+        for patch in bp["boxes"]:
+            patch.set_facecolor(f"C{i}")
+        ax.plot([], [], color=f"C{i}", lw=6, label=s.label)
+    ax.set_xticks(range(len(kinds)), kinds)
+    ax.set_ylabel("SMAPE (%)")
+    ax.set_title(f"{scores[0].system}: {'with' if noisy else 'without'} noise")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def trajectory_plot(t: np.ndarray, x: np.ndarray, estimates: dict, path: str | Path, *, u: np.ndarray | None = None,
+                    title: str = "") -> Path:
+    """True states and estimates over time (PNG); ``estimates`` maps a label to ``xhat`` (N, nx)."""
+    plt = _pyplot()
+    nx = x.shape[1]
+    rows = nx + (u is not None)
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.2 * rows), sharex=True, squeeze=False)
+    for i in range(nx):
+        ax = axes[i, 0]
+        ax.plot(t, x[:, i], "k", lw=1.5, label="true")
+        for j, (label, xhat) in enumerate(estimates.items()):
+            ax.plot(t, xhat[:, i], color=f"C{j}", lw=1, label=label)
+        ax.set_ylabel(f"x{i + 1}")
+    if u is not None:
+        axes[-1, 0].plot(t, u, "C7")
+        axes[-1, 0].set_ylabel("u")
+    axes[0, 0].legend(fontsize=8, ncol=len(estimates) + 1)
+    axes[0, 0].set_title(title)
+    axes[-1, 0].set_xlabel("t (s)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)

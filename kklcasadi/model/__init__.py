@@ -1,0 +1,2 @@
+"""Model files and the table of observer variants: :mod:`.files` (``weights.npz`` + ``card.json``),
+:mod:`.variants` (one module per variant), :mod:`.shipped` (the models that ship with kklcasadi)."""

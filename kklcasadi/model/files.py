@@ -1,0 +1,654 @@
+"""Model files: ``weights.npz`` + ``card.json``, read and written without torch.
+
+A model directory holds two files:
+
+``weights.npz``
+    Plain float64 arrays (no pickles), named ``<prefix>/<array>``, e.g. ``decoder/W0``.
+``card.json``
+    What the arrays mean: the system, the observer design ``(A, B)``, the sample period, the
+    input-window length, the network architecture, the base model, the noise level and free-form
+    training notes, plus the SHA-256 of the weights file.
+
+A card is parsed once, on load, into a typed :class:`ModelSpec`: the common fields here, the
+method's architecture by its variant (:mod:`kklcasadi.model.variants`), which also names the arrays and
+their shapes. :func:`make_card` is the one way to write a card. The format is described for users
+in ``docs/model-format.md``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping, Optional
+
+import numpy as np
+
+from ..nets.specs import check_arrays, field_error
+from ..validation import Text, is_int, is_number
+from . import variants
+
+if TYPE_CHECKING:
+    from ..plant.design import Design
+    from ..plant.systems import System
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "WEIGHTS_FILE", "CARD_FILE", "Model", "ModelSpec",
+           "SystemSpec", "BaseRef", "Domain", "load_model", "save_model", "make_card", "derive_model",
+           "parse_card", "model_array_shapes"]
+
+FORMAT = "kklcasadi.model"
+FORMAT_VERSION = 1
+WEIGHTS_FILE = "weights.npz"
+CARD_FILE = "card.json"
+
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+_FIX_NEW = "Save the model again with kklcasadi.model.files.save_model."
+
+
+def _positive_field(value: Any, where: str, field_name: str, fix: str) -> int:
+    if not is_int(value) or value < 1:
+        raise field_error(where, field_name, "a positive integer", value, fix)
+    return int(value)
+
+
+def _matrix(value: Any, where: str, field_name: str, n_cols: Optional[int], fix: str) -> np.ndarray:
+    ok = (isinstance(value, list) and value and all(isinstance(row, list) and row for row in value)
+          and all(is_number(v) for row in value for v in row)
+          and len({len(row) for row in value}) == 1)
+    if not ok:
+        raise field_error(where, field_name, "a non-empty list of equal-length lists of numbers",
+                     value, fix)
+    matrix = np.array(value, dtype=np.float64)
+    if not np.all(np.isfinite(matrix)):
+        raise field_error(where, field_name, "finite numbers", value, fix)
+    if n_cols is not None and matrix.shape[1] != n_cols:
+        raise field_error(where, field_name, f"{n_cols} columns", matrix.shape[1], fix)
+    return matrix
+
+
+@dataclass(frozen=True)
+class SystemSpec:
+    """The plant a model was trained for: its name, sizes and :attr:`kklcasadi.System.fingerprint`
+    (None in cards written before fingerprints)."""
+
+    name: str
+    nx: int
+    nu: int
+    ny: int
+    fingerprint: Optional[str] = None
+
+
+@dataclass(frozen=True, eq=False)
+class Domain:
+    """Where a model's maps were trained: the state box and the latent box of its training data.
+
+    Card entry ``"domain": {"x_lo": [nx], "x_hi": [nx], "z_lo": [nz], "z_hi": [nz]}``; the
+    observer's domain monitor (:meth:`kklcasadi.KKLObserver.in_domain`) compares estimates with it.
+    """
+
+    x_lo: np.ndarray
+    x_hi: np.ndarray
+    z_lo: np.ndarray
+    z_hi: np.ndarray
+
+    @classmethod
+    def of(cls, x: Any, z: Any) -> Domain:
+        """The componentwise range of training states ``x`` (M, nx) and their latents ``z`` (M, nz)."""
+        x, z = np.asarray(x, dtype=float), np.asarray(z, dtype=float)
+        return cls(x.min(0), x.max(0), z.min(0), z.max(0))
+
+    def to_card(self) -> dict:
+        """The card entry."""
+        return {k: np.asarray(getattr(self, k)).tolist() for k in ("x_lo", "x_hi", "z_lo", "z_hi")}
+
+
+@dataclass(frozen=True)
+class BaseRef:
+    """The model a model was built on: ``path`` relative to the model directory, and its SHA-256."""
+
+    path: str
+    weights_sha256: str
+
+
+@dataclass(frozen=True, eq=False)
+class ModelSpec:
+    """A parsed, validated card.
+
+    Attributes
+    ----------
+    method : str
+        The card's method (a key of :data:`kklcasadi.model.variants.VARIANTS`).
+    system : SystemSpec
+    A : numpy.ndarray, shape (nz, nz)
+    B : numpy.ndarray, shape (nz, ny)
+    dt : float
+        Sample period in seconds.
+    window : int
+        Input-window length in samples.
+    architecture
+        The variant's typed spec (``to_card()``, ``array_shapes()``).
+    base : BaseRef or None
+    measurement_std : float
+        The noise level the decoder was fit for (0: noise-free).
+    domain : Domain or None
+        Where the maps were trained (None in cards written before domains were recorded).
+    """
+
+    method: str
+    system: SystemSpec
+    A: np.ndarray
+    B: np.ndarray
+    dt: float
+    window: int
+    architecture: Any
+    base: Optional[BaseRef]
+    measurement_std: float
+    domain: Optional[Domain] = None
+
+    @property
+    def variant(self) -> variants.Variant:
+        """The method's variant."""
+        return variants.get(self.method)
+
+    @property
+    def nz(self) -> int:
+        """Latent size."""
+        return self.A.shape[0]
+
+    def array_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of every array of the model file."""
+        return self.architecture.array_shapes()
+
+
+def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -> ModelSpec:
+    """Check a card's fields, their types and the consistency of its sizes; return it typed.
+
+    Parameters
+    ----------
+    card : Mapping
+        The parsed ``card.json``.
+    where : str
+        Used in error messages (the card's path).
+    require_sha : bool
+        Whether ``weights_sha256`` must be present (False while saving: it is computed then).
+
+    Returns
+    -------
+    ModelSpec
+
+    Raises
+    ------
+    ValueError
+        Naming the field, what was expected, what was received and what to do.
+    """
+    fix_new = _FIX_NEW
+    if not isinstance(card, Mapping):
+        raise field_error(where, "<card>", "a JSON object", Text(type(card).__name__), fix_new)
+    required = ["format", "format_version", "kklcasadi_version", "method", "system", "design",
+                "dt", "window", "architecture", "base", "noise", "training"]
+    if require_sha:
+        required.append("weights_sha256")
+    for key in required:
+        if key not in card:
+            raise field_error(where, key, "a required field", Text("missing"), fix_new)
+    if card["format"] != FORMAT:
+        raise field_error(where, "format", repr(FORMAT), card["format"],
+                          "This is not a kklcasadi model card.")
+    if not is_int(card["format_version"]) or card["format_version"] != FORMAT_VERSION:
+        raise field_error(where, "format_version", FORMAT_VERSION, card["format_version"],
+                          "Read it with the kklcasadi version that wrote it, or save it again.")
+    if not isinstance(card["kklcasadi_version"], str):
+        raise field_error(where, "kklcasadi_version", "a string", card["kklcasadi_version"], fix_new)
+    if card["method"] not in variants.VARIANTS:
+        raise field_error(where, "method", f"one of {list(variants.names())}", card["method"],
+                          "This kklcasadi version cannot run it; upgrade kklcasadi or save the "
+                          "model with a known method.")
+    variant = variants.get(card["method"])
+
+    system = card["system"]
+    fix_sys = 'Write "system" as {"name": str, "nx": int, "nu": int, "ny": int}.'
+    if not isinstance(system, Mapping) or not {"name", "nx", "nu", "ny"} <= set(system):
+        raise field_error(where, "system", "an object with name, nx, nu, ny", system, fix_sys)
+    if not isinstance(system["name"], str):
+        raise field_error(where, "system.name", "a string", system["name"], fix_sys)
+    nx, nu, ny = (_positive_field(system[key], where, f"system.{key}", fix_sys)
+                  for key in ("nx", "nu", "ny"))
+    fingerprint = system.get("fingerprint")
+    if fingerprint is not None and (not isinstance(fingerprint, str) or not _SHA256.match(fingerprint)):
+        raise field_error(where, "system.fingerprint", "64 lowercase hex digits (kklcasadi.System.fingerprint)",
+                          fingerprint, fix_sys)
+
+    design = card["design"]
+    fix_design = 'Write "design" as {"A": nz x nz list of lists, "B": nz x ny list of lists}.'
+    if not isinstance(design, Mapping) or not {"A", "B"} <= set(design):
+        raise field_error(where, "design", "an object with A and B", design, fix_design)
+    a = _matrix(design["A"], where, "design.A", None, fix_design)
+    if a.shape[0] != a.shape[1]:
+        raise field_error(where, "design.A", "a square matrix", Text(f"shape {a.shape}"), fix_design)
+    b = _matrix(design["B"], where, "design.B", ny, fix_design)
+    if b.shape[0] != a.shape[0]:
+        raise field_error(where, "design.B", f"{a.shape[0]} rows (nz, from A)", b.shape[0], fix_design)
+
+    if not is_number(card["dt"]) or not math.isfinite(card["dt"]) or card["dt"] <= 0:
+        raise field_error(where, "dt", "a positive number (seconds)", card["dt"], fix_new)
+    window = _positive_field(card["window"], where, "window", fix_new)
+
+    arch = card["architecture"]
+    if not isinstance(arch, Mapping) or set(arch) != set(variant.entries):
+        found = sorted(arch) if isinstance(arch, Mapping) else arch
+        raise field_error(where, "architecture", f"an object with exactly the keys "
+                          f"{sorted(variant.entries)} for method {card['method']!r}", found, fix_new)
+
+    base = card["base"]
+    if base is not None:
+        fix_base = 'Write "base" as null or {"path": "../autonomous", "weights_sha256": "<hex>"}.'
+        if (not isinstance(base, Mapping) or set(base) != {"path", "weights_sha256"}
+                or not isinstance(base["path"], str)):
+            raise field_error(where, "base", "null or an object with path and weights_sha256", base,
+                              fix_base)
+        if not isinstance(base["weights_sha256"], str) or not _SHA256.match(base["weights_sha256"]):
+            raise field_error(where, "base.weights_sha256", "64 lowercase hex digits",
+                              base["weights_sha256"], fix_base)
+        base = BaseRef(base["path"], base["weights_sha256"])
+
+    noise = card["noise"]
+    if (not isinstance(noise, Mapping) or "measurement_std" not in noise
+            or not is_number(noise["measurement_std"])
+            or not math.isfinite(noise["measurement_std"]) or noise["measurement_std"] < 0):
+        raise field_error(where, "noise.measurement_std", "a number >= 0", noise,
+                          'Write "noise" as {"measurement_std": 0.0}.')
+    if not isinstance(card["training"], Mapping):
+        raise field_error(where, "training", "an object", card["training"],
+                          "Use {} if there is nothing to record.")
+    if require_sha and (not isinstance(card["weights_sha256"], str)
+                        or not _SHA256.match(card["weights_sha256"])):
+        raise field_error(where, "weights_sha256", "64 lowercase hex digits", card["weights_sha256"],
+                          fix_new)
+    for name in (set(card) & _VARIANT_FIELDS) - set(variant.card_fields):
+        owners = [v.name for v in variants.VARIANTS.values() if name in v.card_fields]
+        raise field_error(where, name, f"no such field for method {card['method']!r} (only "
+                          f"{', '.join(map(repr, owners))} take it)", card[name],
+                          "Remove the field, or use a method that takes it.")
+    spec = variant.parse(card, variants.Sizes(nx, nu, ny, a.shape[0]), where)
+    domain = _domain(card.get("domain"), nx, a.shape[0], where)
+    for matrix in (a, b):
+        matrix.setflags(write=False)
+    return ModelSpec(card["method"], SystemSpec(system["name"], nx, nu, ny, fingerprint), a, b, float(card["dt"]),
+                     window, spec, base, float(noise["measurement_std"]), domain)
+
+
+def _domain(entry: Any, nx: int, nz: int, where: str) -> Optional[Domain]:
+    if entry is None:
+        return None
+    fix = 'Write "domain" as {"x_lo": [nx], "x_hi": [nx], "z_lo": [nz], "z_hi": [nz]} (lo <= hi), or remove it.'
+    keys = ("x_lo", "x_hi", "z_lo", "z_hi")
+    if not isinstance(entry, Mapping) or set(entry) != set(keys):
+        raise field_error(where, "domain", f"an object with exactly the keys {list(keys)}", entry, fix)
+    arrays = {}
+    for key, n in zip(keys, (nx, nx, nz, nz)):
+        value = entry[key]
+        if (not isinstance(value, list) or len(value) != n or not all(is_number(v) for v in value)
+                or not all(math.isfinite(v) for v in value)):
+            raise field_error(where, f"domain.{key}", f"a list of {n} finite numbers", value, fix)
+        arrays[key] = np.array(value, dtype=float)
+        arrays[key].setflags(write=False)
+    if np.any(arrays["x_lo"] > arrays["x_hi"]) or np.any(arrays["z_lo"] > arrays["z_hi"]):
+        raise field_error(where, "domain", "lo <= hi componentwise", entry, fix)
+    return Domain(**arrays)
+
+
+#: Top-level card fields some variant reads (another method's card must not carry them).
+_VARIANT_FIELDS = frozenset(name for v in variants.VARIANTS.values() for name in v.card_fields)
+
+
+def model_array_shapes(card: Mapping[str, Any], where: str = CARD_FILE) -> dict[str, tuple[int, ...]]:
+    """All array names and shapes a card needs (validated first; format fields and SHA-256 optional)."""
+    if not isinstance(card, Mapping):
+        raise field_error(where, "<card>", "a JSON object", Text(type(card).__name__), _FIX_NEW)
+    filled = {"format": FORMAT, "format_version": FORMAT_VERSION, "kklcasadi_version": "", **card}
+    return parse_card(filled, where, require_sha=False).array_shapes()
+
+
+def make_card(system: System | SystemSpec, design: Design, method: str, spec: Any, *, dt: float,
+              window: int = 1, training: Optional[Mapping[str, Any]] = None,
+              base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0,
+              domain: Optional[Domain] = None) -> dict:
+    """The card of a model: the one way training, :func:`derive_model` and tests write one.
+
+    Parameters
+    ----------
+    system : System or SystemSpec
+        The plant (its name and sizes are recorded).
+    design : Design
+        The latent pair ``(A, B)``.
+    method : str
+        A key of :data:`kklcasadi.model.variants.VARIANTS`.
+    spec
+        The variant's typed architecture spec: its ``to_card()`` gives the architecture entries and
+        the variant's ``card_entries(spec)`` the extra top-level fields.
+    dt : float
+        Sample period in seconds.
+    window : int
+        Input-window length in samples (1 for variants that do not read the window).
+    training : Mapping, optional
+        Free-form training record (JSON-serialisable; numpy values are converted on save).
+    base : Mapping, optional
+        ``{"path": relative path, "weights_sha256": hex}`` of the model this one was built on.
+    measurement_std : float
+        The noise level the decoder was fit for.
+    domain : Domain, optional
+        Where the maps were trained (recorded for the observer's domain monitor).
+
+    Returns
+    -------
+    dict
+        Ready for :func:`save_model` (which adds the format fields and the SHA-256).
+    """
+    variant = variants.get(method)
+    plant = {"name": system.name, "nx": system.nx, "nu": system.nu, "ny": system.ny}
+    if system.fingerprint is not None:
+        plant["fingerprint"] = system.fingerprint
+    return {"method": method, "system": plant,
+            "design": {"A": np.asarray(design.A).tolist(), "B": np.asarray(design.B).tolist()},
+            "dt": float(dt), "window": int(window), "architecture": spec.to_card(),
+            "base": None if base is None else dict(base),
+            "noise": {"measurement_std": float(measurement_std)},
+            "training": dict(training or {}), **variant.card_entries(spec),
+            **({} if domain is None else {"domain": domain.to_card()})}
+
+
+@dataclass(frozen=True)
+class Model:
+    """A loaded model directory.
+
+    Attributes
+    ----------
+    path : Path
+        The model directory.
+    card : dict
+        The parsed ``card.json`` as read (treat as read-only; use :attr:`spec` for its fields).
+    spec : ModelSpec
+        The typed, validated card.
+    arrays : dict[str, np.ndarray]
+        The float64 arrays of ``weights.npz``, read-only, checked against ``spec``.
+    base : Model or None
+        The base (Phase-1) model named by ``card["base"]``, loaded and checked.
+    """
+
+    path: Path
+    card: dict
+    spec: ModelSpec
+    arrays: dict
+    base: Optional[Model] = field(default=None, repr=False)
+
+    @property
+    def method(self) -> str:
+        """The observer variant, a key of :data:`kklcasadi.model.variants.VARIANTS`."""
+        return self.spec.method
+
+    @property
+    def A(self) -> np.ndarray:
+        """Latent dynamics matrix (nz, nz)."""
+        return self.spec.A
+
+    @property
+    def B(self) -> np.ndarray:
+        """Output injection matrix (nz, ny)."""
+        return self.spec.B
+
+    @property
+    def dt(self) -> float:
+        """Sample period in seconds."""
+        return self.spec.dt
+
+    @property
+    def window(self) -> int:
+        """Input-window length in samples."""
+        return self.spec.window
+
+
+def _npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    raise TypeError(f"card: a value of type {type(value).__name__} is not JSON-serialisable; "
+                    "store numbers, strings, lists and dicts (numpy values are converted).")
+
+
+def _to_json(card: Mapping[str, Any]) -> str:
+    try:
+        return json.dumps(card, indent=2, allow_nan=False, default=_json_default) + "\n"
+    except ValueError as exc:
+        raise ValueError(f"card: {exc}; NaN and inf cannot be stored in card.json, record them "
+                         "as strings or leave them out.") from exc
+
+
+def _read_json(path: Path) -> Any:
+    def reject_constant(name: str) -> Any:
+        raise ValueError(f"non-standard JSON constant {name}")
+
+    try:
+        return json.loads(path.read_text(encoding="utf-8"), parse_constant=reject_constant)
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ValueError(f"{path}: could not parse the card as strict JSON ({exc}). Restore the "
+                         "file or save the model again.") from exc
+
+
+def _read_npz(path: Path, data: bytes) -> dict[str, np.ndarray]:
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            arrays = {name: npz[name] for name in npz.files}
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: could not read the weights as a plain .npz archive ({exc}). "
+                         "Restore the file or save the model again.") from exc
+    for name, value in arrays.items():
+        if value.dtype != np.float64:
+            raise field_error(str(path), name, "dtype float64", Text(str(value.dtype)),
+                         "Save the model with kklcasadi.model.files.save_model.")
+        value.setflags(write=False)
+    return arrays
+
+
+def _load_base(directory: Path, card: dict, where: str, seen: frozenset) -> Optional[Model]:
+    if card["base"] is None:
+        return None
+    base_dir = (directory / card["base"]["path"]).resolve()
+    if base_dir in seen:
+        raise field_error(where, "base.path", "a chain of base models without cycles", str(base_dir),
+                     "Point base.path at the Phase-1 model.")
+    try:
+        base = _load(base_dir, seen | {base_dir})
+    except ValueError as exc:
+        raise ValueError(f"{where}: 'base.path' = {card['base']['path']!r} ({base_dir}) could not "
+                         f"be loaded: {exc}") from exc
+    if base.card["weights_sha256"] != card["base"]["weights_sha256"]:
+        raise field_error(where, "base.weights_sha256", card["base"]["weights_sha256"],
+                     base.card["weights_sha256"],
+                     f"The base model at {base_dir} changed after this model was trained on it; "
+                     "restore it or retrain this model.")
+    for key in ("system", "design"):
+        if base.card[key] != card[key]:
+            raise field_error(where, key, f"the base model's {key} ({base_dir})", card[key],
+                         "A model and its base must describe the same plant and design.")
+    return base
+
+
+def _load(directory: Path, seen: frozenset) -> Model:
+    card_path, weights_path = directory / CARD_FILE, directory / WEIGHTS_FILE
+    for path in (card_path, weights_path):
+        if not path.is_file():
+            raise ValueError(f"{path}: file not found; expected a model directory with "
+                             f"{CARD_FILE} and {WEIGHTS_FILE}. Check the path, or train/save the "
+                             "model first.")
+    where = str(card_path)
+    card = _read_json(card_path)
+    spec = parse_card(card, where)
+    data = weights_path.read_bytes()
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != card["weights_sha256"]:
+        raise field_error(where, "weights_sha256", f"the SHA-256 of {weights_path} = {digest}",
+                     card["weights_sha256"],
+                     "The weights file was modified or swapped, or the card belongs to another "
+                     "model; restore the matching pair of files or save the model again.")
+    arrays = _read_npz(weights_path, data)
+    check_arrays(arrays, spec.array_shapes(), str(weights_path), exact=True)
+    base = _load_base(directory, card, where, seen)
+    return Model(path=directory, card=card, spec=spec, arrays=arrays, base=base)
+
+
+def load_model(directory: str | os.PathLike) -> Model:
+    """Load and validate a model directory.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        Holds ``weights.npz`` and ``card.json``.
+
+    Returns
+    -------
+    Model
+        With ``base`` loaded when the card names one.
+
+    Raises
+    ------
+    ValueError
+        Missing files, unparsable JSON or npz, missing or mistyped card fields, an unknown method
+        or format version, a weights file whose SHA-256 does not match the card, arrays missing,
+        misshaped or non-finite, or a base model that cannot be loaded or changed. The message
+        names the file and field, what was expected and received, and what to do.
+    """
+    directory = Path(directory).resolve()
+    return _load(directory, frozenset({directory}))
+
+
+def _write_temp(directory: Path, data: bytes, suffix: str) -> Path:
+    handle, name = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=suffix)
+    with os.fdopen(handle, "wb") as stream:
+        stream.write(data)
+        stream.flush()
+        os.fsync(stream.fileno())
+    return Path(name)
+
+
+def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Mapping[str, Any],
+               *, overwrite: bool = False) -> Path:
+    """Validate and write ``weights.npz`` and ``card.json`` into ``directory``.
+
+    The card's ``format``, ``format_version``, ``kklcasadi_version`` and ``weights_sha256`` are
+    filled in here. Both files are written to temporary files in ``directory`` first and then moved
+    into place with :func:`os.replace`, so a failed write leaves existing files as they were.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        The model directory; created if needed.
+    arrays : Mapping[str, array_like]
+        Exactly the arrays the card's architecture names (see ``docs/model-format.md``); stored
+        as float64.
+    card : Mapping
+        The card fields (see the module docstring); ``base.path`` is relative to ``directory``.
+    overwrite : bool
+        Replace an existing model in ``directory``.
+
+    Returns
+    -------
+    Path
+        The model directory.
+
+    Raises
+    ------
+    FileExistsError
+        If ``directory`` already holds a model and ``overwrite`` is False.
+    ValueError
+        If the card or the arrays are invalid (as :func:`load_model` would report).
+    """
+    from ..version import __version__
+
+    directory = Path(directory).resolve()
+    if not isinstance(card, Mapping):
+        raise field_error("save_model", "card", "a mapping", Text(type(card).__name__), "")
+    card = {**card, "format": FORMAT, "format_version": FORMAT_VERSION,
+            "kklcasadi_version": __version__}
+    card.pop("weights_sha256", None)
+    card = json.loads(_to_json(card))
+    where = f"card for {directory / CARD_FILE}"
+    spec = parse_card(card, where, require_sha=False)
+    check_arrays(arrays, spec.array_shapes(), "arrays", exact=True)
+    arrays = {name: np.array(value, dtype=np.float64) for name, value in arrays.items()}
+
+    existing = [p for p in (directory / CARD_FILE, directory / WEIGHTS_FILE) if p.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"{existing[0]}: a model already exists here; pass overwrite=True "
+                              "to replace it, or choose another directory.")
+    directory.mkdir(parents=True, exist_ok=True)
+    _load_base(directory, card, where, frozenset({directory}))
+
+    data = _npz_bytes(arrays)
+    card["weights_sha256"] = hashlib.sha256(data).hexdigest()
+    text = _to_json(card)
+    temps: list[Path] = []
+    try:
+        temps.append(_write_temp(directory, data, ".npz"))
+        temps.append(_write_temp(directory, text.encode("utf-8"), ".json"))
+        os.replace(temps[0], directory / WEIGHTS_FILE)
+        os.replace(temps[1], directory / CARD_FILE)
+    finally:
+        for temp in temps:
+            temp.unlink(missing_ok=True)
+    return directory
+
+
+def derive_model(base: str | os.PathLike, out_dir: str | os.PathLike, method: str = "inject", *,
+                 overwrite: bool = False) -> Path:
+    """Write a model that its variant makes from a base model without training (e.g. ``inject``).
+
+    The new card has the base model's system, design, sample period, noise level and domain,
+    window 1, and the arrays and architecture the variant keeps
+    (:meth:`kklcasadi.model.variants.Variant.derive`). The model is self-contained: its ``base`` is null
+    and ``training.derived_from`` records the base (path relative to the new model, SHA-256 and
+    method), so it loads and deploys without the base directory.
+
+    Parameters
+    ----------
+    base : str or path-like
+        A model directory whose method is in the variant's ``derives_from``.
+    out_dir : str or path-like
+        Where to write the new model (e.g. ``models/duffing/inject``).
+    method : str
+        The variant to make (default ``"inject"``).
+    overwrite : bool
+        Replace an existing model in ``out_dir``.
+
+    Returns
+    -------
+    Path
+        The new model directory.
+    """
+    from ..plant.design import Design
+
+    variant = variants.get(method)
+    source = load_model(base)
+    if source.method not in variant.derives_from:
+        raise field_error(str(source.path / CARD_FILE), "method",
+                          f"one of {list(variant.derives_from)} (a model {method!r} is made from)",
+                          source.method, "Point base at a Phase-1 model.")
+    out = Path(out_dir).resolve()
+    spec, arrays, training = variant.derive(source.method, source.spec.architecture, source.arrays)
+    training = {**training, "derived_from": {"path": os.path.relpath(source.path, out),
+                                             "weights_sha256": source.card["weights_sha256"], "method": source.method}}
+    card = make_card(source.spec.system, Design(source.A, source.B), method, spec, dt=source.dt,
+                     window=1, training=training, measurement_std=source.spec.measurement_std,
+                     domain=source.spec.domain)
+    return save_model(out, arrays, card, overwrite=overwrite)

@@ -1,0 +1,77 @@
+"""The observers that ship with kklcasadi, ``models/<system>/<method>/``, and the one lookup of them.
+
+The shipped models live in the ``models/`` directory of the source tree. A model directory given
+by path is the user's; only these are "shipped".
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Union
+
+from ..validation import Text, error
+
+__all__ = ["SHIPPED_ROOT", "METHOD_ORDER", "shipped", "shipped_models", "shipped_model", "is_shipped"]
+
+#: Where the shipped models live.
+SHIPPED_ROOT = Path(__file__).resolve().parents[2] / "models"
+#: Order of the shipped methods in tables; other model directories follow alphabetically.
+METHOD_ORDER = ("autonomous", "inject", "obs", "obs-inject", "dyn", "curriculum")
+
+PathLike = Union[str, os.PathLike]
+
+
+def _ordered(paths: list[Path]) -> list[Path]:
+    rank = {name: i for i, name in enumerate(METHOD_ORDER)}
+    return sorted(paths, key=lambda p: (rank.get(p.name, len(rank)), p.name))
+
+
+def shipped() -> dict[str, list[str]]:
+    """The shipped models by system: ``{"duffing": ["autonomous", "inject", ...], ...}`` (table order)."""
+    found: dict[str, list[Path]] = {}
+    for card in sorted(SHIPPED_ROOT.glob("*/*/card.json")):
+        found.setdefault(card.parent.parent.name, []).append(card.parent)
+    return {system: [p.name for p in _ordered(paths)] for system, paths in found.items()}
+
+
+def _listing() -> str:
+    return "; ".join(f"{name}: {', '.join(methods)}" for name, methods in shipped().items()) or "none found"
+
+
+def shipped_models(system: str) -> list[Path]:
+    """The model directories shipped for ``system``, in table order (:data:`METHOD_ORDER`).
+
+    Raises
+    ------
+    ValueError
+        No model is shipped for ``system``.
+    """
+    found = _ordered([card.parent for card in (SHIPPED_ROOT / str(system)).glob("*/card.json")])
+    if not found:
+        raise error("system", f"a system with shipped models ({_listing()})", system,
+                    "Pass model directories instead.")
+    return found
+
+
+def shipped_model(system: str, method: str) -> Path:
+    """The shipped model ``models/<system>/<method>``.
+
+    Raises
+    ------
+    ValueError
+        No such shipped model; the message lists the shipped ones.
+    """
+    path = SHIPPED_ROOT / str(system) / str(method)
+    if not (path / "card.json").exists():
+        raise ValueError(f"no shipped model models/{system}/{method} (shipped: {_listing()}); "
+                         "pass a model directory for another model.")
+    return path
+
+
+def is_shipped(path: PathLike) -> bool:
+    """Whether the model directory ``path`` is one of the shipped models."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise error("path", "a model directory path", Text(type(path).__name__), kind=TypeError)
+    resolved = Path(path).resolve()
+    return resolved.parent.parent == SHIPPED_ROOT and (resolved / "card.json").exists()

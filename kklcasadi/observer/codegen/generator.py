@@ -1,0 +1,303 @@
+"""C code for the observer step: CasADi code generation plus a header and a ``main`` example.
+
+The speed rewrites of CasADi's C live in :mod:`.kernels`, the C text in ``templates/``.
+
+:func:`generate_c` writes three files into ``out_dir`` for ``name = "kkl_obs"``:
+
+``kkl_obs.c``
+    The CasADi-generated C99 source of ``kkl_obs_step(z, w, y, y_next, u_next) -> (z_next,
+    w_next, xhat_next)`` and ``kkl_obs_decode(z, w) -> xhat`` (CasADi's calling convention:
+    ``f(arg, res, iw, w, mem)`` with caller-provided work arrays; no dynamic allocation). The
+    CasADi source is written between ``#pragma GCC diagnostic`` lines that silence
+    ``-Wunused-parameter`` (CasADi's generated functions keep unused ``iw``/``mem`` arguments),
+    so it compiles with ``gcc -std=c99 -Wall -Wextra -Werror``. Three rewrites make it fast
+    (:func:`generate_c`'s ``matvec``, ``math`` and ``dispatch``):
+
+    * ``matvec="axpy"``: every dense matrix-vector product ``casadi_mtimes_dense`` (about 90 %
+      of a step as CasADi writes it: one serial chain of additions per output, reading the
+      column-major matrix with a large stride) becomes a kernel of fixed size that walks the
+      matrix in column (axpy) order and keeps a block of 16 outputs in registers. Every output
+      is still summed in CasADi's order, ``((0 + x_0 y_0) + x_1 y_1) + ...``, so the result is
+      bitwise the CasADi VM's (the VM evaluates ``mtimes`` in this order too); the loops
+      vectorise at ``-O2`` and ``-O3``.
+    * ``math="vector"``: ``exp`` and ``tanh`` (the activations and the GRU gates) become C99
+      arithmetic without branches or library calls, which compilers vectorise, within 1 ulp
+      (``exp``) and 3 ulp (``tanh``) of the C library; the step then differs from the CasADi VM
+      by at most :data:`VECTOR_MATH_TOLERANCE` (tested). ``math="libm"`` keeps the C library
+      calls and the bitwise equality.
+    * ``dispatch=True``: with gcc or clang on x86, the kernels and the vector exp/tanh also
+      come in an AVX2 version (gcc vector extensions, under ``#if``), used where the CPU has
+      AVX2 (``__builtin_cpu_supports``, or always when the build targets AVX2). The portable
+      C99 version stays the fallback, and ``-DKKLC_NO_DISPATCH`` compiles it alone; both give
+      the same results bit for bit.
+
+    Bitwise equality needs a build without floating-point contraction (no fused multiply-add
+    across the products and sums): the ISO modes (``-std=c99``) of gcc and clang default to
+    ``-ffp-contract=off``; ``-ffast-math`` voids it.
+``kkl_obs.h``
+    Declarations, the sizes ``KKL_OBS_NX``, ``_NU``, ``_NY``, ``_NZ``, ``_WINDOW``, the sample
+    period ``KKL_OBS_DT`` and the work sizes ``KKL_OBS_SZ_ARG``, ``_SZ_RES``, ``_SZ_IW``,
+    ``_SZ_W`` (enough for both functions).
+``kkl_obs_main.c``
+    An example program: reads ``t, y[0..ny-1], u[0..nu-1]`` per line from a CSV file (first
+    argument) or stdin, and prints ``t, xhat[0..nx-1]`` per line, exactly as
+    :meth:`KKLObserver.simulate` computes them. Build it with
+    ``gcc -std=c99 -O3 kkl_obs.c kkl_obs_main.c -lm -o kkl_obs`` (the ``flags`` of
+    :func:`generate_c`, written into both C files).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Sequence, Union
+
+import casadi as ca
+
+from ...validation import one_of
+from ..kkl import DOMAIN_MARGIN, KKLObserver
+from .kernels import rewrite, template
+
+__all__ = ["generate_c", "check_c_name", "check_flags", "C_FLAGS", "DEFAULT_FLAGS", "NATIVE_FLAGS", "MATVECS", "MATHS"]
+
+#: The warning flags the generated code is tested with, at -O2 (it is also tested at
+#: ``DEFAULT_FLAGS`` with the same warnings).
+C_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2")
+#: The default build flags written into the generated files: portable (no ``-march``, no
+#: ``-ffast-math``), ISO C99 (so no floating-point contraction).
+DEFAULT_FLAGS = ("-std=c99", "-O3")
+#: Opt-in: also use the vector instructions of the build machine (AVX2, AVX-512); the binary
+#: may not run on another CPU.
+NATIVE_FLAGS = ("-std=c99", "-O3", "-march=native")
+#: ``generate_c(matvec=...)``: register-blocked column (axpy) order, or CasADi's own loops.
+MATVECS = ("axpy", "casadi")
+#: ``generate_c(math=...)``: vectorisable exp and tanh, or the C library's.
+MATHS = ("vector", "libm")
+# A C identifier that CasADi also accepts as a function name: a letter first, then letters, digits
+# and single underscores (CasADi reserves double underscores), not ending in an underscore.
+_C_NAME = re.compile(r"^[A-Za-z](?:_?[A-Za-z0-9])*$")
+_C_KEYWORDS = frozenset("""auto break case char const continue default do double else enum extern
+float for goto if inline int long register restrict return short signed sizeof static struct switch
+typedef union unsigned void volatile while _Bool _Complex _Imaginary""".split())
+
+
+def check_c_name(name: object) -> str:
+    """Return ``name`` if it can prefix the generated C symbols, else raise.
+
+    Raises
+    ------
+    TypeError
+        If ``name`` is not a string.
+    ValueError
+        If it is not a letter followed by letters, digits and single underscores, or is a C
+        keyword.
+    """
+    if not isinstance(name, str):
+        raise TypeError(f"name: expected a string, received {type(name).__name__}.")
+    if not _C_NAME.match(name) or name in _C_KEYWORDS:
+        raise ValueError(f"name: expected a C identifier that starts with a letter and holds "
+                         f"letters, digits and single underscores (not a C keyword), received "
+                         f"{name!r}. Try e.g. 'kkl_obs'.")
+    return name
+
+
+def _renamed(f: ca.Function, name: str, symbol: type = ca.MX) -> ca.Function:
+    """``f`` under another name (a thin wrapper of ``symbol`` type, same inputs and outputs)."""
+    args = [symbol.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
+    return ca.Function(name, args, f.call(args), f.name_in(), f.name_out())
+
+
+def _work_sizes(casadi_header: str, names: list[str]) -> dict[str, int]:
+    """The largest work sizes of the generated functions (CasADi's ``<name>_SZ_*`` macros).
+
+    The generated code's sizes can differ from the in-memory Function's ``sz_w()``, so they are
+    read from what CasADi wrote.
+    """
+    sizes = {}
+    for key in ("SZ_ARG", "SZ_RES", "SZ_IW", "SZ_W"):
+        values = [re.search(rf"^#define {name}_{key} (\d+)$", casadi_header, re.MULTILINE)
+                  for name in names]
+        if not all(values):
+            raise RuntimeError(f"CasADi {ca.__version__} wrote no {key} macro for "
+                               f"{', '.join(names)}; kklcasadi.observer.codegen needs updating for it.")
+        sizes[key] = max(int(v.group(1)) for v in values)
+    return sizes
+
+
+def _header(observer: KKLObserver, name: str, casadi_header: str,
+            sizes: dict[str, int], build: str, matvec: str, math: str, dispatch: bool) -> str:
+    macro = name.upper()
+    rows, cols = observer.memory_shape
+    defines = {"NX": observer.nx, "NU": observer.nu, "NY": observer.ny, "NZ": observer.nz,
+               "WINDOW": observer.window, "NW": rows * cols, **sizes}
+    lines = [f"#define {macro}_{key} {value}" for key, value in defines.items()]
+    lines.append(f"#define {macro}_DT {observer.dt!r}")
+    if observer.domain_check is not None:
+        lines.append(f"#define {macro}_HAS_DOMAIN 1")
+        monitor = (f"""
+ * {name}_in_domain(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] xhat (NX) -> res[0] 1.0 if the
+ *   estimate and the latent lie in the domain the maps were trained on (the card's state and
+ *   latent boxes widened by {DOMAIN_MARGIN!r} of their ranges), else 0.0: the domain
+ *   monitor, to call after a step where wanted ({macro}_HAS_DOMAIN is defined).""")
+    else:
+        monitor = "\n * (The model records no training domain: no domain monitor.)"
+    scheme = ("exact (matrix exponential, first-order hold)" if observer.discretization == "exact"
+              else f"RK4 with {observer.substeps} substep(s)")
+    memory = ("the input window, WINDOW x NU column-major: w[i + WINDOW*j] is input j at sample "
+              "k - WINDOW + 1 + i, oldest first" if observer.memory_shape == (observer.window, observer.nu)
+              else f"the streaming context h_k ({rows - observer.nu}) and the held input u_k ({observer.nu})")
+    return f"""/* {name}.h -- KKL observer step generated by kklcasadi.
+ *
+ * Observer: method {observer.method!r}, system {observer.system.name!r}, sample period
+ * {observer.dt!r} s, discretisation {scheme}.
+ *
+ * {name}_step(arg, res, iw, w, mem): one sample interval.
+ *   arg[0] z       (NZ)               latent state z_k
+ *   arg[1] w       (NW)               input memory w_k ({memory})
+ *   arg[2] y       (NY)               measurement y_k
+ *   arg[3] y_next  (NY)               measurement y_k+1 (y is interpolated linearly)
+ *   arg[4] u_next  (NU)               input u_k+1 (u is held at u_k, which w_k holds)
+ *   res[0] z_next  (NZ), res[1] w_next (NW), res[2] xhat_next (NX)
+ * {name}_decode(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w -> res[0] xhat (NX).
+ * {name}_init(arg, res, iw, w, mem): arg[0] y_0 (NY), arg[1] u_0 (NU) -> res[0] w_0 (NW), the
+ *   memory at the start.{monitor}
+ * Start: z_0 = 0, w_0 = init(u_0), xhat_0 = decode(z_0, w_0).
+ * Work arrays: arg[{macro}_SZ_ARG], res[{macro}_SZ_RES], iw[{macro}_SZ_IW],
+ * w[{macro}_SZ_W] (enough for both functions); outputs must not alias inputs; mem = 0.
+ *
+ * Code: matvec={matvec!r}, math={math!r}, dispatch={dispatch!r} (kklcasadi.observer.codegen).
+ * Build:
+ *   {build}
+ */
+#ifndef {macro}_H
+#define {macro}_H
+
+{chr(10).join(lines)}
+
+{casadi_header.strip()}
+
+#endif /* {macro}_H */
+"""
+
+
+def check_flags(flags: object) -> tuple[str, ...]:
+    """Return ``flags`` as a tuple of compiler options, each one word starting with ``-``.
+
+    Raises
+    ------
+    TypeError
+        If ``flags`` is a string or not a sequence.
+    ValueError
+        If a flag is not a string, does not start with ``-`` or holds blanks or quotes.
+    """
+    if isinstance(flags, str) or not isinstance(flags, Sequence):
+        raise TypeError(f"flags: expected a sequence of strings such as {DEFAULT_FLAGS}, "
+                        f"received {type(flags).__name__}.")
+    for flag in flags:
+        if not isinstance(flag, str) or not re.fullmatch(r"-[^\s'\"\\]+", flag):
+            raise ValueError(f"flags: expected compiler options that start with '-' and hold no "
+                             f"blanks or quotes, such as {DEFAULT_FLAGS}, received {flag!r}.")
+    return tuple(flags)
+
+
+def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
+               *, overwrite: bool = False, matvec: str = "axpy", math: str = "vector",
+               dispatch: bool = True, flags: Sequence[str] = DEFAULT_FLAGS) -> list[Path]:
+    """Write the observer step as C99 source, a header and a ``main`` example.
+
+    Parameters
+    ----------
+    observer : KKLObserver
+    out_dir : str or path-like
+        Output directory; created if missing.
+    name : str
+        Prefix of the files and C symbols: ``name.c``, ``name.h``, ``name_main.c``, functions
+        ``name_step``, ``name_decode`` and ``name_init``, macros ``NAME_NX`` etc.
+    overwrite : bool
+        Replace existing files of the same names.
+    matvec : {"axpy", "casadi"}
+        The dense matrix-vector products: fixed-size kernels in column (axpy) order with a block
+        of outputs in registers, which vectorise (default), or CasADi's own loops. Both sum every
+        output in the same order: the results are bitwise equal.
+    math : {"vector", "libm"}
+        ``exp`` and ``tanh``: branch-free C99 arithmetic that vectorises, within 3 ulp of the C
+        library, so that the step is within :data:`VECTOR_MATH_TOLERANCE` of the CasADi VM
+        (default); or the C library's functions, bitwise as the CasADi VM (with
+        ``matvec="axpy"`` or ``"casadi"``).
+    dispatch : bool
+        With gcc or clang on x86, also compile the kernels and the vector exp/tanh for AVX2
+        (gcc vector extensions, under ``#if``) and use that version where the CPU has it:
+        chosen at run time (``__builtin_cpu_supports``), or always when the build targets AVX2
+        (``-march=native`` on a recent CPU). The results are the same bit for bit.
+        ``-DKKLC_NO_DISPATCH`` at compile time, or ``dispatch=False`` (no extensions in the
+        source), leaves the portable C99 version only.
+    flags : sequence of str
+        The compiler options written into the build lines of ``name.h`` and ``name_main.c``
+        (``gcc FLAGS name.c name_main.c -lm -o name``); default :data:`DEFAULT_FLAGS`
+        (portable). :data:`NATIVE_FLAGS` adds ``-march=native`` (faster, for the build
+        machine's CPU only). The source compiles without warnings under ``-Wall -Wextra`` with
+        either. Bitwise equality with the CasADi VM needs a build without floating-point
+        contraction, as ``-std=c99`` gives (no ``-ffast-math``, no ``-ffp-contract=fast``).
+
+    Returns
+    -------
+    list of Path
+        ``[name.c, name.h, name_main.c]``.
+
+    Raises
+    ------
+    ValueError
+        ``name`` is not a valid C identifier, ``out_dir`` exists and is not a directory,
+        ``matvec`` or ``math`` is not one of the choices, or a flag is not an option word.
+    TypeError
+        ``flags`` is not a sequence of strings, ``dispatch`` not a bool, or another argument
+        has the wrong type.
+    FileExistsError
+        One of the files exists and ``overwrite`` is False.
+    """
+    if not isinstance(observer, KKLObserver):
+        raise TypeError(f"observer: expected a KKLObserver, received {type(observer).__name__}.")
+    name = check_c_name(name)
+    matvec = one_of(matvec, "matvec", MATVECS)
+    math = one_of(math, "math", MATHS)
+    if not isinstance(dispatch, bool):
+        raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
+    flags = check_flags(flags)
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise TypeError(f"out_dir: expected a path, received {type(out_dir).__name__}.")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out_dir: expected a directory, received {str(out)!r}, which is a "
+                         "file. Choose a directory path.")
+    paths = [out / f"{name}.c", out / f"{name}.h", out / f"{name}_main.c"]
+    existing = [p for p in paths if p.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"{existing[0]}: already exists; pass overwrite=True to replace "
+                              "it, or choose another out_dir or name.")
+
+    functions = [_renamed(observer.step, f"{name}_step"), _renamed(observer.decode, f"{name}_decode"),
+                 # the start only, once: as SX, so that it has no nested calls (gcc's -Wdangling-pointer)
+                 _renamed(observer.memory_init, f"{name}_init", ca.SX)]
+    if observer.domain_check is not None:          # the domain monitor, where the card records a domain
+        functions.append(_renamed(observer.domain_check, f"{name}_in_domain"))
+    generator = ca.CodeGenerator(f"{name}.c", {"with_header": True, "casadi_real": "double"})
+    for f in functions:
+        generator.add(f)
+    with tempfile.TemporaryDirectory() as tmp:
+        generator.generate(tmp + os.sep)
+        source = (Path(tmp) / f"{name}.c").read_text()
+        casadi_header = (Path(tmp) / f"{name}.h").read_text()
+    source = rewrite(source, matvec == "axpy", math == "vector", dispatch)
+    build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths[0].write_text(f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h."
+                        f" */\n{template('pragma_push')}{source}{template('pragma_pop')}")
+    sizes = _work_sizes(casadi_header, [f.name() for f in functions])
+    paths[1].write_text(_header(observer, name, casadi_header, sizes, build, matvec,
+                                math, dispatch))
+    paths[2].write_text(template("main").replace("__BUILD__", build).replace("__NAME__", name)
+                        .replace("__MACRO__", name.upper()))
+    return paths

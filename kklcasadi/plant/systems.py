@@ -1,0 +1,351 @@
+"""Plants written symbolically in CasADi, and the registry of benchmark systems.
+
+A :class:`System` holds the exact right-hand side ``f(x, u)``, the output map ``h(x)`` and their
+Jacobians as :class:`casadi.Function` objects, built once from SX symbols. The registry
+(:func:`get`, :func:`names`) provides the four systems of the HyperKKL paper exactly as in
+``docs/protocol.md``, plus Lorenz and a linear test plant with a known KKL map.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import json
+from pathlib import Path
+from typing import Callable, Sequence
+
+import casadi as ca
+import numpy as np
+
+from ..validation import Text, error, one_of, positive_int
+
+__all__ = ["System", "get", "names", "register", "load_plant"]
+
+
+def _column_symbol(value: object, arg: str) -> ca.SX:
+    """Check that ``value`` is a column vector of purely symbolic SX entries."""
+    if not isinstance(value, ca.SX):
+        raise error(arg, f"a casadi.SX symbol (e.g. ca.SX.sym('{arg}', n))", Text(type(value).__name__),
+                    kind=TypeError)
+    if value.size2() != 1 or value.numel() == 0:
+        raise error(arg, "a non-empty column vector", Text(f"shape {value.shape}"))
+    if not value.is_valid_input():
+        raise error(arg, "distinct purely symbolic entries (ca.SX.sym), not expressions", Text(str(value)))
+    return value
+
+
+def _column_expr(value: object, arg: str, n: int | None = None) -> ca.SX:
+    if isinstance(value, (list, tuple)):
+        value = ca.vertcat(*value)
+    if not isinstance(value, ca.SX):
+        raise error(arg, "a casadi.SX expression or a list of them", Text(type(value).__name__), kind=TypeError)
+    if value.size2() != 1:
+        raise error(arg, "a column expression", Text(f"shape {value.shape}"))
+    if n is not None and value.size1() != n:
+        raise error(arg, f"{n} entries (one per state)", Text(f"{value.size1()} entries"))
+    return value
+
+
+def _box(x0_box: object, nx: int) -> np.ndarray:
+    box = np.asarray(x0_box, dtype=float)
+    if box.shape != (nx, 2):
+        raise error("x0_box", f"shape (nx, 2) = ({nx}, 2) as [[lo, hi], ...]", Text(f"shape {box.shape}"))
+    if not np.all(np.isfinite(box)):
+        raise error("x0_box", "finite bounds", box.tolist())
+    if np.any(box[:, 1] <= box[:, 0]):
+        bad = np.nonzero(box[:, 1] <= box[:, 0])[0].tolist()
+        raise error("x0_box", f"rows [lo, hi] with lo < hi (rows {bad} are empty or inverted)", box.tolist())
+    box.setflags(write=False)
+    return box
+
+
+class System:
+    """A controlled plant ``xdot = f(x, u)``, ``y = h(x)`` written with CasADi SX symbols.
+
+    Parameters
+    ----------
+    name : str
+        Identifier used in model cards and file names.
+    x : casadi.SX, shape (nx, 1)
+        State symbols.
+    u : casadi.SX, shape (nu, 1)
+        Input symbols.
+    xdot : casadi.SX or list, shape (nx, 1)
+        Right-hand side ``f(x, u)``.
+    y : casadi.SX or list, shape (ny, 1)
+        Output map ``h(x)``; must not depend on ``u``.
+    x0_box : array_like, shape (nx, 2)
+        Box ``[[lo, hi], ...]`` of initial states (the operating domain of the observer).
+    description : str, optional
+        One line shown by ``kklcasadi`` listings.
+
+    Attributes
+    ----------
+    f : casadi.Function
+        ``f(x, u) -> xdot``.
+    h : casadi.Function
+        ``h(x) -> y``.
+    f_jac : casadi.Function
+        ``f_jac(x, u) -> (df_dx (nx, nx), df_du (nx, nu))``, exact.
+    h_jac : casadi.Function
+        ``h_jac(x) -> dh_dx (ny, nx)``, exact.
+
+    Examples
+    --------
+    >>> import casadi as ca, kklcasadi as kc
+    >>> x = ca.SX.sym("x", 2); u = ca.SX.sym("u")
+    >>> pend = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], x0_box=[[-1, 1], [-2, 2]])
+    >>> pend.nx, pend.nu, pend.ny
+    (2, 1, 1)
+    """
+
+    def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
+                 x0_box: object, *, description: str = "") -> None:
+        if not isinstance(name, str) or not name.isidentifier():
+            raise error("name", "a Python identifier such as 'duffing'", name)
+        x = _column_symbol(x, "x")
+        u = _column_symbol(u, "u")
+        xdot = _column_expr(xdot, "xdot", x.size1())
+        y = _column_expr(y, "y")
+        if y.size1() == 0:
+            raise error("y", "at least one output", Text("0 outputs"))
+        if ca.depends_on(y, u):
+            raise error("y", "an output map h(x) that does not depend on the input u", Text(str(y)),
+                        "Direct feedthrough is not supported.")
+        free = ca.symvar(ca.vertcat(xdot, y))
+        known = set(ca.symvar(ca.vertcat(x, u)))
+        extra = [str(s) for s in free if s not in known]
+        if extra:
+            raise error("xdot, y", "expressions in the symbols of x and u only", Text(f"free symbols {extra}"))
+        self.name = name
+        self.description = description
+        self.nx, self.nu, self.ny = x.size1(), u.size1(), y.size1()
+        self.x0_box = _box(x0_box, self.nx)
+        self.x_sym, self.u_sym = x, u
+        self.xdot_expr, self.y_expr = xdot, y
+        self.f = ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"])
+        self.h = ca.Function("h", [x], [y], ["x"], ["y"])
+        self.f_jac = ca.Function("f_jac", [x, u], [ca.jacobian(xdot, x), ca.jacobian(xdot, u)],
+                                 ["x", "u"], ["df_dx", "df_du"])
+        self.h_jac = ca.Function("h_jac", [x], [ca.jacobian(y, x)], ["x"], ["dh_dx"])
+
+    def __repr__(self) -> str:
+        return f"System({self.name!r}, nx={self.nx}, nu={self.nu}, ny={self.ny})"
+
+    @property
+    def fingerprint(self) -> str:
+        """SHA-256 of what the plant computes: ``f`` and ``h`` on fixed points, the sizes and the box.
+
+        The points are 64 seeded draws over the X0 box (inputs in [-1, 1]); values are rounded to
+        10 significant digits, so the fingerprint does not depend on symbol names, on how the
+        expressions are written or on the CasADi version, but changes with the dynamics. Model
+        cards record it, and a model refuses to load against a plant with another fingerprint.
+        """
+        rng = np.random.default_rng(20261127)
+        lo, hi = self.x0_box[:, 0], self.x0_box[:, 1]
+        x = lo + (hi - lo) * rng.random((64, self.nx))
+        u = rng.uniform(-1.0, 1.0, (64, self.nu))
+        values = np.concatenate([self.f_batch(x, u).ravel(), self.h_batch(x).ravel(), self.x0_box.ravel()])
+        text = f"{self.nx},{self.nu},{self.ny};" + ",".join(np.format_float_scientific(v, precision=9)
+                                                             for v in values)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    @property
+    def definition_digest(self) -> str:
+        """SHA-256 of the plant's exact definition: name, sizes, X0 box and the serialised ``f`` and ``h``.
+
+        Unlike :attr:`fingerprint` (what the plant computes, rounded), any change of the expressions
+        changes it, down to the last bit of a constant; caches of simulated trials are keyed by it.
+        """
+        digest = hashlib.sha256()
+        header = {"name": self.name, "nx": self.nx, "nu": self.nu, "ny": self.ny,
+                  "x0_box": np.asarray(self.x0_box, dtype=float).tolist()}
+        digest.update(json.dumps(header, sort_keys=True).encode())
+        for function in (self.f, self.h):
+            digest.update(function.serialize().encode())
+        return digest.hexdigest()
+
+    def f_batch(self, x: object, u: object = None) -> np.ndarray:
+        """``f`` on many points in one mapped call.
+
+        Parameters
+        ----------
+        x : array_like, shape (M, nx)
+        u : array_like, shape (M, nu), optional
+            Default 0 (the autonomous field).
+
+        Returns
+        -------
+        numpy.ndarray, shape (M, nx)
+        """
+        x = self._rows(x, self.nx, "x")
+        u = np.zeros((len(x), self.nu)) if u is None else self._rows(u, self.nu, "u")
+        if len(u) != len(x):
+            raise ValueError(f"u: expected {len(x)} rows (one per row of x), received {len(u)}.")
+        if len(x) == 0:
+            return np.zeros((0, self.nx))
+        return np.asarray(self.f.map(len(x))(x.T, u.T)).T.reshape(len(x), self.nx)
+
+    def h_batch(self, x: object) -> np.ndarray:
+        """``h`` on many points in one mapped call: ``x`` (M, nx) -> ``y`` (M, ny)."""
+        x = self._rows(x, self.nx, "x")
+        if len(x) == 0:
+            return np.zeros((0, self.ny))
+        return np.asarray(self.h.map(len(x))(x.T)).T.reshape(len(x), self.ny)
+
+    @staticmethod
+    def _rows(value: object, width: int, arg: str) -> np.ndarray:
+        arr = np.asarray(value, dtype=float)
+        if arr.ndim != 2 or arr.shape[1] != width:
+            raise ValueError(f"{arg}: expected shape (M, {width}), received {arr.shape}.")
+        return arr
+
+    def check_state(self, x: object, arg: str = "x0") -> np.ndarray:
+        """Return ``x`` as a float array of shape (nx,), or raise a ValueError naming ``arg``."""
+        arr = np.asarray(x, dtype=float)
+        if arr.shape not in ((self.nx,), (self.nx, 1)):
+            raise error(arg, f"shape ({self.nx},) for system {self.name!r}", Text(f"shape {arr.shape}"))
+        if not np.all(np.isfinite(arr)):
+            raise error(arg, "finite values", arr.ravel().tolist())
+        return arr.reshape(self.nx)
+
+    def sample_box(self, n: int, seed: int | np.random.Generator | None = 0, *, scale: float = 1.0) -> np.ndarray:
+        """Latin-hypercube sample of ``n`` states over the X0 box (optionally scaled about its centre).
+
+        Returns
+        -------
+        numpy.ndarray, shape (n, nx)
+        """
+        from scipy.stats import qmc
+
+        n = positive_int(n, "n")
+        centre = self.x0_box.mean(axis=1)
+        half = 0.5 * (self.x0_box[:, 1] - self.x0_box[:, 0]) * scale
+        unit = qmc.LatinHypercube(d=self.nx, seed=seed).random(n)
+        return centre + (2.0 * unit - 1.0) * half
+
+
+_REGISTRY: dict[str, Callable[[], System]] = {}
+
+
+def register(name: str, factory: Callable[[], System]) -> None:
+    """Add a plant factory to the registry used by :func:`get` and the CLI."""
+    if not callable(factory):
+        raise error("factory", "a callable returning a System", Text(type(factory).__name__), kind=TypeError)
+    _REGISTRY[name] = factory
+
+
+def names() -> list[str]:
+    """Names of the registered systems, sorted."""
+    return sorted(_REGISTRY)
+
+
+def get(name: str) -> System:
+    """Build the registered system ``name`` (e.g. ``"duffing"``)."""
+    return _REGISTRY[one_of(name, "name", names())]()
+
+
+def load_plant(spec: str) -> System:
+    """A user's plant from a file or module: ``"path/to/plant.py:make_plant"`` or ``"pkg.mod:make_plant"``.
+
+    The attribute after ``:`` is a :class:`System` or a function with no arguments that returns
+    one (default ``make_plant``).
+
+    Parameters
+    ----------
+    spec : str
+        ``FILE.py[:NAME]`` or ``MODULE[:NAME]``.
+
+    Returns
+    -------
+    System
+
+    Raises
+    ------
+    ValueError
+        The file or module cannot be found or imported, the name is missing, or it does not give a
+        System (the message says which and what to write).
+    """
+    if not isinstance(spec, str) or not spec:
+        raise error("plant", "'path/to/plant.py:make_plant' or 'module:make_plant'", spec, kind=TypeError)
+    source, _, attribute = spec.rpartition(":") if ":" in spec else (spec, ":", "make_plant")
+    attribute = attribute or "make_plant"
+    fix = "Write a function make_plant() that returns a kklcasadi.System and pass 'plant.py:make_plant'."
+    if source.endswith(".py") or Path(source).is_file():
+        path = Path(source)
+        if not path.is_file():
+            raise error("plant", "an existing Python file", str(path), fix)
+        module_spec = importlib.util.spec_from_file_location(f"kklcasadi_user_plant_{path.stem}", path)
+        module = importlib.util.module_from_spec(module_spec)
+        try:
+            module_spec.loader.exec_module(module)
+        except Exception as exc:
+            raise ValueError(f"plant: importing {path} failed: {type(exc).__name__}: {exc}") from exc
+    else:
+        try:
+            module = importlib.import_module(source)
+        except ImportError as exc:
+            raise error("plant", "an importable module or a .py file", source, fix) from exc
+    if not hasattr(module, attribute):
+        raise error("plant", f"a name {attribute!r} in {source}", Text("no such name"), fix)
+    value = getattr(module, attribute)
+    plant = value() if callable(value) and not isinstance(value, System) else value
+    if not isinstance(plant, System):
+        raise error("plant", f"{source}:{attribute} to give a kklcasadi.System", Text(type(plant).__name__), fix,
+                    kind=TypeError)
+    return plant
+
+
+def _symbols(nx: int) -> tuple[ca.SX, ca.SX]:
+    return ca.SX.sym("x", nx), ca.SX.sym("u", 1)
+
+
+def duffing() -> System:
+    x, u = _symbols(2)
+    return System("duffing", x, u, [x[1], -x[0] - x[0] ** 3 + u], x[0], [[-1, 1], [-1, 1]],
+                  description="Duffing oscillator, y = x1")
+
+
+def vdp() -> System:
+    x, u = _symbols(2)
+    return System("vdp", x, u, [x[1], (1 - x[0] ** 2) * x[1] - x[0] + u], x[0], [[-3, 3], [-3, 3]],
+                  description="Van der Pol oscillator (mu = 1), y = x1")
+
+
+def rossler() -> System:
+    x, u = _symbols(3)
+    xdot = [-(x[1] + x[2]), x[0] + 0.1 * x[1] + u, 0.1 + x[2] * (x[0] - 14)]
+    return System("rossler", x, u, xdot, x[1], [[-10, 10]] * 3, description="Roessler (a=0.1, b=0.1, c=14), y = x2")
+
+
+def fhn() -> System:
+    x, u = _symbols(2)
+    xdot = [10 * (x[0] - x[0] ** 3 - x[1]) + u, 1.5 * x[0] - x[1] + 0.8]
+    return System("fhn", x, u, xdot, x[0], [[-2.5, 2.5], [-1.5, 1.5]],
+                  description="FitzHugh-Nagumo as in the HyperKKL paper, y = x1")
+
+
+def lorenz() -> System:
+    x, u = _symbols(3)
+    sigma, rho, beta = 10.0, 28.0, 8.0 / 3.0
+    xdot = [sigma * (x[1] - x[0]), x[0] * (rho - x[2]) - x[1] + u, x[0] * x[1] - beta * x[2]]
+    return System("lorenz", x, u, xdot, x[1], [[-15, 15], [-20, 20], [5, 40]],
+                  description="Lorenz (sigma 10, rho 28, beta 8/3), u on x2, y = x2")
+
+
+LINEAR_F = np.array([[0.0, 1.0], [-2.0, -0.5]])
+LINEAR_G = np.array([[0.0], [1.0]])
+LINEAR_H = np.array([[1.0, 0.0]])
+
+
+def linear() -> System:
+    """Damped linear oscillator ``xdot = F x + G u``, ``y = H x``: its KKL map solves a Sylvester equation."""
+    x, u = _symbols(2)
+    xdot = ca.mtimes(ca.DM(LINEAR_F), x) + ca.mtimes(ca.DM(LINEAR_G), u)
+    return System("linear", x, u, xdot, ca.mtimes(ca.DM(LINEAR_H), x), [[-1, 1], [-1, 1]],
+                  description="damped linear oscillator (test plant with an exact KKL map)")
+
+
+for _factory in (duffing, vdp, rossler, fhn, lorenz, linear):
+    register(_factory.__name__, _factory)
