@@ -17,6 +17,7 @@ from common import protocol_trials, score, table_row
 import kklcasadi as kc
 from kklcasadi.model.files import load_model
 from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.nets.numpy_mlp import mlp_numpy
 from kklcasadi.nets.specs import DECODER, MLPSpec
 
 
@@ -26,7 +27,7 @@ def estimator(system: str):
     spec = MLPSpec.from_card(model.card["architecture"][DECODER])
 
     def est(y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return fb._mlp_numpy(model.arrays, spec, bank.run(y, u, model.dt))
+        return mlp_numpy(spec, model.arrays, DECODER, bank.run(y, u, model.dt))
 
     return est
 

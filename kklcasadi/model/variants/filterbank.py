@@ -39,6 +39,7 @@ import numpy as np
 
 from ...nets import builders as casadi_nets
 from ...nets.hold import FOHMatrices, foh_matrices
+from ...nets.numpy_mlp import mlp_numpy
 from ...nets.specs import DECODER, MLPSpec, check_arrays
 
 __all__ = ["FilterBank", "decoder_features", "decode", "decoder_function", "estimate",
@@ -262,19 +263,6 @@ def decoder_features(z: np.ndarray, y: np.ndarray, u: np.ndarray) -> np.ndarray:
     return np.concatenate([z, y, u], axis=-1)
 
 
-def _mlp_numpy(arrays: Mapping[str, Any], spec: MLPSpec, v: np.ndarray) -> np.ndarray:
-    act = {"tanh": np.tanh, "relu": lambda a: np.maximum(a, 0.0),
-           "softplus": lambda a: np.maximum(a, 0.0) + np.log1p(np.exp(-np.abs(a))), "identity": lambda a: a}
-    f = act[spec.activation]
-    h = (v - np.asarray(arrays[f"{DECODER}/in_mean"])) / np.asarray(arrays[f"{DECODER}/in_std"])
-    n = len(spec.layer_shapes)
-    for i in range(n):
-        h = h @ np.asarray(arrays[f"{DECODER}/W{i}"]).T + np.asarray(arrays[f"{DECODER}/b{i}"])
-        if i < n - 1:
-            h = f(h)
-    return h * np.asarray(arrays[f"{DECODER}/out_std"]) + np.asarray(arrays[f"{DECODER}/out_mean"])
-
-
 def _check_decoder(arrays: Mapping[str, Any], arch: Mapping[str, Any]) -> MLPSpec:
     spec = MLPSpec.from_card(arch, "architecture.decoder", DECODER)
     check_arrays(arrays, {**spec.array_shapes(DECODER), ASINH_SCALE: (spec.n_out,)}, "bank arrays")
@@ -303,7 +291,7 @@ def decode(arrays: Mapping[str, Any], arch: Mapping[str, Any], features: Any) ->
     f = np.asarray(features, dtype=float)
     if f.shape[-1] != spec.n_in:
         raise ValueError(f"features must have {spec.n_in} entries along the last axis, got shape {f.shape}")
-    v = _mlp_numpy(arrays, spec, f)
+    v = mlp_numpy(spec, arrays, DECODER, f)
     scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
     return np.where(scale > 0, scale * np.sinh(v), v)
 
