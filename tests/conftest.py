@@ -67,7 +67,7 @@ def model_dir_factory(tmp_path_factory):
              card_extra=None, dt=0.05):
         plant = kklcasadi.plant.systems.get(system) if isinstance(system, str) else system
         nx, nu = plant.nx, plant.nu
-        design = kklcasadi.Design.default(plant)
+        design = kklcasadi.Design.paper(plant)
         nz = design.nz
         maps = MapsSpec(MLPSpec((nx, *hidden, nz)), MLPSpec((nz, *hidden, nx)))
         obs = lambda: ObsModelSpec(maps.encoder, maps.decoder,  # noqa: E731

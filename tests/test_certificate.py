@@ -22,7 +22,7 @@ def _linear_model(directory: Path, perturbation: float = 0.0, seed: int = 0) -> 
     standard deviation to both weight matrices.
     """
     plant = kc.systems.get("linear")
-    design = kc.Design.default(plant)
+    design = kc.Design.paper(plant)
     T = scipy.linalg.solve_sylvester(-design.A, LINEAR_F, design.B @ LINEAR_H)
     rng = np.random.default_rng(seed)
     maps = {"encoder": T, "decoder": np.linalg.pinv(T)}

@@ -22,7 +22,7 @@ def test_linear_labels_match_the_sylvester_solution():
 def test_phase1_labels_are_consistent_with_the_latent_ode(name):
     """Along a labelled trajectory, z(t) follows zdot = A z + B y (finite-difference check)."""
     s = kc.systems.get(name)
-    d = kc.Design.default(s)
+    d = kc.Design.paper(s)
     dt = 0.002
     x, z, y = data.phase1(s, d, n_traj=3, seed=1, t_keep=1.0, dt=dt)
     z = z.reshape(3, -1, d.nz)
@@ -35,7 +35,7 @@ def test_phase1_labels_are_consistent_with_the_latent_ode(name):
 
 def test_phase1_covers_the_box_and_is_seeded():
     s = kc.systems.get("duffing")
-    d = kc.Design.default(s)
+    d = kc.Design.paper(s)
     a = data.phase1(s, d, n_traj=8, seed=4, t_keep=1.0)
     b = data.phase1(s, d, n_traj=8, seed=4, t_keep=1.0)
     np.testing.assert_array_equal(a.z, b.z)
@@ -94,7 +94,7 @@ def test_phase2_drops_and_reports_blow_ups():
 
 def test_label_modes():
     s = kc.systems.get("fhn")
-    d = kc.Design.default(s)
+    d = kc.Design.paper(s)
     cold = data.phase1(s, d, n_traj=4, seed=0, t_keep=1.0, labels="cold")
     z = cold.z.reshape(4, 20, d.nz)
     np.testing.assert_array_equal(z[:, 0], 0.0)                         # a cold-started observer

@@ -34,7 +34,7 @@ def phase1_dir(tmp_path_factory):
 def test_pde_residual_gradient_flows_and_matches_finite_differences():
     torch.manual_seed(0)
     enc = MLP([2, 8, 8, 5]).double()
-    d = kc.Design.default(kc.systems.get("duffing"))
+    d = kc.Design.paper(kc.systems.get("duffing"))
     A, B = torch.tensor(d.A), torch.tensor(d.B)
     x = torch.randn(32, 2, dtype=torch.float64)
     f = torch.randn(32, 2, dtype=torch.float64)
@@ -63,7 +63,7 @@ def test_pde_residual_gradient_flows_and_matches_finite_differences():
 
 
 def test_latent_noise_covariance_solves_the_lyapunov_equation():
-    d = kc.Design.default(kc.systems.get("vdp"))
+    d = kc.Design.paper(kc.systems.get("vdp"))
     S = latent_noise_covariance(d, 0.1, 0.05)
     np.testing.assert_allclose(d.A @ S + S @ d.A.T + d.B @ d.B.T * 0.01 * 0.05, 0, atol=1e-15)
     assert np.all(np.linalg.eigvalsh(S) > 0)
@@ -158,7 +158,7 @@ def test_dyn_loss_differentiates_the_encoder_along_state_and_context(stream):
     from kklcasadi.train.phase2 import make_dyn_loss
 
     torch.manual_seed(3)
-    design = kc.Design.default(kc.systems.get("duffing"))
+    design = kc.Design.paper(kc.systems.get("duffing"))
     enc, dec = MLP([2, 7, 7, design.nz]).double(), MLP([design.nz, 7, 2]).double()
     hyper = LoRAHyperNet(lora_target_shapes(enc.spec, dec.spec), 1, hidden=5, embed=3, backbone=(6,), rank=2,
                          scale_init=0.7).double()
@@ -194,6 +194,9 @@ def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     model = load_model(phase1_dir)
     card = model.card
     assert card["method"] == "autonomous" and card["window"] == 1
+    # a paper plant trains with the paper's design (Design.paper), as its shipped models do
+    np.testing.assert_array_equal(model.A, -np.diag(np.arange(1.0, 6.0)))
+    np.testing.assert_array_equal(model.B, np.ones((5, 1)))
     assert card["training"]["data"]["labelled"] == 12 * 40
     enc = card["training"]["encoder"]
     assert enc["epochs"] == 3 and enc["best_val"] <= enc["final_train"] * 10
@@ -215,6 +218,18 @@ def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     again = {k: v for k, v in net.to_arrays("encoder").items()}
     for k, v in again.items():
         np.testing.assert_array_equal(v, model.arrays[k])
+
+
+def test_a_plant_without_the_paper_flag_trains_with_the_default_design(tmp_path):
+    plant = kc.systems.get("linear")
+    assert not plant.paper_design
+    loop = LoopConfig(epochs=1, batch_size=32)
+    config = default_config("linear", "autonomous", width=8, depth=1, n_traj=4, t_keep=1.0, n_pde=50,
+                            dtype="float64", encoder=loop, decoder=loop)
+    model = load_model(train_observer(plant, "autonomous", tmp_path / "linear", config=config, progress=False))
+    design = kc.Design.default(plant)
+    np.testing.assert_array_equal(model.A, design.A)
+    np.testing.assert_array_equal(model.B, design.B)
 
 
 def test_training_is_deterministic(tmp_path, phase1_dir):

@@ -79,6 +79,10 @@ class System:
         Box ``[[lo, hi], ...]`` of initial states (the operating domain of the observer).
     description : str, optional
         One line shown by ``kklcasadi`` listings.
+    paper_design : bool, optional
+        Train with the HyperKKL paper's latent pair (:meth:`kklcasadi.Design.paper`) instead of
+        :meth:`kklcasadi.Design.default`; set for the paper's four plants, whose protocol and
+        shipped models use it.
 
     Attributes
     ----------
@@ -101,7 +105,7 @@ class System:
     """
 
     def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
-                 x0_box: object, *, description: str = "") -> None:
+                 x0_box: object, *, description: str = "", paper_design: bool = False) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise error("name", "a Python identifier such as 'duffing'", name)
         x = _column_symbol(x, "x")
@@ -120,6 +124,7 @@ class System:
             raise error("xdot, y", "expressions in the symbols of x and u only", Text(f"free symbols {extra}"))
         self.name = name
         self.description = description
+        self.paper_design = bool(paper_design)
         self.nx, self.nu, self.ny = x.size1(), u.size1(), y.size1()
         self.x0_box = _box(x0_box, self.nx)
         self.x_sym, self.u_sym = x, u
@@ -304,26 +309,27 @@ def _symbols(nx: int) -> tuple[ca.SX, ca.SX]:
 def duffing() -> System:
     x, u = _symbols(2)
     return System("duffing", x, u, [x[1], -x[0] - x[0] ** 3 + u], x[0], [[-1, 1], [-1, 1]],
-                  description="Duffing oscillator, y = x1")
+                  description="Duffing oscillator, y = x1", paper_design=True)
 
 
 def vdp() -> System:
     x, u = _symbols(2)
     return System("vdp", x, u, [x[1], (1 - x[0] ** 2) * x[1] - x[0] + u], x[0], [[-3, 3], [-3, 3]],
-                  description="Van der Pol oscillator (mu = 1), y = x1")
+                  description="Van der Pol oscillator (mu = 1), y = x1", paper_design=True)
 
 
 def rossler() -> System:
     x, u = _symbols(3)
     xdot = [-(x[1] + x[2]), x[0] + 0.1 * x[1] + u, 0.1 + x[2] * (x[0] - 14)]
-    return System("rossler", x, u, xdot, x[1], [[-10, 10]] * 3, description="Roessler (a=0.1, b=0.1, c=14), y = x2")
+    return System("rossler", x, u, xdot, x[1], [[-10, 10]] * 3, description="Roessler (a=0.1, b=0.1, c=14), y = x2",
+                  paper_design=True)
 
 
 def fhn() -> System:
     x, u = _symbols(2)
     xdot = [10 * (x[0] - x[0] ** 3 - x[1]) + u, 1.5 * x[0] - x[1] + 0.8]
     return System("fhn", x, u, xdot, x[0], [[-2.5, 2.5], [-1.5, 1.5]],
-                  description="FitzHugh-Nagumo as in the HyperKKL paper, y = x1")
+                  description="FitzHugh-Nagumo as in the HyperKKL paper, y = x1", paper_design=True)
 
 
 def lorenz() -> System:

@@ -163,7 +163,7 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         torch.set_num_threads(positive_int(threads, "threads"))
     if base_model is not None:
         design = Design(base_model.A, base_model.B)
-    design = design or Design.default(plant)
+    design = design or (Design.paper(plant) if plant.paper_design else Design.default(plant))
     workdir = out / ".train"
     torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
     t0 = time.perf_counter()
