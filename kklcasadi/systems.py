@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from .validation import Text, error, one_of, positive_int
+from .validation import Text, error, index_tuple, one_of, positive_int
 
 __all__ = ["System", "get", "names", "register", "load_plant"]
 
@@ -78,6 +78,10 @@ class System:
         Box ``[[lo, hi], ...]`` of initial states (the operating domain of the observer).
     description : str, optional
         One line shown by ``kklcasadi`` listings.
+    angle_states, angle_outputs : sequence of int, optional
+        Indices of the states and of the outputs that are angles in radians, defined modulo
+        ``2 pi`` (e.g. a pendulum angle): errors on them are wrapped (:func:`kklcasadi.metrics.wrap_angle`)
+        and logs unwrap them (:func:`kklcasadi.logs.read_log`). Default none.
 
     Attributes
     ----------
@@ -89,6 +93,8 @@ class System:
         ``f_jac(x, u) -> (df_dx (nx, nx), df_du (nx, nu))``, exact.
     h_jac : casadi.Function
         ``h_jac(x) -> dh_dx (ny, nx)``, exact.
+    angle_states, angle_outputs : tuple of int
+        The sorted indices given (empty tuples by default).
 
     Examples
     --------
@@ -100,7 +106,8 @@ class System:
     """
 
     def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
-                 x0_box: object, *, description: str = "") -> None:
+                 x0_box: object, *, description: str = "", angle_states: Sequence[int] = (),
+                 angle_outputs: Sequence[int] = ()) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise error("name", "a Python identifier such as 'duffing'", name)
         x = _column_symbol(x, "x")
@@ -121,6 +128,8 @@ class System:
         self.description = description
         self.nx, self.nu, self.ny = x.size1(), u.size1(), y.size1()
         self.x0_box = _box(x0_box, self.nx)
+        self.angle_states = index_tuple(angle_states, "angle_states", self.nx)
+        self.angle_outputs = index_tuple(angle_outputs, "angle_outputs", self.ny)
         self.x_sym, self.u_sym = x, u
         self.xdot_expr, self.y_expr = xdot, y
         self.f = ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"])
@@ -140,6 +149,8 @@ class System:
         10 significant digits, so the fingerprint does not depend on symbol names, on how the
         expressions are written or on the CasADi version, but changes with the dynamics. Model
         cards record it, and a model refuses to load against a plant with another fingerprint.
+        The angle indices enter only when some are given, so a plant without angles keeps the
+        fingerprint it had before they existed.
         """
         rng = np.random.default_rng(20261127)
         lo, hi = self.x0_box[:, 0], self.x0_box[:, 1]
@@ -148,6 +159,8 @@ class System:
         values = np.concatenate([self.f_batch(x, u).ravel(), self.h_batch(x).ravel(), self.x0_box.ravel()])
         text = f"{self.nx},{self.nu},{self.ny};" + ",".join(np.format_float_scientific(v, precision=9)
                                                              for v in values)
+        if self.angle_states or self.angle_outputs:
+            text += f";angles x{list(self.angle_states)} y{list(self.angle_outputs)}"
         return hashlib.sha256(text.encode()).hexdigest()
 
     def f_batch(self, x: object, u: object = None) -> np.ndarray:

@@ -12,7 +12,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "kklcasadi"
 ALLOWED = {
     "validation": set(),
     "rk4": set(),
-    "metrics": set(),
+    "metrics": {"validation"},
+    "logs": {"validation"},
     "windows": {"validation"},
     "systems": {"validation"},
     "signals": {"validation"},
