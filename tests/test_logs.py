@@ -42,7 +42,8 @@ def wrap(a):
 @pytest.mark.parametrize("seed, omega", [(0, 5.0), (1, 20.0), (2, 60.0)])
 def test_linear_resampling_is_within_the_interpolation_bound(tmp_path, seed, omega):
     t_raw = jittered_times(seed, 1500)
-    path = write_csv(tmp_path / "log.csv", ["time", "s", "c"], [t_raw, np.sin(omega * t_raw), 2 * np.cos(omega * t_raw)])
+    columns = [t_raw, np.sin(omega * t_raw), 2 * np.cos(omega * t_raw)]
+    path = write_csv(tmp_path / "log.csv", ["time", "s", "c"], columns)
     log = logs.read_log(path, time_col="time", y_cols=["s", "c"], dt=DT)
     # the grid: from the first logged time, spaced by dt, never past the last logged time
     assert log.t[0] == t_raw[0] and log.t[-1] <= t_raw[-1] < log.t[-1] + DT
@@ -145,7 +146,8 @@ def _edit(kind):
         pattern = r"row 12 \(line 14\), column 'time': expected a time after row 11's"
     elif kind == "missing column":
         header[2] = "beta"
-        pattern = r"columns: expected \['alpha'\] among the file's columns, received columns \['time', 'theta', 'beta'\]"
+        pattern = (r"columns: expected \['alpha'\] among the file's columns, "
+                   r"received columns \['time', 'theta', 'beta'\]")
     elif kind == "nan":
         cols[1][5] = float("nan")
         pattern = r"row 5 \(line 7\), column 'theta': expected a finite number, received nan"
@@ -172,7 +174,8 @@ def _edit(kind):
     elif kind == "outside the box":
         cols[1][17] = 3.0
         options = {"box": {"theta": (-1.0, 1.0)}}
-        pattern = r"row 17 \(line 19\), column 'theta': expected values within the box \[-1, 1\] .* received 3, above hi = 1"
+        pattern = (r"row 17 \(line 19\), column 'theta': expected values within the box \[-1, 1\] .* "
+                   r"received 3, above hi = 1")
     elif kind == "below the box":
         cols[2][2] = -2.5
         options = {"box": {"alpha": (-1.0, 1.0)}}
