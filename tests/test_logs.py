@@ -403,3 +403,16 @@ def test_a_real_qube_log_loads_onto_the_grid(qube):
     lags = [np.sqrt(np.mean((velocity[:-k or None] - log.reference[k:]) ** 2)) for k in range(8)]
     assert int(np.argmin(lags)) == 4
     assert re.search(r"free_swing_1\.csv$", log.source)
+
+
+def test_the_ekf_follows_a_real_qube_log(qube):
+    """examples/qube/check_logs.py's EKF on one run: the velocities after 2 s against the reference."""
+    plant = qube[0]
+    log = logs.read_log(QUBE / "data" / "free_swing_3.csv", time_col="time", y_cols=("theta", "alpha"),
+                        angle_cols=("theta", "alpha"), dt=DT, box={"alpha": plant.x0_box[1]})
+    velocity = logs.savgol_derivative(log.t, log.y)
+    ekf = kc.ekf.EKF(plant, DT, Q=np.diag([0.0, 0.0, 1e-3, 1e-3]), R=1e-6 * np.eye(2))
+    est = ekf.simulate(log.t, log.y, np.zeros((log.t.size, 1)))
+    keep = log.t - log.t[0] >= 2.0
+    assert kc.metrics.rmse(velocity[keep], est.xhat[keep, 2:]) < 0.1          # 0.031 measured
+    assert kc.metrics.rmse(log.y[keep], est.xhat[keep, :2], angles=(0, 1)) < 0.01
