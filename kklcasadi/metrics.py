@@ -1,4 +1,9 @@
-"""Accuracy metrics of docs/protocol.md: SMAPE (the table's number), RMSE, RMSE after a settle time."""
+"""Accuracy metrics of docs/protocol.md: SMAPE (the table's number), RMSE, RMSE after a settle time.
+
+States that are angles (``System.angle_states``) are compared modulo ``2 pi`` when passed as
+``angles=``: their error is :func:`wrap_angle` of the difference. Without ``angles`` every metric
+computes exactly what it always did.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +11,38 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["smape", "rmse", "rmse_after", "Summary", "summarize"]
+from .validation import index_tuple
+
+__all__ = ["smape", "rmse", "rmse_after", "wrap_angle", "Summary", "summarize"]
+
+
+def wrap_angle(a: object) -> np.ndarray | float:
+    """Angles mapped to ``(-pi, pi]``: ``pi - ((pi - a) mod 2 pi)``.
+
+    Parameters
+    ----------
+    a : array_like, any shape
+        Angles in radians.
+
+    Returns
+    -------
+    float or numpy.ndarray, the shape of ``a``
+        ``pi`` stays ``pi`` and ``-pi`` becomes ``pi``.
+    """
+    with np.errstate(invalid="ignore"):                       # NaN and inf give NaN
+        out = np.pi - np.mod(np.pi - np.asarray(a, dtype=float), 2.0 * np.pi)
+    return float(out) if out.ndim == 0 else out
+
+
+def _wrapped(a: np.ndarray, b: np.ndarray, angles: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(a, b, a - b)`` with the components ``angles`` of all three wrapped to (-pi, pi]."""
+    index = list(angles)
+    a, b = a.copy(), b.copy()
+    difference = a - b
+    difference[..., index] = wrap_angle(difference[..., index])
+    a[..., index] = wrap_angle(a[..., index])
+    b[..., index] = wrap_angle(b[..., index])
+    return a, b, difference
 
 
 def _pair(x_true: object, xhat: object) -> tuple[np.ndarray, np.ndarray]:
@@ -20,7 +56,7 @@ def _pair(x_true: object, xhat: object) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def smape(x_true: object, xhat: object, *, per_state: bool = False) -> np.ndarray | float:
+def smape(x_true: object, xhat: object, *, per_state: bool = False, angles: object = ()) -> np.ndarray | float:
     """Symmetric mean absolute percentage error per trial, in percent (docs/protocol.md).
 
     ``100 / (N nx) * sum_k sum_i 2 |x_ik - xhat_ik| / (|x_ik| + |xhat_ik| + 1e-8)``
@@ -31,6 +67,10 @@ def smape(x_true: object, xhat: object, *, per_state: bool = False) -> np.ndarra
     per_state : bool
         Average over time only, giving one SMAPE per state component (their mean is the
         protocol's number): shows which state dominates it.
+    angles : sequence of int
+        State components that are angles: their numerator is the wrapped difference
+        ``|wrap_angle(x - xhat)|`` and their denominator uses ``wrap_angle(x)`` and
+        ``wrap_angle(xhat)``, so the term does not depend on the branch either is written in.
 
     Returns
     -------
@@ -38,27 +78,40 @@ def smape(x_true: object, xhat: object, *, per_state: bool = False) -> np.ndarra
         NaN for a trial whose estimate is not finite.
     """
     a, b = _pair(x_true, xhat)
-    terms = 2.0 * np.abs(a - b) / (np.abs(a) + np.abs(b) + 1e-8)
+    angles = index_tuple(angles, "angles", a.shape[-1])
+    if angles:
+        a, b, difference = _wrapped(a, b, angles)
+    else:
+        difference = a - b
+    terms = 2.0 * np.abs(difference) / (np.abs(a) + np.abs(b) + 1e-8)
     if per_state:
         return 100.0 * terms.mean(axis=-2)
     out = 100.0 * terms.mean(axis=(-2, -1))
     return float(out) if out.ndim == 0 else out
 
 
-def rmse(x_true: object, xhat: object) -> np.ndarray | float:
-    """Root-mean-square error per trial over all samples and states; shapes as :func:`smape`."""
+def rmse(x_true: object, xhat: object, *, angles: object = ()) -> np.ndarray | float:
+    """Root-mean-square error per trial over all samples and states; shapes as :func:`smape`.
+
+    ``angles`` (sequence of int): state components whose error is ``wrap_angle(x - xhat)``.
+    """
     a, b = _pair(x_true, xhat)
-    out = np.sqrt(np.mean((a - b) ** 2, axis=(-2, -1)))
+    angles = index_tuple(angles, "angles", a.shape[-1])
+    difference = _wrapped(a, b, angles)[2] if angles else a - b
+    out = np.sqrt(np.mean(difference ** 2, axis=(-2, -1)))
     return float(out) if out.ndim == 0 else out
 
 
-def rmse_after(t: object, x_true: object, xhat: object, t_settle: float = 5.0) -> np.ndarray | float:
+def rmse_after(t: object, x_true: object, xhat: object, t_settle: float = 5.0, *,
+               angles: object = ()) -> np.ndarray | float:
     """RMSE over the samples with ``t >= t_settle`` (docs/protocol.md reports ``t_settle = 5`` s).
 
     Parameters
     ----------
     t : array_like, shape (N,)
     x_true, xhat : array_like, shape (N, nx) or (M, N, nx)
+    angles : sequence of int
+        State components compared modulo ``2 pi`` (see :func:`rmse`).
     """
     a, b = _pair(x_true, xhat)
     t = np.asarray(t, dtype=float)
@@ -67,7 +120,7 @@ def rmse_after(t: object, x_true: object, xhat: object, t_settle: float = 5.0) -
     keep = t >= t_settle
     if not keep.any():
         raise ValueError(f"t_settle: expected a time at or before the last sample t = {t[-1]}, received {t_settle!r}.")
-    return rmse(a[..., keep, :], b[..., keep, :])
+    return rmse(a[..., keep, :], b[..., keep, :], angles=angles)
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from typing import Any, Collection, Optional
 import numpy as np
 
 __all__ = ["error", "Text", "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
-           "nonnegative_number", "finite_number", "one_of", "finite_array"]
+           "nonnegative_number", "finite_number", "one_of", "finite_array", "index_tuple"]
 
 
 class Text(str):
@@ -125,3 +125,30 @@ def finite_array(value: Any, argument: str, shape: Optional[tuple[int, ...]] = N
     if not np.all(np.isfinite(array)):
         raise error(argument, "finite values", Text("NaN or inf"))
     return array
+
+
+def index_tuple(value: Any, argument: str, n: int) -> tuple[int, ...]:
+    """Return ``value`` (a sequence of distinct indices into ``n`` entries) as a sorted tuple of ints.
+
+    Raises
+    ------
+    TypeError
+        ``value`` is a string or not a sequence, or an entry is not an int (bools are not ints).
+    ValueError
+        An entry is outside ``[0, n)`` or repeated.
+    """
+    expected = f"a sequence of distinct indices in [0, {n})"
+    if isinstance(value, (str, bytes)) or not isinstance(value, (list, tuple, range, np.ndarray)):
+        raise error(argument, expected, Text(type(value).__name__), kind=TypeError)
+    entries = list(np.asarray(value).ravel()) if isinstance(value, np.ndarray) else list(value)
+    for entry in entries:
+        if not is_int(entry):
+            raise error(argument, expected, Text(f"an entry {entry!r} of type {type(entry).__name__}"),
+                        kind=TypeError)
+    out = [int(entry) for entry in entries]
+    bad = [i for i in out if not 0 <= i < n]
+    if bad:
+        raise error(argument, expected, Text(f"{out} (out of range: {bad})"))
+    if len(set(out)) != len(out):
+        raise error(argument, expected, Text(f"{out} (repeated entries)"))
+    return tuple(sorted(out))

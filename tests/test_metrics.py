@@ -51,3 +51,60 @@ def test_summary():
 def test_shape_mismatch_is_an_error():
     with pytest.raises(ValueError, match=r"xhat: expected the same shape as x_true \(5, 2\)"):
         metrics.smape(np.zeros((5, 2)), np.zeros((5, 3)))
+
+
+@pytest.mark.parametrize("a, expected", [
+    (np.pi, np.pi), (-np.pi, np.pi), (3 * np.pi, np.pi), (0.0, 0.0), (2 * np.pi + 0.5, 0.5),
+    (-2 * np.pi - 0.5, -0.5), (7.0, 7.0 - 2 * np.pi), (-7.0, -7.0 + 2 * np.pi),
+])
+def test_wrap_angle_hand_values(a, expected):
+    assert metrics.wrap_angle(a) == pytest.approx(expected, abs=1e-14)
+
+
+def test_wrap_angle_range_and_period():
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-50, 50, (20, 30))
+    w = metrics.wrap_angle(a)
+    assert w.shape == a.shape and np.all(w > -np.pi) and np.all(w <= np.pi)
+    k = np.round((a - w) / (2 * np.pi))
+    np.testing.assert_allclose(a - w, 2 * np.pi * k, atol=1e-12)
+    assert np.isnan(metrics.wrap_angle([np.nan, np.inf])).all()
+
+
+def test_defaults_are_bitwise_the_unwrapped_metrics():
+    rng = np.random.default_rng(4)
+    x, xh = rng.normal(size=(3, 40, 2)) * 5, rng.normal(size=(3, 40, 2)) * 5
+    t = np.arange(40) * 0.5
+    # the formulas of docs/protocol.md written out, compared bit for bit
+    terms = 2.0 * np.abs(x - xh) / (np.abs(x) + np.abs(xh) + 1e-8)
+    np.testing.assert_array_equal(metrics.smape(x, xh), 100.0 * terms.mean(axis=(-2, -1)))
+    np.testing.assert_array_equal(metrics.smape(x, xh, angles=()), metrics.smape(x, xh))
+    np.testing.assert_array_equal(metrics.rmse(x, xh), np.sqrt(np.mean((x - xh) ** 2, axis=(-2, -1))))
+    np.testing.assert_array_equal(metrics.rmse_after(t, x, xh, 5.0, angles=()), metrics.rmse_after(t, x, xh, 5.0))
+
+
+def test_angle_errors_are_wrapped_and_other_states_untouched():
+    rng = np.random.default_rng(5)
+    x = rng.normal(size=(50, 3))
+    err = rng.uniform(-0.5, 0.5, (50, 3))
+    xh = x + err
+    shifted = xh.copy()
+    shifted[:, 1] += 2 * np.pi * rng.integers(-3, 4, 50)          # the same angles on other branches
+    assert metrics.rmse(x, shifted, angles=(1,)) == pytest.approx(np.sqrt(np.mean(err ** 2)), rel=1e-12)
+    assert metrics.rmse(x, shifted) > 1.0
+    assert metrics.smape(x, shifted, angles=[1]) == pytest.approx(metrics.smape(x, xh, angles=[1]), rel=1e-12)
+    per = metrics.smape(x, shifted, angles=(1,), per_state=True)
+    np.testing.assert_array_equal(per[[0, 2]], metrics.smape(x, xh, per_state=True)[[0, 2]])
+    t = np.linspace(0, 10, 50)
+    assert metrics.rmse_after(t, x, shifted, 5.0, angles=(1,)) == pytest.approx(
+        metrics.rmse_after(t, x, xh, 5.0), rel=1e-12)
+    # an error of pi - 0.1 one way is 2 pi - (pi - 0.1) the other: wrapping keeps the shorter
+    a = np.zeros((1, 1))
+    assert metrics.rmse(a, a + np.pi + 0.1, angles=(0,)) == pytest.approx(np.pi - 0.1, rel=1e-12)
+
+
+@pytest.mark.parametrize("angles, kind", [((2,), ValueError), ((0, 0), ValueError), (1, TypeError)])
+def test_bad_angle_indices_name_the_argument(angles, kind):
+    x = np.zeros((4, 2))
+    with pytest.raises(kind, match=r"^angles: expected a sequence of distinct indices in \[0, 2\)"):
+        metrics.rmse(x, x, angles=angles)

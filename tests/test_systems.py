@@ -1,3 +1,7 @@
+import json
+import re
+from pathlib import Path
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -107,3 +111,49 @@ def test_sample_box_is_seeded_and_inside():
     strata = np.floor((a - s.x0_box[:, 0]) / (s.x0_box[:, 1] - s.x0_box[:, 0]) * 64).astype(int)
     for i in range(s.nx):
         assert sorted(strata[:, i]) == list(range(64))
+
+
+def _pendulum(**angles):
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    return kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], ca.vertcat(x[0], x[1]), [[-3, 3], [-2, 2]], **angles)
+
+
+def test_angle_indices_are_stored_sorted_and_enter_the_fingerprint_only_when_given():
+    plain = _pendulum()
+    assert plain.angle_states == () and plain.angle_outputs == ()
+    marked = _pendulum(angle_states=[0], angle_outputs=np.array([0]))
+    assert marked.angle_states == (0,) and marked.angle_outputs == (0,)
+    assert _pendulum(angle_states=(), angle_outputs=()).fingerprint == plain.fingerprint
+    prints = {plain.fingerprint, marked.fingerprint, _pendulum(angle_states=(0,)).fingerprint,
+              _pendulum(angle_outputs=(0,)).fingerprint, _pendulum(angle_states=(0, 1)).fingerprint}
+    assert len(prints) == 5
+    assert _pendulum(angle_states=(1, 0)).angle_states == (0, 1)
+    assert _pendulum(angle_states=(1, 0)).fingerprint == _pendulum(angle_states=(0, 1)).fingerprint
+
+
+@pytest.mark.parametrize("angles, kind, words", [
+    ({"angle_states": (2,)}, ValueError, "angle_states: expected a sequence of distinct indices in [0, 2)"),
+    ({"angle_states": (0, 0)}, ValueError, "repeated"),
+    ({"angle_outputs": (-1,)}, ValueError, "angle_outputs: expected"),
+    ({"angle_states": 0}, TypeError, "received int"),
+    ({"angle_states": "0"}, TypeError, "received str"),
+    ({"angle_outputs": (True,)}, TypeError, "of type bool"),
+    ({"angle_states": (0.0,)}, TypeError, "of type float"),
+])
+def test_bad_angle_indices_are_rejected(angles, kind, words):
+    with pytest.raises(kind, match=re.escape(words)):
+        _pendulum(**angles)
+
+
+def _shipped_fingerprints():
+    root = Path(__file__).resolve().parents[1] / "models"
+    found = {}
+    for card in sorted(root.glob("*/*/card.json")):
+        system = json.loads(card.read_text())["system"]
+        found.setdefault(system["name"], set()).add(system["fingerprint"])
+    return found
+
+
+@pytest.mark.parametrize("name", sorted(_shipped_fingerprints()))
+def test_registry_fingerprints_equal_the_shipped_cards(name):
+    assert {kc.systems.get(name).fingerprint} == _shipped_fingerprints()[name]

@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from ..validation import Text, error, one_of, positive_int
+from ..validation import Text, error, index_tuple, one_of, positive_int
 
 __all__ = ["System", "get", "names", "register", "load_plant"]
 
@@ -83,6 +83,10 @@ class System:
         Train with the HyperKKL paper's latent pair (:meth:`kklcasadi.Design.paper`) instead of
         :meth:`kklcasadi.Design.default`; set for the paper's four plants, whose protocol and
         shipped models use it.
+    angle_states, angle_outputs : sequence of int, optional
+        Indices of the states and of the outputs that are angles in radians, defined modulo
+        ``2 pi`` (e.g. a pendulum angle): errors on them are wrapped (:func:`kklcasadi.metrics.wrap_angle`)
+        and logs unwrap them (:func:`kklcasadi.plant.logs.read_log`). Default none.
 
     Attributes
     ----------
@@ -94,6 +98,8 @@ class System:
         ``f_jac(x, u) -> (df_dx (nx, nx), df_du (nx, nu))``, exact.
     h_jac : casadi.Function
         ``h_jac(x) -> dh_dx (ny, nx)``, exact.
+    angle_states, angle_outputs : tuple of int
+        The sorted indices given (empty tuples by default).
 
     Examples
     --------
@@ -105,7 +111,8 @@ class System:
     """
 
     def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
-                 x0_box: object, *, description: str = "", paper_design: bool = False) -> None:
+                 x0_box: object, *, description: str = "", paper_design: bool = False,
+                 angle_states: Sequence[int] = (), angle_outputs: Sequence[int] = ()) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise error("name", "a Python identifier such as 'duffing'", name)
         x = _column_symbol(x, "x")
@@ -127,6 +134,8 @@ class System:
         self.paper_design = bool(paper_design)
         self.nx, self.nu, self.ny = x.size1(), u.size1(), y.size1()
         self.x0_box = _box(x0_box, self.nx)
+        self.angle_states = index_tuple(angle_states, "angle_states", self.nx)
+        self.angle_outputs = index_tuple(angle_outputs, "angle_outputs", self.ny)
         self.x_sym, self.u_sym = x, u
         self.xdot_expr, self.y_expr = xdot, y
         self.f = ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"])
@@ -146,6 +155,8 @@ class System:
         10 significant digits, so the fingerprint does not depend on symbol names, on how the
         expressions are written or on the CasADi version, but changes with the dynamics. Model
         cards record it, and a model refuses to load against a plant with another fingerprint.
+        The angle indices enter only when some are given, so a plant without angles keeps the
+        fingerprint it had before they existed.
         """
         rng = np.random.default_rng(20261127)
         lo, hi = self.x0_box[:, 0], self.x0_box[:, 1]
@@ -154,6 +165,8 @@ class System:
         values = np.concatenate([self.f_batch(x, u).ravel(), self.h_batch(x).ravel(), self.x0_box.ravel()])
         text = f"{self.nx},{self.nu},{self.ny};" + ",".join(np.format_float_scientific(v, precision=9)
                                                              for v in values)
+        if self.angle_states or self.angle_outputs:
+            text += f";angles x{list(self.angle_states)} y{list(self.angle_outputs)}"
         return hashlib.sha256(text.encode()).hexdigest()
 
     @property
