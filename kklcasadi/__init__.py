@@ -22,7 +22,7 @@ from .systems import System
 
 #: Submodules reachable as attributes of the package, imported when first used.
 _LAZY = ("train", "ekf", "protocol", "report", "codegen", "interop", "modelfile", "casadi_nets",
-         "architecture", "mhe", "nmpc", "certificate", "pipelines", "filterbank", "compiled", "trialcache")
+         "architecture", "mhe", "nmpc", "certificate", "pipelines", "filterbank", "compiled", "trialcache", "pf")
 #: Names of those submodules reachable from the package: ``kc.MHE``, ``kc.NMPC``, ``kc.Certificate``
 #: (a model's certificate: ``obs.certificate()``).
 _LAZY_NAMES = {"MHE": "mhe", "KKLPrimedMHE": "mhe", "NMPC": "nmpc", "Certificate": "certificate",

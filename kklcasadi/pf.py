@@ -31,7 +31,7 @@ import shutil
 import tempfile
 import warnings
 from dataclasses import dataclass
-from typing import Any
+from typing import Callable
 
 import casadi as ca
 import numpy as np
@@ -162,7 +162,7 @@ class ParticleFilter:
         x, u, e, y = ca.SX.sym("x", nx), ca.SX.sym("u", nu), ca.SX.sym("e", nx), ca.SX.sym("y", ny)
         plant = step_function(s, self.dt, "rk", substeps=self.substeps)
 
-        def weighted(x_particle: ca.SX) -> ca.Function:
+        def weighted(x_particle: ca.SX) -> tuple[ca.SX, ca.SX]:
             loglik = -0.5 * ca.sumsqr(y - s.h(x_particle)) / self.measurement_std ** 2
             finite = ca.fabs(loglik) < ca.inf
             for i in range(nx):
@@ -180,9 +180,11 @@ class ParticleFilter:
 
         def moments(Xw: ca.MX, ll: ca.MX) -> list[ca.MX]:
             lw = logw + ll
-            top = ca.mmax(lw)
-            lw = lw - top - ca.log(ca.sum2(ca.exp(lw - top)))
-            w = ca.exp(lw)
+            lw = lw - ca.mmax(lw)
+            scaled = ca.exp(lw)
+            total = ca.sum2(scaled)
+            w = scaled / total
+            lw = lw - ca.log(total)
             mean = ca.mtimes(Xw, w.T)
             var = ca.mtimes((Xw - ca.repmat(mean, 1, n)) ** 2, w.T)
             return [Xw, lw, 1.0 / ca.sumsqr(w), mean, var]
@@ -232,14 +234,14 @@ class ParticleFilter:
         """
         n = weights.size
         cumulative = np.cumsum(weights)
-        cumulative[-1] = 1.0                                    # positions are < 1: no index n
         if self.resample == "systematic":
             positions = (np.arange(n) + rng.random()) / n
         elif self.resample == "stratified":
             positions = (np.arange(n) + rng.random(n)) / n
         else:
             positions = np.sort(rng.random(n))
-        return np.minimum(np.searchsorted(cumulative, positions, side="right"), n - 1)
+        # positions scaled into [0, total): a particle of weight 0 has an empty interval, never picked
+        return np.searchsorted(cumulative, positions * cumulative[-1], side="right")
 
     def simulate(self, t: object, y: object, u: object) -> PFEstimate:
         """Filter one or many measured trajectories.
@@ -270,24 +272,18 @@ class ParticleFilter:
         ess_k, mean_k, var_k = np.empty(m), np.empty((m, nx)), np.empty((m, nx))
         xhat, var, ess = np.empty((m, n_samples, nx)), np.empty((m, n_samples, nx)), np.empty((m, n_samples))
 
-        def bind(f: ca.Function, args: list[np.ndarray]) -> Any:
-            buffer, trigger = f.map(m, "serial").buffer()
-            for i, a in enumerate(args):
-                buffer.set_arg(i, memoryview(a))
-            for i, r in enumerate((X_out, logw_out, ess_k, mean_k, var_k)):
-                buffer.set_res(i, memoryview(r))
-            return buffer, trigger
-
-        keep = [bind(self.update, [X, logw, y_k]), bind(self.step, [X, logw, u_k, noise, y_k])]
+        results = [X_out, logw_out, ess_k, mean_k, var_k]
+        update = _in_place(self.update.map(m, "serial"), [X, logw, y_k], results)
+        step = _in_place(self.step.map(m, "serial"), [X, logw, u_k, noise, y_k], results)
         for k in range(n_samples):
             y_k[:] = y[:, k]
             if k == 0:
-                keep[0][1]()
+                update()
             else:
                 u_k[:] = u[:, k - 1]
                 for i, rng in enumerate(rngs):
                     rng.standard_normal(out=noise[i])
-                keep[1][1]()
+                step()
             X[:], logw[:] = X_out, logw_out
             xhat[:, k], var[:, k], ess[:, k] = mean_k, var_k, ess_k
             for i in np.flatnonzero(ess_k < self.ess_threshold * n):
@@ -325,6 +321,26 @@ class ParticleFilter:
             if bad.size:
                 raise error(arg, "finite values", Text(f"NaN or inf at trial {bad[0, 0]}, sample {bad[0, 1]}"))
         return t, y, u, single
+
+
+def _in_place(f: ca.Function, args: list[np.ndarray], results: list[np.ndarray]) -> Callable[[], None]:
+    """``f`` bound to C-contiguous numpy arrays: each call reads ``args`` and writes ``results`` in place.
+
+    CasADi's column-major (r, c) matrix is the C-order array of shape (c, r), so an (M, n, nx)
+    array is an (nx, n M) input without a copy.
+    """
+    buffer, trigger = f.buffer()
+    for i, a in enumerate(args):
+        buffer.set_arg(i, memoryview(a))
+    for i, r in enumerate(results):
+        buffer.set_res(i, memoryview(r))
+
+    def call() -> None:
+        trigger()
+        if buffer.ret() != 0:
+            raise RuntimeError(f"evaluating {f.name()!r} failed (status {buffer.ret()})")
+
+    return call
 
 
 def _covariance(value: object, nx: int, arg: str) -> np.ndarray:

@@ -47,7 +47,7 @@ def test_pf_on_a_linear_gaussian_plant_is_the_kalman_filter_to_monte_carlo_error
     0.05 here) sets the tolerance: the mean of the 16 runs must sit within 2 sigma / sqrt(16) of
     the KF (RMS over time and states), and so must the variance ratio within 2x its own standard
     error. Measured: bias 0.7 standard errors, variance ratio 1.0002; a PF with 1.5x the process
-    noise misses by 0.23 sigma (19 standard errors) and its variance ratio is 1.66.
+    noise misses by 0.23 sigma (16 of its standard errors) and its variance ratio is 1.66.
     """
     s = kc.systems.get("linear")
     F, G, H = kc.systems.LINEAR_F, kc.systems.LINEAR_G, kc.systems.LINEAR_H
@@ -73,7 +73,8 @@ def test_pf_on_a_linear_gaussian_plant_is_the_kalman_filter_to_monte_carlo_error
 def test_pf_on_duffing_benchmark_trials_is_close_to_the_ekf():
     """Noisy protocol trials (first 4 of the sinusoid cell): SMAPE of PF (1000 particles) vs EKF.
 
-    benchmarks/pf_vs_ekf.py on 100 trials per cell: PF / EKF = 1.0006-1.0028.
+    Measured here: PF / EKF = 1.019 on the mean, 1.006-1.048 per trial (Monte-Carlo noise of 1000
+    particles); benchmarks/pf_vs_ekf.py on 100 trials per cell: 1.0006-1.0028.
     """
     s = kc.systems.get("duffing")
     batch = Protocol(n_trials=4).trials(s, "sinusoid")
@@ -133,6 +134,7 @@ def test_shapes_and_the_protocol_estimator(duffing_record):
     short = pf.simulate(b.t[:1], b.y[:, :1], b.u[:, :1])
     assert short.xhat.shape == (3, 1, 2)
     np.testing.assert_array_equal(pf(b.t, b.y, b.u), est.xhat)
+    assert kc.pf.ParticleFilter is ParticleFilter
     cells = evaluate(pf, s, Protocol(n_trials=2, T=6.0), kinds=["zero"])
     assert cells[0].smape.shape == (2,) and np.all(np.isfinite(cells[0].smape))
 
@@ -156,9 +158,13 @@ def test_resampling_keeps_the_weights_in_expectation(resample):
     s = kc.systems.get("duffing")
     pf = ParticleFilter(s, DT, n_particles=50, resample=resample)
     weights = np.random.default_rng(3).dirichlet(np.full(50, 0.3))
+    weights[[7, 30, 49]] = 0.0                                         # dead particles, the last among them
+    weights /= weights.sum()
     rng = np.random.default_rng(4)
-    counts = np.array([np.bincount(pf.resample_indices(weights, rng), minlength=50) for _ in range(2000)])
-    assert np.all(counts.sum(axis=1) == 50)
+    picks = [pf.resample_indices(weights, rng) for _ in range(2000)]
+    assert all(np.all(np.diff(p) >= 0) for p in picks)
+    counts = np.array([np.bincount(p, minlength=50) for p in picks])
+    assert np.all(counts.sum(axis=1) == 50) and not counts[:, [7, 30, 49]].any()
     np.testing.assert_allclose(counts.mean(axis=0), 50 * weights, atol=0.35)
     if resample == "systematic":                                       # floor or ceil of N w_i copies
         assert np.all(np.abs(counts - 50 * weights) < 1 + 1e-9)
