@@ -102,14 +102,17 @@ class ParticleFilter:
     x0_cov : array_like, shape (nx, nx), optional
         Gaussian prior (give both); default the uniform distribution on ``system.x0_box``.
     jit : bool
-        Compile the per-sample Function with the C compiler (bitwise the CasADi VM, about 10x
-        faster); without a compiler on ``PATH`` it runs in the VM with a warning.
+        Compile the per-sample Function with the C compiler (bitwise the CasADi VM; the whole
+        filter about 5x faster on Duffing); without a compiler on ``PATH`` it runs in the VM with
+        a warning.
 
     Notes
     -----
     A particle whose state or likelihood leaves the finite range (an RK4 step that diverges, e.g.
     a stiff plant with too few ``substeps``) gets weight 0 and is dropped at the next resampling;
-    a trial whose particles all diverge gives NaN from then on.
+    a trial whose particles all diverge gives NaN from then on. One RK4 step per interval is
+    accurate to 1e-7 on Duffing at dt = 0.05 over the X0 box, but not on the stiff corners of
+    FitzHugh-Nagumo's box or on Roessler (use ``substeps=4`` there).
     """
 
     def __init__(self, system: System, dt: float, *, n_particles: int = 1000, process_std: float = 0.1,
@@ -263,6 +266,8 @@ class ParticleFilter:
         t, y, u, single = self._check(t, y, u)
         m, n_samples = y.shape[:2]
         nx, ny, nu, n = self.system.nx, self.system.ny, self.system.nu, self.n_particles
+        if m == 0:
+            return PFEstimate(t, np.empty((0, n_samples, nx)), np.empty((0, n_samples, nx)), np.empty((0, n_samples)))
         rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(m)]
         X = np.stack([self.prior(rng) for rng in rngs])             # (M, n, nx) = (nx, n M) column-major
         logw = np.full((m, n), -np.log(n))

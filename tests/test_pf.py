@@ -133,6 +133,8 @@ def test_shapes_and_the_protocol_estimator(duffing_record):
     assert one.xhat.shape == one.var.shape == (b.t.size, 2) and one.ess.shape == (b.t.size,)
     short = pf.simulate(b.t[:1], b.y[:, :1], b.u[:, :1])
     assert short.xhat.shape == (3, 1, 2)
+    empty = pf.simulate(b.t, b.y[:0], b.u[:0])
+    assert empty.xhat.shape == (0, b.t.size, 2) and empty.ess.shape == (0, b.t.size)
     np.testing.assert_array_equal(pf(b.t, b.y, b.u), est.xhat)
     assert kc.pf.ParticleFilter is ParticleFilter
     cells = evaluate(pf, s, Protocol(n_trials=2, T=6.0), kinds=["zero"])
