@@ -27,6 +27,7 @@ ALLOWED = {
     "interop": {"observer"},
     "data": {"systems", "design", "simulate", "signals", "windows", "validation"},
     "ekf": {"systems", "rk4", "validation"},
+    "pf": {"simulate", "systems", "validation"},
     "protocol": {"signals", "simulate", "systems", "metrics", "validation"},
     "report": {"protocol", "signals", "metrics", "systems"},
     "filterbank": {"architecture", "casadi_nets", "validation"},
