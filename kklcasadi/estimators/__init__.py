@@ -1,8 +1,10 @@
 """Model-based estimators and controllers beside the learned observer: the EKF (:mod:`.ekf`), the
-moving-horizon estimators (:mod:`.mhe`) and output-feedback NMPC (:mod:`.nmpc`)."""
+bootstrap particle filter (:mod:`.pf`, the near-optimal reference), the moving-horizon estimators
+(:mod:`.mhe`) and output-feedback NMPC (:mod:`.nmpc`)."""
 
 from .ekf import EKF
 from .mhe import MHE, KKLPrimedMHE
 from .nmpc import NMPC
+from .pf import ParticleFilter
 
-__all__ = ["EKF", "MHE", "KKLPrimedMHE", "NMPC"]
+__all__ = ["EKF", "ParticleFilter", "MHE", "KKLPrimedMHE", "NMPC"]
