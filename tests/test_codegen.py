@@ -24,13 +24,14 @@ from kklcasadi.observer.codegen import (
     generate_c,
     vector_math_c,
 )
+from kklcasadi.model import variants
 from kklcasadi.observer.kkl import load_observer
 
 GCC = shutil.which("gcc")
 needs_gcc = pytest.mark.skipif(GCC is None, reason="gcc is not installed")
 DT = 0.05
 WARNINGS = ("-Wall", "-Wextra", "-Werror")
-METHODS = ("autonomous", "curriculum", "obs", "dyn", "inject")
+METHODS = variants.names()            # every registered variant, read from the table
 
 
 def compile_c(sources, output, *extra, flags=C_FLAGS):
@@ -141,10 +142,15 @@ def test_default_code_is_within_the_vector_math_tolerance(model_dir_factory, tmp
     """The defaults (axpy kernels, vector exp/tanh) at DEFAULT_FLAGS -Werror."""
     obs = model(model_dir_factory, method)
     files = generate_c(obs, tmp_path, name="fast")
-    code = re.sub(r"/\*.*?\*/", "", files[0].read_text(), flags=re.DOTALL)   # without comments
-    assert re.search(r"\bkklc_vtanh\(", code) and not re.search(r"\btanh\(", code)
-    if method in ("obs", "dyn"):                            # the GRU gates
-        assert re.search(r"\bkklc_vexp\(", code) and not re.search(r"\bexp\(", code)
+    code, libm = (re.sub(r"/\*.*?\*/", "", f.read_text(), flags=re.DOTALL)    # without comments
+                  for f in (files[0], generate_c(obs, tmp_path / "libm", name="fast", math="libm")[0]))
+    assert re.search(r"\btanh\(", libm)                  # the activations
+    if method.startswith(("obs", "dyn")):                  # the GRU gates
+        assert re.search(r"\bexp\(", libm)
+    for function in ("tanh", "exp"):                       # every call of the libm build is vectorised
+        called = re.search(rf"\b{function}\(", libm) is not None
+        assert bool(re.search(rf"\bkklc_v{function}\(", code)) == called
+        assert not re.search(rf"\b{function}\(", code)
     library, _ = shared_library(files, tmp_path, flags=DEFAULT_FLAGS)
     assert_matches_vm(obs, library, "fast", tol=VECTOR_MATH_TOLERANCE)
 
@@ -178,11 +184,12 @@ def test_casadi_loops_remain_available(model_dir_factory, tmp_path, options):
 
 
 @needs_gcc
-def test_native_build_is_still_bitwise(model_dir_factory, tmp_path):
+@pytest.mark.parametrize("method", METHODS)
+def test_native_build_is_still_bitwise(model_dir_factory, tmp_path, method):
     """-march=native (AVX2/AVX-512 where present) with -std=c99: no contraction, same bits."""
     if not native_supported():
         pytest.skip("gcc has no -march=native here")
-    obs = model(model_dir_factory, "dyn")
+    obs = model(model_dir_factory, method)
     files = generate_c(obs, tmp_path, "native", math="libm", flags=NATIVE_FLAGS)
     assert "gcc -std=c99 -O3 -march=native native.c native_main.c" in files[1].read_text()
     library, _ = shared_library(files, tmp_path, flags=NATIVE_FLAGS)
