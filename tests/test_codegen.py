@@ -15,6 +15,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from kklcasadi.model import variants
 from kklcasadi.observer.codegen import (
     C_FLAGS,
     DEFAULT_FLAGS,
@@ -24,7 +25,6 @@ from kklcasadi.observer.codegen import (
     generate_c,
     vector_math_c,
 )
-from kklcasadi.model import variants
 from kklcasadi.observer.kkl import load_observer
 
 GCC = shutil.which("gcc")
