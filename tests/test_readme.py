@@ -1,21 +1,70 @@
 """The README's Python snippet runs as written (twice: a second run must not fail on files the first
-wrote), and its two copy-paste commands are the ones CI and users run."""
+wrote) and prints what an independent recomputation gives; its two copy-paste commands are the ones
+CI and users run; its results tables and the figures its text draws from them are those of
+``results/`` and the shipped cards (docs/claims.md says which test backs which claim)."""
 
+import json
 import re
+import runpy
 from pathlib import Path
+
+import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
+KINDS = ("zero", "constant", "sinusoid", "square")
+SYSTEMS = ("duffing", "vdp", "rossler", "fhn")
 
 
-def test_the_use_it_snippet_runs_and_reruns(tmp_path, monkeypatch, capsys):
+def scores(system):
+    """``{(method, kind, noisy): per-trial SMAPE array}`` of ``results/<system>/<system>_scores.json``."""
+    cells = json.loads((ROOT / "results" / system / f"{system}_scores.json").read_text())
+    return {(c["method"], c["kind"], c["noisy"]): np.array(c["smape"]) for c in cells}
+
+
+def smape_by_the_formula(x, xhat):
+    """docs/protocol.md: 100 / (N nx) sum_k sum_i 2 |x - xhat| / (|x| + |xhat| + 1e-8)."""
+    return 100 * np.mean(2 * np.abs(x - xhat) / (np.abs(x) + np.abs(xhat) + 1e-8))
+
+
+def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tmp_path, monkeypatch, capsys):
     block = re.search(r"## Use it\n\n```python\n(.*?)```", README, re.S).group(1)
     (tmp_path / "models").symlink_to(ROOT / "models")
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}
     exec(compile(block, "README.md", "exec"), namespace)
-    assert 0 <= namespace["est"].in_domain.mean() <= 1 and (tmp_path / "build" / "obs" / "kkl_obs.c").exists()
-    assert "Proposition 1 certificate" in capsys.readouterr().out
+    out = capsys.readouterr().out.splitlines()
+    obs, tr, est = namespace["obs"], namespace["tr"], namespace["est"]
+    assert (tmp_path / "build" / "obs" / "kkl_obs.c").exists()
+    assert any("Proposition 1 certificate" in line for line in out)
+
+    # the estimate, one obs.step call per sample (not simulate's mapaccum), bitwise
+    z, w = np.zeros(obs.nz), obs.memory_init(tr.y[0], tr.u[0])
+    xhat = [np.array(obs.decode(z, w)).ravel()]
+    for k in range(tr.t.size - 1):
+        z, w, x_next = obs.step(z, w, tr.y[k], tr.y[k + 1], tr.u[k + 1])
+        xhat.append(np.array(x_next).ravel())
+    np.testing.assert_array_equal(np.array(xhat), est.xhat)
+    smape = smape_by_the_formula(tr.x, est.xhat)
+    assert float(out[0]) == pytest.approx(smape, rel=1e-12)
+    # a noisy square-wave run of the shipped bank: inside the spread of its 100 protocol trials of
+    # that cell (results/duffing: 7.1-22.0 %; this run gives 17.0 %)
+    cell = scores("duffing")[("bank", "square", True)]
+    assert cell.min() <= smape <= cell.max()
+
+    # the domain monitor, from the card's domain widened by DOMAIN_MARGIN of its ranges
+    from kklcasadi.observer.kkl import DOMAIN_MARGIN
+
+    domain = json.loads((ROOT / "models" / "duffing" / "bank" / "card.json").read_text())["domain"]
+    lo, hi = (np.array(domain["x_" + e] + domain["z_" + e]) for e in ("lo", "hi"))
+    lo, hi = lo - DOMAIN_MARGIN * (hi - lo), hi + DOMAIN_MARGIN * (hi - lo)
+    points = np.concatenate([est.xhat, est.z], axis=1)
+    inside = np.all((points >= lo) & (points <= hi), axis=1)
+    np.testing.assert_array_equal(est.in_domain, inside)
+    np.testing.assert_array_equal(est.in_domain, [bool(obs.domain_check(zk, xk)) for zk, xk in zip(est.z, est.xhat)])
+    assert float(out[1]) == inside.mean()
+
     rerun = "\n".join(line for line in block.splitlines() if "generate_c" in line)
     exec(compile(rerun, "README.md", "exec"), namespace)
 
@@ -26,3 +75,53 @@ def test_the_readme_commands_are_the_ones_ci_runs():
     assert commands[1].endswith("ruff check . && python -m pytest -q")
     ci = (ROOT / ".ci" / "run").read_text()
     assert 'pip install -q -e ".[test]" && ruff check . && python -m pytest -q' in ci
+
+
+def test_the_results_tables_are_what_summarize_prints(capsys):
+    """benchmarks/summarize.py on results/ prints the two tables of "## Results", verbatim."""
+    runpy.run_path(str(ROOT / "benchmarks" / "summarize.py"), run_name="__main__")
+    tables = capsys.readouterr().out.strip().split("\n\n")
+    assert len(tables) == 2
+    for table in tables:
+        assert "\n" + table + "\n" in README, table
+
+
+def test_the_results_text_follows_from_the_scores():
+    """The ranges and counts the text under the results tables quotes, recomputed from results/."""
+    text = re.sub(r"\s+", " ", README)                    # line breaks fall anywhere in a sentence
+    ratio, ekf_wins = {}, {}
+    for system in SYSTEMS:
+        s = scores(system)
+        ratio[system] = [s[("bank", k, True)].mean() / s[("EKF", k, True)].mean() for k in KINDS]
+        ekf_wins[system] = [int(np.sum(s[("EKF", k, True)] < s[("bank", k, True)])) for k in KINDS]
+    assert max(max(r) for r in ratio.values()) < 1.2            # "within 1.2x of the EKF in every cell"
+    spans = {system: f"{min(r):.2f}-{max(r):.2f}x" for system, r in ratio.items()}
+    assert (f"{spans['duffing']} on Duffing, {spans['vdp']} on Van der Pol, {spans['rossler']} on Roessler"
+            in text)
+    fhn_wins = f"{100 - max(ekf_wins['fhn'])}-{100 - min(ekf_wins['fhn'])}"
+    assert f"({spans['fhn']}; it wins {fhn_wins} of the 100 trials per cell)" in text
+    counts = {system: f"{min(w)}-{max(w)}" for system, w in ekf_wins.items()}
+    assert (f"(the EKF is better in {counts['duffing']} of 100 Duffing trials, {counts['vdp']} on Van der Pol, "
+            f"{counts['rossler']} on Roessler)" in text)
+
+
+@pytest.mark.parametrize("method", ["obs_stream", "dyn_stream"])
+def test_the_streaming_tables_are_the_shipped_models_scores_and_cards(method):
+    """Each row of the obs_stream / dyn_stream tables that names a shipped model: its SMAPE against
+    the window method's (results/), and its validation loss and training time (the cards)."""
+    window = method.removesuffix("_stream")
+    rows = re.findall(rf"^\| [^|]*\(`models/(\w+)/{method}`[^|]*\|(.*)\|$", README, re.M)
+    assert len(rows) >= 2
+    for system, cells in rows:
+        s = scores(system)
+        columns = [c.strip() for c in cells.split("|")]
+        for column, noisy in zip(columns, (False, True)):
+            ours, theirs = ([float(v.strip("* ")) for v in side.split("/")] for side in column.split("against"))
+            assert ours == [round(s[(method, k, noisy)].mean(), 1) for k in KINDS[1:]], (system, noisy)
+            assert theirs == [round(s[(window, k, noisy)].mean(), 1) for k in KINDS[1:]], (system, noisy)
+        if len(columns) > 2:                                          # validation loss and training time
+            card = {m: json.loads((ROOT / "models" / system / m / "card.json").read_text())["training"][m]
+                    for m in (method, window)}
+            ours, theirs = (float(v) for v in columns[2].split("against"))
+            assert (ours, theirs) == (round(card[method]["best_val"], 3), round(card[window]["best_val"], 3))
+            assert columns[3].startswith(f"{card[method]['wall_time_s']:.0f} s")
