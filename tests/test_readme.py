@@ -6,6 +6,8 @@ CI and users run; its results tables and the figures its text draws from them ar
 import json
 import re
 import runpy
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -125,3 +127,21 @@ def test_the_streaming_tables_are_the_shipped_models_scores_and_cards(method):
             ours, theirs = (float(v) for v in columns[2].split("against"))
             assert (ours, theirs) == (round(card[method]["best_val"], 3), round(card[window]["best_val"], 3))
             assert columns[3].startswith(f"{card[method]['wall_time_s']:.0f} s")
+
+
+def test_the_levers_table_is_the_ablation_records_and_the_shipped_scores():
+    """Rows of "The levers of the bank observer": the ablation records (benchmarks/accuracy/tables.py
+    --ablation, same order, without its validation column), the shipped autonomous and bank models
+    (results/duffing) and the EKF, to the digits printed."""
+    table = re.search(r"^\| configuration \| nz \|.*?\n\|---.*?\n(.*?)\n\n", README, re.M | re.S).group(1)
+    rows = [[c.strip().strip("*") for c in line.strip("|").split("|")] for line in table.splitlines()]
+    ablation = subprocess.run([sys.executable, "benchmarks/accuracy/tables.py", "--ablation"], cwd=ROOT,
+                              capture_output=True, text=True, check=True).stdout.strip().splitlines()[2:]
+    records = [[c.strip() for c in line.strip("|").split("|")] for line in ablation]
+    assert len(rows) == len(records) + 2
+    s = scores("duffing")
+    for label, row in (("autonomous", rows[0]), ("bank", rows[-2])):
+        expected = [s[(label, k, noisy)].mean() for noisy in (True, False) for k in KINDS]
+        assert [float(v) for v in row[2:]] == [round(e, len(v.split(".")[1])) for e, v in zip(expected, row[2:])]
+    for row, record in zip(rows[1:-2] + rows[-1:], records):
+        assert row[1] == record[1] and row[2:] == record[3:], (row, record)
