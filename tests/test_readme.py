@@ -67,6 +67,17 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     np.testing.assert_array_equal(est.in_domain, [bool(obs.domain_check(zk, xk)) for zk, xk in zip(est.z, est.xhat)])
     assert float(out[1]) == inside.mean()
 
+    # the certificate it prints is the stored record of results/estimators (kklcasadi certificate)
+    record = json.loads((ROOT / "results" / "estimators" / "certificates_zero.json").read_text())[0]
+    assert record.pop("model") == "models/duffing/autonomous"
+    computed = namespace["cert"].to_json()
+    assert sorted(computed) == sorted(record)
+    for key, value in record.items():
+        if isinstance(value, float) or key == "domain":
+            np.testing.assert_allclose(computed[key], value, rtol=1e-9, err_msg=key)
+        else:
+            assert computed[key] == value, key
+
     rerun = "\n".join(line for line in block.splitlines() if "generate_c" in line)
     exec(compile(rerun, "README.md", "exec"), namespace)
 
@@ -169,3 +180,32 @@ def test_the_levers_table_is_the_ablation_records_and_the_shipped_scores():
         assert [float(v) for v in row[2:]] == [round(e, len(v.split(".")[1])) for e, v in zip(expected, row[2:])]
     for row, record in zip(rows[1:-2] + rows[-1:], records):
         assert row[1] == record[1] and row[2:] == record[3:], (row, record)
+
+
+def test_the_certificate_paragraph_is_the_stored_certificates():
+    """Figures of "Proposition 1 as a certificate", from results/estimators/certificates_*.json."""
+    text = re.sub(r"\s+", " ", README)
+    records = {}
+    for kinds in ("zero", "inputs"):
+        for r in json.loads((ROOT / "results" / "estimators" / f"certificates_{kinds}.json").read_text()):
+            records[kinds, r["model"]] = r
+    informative = [key for key, r in records.items() if not r["vacuous"]]
+    assert informative == [("zero", "models/duffing/autonomous")]           # "informative once"
+    duffing = records[informative[0]]
+    assert (f"{duffing['bound']:.2f} against an observed {duffing['observed']:.3f} "
+            f"({round(duffing['bound'] / duffing['observed'], -1):.0f}x loose; the decoder's Lipschitz constant "
+            f"of {duffing['ell_dec']:.0f} multiplies every term)" in text)
+    fhn, rossler = records["zero", "models/fhn/autonomous"], records["zero", "models/rossler/autonomous"]
+    assert f"(FitzHugh-Nagumo {fhn['eps_pde']:.0f}, Roessler {rossler['eps_pde']:.0f})" in text
+    assert f"the decoders are steep ({fhn['ell_dec']:.0f} on FitzHugh-Nagumo)" in text
+    inject = records["inputs", "models/duffing/inject"]
+    assert inject["ell_inj"] > inject["lam"] and inject["bound"] == "inf"            # JSON has no infinity
+    assert f"(Lipschitz {inject['ell_inj']:.1f} > `lam` = {inject['lam']:.0f} on Duffing)" in text
+
+
+@pytest.mark.parametrize("table", ["estimators/table.md", "estimators/nmpc/nmpc_table.md"])
+def test_the_estimator_tables_are_the_stored_ones(table):
+    """kklcasadi compare's results/estimators/table.md and examples/nmpc_output_feedback.py's
+    nmpc_table.md appear in the README row for row."""
+    rows = [line for line in (ROOT / "results" / table).read_text().splitlines() if line.startswith("|")]
+    assert len(rows) > 2 and "\n".join(rows) in README
