@@ -62,7 +62,7 @@ def test_evaluate_prints_the_protocol_scores_and_writes_plots(model_dir_factory,
     a = model_dir_factory("autonomous")
     b = model_dir_factory("inject", base=True)
     out = tmp_path / "eval"
-    assert main(["evaluate", str(a), str(b), "--trials", "2", "--kinds", "zero", "constant", "--noise", "off",
+    assert main(["evaluate", str(a), str(b), "--trials", "3", "--kinds", "zero", "constant", "--noise", "off",
                  "--ekf", "--out", str(out)]) == 0
     table = capsys.readouterr().out
     assert (out / "duffing_smape_clean.png").exists()
@@ -73,7 +73,7 @@ def test_evaluate_prints_the_protocol_scores_and_writes_plots(model_dir_factory,
     for path in (a, b):
         obs = load_observer(path)
         for column, kind in enumerate(("zero", "constant")):
-            trials = Protocol(n_trials=2).noise_free().trials(obs.system, kind)
+            trials = Protocol(n_trials=3).noise_free().trials(obs.system, kind)
             expected = metrics.smape(trials.x, obs.simulate(trials.t, trials.y, trials.u).xhat)
             record = scores[(obs.method, kind)]
             assert record["noisy"] is False

@@ -59,13 +59,25 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     from kklcasadi.observer.kkl import DOMAIN_MARGIN
 
     domain = json.loads((ROOT / "models" / "duffing" / "bank" / "card.json").read_text())["domain"]
-    lo, hi = (np.array(domain["x_" + e] + domain["z_" + e]) for e in ("lo", "hi"))
-    lo, hi = lo - DOMAIN_MARGIN * (hi - lo), hi + DOMAIN_MARGIN * (hi - lo)
+    box_lo, box_hi = (np.array(domain["x_" + e] + domain["z_" + e]) for e in ("lo", "hi"))
+    lo, hi = box_lo - DOMAIN_MARGIN * (box_hi - box_lo), box_hi + DOMAIN_MARGIN * (box_hi - box_lo)
     points = np.concatenate([est.xhat, est.z], axis=1)
     inside = np.all((points >= lo) & (points <= hi), axis=1)
     np.testing.assert_array_equal(est.in_domain, inside)
     np.testing.assert_array_equal(est.in_domain, [bool(obs.domain_check(zk, xk)) for zk, xk in zip(est.z, est.xhat)])
     assert float(out[1]) == inside.mean()
+    # this run stays inside (share 1.0), so also points at the centre with one component past an
+    # edge of the card's box by 0-20 % of its range: inside exactly when that is at most DOMAIN_MARGIN
+    rng = np.random.default_rng(0)
+    n, dim = 400, box_lo.size
+    edge = np.tile((box_lo + box_hi) / 2, (n, 1))
+    component, beyond, upper = rng.integers(dim, size=n), rng.uniform(0, 0.2, n), rng.uniform(size=n) < 0.5
+    span = (box_hi - box_lo)[component]
+    edge[np.arange(n), component] = np.where(upper, box_hi[component] + beyond * span,
+                                             box_lo[component] - beyond * span)
+    expected = beyond <= DOMAIN_MARGIN
+    np.testing.assert_array_equal(obs.in_domain(edge[:, :obs.nx], edge[:, obs.nx:]), expected)
+    np.testing.assert_array_equal([bool(obs.domain_check(p[obs.nx:], p[:obs.nx])) for p in edge], expected)
 
     # the certificate it prints is the stored record of results/estimators (kklcasadi certificate)
     record = json.loads((ROOT / "results" / "estimators" / "certificates_zero.json").read_text())[0]
