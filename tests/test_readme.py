@@ -221,3 +221,28 @@ def test_the_estimator_tables_are_the_stored_ones(table):
     nmpc_table.md appear in the README row for row."""
     rows = [line for line in (ROOT / "results" / table).read_text().splitlines() if line.startswith("|")]
     assert len(rows) > 2 and "\n".join(rows) in README
+
+
+def test_the_per_state_figures_are_the_accuracy_records():
+    """Roessler's per-state SMAPE and Duffing's training range, quoted under the results tables and
+    in the levers, from results/accuracy/probes/."""
+    text = re.sub(r"\s+", " ", README)
+
+    def probe(name):
+        return json.loads((ROOT / "results" / "accuracy" / "probes" / f"{name}.json").read_text())
+
+    bank, plain = probe("rossler_bank"), probe("rossler_g1")
+    ours, ekf = bank["noisy"]["zero"]["ours_per_state"], bank["noisy"]["zero"]["ekf_per_state"]
+    assert f"({ours[0]:.1f}/{ours[1]:.1f} % vs the EKF's {ekf[0]:.1f}/{ekf[1]:.1f} % at u = 0," in text
+    assert f"is level with the EKF ({ours[2]:.1f} vs {ekf[2]:.1f} %:" in text
+
+    def span(record, who, i):
+        values = [record["noisy"][k][f"{who}_per_state"][i] for k in KINDS]
+        return f"{min(values):.0f}-{max(values):.0f} %"
+
+    before = plain["noisy"]["zero"]["ours_per_state"]
+    assert (f"went from {span(plain, 'ours', 2)} to {span(bank, 'ours', 2)} (the EKF's: {span(bank, 'ekf', 2)}), "
+            f"x1/x2 unchanged ({ours[0]:.1f}/{ours[1]:.1f} vs {before[0]:.1f}/{before[1]:.1f} at u = 0;" in text)
+    domain = probe("duffing_bank")["domain"]
+    reach = np.maximum(np.abs(domain["x_p0.1"]), np.abs(domain["x_p99.9"]))
+    assert f"(Duffing: x1 +-{reach[0]:.1f}, x2 +-{reach[1]:.1f}," in text
