@@ -471,6 +471,7 @@ def test_bench_observer_step_checks_every_implementation_and_prints_their_ratios
 def test_bench_observer_step_refuses_an_implementation_that_disagrees(model_dir_factory, monkeypatch):
     """A torch step that is off by 1e-6 is not timed: the timings would compare different functions."""
     pytest.importorskip("torch")
+    from kklcasadi.evaluation.bench import observer_step
     from kklcasadi.evaluation.bench.observer_step import bench_observer_step
     from kklcasadi.train import step as torch_steps
 
@@ -481,6 +482,7 @@ def test_bench_observer_step_refuses_an_implementation_that_disagrees(model_dir_
         return lambda *args: tuple(out + 1e-6 if i == 2 else out for i, out in enumerate(step(*args)))
 
     monkeypatch.setattr(torch_steps, "torch_step", off_by_a_little)
+    monkeypatch.setattr(observer_step.shutil, "which", lambda name: None)     # no gcc: straight to torch
     with pytest.raises(RuntimeError, match=r"torch eager: the step differs from the CasADi VM by 1e-06"):
         bench_observer_step(model_dir_factory("autonomous", window=4), n_calls=1, repeat=1, callgrind=False)
 
