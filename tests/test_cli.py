@@ -26,24 +26,61 @@ def test_console_script_entry_point():
     assert "--casadi" in out and "--c OUT_DIR" in out
 
 
-def test_demo_runs_on_a_model_and_writes_a_plot(model_dir_factory, tmp_path, capsys):
+def test_demo_prints_the_errors_of_its_run_and_writes_a_plot(model_dir_factory, tmp_path, capsys):
+    """The printed SMAPEs are those of the run the demo describes, recomputed here (VM, EKF)."""
+    from kklcasadi import metrics
+    from kklcasadi.estimators.ekf import EKF
+    from kklcasadi.observer.kkl import load_observer
+    from kklcasadi.plant import signals
+    from kklcasadi.plant.simulate import simulate
+
     model = model_dir_factory("obs", window=5)
     png = tmp_path / "demo.png"
-    assert main(["demo", "--model", str(model), "--T", "6", "--out", str(png)]) == 0
+    assert main(["demo", "--model", str(model), "--T", "6", "--seed", "3", "--out", str(png)]) == 0
     out = capsys.readouterr().out
-    assert "SMAPE" in out and "EKF" in out
+    obs = load_observer(model)
+    x0 = obs.system.sample_box(1, 3)[0]
+    tr = simulate(obs.system, x0, signals.make("square", amplitude=[0.8], omega=1.0), T=6.0, dt=obs.dt,
+                  process_std=0.1, measurement_std=0.1, seed=3)
+    kkl = metrics.smape(tr.x, obs.simulate(tr.t, tr.y, tr.u).xhat)
+    ekf = metrics.smape(tr.x, EKF(obs.system, obs.dt).simulate(tr.t, tr.y, tr.u).xhat)
+    assert f"SMAPE    KKL (obs) {kkl:6.2f} %   EKF {ekf:6.2f} %" in out, out
     assert png.stat().st_size > 5000
 
 
-def test_evaluate_prints_a_table_and_writes_plots(model_dir_factory, tmp_path, capsys):
+def test_evaluate_prints_the_protocol_scores_and_writes_plots(model_dir_factory, tmp_path, capsys):
+    """The table and scores.json hold each model's SMAPE on the protocol's trials, recomputed here
+    with the observer in the CasADi VM (evaluate runs compiled code: within 1e-14 of it)."""
+    import json
+
+    import numpy as np
+
+    from kklcasadi import metrics
+    from kklcasadi.evaluation.protocol import Protocol
+    from kklcasadi.observer.kkl import load_observer
+
     a = model_dir_factory("autonomous")
     b = model_dir_factory("inject", base=True)
     out = tmp_path / "eval"
-    assert main(["evaluate", str(a), str(b), "--trials", "2", "--kinds", "zero", "constant", "--noise", "off",
+    assert main(["evaluate", str(a), str(b), "--trials", "3", "--kinds", "zero", "constant", "--noise", "off",
                  "--ekf", "--out", str(out)]) == 0
     table = capsys.readouterr().out
-    assert "| duffing autonomous |" in table and "| duffing inject |" in table and "| duffing EKF |" in table
-    assert (out / "duffing_smape_clean.png").exists() and (out / "duffing_scores.json").exists()
+    assert (out / "duffing_smape_clean.png").exists()
+    scores = {(r["method"], r["kind"]): r for r in json.loads((out / "duffing_scores.json").read_text())}
+    assert sorted(scores) == [(m, k) for m in ("EKF", "autonomous", "inject") for k in ("constant", "zero")]
+    rows = {line.split("|")[1].strip(): line.split("|")[2:4] for line in table.splitlines()
+            if line.startswith("| duffing")}
+    for path in (a, b):
+        obs = load_observer(path)
+        for column, kind in enumerate(("zero", "constant")):
+            trials = Protocol(n_trials=3).noise_free().trials(obs.system, kind)
+            expected = metrics.smape(trials.x, obs.simulate(trials.t, trials.y, trials.u).xhat)
+            record = scores[(obs.method, kind)]
+            assert record["noisy"] is False
+            np.testing.assert_allclose(record["smape"], expected, rtol=1e-10)
+            assert record["smape_mean"] == pytest.approx(np.mean(expected), rel=1e-10)
+            assert float(rows[f"duffing {obs.method}"][column]) == round(record["smape_mean"], 1)
+    assert float(rows["duffing EKF"][0]) == round(scores[("EKF", "zero")]["smape_mean"], 1)
 
 
 def test_evaluate_scores_the_mhe_beside_the_models(model_dir_factory, tmp_path, capsys):
@@ -64,9 +101,25 @@ def test_train_inject_via_the_cli(model_dir_factory, tmp_path):
 
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
-def test_bench_simulation_runs(capsys):
+def test_bench_simulation_prints_both_paths_and_their_ratio(capsys):
+    """Per integrator: the mapped batch and the loop (ms and trajectories/s of the same time) and
+    a speed-up that is the ratio of the two printed times (no speed is asserted)."""
+    import re
+
     assert main(["bench", "simulation", "--trials", "2"]) == 0
-    assert "speed-up" in capsys.readouterr().out
+    lines = capsys.readouterr().out.splitlines()
+    timed = re.compile(r"duffing (\w+): (mapped batch|Python loop over) (?:of )?2 +([\d.]+) ms +([\d.]+) /s")
+    rows = [timed.fullmatch(line.strip()) for line in lines if line.startswith("duffing")]
+    assert [(r.group(1), r.group(2)) for r in rows] == [(m, p) for m in ("cvodes", "rk")
+                                                         for p in ("mapped batch", "Python loop over")]
+    ratios = [float(m) for m in re.findall(r"mapped / loop speed-up: ([\d.]+)x", "\n".join(lines))]
+    assert len(ratios) == 2
+    for i, ratio in enumerate(ratios):
+        mapped_ms, loop_ms = float(rows[2 * i].group(3)), float(rows[2 * i + 1].group(3))
+        # printed to 0.005 ms, 0.05 trajectories/s and 0.005 (the ratio)
+        for row, ms in ((rows[2 * i], mapped_ms), (rows[2 * i + 1], loop_ms)):
+            assert float(row.group(4)) == pytest.approx(2e3 / ms, abs=0.051 + 2e3 / ms * 0.006 / ms)
+        assert ratio == pytest.approx(loop_ms / mapped_ms, abs=0.006 + ratio * (0.005 / loop_ms + 0.005 / mapped_ms))
 
 
 def test_export_refuses_to_overwrite_and_needs_something_to_do(model_dir_factory, tmp_path, capsys):
@@ -76,10 +129,14 @@ def test_export_refuses_to_overwrite_and_needs_something_to_do(model_dir_factory
     assert f.name_in() == ["z", "w", "y", "y_next", "u_next"]
     assert any(p.suffix == ".c" for p in (tmp_path / "c").iterdir())
     capsys.readouterr()
+    step = (tmp_path / "step.casadi").read_bytes()
     assert main(["export", str(model), "--casadi", str(tmp_path / "step.casadi")]) == 2
-    assert "--casadi" in capsys.readouterr().err and "pass --overwrite" in capsys.readouterr().err + "pass --overwrite"
+    assert capsys.readouterr().err == (f"error: --casadi {tmp_path / 'step.casadi'}: the file exists; "
+                                       "pass --overwrite to replace it\n")
     assert main(["export", str(model), "--c", str(tmp_path / "c")]) == 2
-    assert "--c " in capsys.readouterr().err
+    assert capsys.readouterr().err == (f"error: --c {tmp_path / 'c'}: the directory is not empty; "
+                                       "pass --overwrite to replace its files\n")
+    assert (tmp_path / "step.casadi").read_bytes() == step            # refused: nothing was written
     assert main(["export", str(model), "--c", str(tmp_path / "c"), "--overwrite"]) == 0
     assert main(["export", str(model)]) == 2
     assert "nothing to export" in capsys.readouterr().err

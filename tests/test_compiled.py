@@ -170,6 +170,8 @@ def test_bench_protocol_times_each_method_against_the_vm(model_dir_factory, tmp_
     assert result.warm_s < result.cold_s
     table = result.table()
     assert "| autonomous |" in table and "full protocol, warm caches" in table
+    rows = [line for line in table.splitlines() if line.startswith("|")]
+    assert len(rows) == 4 and all(line.count("|") == 9 for line in rows)     # 8 columns, every row
     assert [p.name for p in shipped_models("duffing")][:3] == ["autonomous", "inject", "obs"]
     with pytest.raises(ValueError, match="vm_trials: expected an int in"):
         bench_protocol("duffing", n_trials=2, vm_trials=3)

@@ -1,21 +1,95 @@
 """The README's Python snippet runs as written (twice: a second run must not fail on files the first
-wrote), and its two copy-paste commands are the ones CI and users run."""
+wrote) and prints what an independent recomputation gives; its two copy-paste commands are the ones
+CI and users run; its results tables and the figures its text draws from them are those of
+``results/`` and the shipped cards (docs/claims.md says which test backs which claim)."""
 
+import json
 import re
+import runpy
+import subprocess
+import sys
 from pathlib import Path
+
+import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
+KINDS = ("zero", "constant", "sinusoid", "square")
+SYSTEMS = ("duffing", "vdp", "rossler", "fhn")
 
 
-def test_the_use_it_snippet_runs_and_reruns(tmp_path, monkeypatch, capsys):
+def scores(system):
+    """``{(method, kind, noisy): per-trial SMAPE array}`` of ``results/<system>/<system>_scores.json``."""
+    cells = json.loads((ROOT / "results" / system / f"{system}_scores.json").read_text())
+    return {(c["method"], c["kind"], c["noisy"]): np.array(c["smape"]) for c in cells}
+
+
+def smape_by_the_formula(x, xhat):
+    """docs/protocol.md: 100 / (N nx) sum_k sum_i 2 |x - xhat| / (|x| + |xhat| + 1e-8)."""
+    return 100 * np.mean(2 * np.abs(x - xhat) / (np.abs(x) + np.abs(xhat) + 1e-8))
+
+
+def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tmp_path, monkeypatch, capsys):
     block = re.search(r"## Use it\n\n```python\n(.*?)```", README, re.S).group(1)
     (tmp_path / "models").symlink_to(ROOT / "models")
     monkeypatch.chdir(tmp_path)
     namespace: dict = {}
     exec(compile(block, "README.md", "exec"), namespace)
-    assert 0 <= namespace["est"].in_domain.mean() <= 1 and (tmp_path / "build" / "obs" / "kkl_obs.c").exists()
-    assert "Proposition 1 certificate" in capsys.readouterr().out
+    out = capsys.readouterr().out.splitlines()
+    obs, tr, est = namespace["obs"], namespace["tr"], namespace["est"]
+    assert (tmp_path / "build" / "obs" / "kkl_obs.c").exists()
+    assert any("Proposition 1 certificate" in line for line in out)
+
+    # the estimate, one obs.step call per sample (not simulate's mapaccum), bitwise
+    z, w = np.zeros(obs.nz), obs.memory_init(tr.y[0], tr.u[0])
+    xhat = [np.array(obs.decode(z, w)).ravel()]
+    for k in range(tr.t.size - 1):
+        z, w, x_next = obs.step(z, w, tr.y[k], tr.y[k + 1], tr.u[k + 1])
+        xhat.append(np.array(x_next).ravel())
+    np.testing.assert_array_equal(np.array(xhat), est.xhat)
+    smape = smape_by_the_formula(tr.x, est.xhat)
+    assert float(out[0]) == pytest.approx(smape, rel=1e-12)
+    # a noisy square-wave run of the shipped bank: inside the spread of its 100 protocol trials of
+    # that cell (results/duffing: 7.1-22.0 %; this run gives 17.0 %)
+    cell = scores("duffing")[("bank", "square", True)]
+    assert cell.min() <= smape <= cell.max()
+
+    # the domain monitor, from the card's domain widened by DOMAIN_MARGIN of its ranges
+    from kklcasadi.observer.kkl import DOMAIN_MARGIN
+
+    domain = json.loads((ROOT / "models" / "duffing" / "bank" / "card.json").read_text())["domain"]
+    box_lo, box_hi = (np.array(domain["x_" + e] + domain["z_" + e]) for e in ("lo", "hi"))
+    lo, hi = box_lo - DOMAIN_MARGIN * (box_hi - box_lo), box_hi + DOMAIN_MARGIN * (box_hi - box_lo)
+    points = np.concatenate([est.xhat, est.z], axis=1)
+    inside = np.all((points >= lo) & (points <= hi), axis=1)
+    np.testing.assert_array_equal(est.in_domain, inside)
+    np.testing.assert_array_equal(est.in_domain, [bool(obs.domain_check(zk, xk)) for zk, xk in zip(est.z, est.xhat)])
+    assert float(out[1]) == inside.mean()
+    # this run stays inside (share 1.0), so also points at the centre with one component past an
+    # edge of the card's box by 0-20 % of its range: inside exactly when that is at most DOMAIN_MARGIN
+    rng = np.random.default_rng(0)
+    n, dim = 400, box_lo.size
+    edge = np.tile((box_lo + box_hi) / 2, (n, 1))
+    component, beyond, upper = rng.integers(dim, size=n), rng.uniform(0, 0.2, n), rng.uniform(size=n) < 0.5
+    span = (box_hi - box_lo)[component]
+    edge[np.arange(n), component] = np.where(upper, box_hi[component] + beyond * span,
+                                             box_lo[component] - beyond * span)
+    expected = beyond <= DOMAIN_MARGIN
+    np.testing.assert_array_equal(obs.in_domain(edge[:, :obs.nx], edge[:, obs.nx:]), expected)
+    np.testing.assert_array_equal([bool(obs.domain_check(p[obs.nx:], p[:obs.nx])) for p in edge], expected)
+
+    # the certificate it prints is the stored record of results/estimators (kklcasadi certificate)
+    record = json.loads((ROOT / "results" / "estimators" / "certificates_zero.json").read_text())[0]
+    assert record.pop("model") == "models/duffing/autonomous"
+    computed = namespace["cert"].to_json()
+    assert sorted(computed) == sorted(record)
+    for key, value in record.items():
+        if isinstance(value, float) or key == "domain":
+            np.testing.assert_allclose(computed[key], value, rtol=1e-9, err_msg=key)
+        else:
+            assert computed[key] == value, key
+
     rerun = "\n".join(line for line in block.splitlines() if "generate_c" in line)
     exec(compile(rerun, "README.md", "exec"), namespace)
 
@@ -26,3 +100,149 @@ def test_the_readme_commands_are_the_ones_ci_runs():
     assert commands[1].endswith("ruff check . && python -m pytest -q")
     ci = (ROOT / ".ci" / "run").read_text()
     assert 'pip install -q -e ".[test]" && ruff check . && python -m pytest -q' in ci
+
+
+def test_the_results_tables_are_what_summarize_prints(capsys):
+    """benchmarks/summarize.py on results/ prints the two tables of "## Results", verbatim."""
+    runpy.run_path(str(ROOT / "benchmarks" / "summarize.py"), run_name="__main__")
+    tables = capsys.readouterr().out.strip().split("\n\n")
+    assert len(tables) == 2
+    for table in tables:
+        assert "\n" + table + "\n" in README, table
+
+
+def test_the_results_text_follows_from_the_scores():
+    """The ranges and counts the text under the results tables quotes, recomputed from results/."""
+    text = re.sub(r"\s+", " ", README)                    # line breaks fall anywhere in a sentence
+    ratio, ekf_wins = {}, {}
+    for system in SYSTEMS:
+        s = scores(system)
+        ratio[system] = [s[("bank", k, True)].mean() / s[("EKF", k, True)].mean() for k in KINDS]
+        ekf_wins[system] = [int(np.sum(s[("EKF", k, True)] < s[("bank", k, True)])) for k in KINDS]
+    assert max(max(r) for r in ratio.values()) < 1.2            # "within 1.2x of the EKF in every cell"
+    spans = {system: f"{min(r):.2f}-{max(r):.2f}x" for system, r in ratio.items()}
+    assert (f"{spans['duffing']} on Duffing, {spans['vdp']} on Van der Pol, {spans['rossler']} on Roessler"
+            in text)
+    fhn_wins = f"{100 - max(ekf_wins['fhn'])}-{100 - min(ekf_wins['fhn'])}"
+    assert f"({spans['fhn']}; it wins {fhn_wins} of the 100 trials per cell)" in text
+    others = []                    # the best of the other shipped observers over the EKF, noisy cells
+    for system in SYSTEMS:
+        s = scores(system)
+        for kind in KINDS:
+            best = min(v.mean() for (m, k, noisy), v in s.items() if k == kind and noisy and m not in ("bank", "EKF"))
+            others.append(best / s[("EKF", kind, True)].mean())
+    assert f"stay {min(others):.1f}-{max(others):.1f}x the EKF under noise" in text
+    paper = {"duffing": (5.6, 21.1, 22.7, 21.3), "vdp": (5.0, 26.0, 15.5, 17.9),     # docs/protocol.md
+             "rossler": (52.7, 55.4, 53.5, 54.0), "fhn": (9.8, 42.1, 30.9, 32.5)}
+    beaten = {system: [p / scores(system)[("bank", k, False)].mean() for p, k in zip(paper[system], KINDS)]
+              for system in SYSTEMS}
+    assert min(min(b) for b in beaten.values()) > 1                   # "every cell of the paper's table"
+    assert (f"{min(beaten['duffing']):.1f}-{max(beaten['duffing']):.1f}x on Duffing, "
+            f"{min(beaten['vdp']):.0f}-{max(beaten['vdp']):.0f}x on Van der Pol, "
+            f"{min(beaten['rossler']):.0f}-{max(beaten['rossler']):.0f}x on Roessler and "
+            f"{min(beaten['fhn']):.0f}-{max(beaten['fhn']):.0f}x on FitzHugh-Nagumo" in text)
+    counts = {system: f"{min(w)}-{max(w)}" for system, w in ekf_wins.items()}
+    assert (f"(the EKF is better in {counts['duffing']} of 100 Duffing trials, {counts['vdp']} on Van der Pol, "
+            f"{counts['rossler']} on Roessler)" in text)
+
+
+@pytest.mark.parametrize("method", ["obs_stream", "dyn_stream"])
+def test_the_streaming_tables_are_the_shipped_models_scores_and_cards(method):
+    """The obs_stream / dyn_stream tables: for a row that names a shipped model, its SMAPE (results/),
+    validation loss and training time (its card); for every row, the window method's SMAPE."""
+    window = method.removesuffix("_stream")
+    names = {"Duffing": "duffing", "Van der Pol": "vdp", "Roessler": "rossler", "FitzHugh-Nagumo": "fhn"}
+    table = re.search(rf"^\| {method} against the window {window} \|.*?\n\|---.*?\n(.*?)\n\n", README,
+                      re.M | re.S).group(1)
+    shipped = 0
+    for line in table.splitlines():
+        label, *columns = [c.strip() for c in line.strip("|").split("|")]
+        system = names[label.split(" (")[0]]
+        model = re.search(rf"`models/{system}/{method}`", label) is not None
+        assert model or "not shipped, one-off run" in label
+        shipped += model
+        s = scores(system)
+        for column, noisy in zip(columns, (False, True)):
+            ours, theirs = ([float(v.strip("* ")) for v in side.split("/")] for side in column.split("against"))
+            assert theirs == [round(s[(window, k, noisy)].mean(), 1) for k in KINDS[1:]], (system, noisy)
+            if model:
+                assert ours == [round(s[(method, k, noisy)].mean(), 1) for k in KINDS[1:]], (system, noisy)
+        if model and len(columns) > 2:                                # validation loss and training time
+            card = {m: json.loads((ROOT / "models" / system / m / "card.json").read_text())["training"][m]
+                    for m in (method, window)}
+            ours, theirs = (float(v) for v in columns[2].split("against"))
+            assert (ours, theirs) == (round(card[method]["best_val"], 3), round(card[window]["best_val"], 3))
+            assert columns[3].startswith(f"{card[method]['wall_time_s']:.0f} s")
+    assert shipped == {"obs_stream": 3, "dyn_stream": 2}[method]
+
+
+def test_the_levers_table_is_the_ablation_records_and_the_shipped_scores():
+    """Rows of "The levers of the bank observer": the ablation records (benchmarks/accuracy/tables.py
+    --ablation, same order, without its validation column), the shipped autonomous and bank models
+    (results/duffing) and the EKF, to the digits printed."""
+    table = re.search(r"^\| configuration \| nz \|.*?\n\|---.*?\n(.*?)\n\n", README, re.M | re.S).group(1)
+    rows = [[c.strip().strip("*") for c in line.strip("|").split("|")] for line in table.splitlines()]
+    ablation = subprocess.run([sys.executable, "benchmarks/accuracy/tables.py", "--ablation"], cwd=ROOT,
+                              capture_output=True, text=True, check=True).stdout.strip().splitlines()[2:]
+    records = [[c.strip() for c in line.strip("|").split("|")] for line in ablation]
+    assert len(rows) == len(records) + 2
+    s = scores("duffing")
+    for label, row in (("autonomous", rows[0]), ("bank", rows[-2])):
+        expected = [s[(label, k, noisy)].mean() for noisy in (True, False) for k in KINDS]
+        assert [float(v) for v in row[2:]] == [round(e, len(v.split(".")[1])) for e, v in zip(expected, row[2:])]
+    for row, record in zip(rows[1:-2] + rows[-1:], records):
+        assert row[1] == record[1] and row[2:] == record[3:], (row, record)
+
+
+def test_the_certificate_paragraph_is_the_stored_certificates():
+    """Figures of "Proposition 1 as a certificate", from results/estimators/certificates_*.json."""
+    text = re.sub(r"\s+", " ", README)
+    records = {}
+    for kinds in ("zero", "inputs"):
+        for r in json.loads((ROOT / "results" / "estimators" / f"certificates_{kinds}.json").read_text()):
+            records[kinds, r["model"]] = r
+    informative = [key for key, r in records.items() if not r["vacuous"]]
+    assert informative == [("zero", "models/duffing/autonomous")]           # "informative once"
+    duffing = records[informative[0]]
+    assert (f"{duffing['bound']:.2f} against an observed {duffing['observed']:.3f} "
+            f"({round(duffing['bound'] / duffing['observed'], -1):.0f}x loose; the decoder's Lipschitz constant "
+            f"of {duffing['ell_dec']:.0f} multiplies every term)" in text)
+    fhn, rossler = records["zero", "models/fhn/autonomous"], records["zero", "models/rossler/autonomous"]
+    assert f"(FitzHugh-Nagumo {fhn['eps_pde']:.0f}, Roessler {rossler['eps_pde']:.0f})" in text
+    assert f"the decoders are steep ({fhn['ell_dec']:.0f} on FitzHugh-Nagumo)" in text
+    inject = records["inputs", "models/duffing/inject"]
+    assert inject["ell_inj"] > inject["lam"] and inject["bound"] == "inf"            # JSON has no infinity
+    assert f"(Lipschitz {inject['ell_inj']:.1f} > `lam` = {inject['lam']:.0f} on Duffing)" in text
+
+
+@pytest.mark.parametrize("table", ["estimators/table.md", "estimators/nmpc/nmpc_table.md"])
+def test_the_estimator_tables_are_the_stored_ones(table):
+    """kklcasadi compare's results/estimators/table.md and examples/nmpc_output_feedback.py's
+    nmpc_table.md appear in the README row for row."""
+    rows = [line for line in (ROOT / "results" / table).read_text().splitlines() if line.startswith("|")]
+    assert len(rows) > 2 and "\n".join(rows) in README
+
+
+def test_the_per_state_figures_are_the_accuracy_records():
+    """Roessler's per-state SMAPE and Duffing's training range, quoted under the results tables and
+    in the levers, from results/accuracy/probes/."""
+    text = re.sub(r"\s+", " ", README)
+
+    def probe(name):
+        return json.loads((ROOT / "results" / "accuracy" / "probes" / f"{name}.json").read_text())
+
+    bank, plain = probe("rossler_bank"), probe("rossler_g1")
+    ours, ekf = bank["noisy"]["zero"]["ours_per_state"], bank["noisy"]["zero"]["ekf_per_state"]
+    assert f"({ours[0]:.1f}/{ours[1]:.1f} % vs the EKF's {ekf[0]:.1f}/{ekf[1]:.1f} % at u = 0," in text
+    assert f"is level with the EKF ({ours[2]:.1f} vs {ekf[2]:.1f} %:" in text
+
+    def span(record, who, i):
+        values = [record["noisy"][k][f"{who}_per_state"][i] for k in KINDS]
+        return f"{min(values):.0f}-{max(values):.0f} %"
+
+    before = plain["noisy"]["zero"]["ours_per_state"]
+    assert (f"went from {span(plain, 'ours', 2)} to {span(bank, 'ours', 2)} (the EKF's: {span(bank, 'ekf', 2)}), "
+            f"x1/x2 unchanged ({ours[0]:.1f}/{ours[1]:.1f} vs {before[0]:.1f}/{before[1]:.1f} at u = 0;" in text)
+    domain = probe("duffing_bank")["domain"]
+    reach = np.maximum(np.abs(domain["x_p0.1"]), np.abs(domain["x_p99.9"]))
+    assert f"(Duffing: x1 +-{reach[0]:.1f}, x2 +-{reach[1]:.1f}," in text

@@ -140,7 +140,8 @@ def test_bench_phase2_epoch_times_both_validation_settings(phase1_dir, capsys):
     assert [t.label for t in timings] == ["obs epoch, validation on all held-out", "obs epoch, validation on 8192"]
     assert all(t.seconds > 0 and t.items == 5 * 256 for t in timings)     # 1436 training samples: 5 batches
     out = capsys.readouterr().out
-    assert "obs: 160 samples held out, 1280 trained per epoch, 40 epochs by default" in out and "ratio" in out
+    assert "obs: 160 samples held out, 1280 trained per epoch, 40 epochs by default" in out
+    assert f"ratio {timings[0].seconds / timings[1].seconds:.2f}x per epoch" in out      # of the returned times
 
 
 @pytest.mark.parametrize("methods", [("autonomous",), (), "obs"])
@@ -198,15 +199,20 @@ def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     np.testing.assert_array_equal(model.A, -np.diag(np.arange(1.0, 6.0)))
     np.testing.assert_array_equal(model.B, np.ones((5, 1)))
     assert card["training"]["data"]["labelled"] == 12 * 40
-    enc = card["training"]["encoder"]
-    assert enc["epochs"] == 3 and enc["best_val"] <= enc["final_train"] * 10
     assert (phase1_dir / "history.png").stat().st_size > 1000
-    # losses fall
     import json
 
     hist = json.loads((phase1_dir / "history.json").read_text())
-    assert hist["encoder"]["val"][-1] < hist["encoder"]["val"][0]
-    assert hist["decoder"]["val"][-1] < hist["decoder"]["val"][0]
+    for stage in ("encoder", "decoder"):          # the card's record is the history's
+        record, history = card["training"][stage], hist[stage]
+        assert record["epochs"] == len(history["val"]) == 3 and record["final_train"] == history["train"][-1]
+        assert record["best_val"] == min(history["val"]) == history["val"][record["best_epoch"]]
+        assert record["val_all"] == record["best_val"]             # no validation subset: all held-out
+    # losses fall: measured on this seeded run (3 epochs) encoder validation 1.336 -> 0.602 (2.2x),
+    # its PDE term 12.0 -> 4.9 (2.5x), decoder validation 0.655 -> 0.432 (1.5x)
+    assert hist["encoder"]["val"][-1] < hist["encoder"]["val"][0] / 1.8
+    assert hist["encoder"]["pde"][-1] < hist["encoder"]["pde"][0] / 2.0
+    assert hist["decoder"]["val"][-1] < hist["decoder"]["val"][0] / 1.3
     # the card records the plant's fingerprint and where the maps were trained
     import kklcasadi as kc
 

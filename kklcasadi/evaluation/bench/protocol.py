@@ -35,10 +35,8 @@ from ..compiled import CompiledEstimator, Compiler, ekf_estimator, observer_esti
 from ..protocol import Protocol, evaluate
 from ..trialcache import TrialCache
 
-__all__ = ["MethodTiming", "ProtocolBench", "bench_protocol", "PAPER_SECONDS_PER_TRIAL", "TARGET_SECONDS"]
+__all__ = ["MethodTiming", "ProtocolBench", "bench_protocol", "TARGET_SECONDS"]
 
-#: The paper's code on this machine type, seconds per trial (issue 9).
-PAPER_SECONDS_PER_TRIAL = {"autonomous": 0.10, "obs": 0.36}
 #: Issue 9's target for the full protocol of one system (warm trial cache, 2 cores).
 TARGET_SECONDS = 300.0
 
@@ -148,16 +146,13 @@ class ProtocolBench:
     def table(self) -> str:
         """A markdown table of the per-method timings and the totals."""
         lines = ["| method | compile (s) | run (s) | trials | per trial, compiled: wall / cpu (ms) | "
-                 "per trial, VM: wall / cpu (ms) | VM / compiled: wall / cpu | max diff vs VM | "
-                 "paper's code (ms/trial) |",
-                 "|---|---|---|---|---|---|---|---|---|"]
+                 "per trial, VM: wall / cpu (ms) | VM / compiled: wall / cpu | max diff vs VM |",
+                 "|---|---|---|---|---|---|---|---|"]
         for m in self.methods:
-            paper = PAPER_SECONDS_PER_TRIAL.get(m.label)
             lines.append(f"| {m.label} | {m.compile_s:.1f} | {m.run_s:.1f} | {m.trials} | "
                          f"{m.per_trial_s * 1e3:.1f} / {m.cpu_per_trial_s * 1e3:.1f} | "
                          f"{m.vm_per_trial_s * 1e3:.1f} / {m.vm_cpu_per_trial_s * 1e3:.1f} | "
-                         f"{m.speedup:.2f}x / {m.cpu_speedup:.2f}x | {m.max_diff:.1e} | "
-                         f"{'' if paper is None else f'{paper * 1e3:.0f}'} |")
+                         f"{m.speedup:.2f}x / {m.cpu_speedup:.2f}x | {m.max_diff:.1e} |")
         verdict = "meets" if self.warm_s < TARGET_SECONDS else "misses"
         lines += ["",
                   f"{self.system}: {len(self.methods)} methods x {self.cells} cells x {self.n_trials} trials",
