@@ -36,6 +36,7 @@ from .config import (
     ObsStreamConfig,
     Phase1Config,
     Phase2DataConfig,
+    config_field,
     default_config,
     with_epochs,
 )
@@ -173,7 +174,8 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
                 "device": device}
     card = make_card(plant, trained.design, method, trained.spec, dt=dt, window=trained.window,
                      training=training, measurement_std=trained.measurement_std, domain=trained.domain,
-                     base=None if base_model is None else _base_reference(out, base_model))
+                     base=None if base_model is None else _base_reference(out, base_model),
+                     coverage=trained.coverage, process_std=config_field(config, "process_std"))
     path = save_model(out, trained.arrays, card, overwrite=overwrite or resume)
     if trained.histories:
         (out / "history.json").write_text(json.dumps(_jsonable(trained.histories)))
