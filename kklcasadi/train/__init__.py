@@ -38,12 +38,15 @@ from .config import (
     Phase2DataConfig,
     config_field,
     default_config,
+    has_field,
     with_epochs,
+    with_field,
 )
 from .result import Trained
 
-__all__ = ["train_observer", "default_config", "with_epochs", "LoopConfig", "Phase1Config", "Phase2DataConfig",
-           "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig", "DynStreamConfig", "Trained", "METHODS"]
+__all__ = ["train_observer", "default_config", "with_epochs", "config_field", "has_field", "with_field", "LoopConfig",
+           "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig",
+           "DynStreamConfig", "Trained", "METHODS"]
 
 #: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.model.variants`).
 METHODS = variants.trainable()
@@ -166,6 +169,8 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         design = Design(base_model.A, base_model.B)
     design = design or (Design.paper(plant) if plant.paper_design else Design.default(plant))
     workdir = out / ".train"
+    if progress:
+        print(f"training {method} for {plant.name!r} at dt = {dt:g} s into {out}", flush=True)
     torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
     t0 = time.perf_counter()
     trained: Trained = variant.load_trainer()(plant, design, base_model, config, dt=dt, seed=seed, device=device,

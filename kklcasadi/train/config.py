@@ -11,7 +11,7 @@ from ..validation import Text, error, finite_number, one_of, positive_int, posit
 
 __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig",
            "ObsStreamConfig", "DynStreamConfig", "with_epochs",
-           "default_config", "config_field", "with_field", "PAPER_WIDTH", "NEW_PLANT_PHASE1"]
+           "default_config", "config_field", "has_field", "with_field", "PAPER_WIDTH", "NEW_PLANT_PHASE1"]
 
 #: Hidden width of the encoder/decoder per system in the paper (150 or 350 units). The default here
 #: is 150 for every system: a 350-unit model costs 5x more per observer step (in CasADi's VM, 25 ms
@@ -300,6 +300,11 @@ def _field_path(config: Any, name: str) -> Optional[tuple[str, ...]]:
     nested = [f.name for f in fields(config) if is_dataclass(getattr(config, f.name))
               and name in {g.name for g in fields(getattr(config, f.name))}]
     return (nested[0], name) if len(nested) == 1 else None
+
+
+def has_field(config: Any, name: str) -> bool:
+    """Whether a training configuration has the field ``name`` (as :func:`config_field` finds it)."""
+    return _field_path(config, name) is not None
 
 
 def config_field(config: Any, name: str) -> Any:
