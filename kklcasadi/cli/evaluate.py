@@ -74,6 +74,14 @@ def run(args: argparse.Namespace) -> int:
               if getattr(args, name) is not None}
     protocol = Protocol(n_trials=args.trials, seed=args.seed, regime=args.regime,
                         **({} if args.dt is None else {"dt": args.dt}), **levels)
+    plant, own_plant = None, plant_of(args)
+    observers = [load(model, own_plant, "MODELS") for model in args.models]
+    check_dt(protocol.dt, protocol.T, {model: obs.dt for model, obs in zip(args.models, observers)})
+    for model, obs in zip(args.models, observers):
+        if plant is not None and obs.system.fingerprint != plant.fingerprint:
+            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
+                               f"after models for {plant.name!r}")
+        plant = obs.system
     noise = NOISE[args.noise]
     kinds = tuple(args.kinds)
     root = Path(args.cache_dir) if args.cache_dir else cache_root()
@@ -83,14 +91,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"trials: {'simulated, not cached' if trials.directory is None else trials.directory}; observers: "
           f"{'CasADi VM' if compiler is None else 'compiled (' + str(compiler.directory) + ')'}", file=sys.stderr)
     scores = []
-    plant, own_plant = None, plant_of(args)
-    observers = [load(model, own_plant, "MODELS") for model in args.models]
-    check_dt(protocol.dt, protocol.T, {model: obs.dt for model, obs in zip(args.models, observers)})
-    for model, obs in zip(args.models, observers):
-        if plant is not None and obs.system.fingerprint != plant.fingerprint:
-            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
-                               f"after models for {plant.name!r}")
-        plant = obs.system
     _simulate_cells(plant, protocol, noise, kinds, trials)
     for i, (model, obs) in enumerate(zip(args.models, observers)):
         label = args.labels[i] if args.labels else Path(model).resolve().name
