@@ -89,7 +89,7 @@ def _reversed(system: System) -> System:
 LABEL_KINDS = ("auto", "exact", "frozen", "forward", "cold")
 #: Bins per state of the per-state coverage (:func:`label_coverage`).
 COVERAGE_BINS = 10
-#: Below these the labels do not cover the box (:func:`check_coverage`): the share of a state's bins
+#: Below these the labels do not cover the box (:attr:`LabelReport.poor`): the share of a state's bins
 #: holding a label, and the share of occupied grid cells.
 MIN_STATE_COVERAGE, MIN_GRID_COVERAGE = 0.5, 0.1
 
