@@ -3,7 +3,7 @@
 The plant is written in CasADi (``make_plant``), a Phase-1 observer and its model-based ``inject``
 variant are trained for it, and the observer is checked noise-free under zero, constant,
 sinusoidal and square inputs that keep the state in its box (RMSE after 5 s), and under a resonant
-square wave that drives it out, where the domain monitor says so. The same from the command line::
+square wave that drives it out of its box. The same from the command line::
 
     kklcasadi train --plant examples/own_plant.py:make_plant --method inject --out models/pendulum/inject
     kklcasadi demo --plant examples/own_plant.py:make_plant --model models/pendulum/inject --input square

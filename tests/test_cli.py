@@ -178,3 +178,114 @@ def test_torch_free_install_says_how_to_get_training(tmp_path):
     code = ("import kklcasadi as kc\ntry:\n    kc.train\nexcept ModuleNotFoundError as exc:\n    print(exc)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env).stdout
     assert "pip install 'kklcasadi[train]'" in out
+
+
+# --- any sample time, noise levels, plants that escape, the default method ------------------------------------
+
+ESCAPING = '''import casadi as ca
+import kklcasadi as kc
+
+
+def make_plant():
+    """x' = x^2 + u: runs away from most of its box under a square input."""
+    x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
+    return kc.System("runaway", x, u, x ** 2 + u, x, [[-1.0, 1.0]])
+'''
+
+
+@pytest.fixture
+def escaping(tmp_path, model_dir_factory):
+    path = tmp_path / "runaway.py"
+    path.write_text(ESCAPING)
+    plant = __import__("kklcasadi").systems.load_plant(f"{path}:make_plant")
+    return f"{path}:make_plant", model_dir_factory("autonomous", system=plant)
+
+
+def test_demo_of_a_plant_that_escapes_is_one_line(escaping, tmp_path):
+    spec, model = escaping
+    result = _cli("demo", "--plant", spec, "--model", str(model), "--T", "20", "--out", str(tmp_path / "d.png"))
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1, result.stderr
+    assert lines[0].startswith("error: --input square: the plant 'runaway' escaped at t = ")
+    assert "--amplitude" in lines[0]
+    assert not (tmp_path / "d.png").exists()
+
+
+def test_evaluate_counts_the_trials_that_escape_per_cell(escaping, tmp_path, capsys):
+    spec, model = escaping
+    out = tmp_path / "eval"
+    assert main(["evaluate", str(model), "--plant", spec, "--trials", "4", "--kinds", "zero", "square", "--noise",
+                 "off", "--vm", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    records = {r["kind"]: r for r in __import__("json").loads((out / "runaway_scores.json").read_text())}
+    square = records["square"]
+    assert square["escaped"] > 0 and len(square["smape"]) + square["escaped"] == 4
+    assert f"runaway square clean: {square['escaped']} of 4 trials escaped" in captured.err
+    assert f"({square['escaped']} of 4 escaped)" in captured.out
+    assert records["zero"]["escaped"] == 4 - len(records["zero"]["smape"])
+
+
+def test_evaluate_and_compare_run_at_the_models_dt_and_name_the_flag_otherwise(model_dir_factory, tmp_path, capsys):
+    model = model_dir_factory("autonomous", dt=0.1)
+    assert main(["evaluate", str(model), "--trials", "1", "--kinds", "zero", "--noise", "off", "--vm", "--ekf",
+                 "--dt", "0.1", "--measurement-std", "0.05", "--process-std", "0.02"]) == 0
+    assert "| duffing EKF |" in capsys.readouterr().out
+    result = _cli("evaluate", str(model), "--trials", "1", "--kinds", "zero", "--vm")
+    assert result.returncode == 2 and result.stderr.strip() == (
+        f"error: --dt: the protocol runs at dt = 0.05 s, the model {model} at 0.1 s; pass --dt 0.1 (or a model "
+        "trained at 0.05 s)")
+    root = model.parent.parent / "roots"
+    (root / "duffing").mkdir(parents=True)
+    (root / "duffing" / "autonomous").symlink_to(model)
+    result = _cli("compare", "--systems", "duffing", "--method", "autonomous", "--models-root", str(root),
+                  "--trials", "1", "--out", str(tmp_path / "c"))
+    assert result.returncode == 2 and "error: --dt: the protocol runs at dt = 0.05 s" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    result = _cli("evaluate", str(model), "--dt", "0.03")
+    assert result.returncode == 2 and "--dt 0.03: expected a sample time that divides the horizon T = 50 s" in \
+        result.stderr
+
+
+def test_demo_tells_shipped_models_from_yours(model_dir_factory, tmp_path, capsys):
+    assert main(["demo", "--T", "2", "--out", str(tmp_path / "a.png")]) == 0
+    assert "model    shipped model models/duffing/bank" in capsys.readouterr().out
+    model = model_dir_factory("autonomous")
+    assert main(["demo", "--model", str(model), "--T", "2", "--measurement-std", "0.02", "--out",
+                 str(tmp_path / "b.png")]) == 0
+    out = capsys.readouterr().out
+    assert f"model    your model {model}" in out and "measurement 0.02 (the EKF's too)" in out
+    assert main(["demo", "--model", str(model), "--dt", "0.004"]) == 2
+    assert "--dt 0.004: the model" in capsys.readouterr().err
+
+
+def test_train_without_a_method_trains_bank_at_the_given_dt_and_noise(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("torch")
+    from dataclasses import replace
+
+    import kklcasadi.train as training
+
+    def tiny(system, method, **kw):          # the default bank recipe on a budget a test can afford
+        config = training.default_config.__wrapped__(system, method, **kw)
+        return replace(config, rollouts=replace(config.rollouts, n_traj=12, T=2.0))
+
+    tiny.__wrapped__ = training.default_config
+    monkeypatch.setattr(training, "default_config", tiny)
+    out = tmp_path / "bank"
+    assert main(["train", "--system", "duffing", "--dt", "0.02", "--measurement-std", "0.03", "--process-std", "0.2",
+                 "--epochs", "1", "--out", str(out)]) == 0
+    assert "method: bank (the observer for a new plant" in capsys.readouterr().out
+    model = load_model(out)
+    assert model.method == "bank" and model.dt == 0.02
+    assert model.spec.measurement_std == 0.03 and model.spec.process_std == 0.2
+    assert model.card["training"]["rollouts"]["measurement_std"] == 0.03
+
+
+def test_noise_flags_name_the_methods_that_take_them(model_dir_factory, tmp_path):
+    base = model_dir_factory("autonomous")
+    result = _cli("train", "--system", "duffing", "--method", "inject", "--base", str(base), "--out",
+                  str(tmp_path / "i"), "--measurement-std", "0.1")
+    assert result.returncode == 2, result.stderr
+    assert "--measurement-std: only --method autonomous or bank takes it, received --method inject" in result.stderr
+    result = _cli("train", "--system", "duffing", "--method", "autonomous", "--out", str(tmp_path / "a"),
+                  "--process-std", "0.1")
+    assert result.returncode == 2 and "--process-std: only --method bank takes it" in result.stderr

@@ -336,6 +336,25 @@ def test_main_example_rejects_bad_lines(model_dir_factory, tmp_path):
 
 
 @needs_gcc
+def test_main_example_checks_the_time_step_against_the_models_dt(model_dir_factory, tmp_path):
+    """0.1 s data into a 0.05 s observer stops at the first step with its line number and status 1; times that are
+    k * dt to rounding (np.arange, printed with repr) run."""
+    files = generate_c(load_observer(model_dir_factory("autonomous")), tmp_path, name="obs")
+    binary = tmp_path / "obs"
+    compile_c([files[0], files[2]], binary)
+    for text, line in [("t,y,u\n0,0.1,0\n0.1,0.2,0\n0.2,0.3,0\n", 3), ("0,0.1,0\n0.05,0.2,0\n0.1001,0.3,0\n", 3),
+                       ("0,0.1,0\n# a comment\n0.05,0.2,0\n0.05,0.3,0\n", 4)]:
+        result = subprocess.run([str(binary)], input=text, capture_output=True, text=True)
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 1 and len(lines) == 1, result.stderr
+        assert lines[0].startswith(f"line {line} (sample ") and "expected the model's dt = 0.05" in lines[0]
+    t = np.arange(400) * 0.05 + 1000.0
+    text = "\n".join(f"{float(v)!r},0.1,0" for v in t)
+    result = subprocess.run([str(binary)], input=text, capture_output=True, text=True)
+    assert result.returncode == 0 and len(result.stdout.splitlines()) == 400, result.stderr
+
+
+@needs_gcc
 def test_duffing_sized_decoder_keeps_its_weights_as_constant_arrays(model_dir_factory, tmp_path):
     """2-5-150-150-150-5/2 maps (the paper's Duffing size): MX layers with DM constants keep the
     C small (docs/design.md: SX scalarisation makes compile time explode). Measured: 648 C

@@ -104,5 +104,6 @@ def test_label_modes():
     # frozen labels start at x0 (held exit state), exact ones have run on to the equilibrium
     assert np.abs(frozen.x.reshape(4, 20, 2)[:, 0] - s.sample_box(4, 0)).max() < 0.5
     assert np.ptp(exact.x, axis=0).max() < 1e-3
-    with pytest.raises(ValueError, match=r"labels: expected one of \['exact', 'frozen', 'cold'\], received 'warm'"):
+    with pytest.raises(ValueError, match=r"labels: expected one of \['auto', 'exact', 'frozen', 'forward', 'cold'\], "
+                                         r"received 'warm'"):
         data.phase1(s, d, n_traj=2, labels="warm")

@@ -46,7 +46,8 @@ def test_cli_trains_and_runs_a_plant_from_a_file(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_first_observer_of_a_new_plant_is_accurate_and_fast(own_plant, tmp_path):
     """Default budget (kklcasadi.train.config.NEW_PLANT_PHASE1): noise-free RMSE after 5 s < 0.02 under
-    zero, constant, sinusoid and square inputs inside the box; the resonant case leaves the domain."""
+    zero, constant, sinusoid and square inputs inside the box (frozen labels: 0.014, 0.009, 0.015, 0.017
+    measured); the resonant case leaves the box and is estimated worse (0.094)."""
     import time
 
     t0 = time.perf_counter()
@@ -55,5 +56,7 @@ def test_a_first_observer_of_a_new_plant_is_accurate_and_fast(own_plant, tmp_pat
     for label, r in results.items():
         if r["state_in_box"]:
             assert r["rmse_after_5s"] < 0.02, (label, r)
-    assert results["resonant square 0.6, 1 rad/s"]["estimates_in_domain"] < 0.9
+    inside = [r["rmse_after_5s"] for r in results.values() if r["state_in_box"]]
+    assert results["resonant square 0.6, 1 rad/s"]["rmse_after_5s"] > max(inside)
+    assert load_model(tmp_path / "autonomous").spec.coverage.kind == "frozen"         # its backward runs escape
     assert np.isfinite([r["rmse_after_5s"] for r in results.values()]).all()

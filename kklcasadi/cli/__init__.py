@@ -1,8 +1,9 @@
 """The ``kklcasadi`` command line (also ``python -m kklcasadi``): one module per command, the shared
 flags and the one error path in :mod:`.flags`.
 
-``demo``, ``train``, ``evaluate``, ``export``, ``bench``, ``compare`` (the observer beside the EKF
-and MHE), ``certificate`` (Proposition 1 of the paper for a model). Every error is one line
+``demo``, ``train``, ``evaluate``, ``estimate`` (an observer over a recorded log), ``export``,
+``bench``, ``compare`` (the observer beside the EKF and MHE), ``certificate`` (Proposition 1 of the
+paper for a model). Every error is one line
 ``error: ...`` on stderr with exit status 2 (``KKLCASADI_DEBUG=1`` shows the traceback instead).
 """
 
@@ -13,12 +14,12 @@ import os
 import sys
 from typing import Sequence
 
-from . import bench, certificate, compare, demo, evaluate, export, train
+from . import bench, certificate, compare, demo, estimate, evaluate, export, train
 from .flags import USER_ERRORS, Parser
 
 __all__ = ["main", "build_parser"]
 
-COMMANDS = (demo, train, evaluate, export, bench, compare, certificate)
+COMMANDS = (demo, train, evaluate, estimate, export, bench, compare, certificate)
 
 
 def build_parser() -> argparse.ArgumentParser:

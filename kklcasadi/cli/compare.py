@@ -9,7 +9,19 @@ import sys
 from pathlib import Path
 
 from ..plant import systems
-from .flags import NOISE, CommandError, add_kinds, add_noise, load, positive_float, positive_int, shipped
+from .flags import (
+    NOISE,
+    CommandError,
+    add_dt,
+    add_kinds,
+    add_noise,
+    add_noise_levels,
+    check_dt,
+    load,
+    positive_float,
+    positive_int,
+    shipped,
+)
 
 #: The systems compared by default, in the order of the README's table.
 SYSTEMS = ("duffing", "vdp", "fhn", "rossler")
@@ -27,6 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--T", type=positive_float, default=50.0, help="horizon in seconds (docs/protocol.md: 50)")
     c.add_argument("--seed", type=int, default=2026)
     add_noise(c)
+    add_noise_levels(c, "the noisy column's and the EKF's and MHE's (default docs/protocol.md's 0.1)")
+    add_dt(c, "the protocol's sample time (default 0.05, docs/protocol.md); the models' must equal it")
     add_kinds(c)
     c.add_argument("--horizons", nargs="+", type=positive_int, default=[10, 30], help="MHE horizons N")
     c.add_argument("--primed-horizon", type=positive_int, default=5, help="KKL-primed MHE horizon")
@@ -56,6 +70,7 @@ def _saved(out: Path) -> list:
 
 def run(args: argparse.Namespace) -> int:
     """Run :func:`kklcasadi.evaluation.compare.compare_system` per ``--systems`` entry; write JSON and the table."""
+    from ..estimators.ekf import EKF
     from ..evaluation.compare import compare_system
     from ..evaluation.protocol import Protocol
     from ..evaluation.report import markdown_table
@@ -63,13 +78,20 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     kinds = tuple(args.kinds)
+    levels = {name: getattr(args, name) for name in ("process_std", "measurement_std")
+              if getattr(args, name) is not None}
     for name in args.systems:
-        observer = load(_model_dir(args.models_root, name, args.method), None)
-        protocol = Protocol(n_trials=args.trials, T=args.T, seed=args.seed)
+        model = _model_dir(args.models_root, name, args.method)
+        observer = load(model, None)
+        protocol = Protocol(n_trials=args.trials, T=args.T, seed=args.seed,
+                            **({} if args.dt is None else {"dt": args.dt}), **levels)
+        check_dt(protocol.dt, protocol.T, {str(model): observer.dt})
+        ekf = EKF.for_noise(observer.system, protocol.dt, process_std=protocol.process_std,
+                            measurement_std=protocol.measurement_std) if levels else None
         log = (lambda line: print(line, file=sys.stderr, flush=True)) if not args.quiet else None
         comparison = compare_system(observer, protocol, horizons=tuple(args.horizons),
                                     primed_horizon=args.primed_horizon, calibration_trials=args.calibration_trials,
-                                    kinds=kinds, noise=NOISE[args.noise], log=log)
+                                    kinds=kinds, noise=NOISE[args.noise], log=log, ekf=ekf)
         (out / f"{name}.json").write_text(json.dumps(comparison.to_json(), indent=1))
         every = [s for saved in _saved(out) for s in saved.scores]
         (out / "table.md").write_text(markdown_table(every, kinds, timing=True) + "\n")

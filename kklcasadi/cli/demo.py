@@ -1,5 +1,6 @@
-"""``kklcasadi demo``: estimate one noisy run with a shipped observer and the EKF, print the errors,
-the domain monitor and the step time, and write a PNG."""
+"""``kklcasadi demo``: estimate one noisy run with a shipped observer (or yours) and the EKF, print the
+errors, the domain monitor and the step time, and write a PNG. A run whose state escapes is one
+line ``error: ...`` (exit status 2)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,22 @@ import numpy as np
 
 from ..plant import signals as sig
 from ..plant import systems
-from .flags import CommandError, add_plant, load, nonnegative_float, plant_of, positive_float, shipped
+from .flags import (
+    CommandError,
+    add_dt,
+    add_noise_levels,
+    add_plant,
+    load,
+    model_label,
+    nonnegative_float,
+    plant_of,
+    positive_float,
+    quiet_casadi,
+    shipped,
+)
+
+#: Noise std of the run where the card records no levels (docs/protocol.md).
+PROTOCOL_STD = 0.1
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -24,10 +40,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--input", default="square", choices=sig.BENCHMARK_KINDS)
     d.add_argument("--amplitude", type=nonnegative_float, default=0.8)
     d.add_argument("--omega", type=positive_float, default=1.0, help="rad/s")
-    d.add_argument("--process-std", type=nonnegative_float, default=0.1,
-                   help="process noise std on xdot (docs/protocol.md: 0.1)")
-    d.add_argument("--measurement-std", type=nonnegative_float, default=0.1,
-                   help="measurement noise std on y (docs/protocol.md: 0.1)")
+    add_noise_levels(d, "the run's and the EKF's (default: the card's levels where it records both, else "
+                        "docs/protocol.md's 0.1)")
+    add_dt(d, "the sample time; the model's (a model runs only at its own)")
     d.add_argument("--T", type=positive_float, default=50.0, help="horizon, seconds")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--out", default="demo.png")
@@ -39,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from .. import metrics
     from ..estimators.ekf import EKF
     from ..evaluation.report import trajectory_plot
-    from ..plant.simulate import simulate
+    from ..plant.simulate import simulate_batch
 
     if args.model is None and args.plant is not None:
         raise CommandError("--plant: give the model trained for it with --model DIR")
@@ -56,25 +71,46 @@ def run(args: argparse.Namespace) -> int:
     else:
         u = sig.make(args.input, amplitude=np.full(plant.nu, args.amplitude), omega=args.omega)
 
+    if args.dt is not None and abs(args.dt - obs.dt) > 1e-12 * obs.dt:
+        raise CommandError(f"--dt {args.dt:g}: the model {model} runs at dt = {obs.dt:g} s; drop --dt or pass a model "
+                           f"trained at {args.dt:g} s")
+    spec = obs.model.spec
+    recorded = spec.process_std is not None
+    process_std = args.process_std if args.process_std is not None else (
+        spec.process_std if recorded else PROTOCOL_STD)
+    measurement_std = args.measurement_std if args.measurement_std is not None else (
+        spec.measurement_std if recorded else PROTOCOL_STD)
     x0 = plant.sample_box(1, args.seed)[0]
-    tr = simulate(plant, x0, u, T=args.T, dt=obs.dt, process_std=args.process_std,
-                  measurement_std=args.measurement_std, seed=args.seed)
+    with quiet_casadi():
+        batch = simulate_batch(plant, x0[None], u, T=args.T, dt=obs.dt, process_std=process_std,
+                               measurement_std=measurement_std, seed=[args.seed], n_threads=1)
+    if not batch.ok[0]:
+        k = int(np.argmax(np.isnan(batch.x[0]).any(axis=1)))
+        raise CommandError(f"--input {args.input}: the plant {plant.name!r} escaped at t = {batch.t[k]:.3g} s of the "
+                           f"run from x0 = {np.round(x0, 3).tolist()} (its state left |x| < 1e6 or the integrator "
+                           "failed); lower --amplitude, change --omega or --seed, shorten --T, or pick another --input")
+    tr = batch[0]
     t0 = time.perf_counter()
     est = obs.simulate(tr.t, tr.y, tr.u)
     t_obs = time.perf_counter() - t0
-    ekf = EKF(plant, obs.dt).simulate(tr.t, tr.y, tr.u).xhat
-    print(f"model    {model}  ({obs.method}, system {plant.name}, nz {obs.nz}, window {obs.window})")
+    ekf = EKF.for_noise(plant, obs.dt, process_std=process_std, measurement_std=measurement_std).simulate(
+        tr.t, tr.y, tr.u).xhat
+    print(f"model    {model_label(model)}  ({obs.method}, system {plant.name}, nz {obs.nz}, window {obs.window}, "
+          f"dt {obs.dt:g} s)")
     print(f"input    {args.input} (amplitude {args.amplitude}, omega {args.omega} rad/s), noise std process "
-          f"{args.process_std}, measurement {args.measurement_std}, x0 {np.round(x0, 3).tolist()}, T {args.T} s")
+          f"{process_std:g}, measurement {measurement_std:g} (the EKF's too), x0 {np.round(x0, 3).tolist()}, "
+          f"T {args.T} s")
     print(f"SMAPE    KKL ({obs.method}) {metrics.smape(tr.x, est.xhat):6.2f} %   EKF {metrics.smape(tr.x, ekf):6.2f} %")
     settle = min(5.0, round(tr.t[-1] / 2, 2))
     print(f"RMSE t>{settle:g} KKL ({obs.method}) {metrics.rmse_after(tr.t, tr.x, est.xhat, settle):6.3f}     "
           f"EKF {metrics.rmse_after(tr.t, tr.x, ekf, settle):6.3f}")
     if est.in_domain is not None:
-        print(f"domain   {int(est.in_domain.sum())} of {len(tr.t)} estimates in the domain the maps were trained on")
+        print(f"domain   {int(est.in_domain.sum())} of {len(tr.t)} estimates in the domain the maps were trained on"
+              + ("; most lie outside it: the KKL errors above are not to be trusted" if est.in_domain.mean() < 0.5
+                 else ""))
     print(f"time     {t_obs * 1e3:.1f} ms for {len(tr.t)} samples ({t_obs / len(tr.t) * 1e6:.1f} us/step, CasADi VM)")
     out = Path(args.out)
     trajectory_plot(tr.t, tr.x, {f"KKL {obs.method}": est.xhat, "EKF": ekf}, out, u=tr.u,
-                    title=f"{plant.name}: {args.input} input, noise std {args.measurement_std}")
+                    title=f"{plant.name}: {args.input} input, noise std {measurement_std:g}")
     print(f"plot     {out}")
     return 0

@@ -15,7 +15,19 @@ from typing import Any
 
 from ..plant import signals as sig
 from ..plant.systems import System
-from .flags import NOISE, CommandError, add_kinds, add_noise, add_plant, load, plant_of, positive_int
+from .flags import (
+    NOISE,
+    CommandError,
+    add_dt,
+    add_kinds,
+    add_noise,
+    add_noise_levels,
+    add_plant,
+    check_dt,
+    load,
+    plant_of,
+    positive_int,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -27,6 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_noise(e)
     add_kinds(e)
     e.add_argument("--regime", default="id", choices=sig.REGIMES)
+    add_dt(e, "the protocol's sample time (default 0.05, docs/protocol.md); the models' must equal it")
+    add_noise_levels(e, "the noisy column's and the EKF's and MHE's (default docs/protocol.md's 0.1)")
     e.add_argument("--ekf", action="store_true", help="add the EKF baseline")
     e.add_argument("--mhe", nargs="+", type=positive_int, metavar="N",
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
@@ -56,7 +70,18 @@ def run(args: argparse.Namespace) -> int:
     if args.labels is not None and len(args.labels) != len(args.models):
         raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
                            f"received {len(args.labels)}")
-    protocol = Protocol(n_trials=args.trials, seed=args.seed, regime=args.regime)
+    levels = {name: getattr(args, name) for name in ("process_std", "measurement_std")
+              if getattr(args, name) is not None}
+    protocol = Protocol(n_trials=args.trials, seed=args.seed, regime=args.regime,
+                        **({} if args.dt is None else {"dt": args.dt}), **levels)
+    plant, own_plant = None, plant_of(args)
+    observers = [load(model, own_plant, "MODELS") for model in args.models]
+    check_dt(protocol.dt, protocol.T, {model: obs.dt for model, obs in zip(args.models, observers)})
+    for model, obs in zip(args.models, observers):
+        if plant is not None and obs.system.fingerprint != plant.fingerprint:
+            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
+                               f"after models for {plant.name!r}")
+        plant = obs.system
     noise = NOISE[args.noise]
     kinds = tuple(args.kinds)
     root = Path(args.cache_dir) if args.cache_dir else cache_root()
@@ -66,13 +91,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"trials: {'simulated, not cached' if trials.directory is None else trials.directory}; observers: "
           f"{'CasADi VM' if compiler is None else 'compiled (' + str(compiler.directory) + ')'}", file=sys.stderr)
     scores = []
-    plant, own_plant = None, plant_of(args)
-    for i, model in enumerate(args.models):
-        obs = load(model, own_plant, "MODELS")
-        if plant is not None and obs.system.fingerprint != plant.fingerprint:
-            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
-                               f"after models for {plant.name!r}")
-        plant = obs.system
+    _simulate_cells(plant, protocol, noise, kinds, trials)
+    for i, (model, obs) in enumerate(zip(args.models, observers)):
         label = args.labels[i] if args.labels else Path(model).resolve().name
         estimator = observer_estimator(obs, compiler=compiler, n_threads=args.threads)
         t0 = time.perf_counter()
@@ -82,7 +102,9 @@ def run(args: argparse.Namespace) -> int:
     for horizon in args.mhe or ():
         scores.append(_mhe_scores(horizon, plant, protocol, noise, kinds, trials))
     if args.ekf:
-        estimator = ekf_estimator(EKF(plant, protocol.dt), compiler=compiler, n_threads=args.threads)
+        ekf = (EKF.for_noise(plant, protocol.dt, process_std=protocol.process_std,
+                             measurement_std=protocol.measurement_std) if levels else EKF(plant, protocol.dt))
+        estimator = ekf_estimator(ekf, compiler=compiler, n_threads=args.threads)
         t0 = time.perf_counter()
         scores.append(score("EKF", estimator, plant, protocol, noise=noise, kinds=kinds, trials=trials,
                             progress=True))
@@ -98,6 +120,23 @@ def run(args: argparse.Namespace) -> int:
         (out / f"{plant.name}_table.md").write_text(markdown_table(scores, kinds) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
     return 0
+
+
+def _simulate_cells(plant: System, protocol: Any, noise: tuple, kinds: tuple, trials: Any) -> None:
+    """Simulate (or read) every cell's trials, with what CasADi prints about a plant that escapes hidden,
+    and say in one line per cell how many trials escaped (they are counted in the table, not scored)."""
+    from .flags import quiet_casadi
+
+    for noisy in noise:
+        prot = protocol if noisy else protocol.noise_free()
+        for kind in kinds:
+            with quiet_casadi():
+                batch = trials.trials(plant, prot.cell(kind))
+            escaped = int((~batch.ok).sum())
+            if escaped:
+                print(f"{plant.name} {kind} {'noisy' if noisy else 'clean'}: {escaped} of {len(batch.ok)} trials "
+                      "escaped (the state left |x| < 1e6 or the integrator failed); the cell is scored on the "
+                      f"{len(batch.ok) - escaped} left", file=sys.stderr)
 
 
 def _mhe_scores(horizon: int, plant: System, protocol: Any, noise: tuple, kinds: tuple, trials: Any) -> Any:

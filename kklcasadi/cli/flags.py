@@ -9,7 +9,9 @@ One meaning per flag name across commands:
 ``--method NAME``      an observer variant (``kklcasadi.model.variants``); with ``--system`` it names the
                        shipped model ``models/SYSTEM/NAME``
 ``--noise on|off|both`` which noise columns of the benchmark to run
-``--measurement-std``, ``--process-std`` noise standard deviations of a run
+``--measurement-std``, ``--process-std`` noise standard deviations: of a run, of the training data
+                       where the method uses them, and of the EKF/MHE beside the observer
+``--dt SECONDS``       the sample time (train: the observer's; evaluate, compare: the protocol's)
 ``--trials N``         trials (per benchmark cell where there are cells)
 ``--kinds``            input regimes of the benchmark
 ``--seed``             the seed of what the command draws
@@ -23,19 +25,22 @@ flags (set ``KKLCASADI_DEBUG=1`` to see the traceback instead).
 from __future__ import annotations
 
 import argparse
+import os
+import sys
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, NoReturn, Optional
+from typing import Any, Callable, Iterator, NoReturn, Optional
 
 import numpy as np
 
-from ..model.shipped import shipped_model
+from ..model.shipped import is_shipped, shipped_model
 from ..plant import signals as sig
 from ..plant import systems
 from ..plant.systems import System
 
 __all__ = ["CommandError", "Parser", "positive_int", "positive_float", "nonnegative_float", "c_name", "flagged",
-           "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "NOISE",
-           "USER_ERRORS"]
+           "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_dt",
+           "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "NOISE", "USER_ERRORS"]
 
 #: ``--noise`` choices -> the benchmark's noise columns (False: noise-free).
 NOISE = {"on": (True,), "off": (False,), "both": (False, True)}
@@ -135,3 +140,54 @@ def add_noise(parser: argparse.ArgumentParser) -> None:
 def add_kinds(parser: argparse.ArgumentParser, help: str = "input regimes of the benchmark") -> None:
     parser.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS,
                         help=help)
+
+
+def add_dt(parser: argparse.ArgumentParser, help: str) -> None:
+    parser.add_argument("--dt", type=positive_float, metavar="SECONDS", help=help)
+
+
+def add_noise_levels(parser: argparse.ArgumentParser, what: str, default: Optional[float] = None) -> None:
+    """``--measurement-std`` and ``--process-std`` (``what``: what they set; ``default``: None = unset)."""
+    shown = "" if default is None else f"; default {default:g}"
+    parser.add_argument("--measurement-std", type=nonnegative_float, default=default,
+                        help=f"measurement noise std on y: {what}{shown}")
+    parser.add_argument("--process-std", type=nonnegative_float, default=default,
+                        help=f"process noise std on xdot: {what}{shown}")
+
+
+def check_dt(dt: float, T: float, models: dict[str, float]) -> None:
+    """The protocol's ``dt`` (``--dt``) fits its horizon ``T`` and every model's sample time."""
+    n = round(T / dt)
+    if abs(n * dt - T) > 1e-9 * T:
+        raise CommandError(f"--dt {dt:g}: expected a sample time that divides the horizon T = {T:g} s")
+    for model, model_dt in models.items():
+        if abs(model_dt - dt) > 1e-12 * dt:
+            raise CommandError(f"--dt: the protocol runs at dt = {dt:g} s, the model {model} at {model_dt:g} s; "
+                               f"pass --dt {model_dt:g} (or a model trained at {dt:g} s)")
+
+
+def model_label(path: str | Path) -> str:
+    """``shipped model models/S/M`` or ``your model PATH`` (the CLI tells them apart)."""
+    if is_shipped(path):
+        resolved = Path(path).resolve()
+        return f"shipped model models/{resolved.parent.name}/{resolved.name}"
+    return f"your model {path}"
+
+
+@contextmanager
+def quiet_casadi() -> Iterator[None]:
+    """Hide what CasADi prints to the process's stderr while the block runs (the inputs of a Function
+    whose evaluation failed: pages for a plant that escapes), so an error is one line;
+    ``KKLCASADI_DEBUG=1`` shows them."""
+    if os.environ.get("KKLCASADI_DEBUG"):
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)

@@ -1,17 +1,35 @@
-"""``kklcasadi train``: train an observer variant and write its model directory."""
+"""``kklcasadi train``: train an observer variant and write its model directory.
+
+Without ``--method`` it trains :data:`RECOMMENDED`, the observer the README recommends for a new
+plant: ``kklcasadi train --plant FILE.py:NAME --dt DT --measurement-std S --out DIR``.
+"""
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import fields
 from pathlib import Path
 
 from ..model import variants
 from ..plant import systems
-from .flags import CommandError, add_plant, flagged, needs_torch, nonnegative_float, plant_of, positive_int
+from .flags import (
+    CommandError,
+    add_dt,
+    add_noise_levels,
+    add_plant,
+    flagged,
+    needs_torch,
+    plant_of,
+    positive_int,
+)
 
-#: Flags that set a field of the method's training configuration: flag -> (field, value from args).
+#: The method trained without ``--method``: the filter bank with a decoder fit on noisy runs of the plant.
+RECOMMENDED = "bank"
+
+#: Flags that set a field of the method's training configuration: flag -> (field, value from args). A
+#: field is found at the top of the configuration or in the one nested configuration that holds it
+#: (:func:`kklcasadi.train.config.config_field`).
 _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measurement_std),
+                 "--process-std": ("process_std", lambda a: a.process_std),
                  "--width": ("width", lambda a: a.width),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
 
@@ -20,12 +38,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t = sub.add_parser("train", help="train an observer variant and write its model directory")
     t.add_argument("--system", choices=systems.names(), help="a shipped system")
     add_plant(t)
-    t.add_argument("--method", required=True, choices=variants.trainable(),
-                   help="; ".join(f"{v.name}: {v.summary}" for v in variants.VARIANTS.values()))
+    t.add_argument("--method", choices=variants.trainable(),
+                   help=f"default {RECOMMENDED} (the observer for a new plant); "
+                   + "; ".join(f"{v.name}: {v.summary}" for v in variants.VARIANTS.values()))
     t.add_argument("--out", required=True, help="model directory to write")
+    add_dt(t, "the observer's sample time (default 0.05, the paper systems')")
     t.add_argument("--base", help="Phase-1 model (default OUT/../autonomous for Phase-2 methods)")
-    t.add_argument("--measurement-std", type=nonnegative_float,
-                   help="the measurement-noise std the observer is fit for (autonomous: its decoder)")
+    add_noise_levels(t, "the noise of the training data the observer is fit for, where the method uses it "
+                     "(autonomous: measurement_std of its decoder; bank: its noisy runs); recorded in the card")
     t.add_argument("--width", type=positive_int, help="autonomous: hidden width of T and T* (default 150; the "
                    "paper uses 350 for rossler and fhn)")
     t.add_argument("--on-inject", action="store_true",
@@ -40,31 +60,38 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.set_defaults(func=run)
 
 
+def _takers(name: str, plant: str) -> list[str]:
+    """The trainable methods whose configuration has the field ``name``."""
+    from ..train import default_config, has_field
+
+    return [v.name for v in variants.VARIANTS.values() if v.config_class() is not None
+            and has_field(default_config(plant, v.name), name)]
+
+
 def run(args: argparse.Namespace) -> int:
     if (args.plant is None) == (args.system is None):
         raise CommandError("--system/--plant: give exactly one: a shipped system name or your plant FILE.py:NAME")
     plant = plant_of(args) or systems.get(args.system)
     needs_torch("kklcasadi train")
-    from ..train import default_config, train_observer
+    from ..train import default_config, has_field, train_observer, with_field
 
     out = Path(args.out)
     if (out / "card.json").exists() and not (args.overwrite or args.resume):
         raise CommandError(f"--out {out}: a model already exists there; pass --overwrite to replace it")
-    variant = variants.get(args.method)
-    config_class = variant.config_class()
-    settable = set() if config_class is None else {f.name for f in fields(config_class)}
-    overrides = {}
+    method = args.method or RECOMMENDED
+    if args.method is None and not args.quiet:
+        print(f"method: {RECOMMENDED} (the observer for a new plant; --method chooses another)", flush=True)
+    variant = variants.get(method)
+    config = None if variant.config_class() is None else default_config(plant.name, method)
     for flag, (name, value) in _CONFIG_FLAGS.items():
         if value(args) is None:
             continue
-        if name not in settable:
-            takes = [v.name for v in variants.VARIANTS.values()
-                     if v.config_class() is not None and name in {f.name for f in fields(v.config_class())}]
-            raise CommandError(f"{flag}: only --method {' or '.join(takes)} takes it, received --method {args.method}")
-        overrides[name] = value(args)
-    config = None if config_class is None else default_config(plant.name, args.method, **overrides)
-    path = flagged("--" + args.method, train_observer, plant, args.method, out, config=config, base=args.base,
-                   seed=args.seed, device=args.device, resume=args.resume, overwrite=args.overwrite,
-                   progress=not args.quiet, threads=args.threads, epochs=args.epochs)
+        if config is None or not has_field(config, name):
+            raise CommandError(f"{flag}: only --method {' or '.join(_takers(name, plant.name))} takes it, "
+                               f"received --method {method}")
+        config = with_field(config, name, value(args))
+    path = flagged("--" + method, train_observer, plant, method, out, config=config, base=args.base,
+                   dt=0.05 if args.dt is None else args.dt, seed=args.seed, device=args.device, resume=args.resume,
+                   overwrite=args.overwrite, progress=not args.quiet, threads=args.threads, epochs=args.epochs)
     print(f"wrote {path}/weights.npz and card.json")
     return 0

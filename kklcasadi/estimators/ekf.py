@@ -16,9 +16,12 @@ import numpy as np
 
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
-from ..validation import Text, error, positive_number
+from ..validation import Text, error, nonnegative_number, positive_number
 
-__all__ = ["EKF", "EKFEstimate"]
+__all__ = ["EKF", "EKFEstimate", "NOISE_FLOOR"]
+
+#: Smallest noise std :meth:`EKF.for_noise` uses (a zero level would make the filter singular).
+NOISE_FLOOR = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -90,6 +93,30 @@ class EKF:
         xu, Pu = self.update(xp, Pp, yk1)
         self.step = ca.Function("ekf_step", [xs, ca.vertcat(uk, yk1)], [ca.vertcat(xu, ca.vec(Pu))],
                                 ["s", "uy"], ["s_next"])
+
+    @classmethod
+    def for_noise(cls, system: System, dt: float, *, process_std: float, measurement_std: float,
+                  **options: object) -> EKF:
+        """The EKF tuned for the simulator's noise model (``kklcasadi.simulate``).
+
+        ``Q = (process_std dt)^2 I`` (noise of std ``process_std`` on every ``xdot``, held over a
+        sample) and ``R = measurement_std^2 I``; a level of 0 is floored at :data:`NOISE_FLOOR` so
+        that the filter stays well defined on noise-free data. ``EKF(system, dt)`` is the
+        protocol's 0.1 and 0.1.
+
+        Parameters
+        ----------
+        system : System
+        dt : float
+        process_std, measurement_std : float
+            Noise levels, >= 0.
+        **options
+            ``x0``, ``P0``, ``substeps`` of :class:`EKF`.
+        """
+        q = max(nonnegative_number(process_std, "process_std"), NOISE_FLOOR)
+        r = max(nonnegative_number(measurement_std, "measurement_std"), NOISE_FLOOR)
+        dt = positive_number(dt, "dt")
+        return cls(system, dt, Q=(q * dt) ** 2 * np.eye(system.nx), R=r ** 2 * np.eye(system.ny), **options)
 
     @staticmethod
     def _matrix(value: object, shape: tuple[int, int], arg: str) -> np.ndarray:

@@ -54,20 +54,21 @@ class SystemComparison:
                                                              "calibration_trials")}
         cells = [{"estimator": s.label, "kind": kind, "noisy": noisy, "smape": c.smape.tolist(),
                   "rmse_after": c.rmse_after.tolist(), "seconds": c.seconds, "n_samples": c.n_samples,
-                  "failed": c.failed, "solve_ms": c.solve_ms}
+                  "failed": c.failed, "solve_ms": c.solve_ms, "escaped": c.escaped}
                  for s in self.scores for (noisy, kind), c in s.results.items()]
         return {**settings, "horizons": list(self.horizons), "cells": cells}
 
     @classmethod
     def from_json(cls, data: dict) -> SystemComparison:
-        """Read :meth:`to_json`'s record (records written before ``rmse_after`` was kept read as NaN)."""
+        """Read :meth:`to_json`'s record (records written before ``rmse_after`` was kept read as NaN, before
+        ``escaped`` was kept as 0)."""
         results: dict[str, dict] = {}
         for c in data["cells"]:
             smape = np.asarray(c["smape"], dtype=float)
             rmse = np.asarray(c.get("rmse_after", np.full(smape.shape, np.nan)), dtype=float)
             results.setdefault(c["estimator"], {})[(c["noisy"], c["kind"])] = CellResult(
                 data["system"], c["kind"], c["noisy"], smape, rmse, c["seconds"], c["n_samples"], c["failed"],
-                c["solve_ms"])
+                c["solve_ms"], c.get("escaped", 0))
         scores = tuple(MethodScores(label, data["system"], cells) for label, cells in results.items())
         settings = {k: v for k, v in data.items() if k not in ("cells", "horizons")}
         return cls(**settings, horizons=tuple(data["horizons"]), scores=scores)
@@ -82,7 +83,7 @@ def _timed(run: Callable[[], Any]) -> tuple[Any, float]:
 def compare_system(observer: KKLObserver, protocol: Protocol, *, horizons: Sequence[int] = (10, 30),
                    primed_horizon: int = 5, calibration_trials: int = 5,
                    kinds: Sequence[str] = sig.BENCHMARK_KINDS, noise: Sequence[bool] = (False, True),
-                   log: Optional[Callable[[str], None]] = None) -> SystemComparison:
+                   log: Optional[Callable[[str], None]] = None, ekf: Optional[EKF] = None) -> SystemComparison:
     """Score the observer, the EKF, MHE (each horizon) and the KKL-primed MHE on one system.
 
     Every estimator sees the same trials (``protocol.trials``); noise-free cells use
@@ -107,6 +108,8 @@ def compare_system(observer: KKLObserver, protocol: Protocol, *, horizons: Seque
         Noise settings to run (False: noise-free).
     log : callable, optional
         Progress lines (e.g. ``print``).
+    ekf : EKF, optional
+        The EKF beside the observer; default ``EKF(system, dt)`` (docs/protocol.md's noise levels).
 
     Returns
     -------
@@ -122,7 +125,7 @@ def compare_system(observer: KKLObserver, protocol: Protocol, *, horizons: Seque
         raise ValueError(f"protocol: its dt = {protocol.dt} differs from the observer's dt = {dt}.")
     say = log or (lambda _line: None)
     substeps = MHE_SUBSTEPS.get(plant.name, 1)
-    ekf = EKF(plant, dt)
+    ekf = EKF(plant, dt) if ekf is None else ekf
     kkl_label = f"KKL ({observer.method})"
     results: dict[str, dict] = {}
     for noisy in noise:
@@ -147,7 +150,7 @@ def compare_system(observer: KKLObserver, protocol: Protocol, *, horizons: Seque
                 rmse = (metrics.rmse_after(t, x, xhat, prot.t_settle) if t[-1] >= prot.t_settle
                         else np.full(x.shape[0], np.nan))              # a run shorter than the settle time
                 result = CellResult(plant.name, kind, noisy, metrics.smape(x, xhat), rmse, seconds, n_samples,
-                                    failed, solve_ms)
+                                    failed, solve_ms, int((~batch.ok).sum()))
                 results.setdefault(label, {})[(noisy, kind)] = result
                 say(f"{plant.name:8s} {'noisy' if noisy else 'clean'} {kind:9s} {label:22s} "
                     f"SMAPE {result.summary.mean:6.2f} %  {1e3 * seconds / n_samples:7.3f} ms/sample"

@@ -126,6 +126,9 @@ class CellResult:
         Failed solves whose estimate was the fallback (MHE); 0 for the others.
     solve_ms : float or None
         Mean wall time of one solver call (MHE), ms.
+    escaped : int
+        Trials of the cell whose state escaped (the simulation failed or blew up): not scored, and
+        counted here (``smape`` and ``rmse_after`` hold the others).
     """
 
     system: str
@@ -137,10 +140,16 @@ class CellResult:
     n_samples: Optional[int] = None
     failed: int = 0
     solve_ms: Optional[float] = None
+    escaped: int = 0
 
     @property
     def summary(self) -> metrics.Summary:
         return metrics.summarize(self.smape)
+
+    @property
+    def n_trials(self) -> int:
+        """Trials of the cell, scored and escaped."""
+        return len(self.smape) + self.escaped
 
 
 def evaluate(estimator: BatchEstimator, system: System, protocol: Protocol = Protocol(),
@@ -166,7 +175,8 @@ def evaluate(estimator: BatchEstimator, system: System, protocol: Protocol = Pro
     Returns
     -------
     list of CellResult
-        One per kind, in order; trials that failed in the simulation (``ok`` False) are left out.
+        One per kind, in order; trials whose state escaped in the simulation (``ok`` False) are not
+        scored and counted in ``escaped``.
     """
     results = []
     trials = TrialCache(None) if trials is None else trials
@@ -174,9 +184,13 @@ def evaluate(estimator: BatchEstimator, system: System, protocol: Protocol = Pro
     for kind in tqdm(kinds, desc=label, unit="cell", disable=not progress):
         batch = trials.trials(system, protocol.cell(kind))
         ok = batch.ok
+        escaped = int((~ok).sum())
+        if not ok.any():
+            results.append(CellResult(system.name, kind, protocol.noisy, np.zeros(0), np.zeros(0), escaped=escaped))
+            continue
         xhat = np.asarray(estimator(batch.t, batch.y[ok], batch.u[ok]), dtype=float)
         if xhat.shape != batch.x[ok].shape:
             raise ValueError(f"estimator returned shape {xhat.shape}, expected {batch.x[ok].shape}")
         results.append(CellResult(system.name, kind, protocol.noisy, metrics.smape(batch.x[ok], xhat),
-                                  metrics.rmse_after(batch.t, batch.x[ok], xhat, protocol.t_settle)))
+                                  metrics.rmse_after(batch.t, batch.x[ok], xhat, protocol.t_settle), escaped=escaped))
     return results

@@ -35,8 +35,14 @@ class MethodScores:
 
     @property
     def n_trials(self) -> int:
-        """Trials per cell (of the first cell)."""
-        return len(next(iter(self.results.values())).smape)
+        """Trials per cell (of the first cell), scored and escaped."""
+        return next(iter(self.results.values())).n_trials
+
+
+def _cell_text(result: CellResult) -> str:
+    """Mean SMAPE of a cell, with the trials whose state escaped (not scored) where there were any."""
+    mean = f"{result.summary.mean:.1f}" if len(result.smape) else "-"
+    return mean + (f" ({result.escaped} of {result.n_trials} escaped)" if result.escaped else "")
 
 
 def score(label: str, estimator: BatchEstimator, system: System, protocol: Protocol, *,
@@ -80,6 +86,9 @@ def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BE
                    timing: bool = False) -> str:
     """Mean SMAPE (%) per cell, noise-free then noisy columns, one row per method.
 
+    A cell with trials whose state escaped (the plant ran away; they are not scored) says how many,
+    e.g. ``12.3 (9 of 10 escaped)``; ``-`` where every trial escaped.
+
     With ``timing`` (the estimator comparison) every noise column is shown, the row names the
     system with its trials and the estimator, and three columns follow: ``ms/sample`` (the
     estimator's wall time over all cells divided by the samples estimated), ``ipopt ms`` (the
@@ -96,7 +105,7 @@ def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BE
         for n in noises:
             for k in kinds:
                 r = s.results.get((n, k))
-                row.append(f"{r.summary.mean:.1f}" if r is not None else "")
+                row.append(_cell_text(r) if r is not None else "")
         if timing:
             cells = list(s.results.values())
             seconds = sum(c.seconds for c in cells)
@@ -109,15 +118,18 @@ def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BE
 
 
 def save_scores(scores: Iterable[MethodScores], path: str | Path) -> None:
-    """Per-trial SMAPE and RMSE-after-settle of every cell, as JSON."""
+    """Per-trial SMAPE and RMSE-after-settle of every cell, and the trials that escaped, as JSON
+    (the summary statistics are null where every trial escaped)."""
     out = []
     for s in scores:
         for (noisy, kind), r in s.results.items():
-            summ = r.summary
-            out.append({"method": s.label, "system": s.system, "kind": kind, "noisy": noisy,
-                        "smape_mean": summ.mean, "smape_median": summ.median, "smape_q25": summ.q25,
-                        "smape_q75": summ.q75, "rmse_after_mean": float(np.nanmean(r.rmse_after)),
-                        "smape": r.smape.tolist()})
+            summ = r.summary if len(r.smape) else None
+            stats = {name: None if summ is None else getattr(summ, field)
+                     for name, field in (("smape_mean", "mean"), ("smape_median", "median"), ("smape_q25", "q25"),
+                                         ("smape_q75", "q75"))}
+            out.append({"method": s.label, "system": s.system, "kind": kind, "noisy": noisy, **stats,
+                        "rmse_after_mean": float(np.nanmean(r.rmse_after)) if len(r.rmse_after) else None,
+                        "escaped": r.escaped, "smape": r.smape.tolist()})
     Path(path).write_text(json.dumps(out, indent=1))
 
 
@@ -137,7 +149,8 @@ def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bo
     fig, ax = plt.subplots(figsize=(2.2 * len(kinds) * max(1, len(scores)) / 2 + 3, 4))
     width = 0.8 / max(1, len(scores))
     for i, s in enumerate(scores):
-        data = [s.results[(noisy, k)].smape for k in kinds if (noisy, k) in s.results]
+        data = [s.results[(noisy, k)].smape if len(s.results[(noisy, k)].smape) else [np.nan]
+                for k in kinds if (noisy, k) in s.results]
         pos = [j + (i - (len(scores) - 1) / 2) * width for j in range(len(data))]
         bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False)
         for patch in bp["boxes"]:

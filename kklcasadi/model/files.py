@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any, Mapping, Optional
 import numpy as np
 
 from ..nets.specs import check_arrays, field_error
+from ..plant.data import LABEL_KINDS, LabelReport
 from ..validation import Text, is_int, is_number
 from . import variants
 
@@ -139,6 +140,11 @@ class ModelSpec:
         The noise level the decoder was fit for (0: noise-free).
     domain : Domain or None
         Where the maps were trained (None in cards written before domains were recorded).
+    coverage : kklcasadi.plant.data.LabelReport or None
+        How the Phase-1 labels were made and how well they cover the X0 box (None for models
+        without Phase-1 labels and in cards written before coverage was recorded).
+    process_std : float or None
+        The process-noise level the training data had, where the method uses one (None: not recorded).
     """
 
     method: str
@@ -151,6 +157,8 @@ class ModelSpec:
     base: Optional[BaseRef]
     measurement_std: float
     domain: Optional[Domain] = None
+    coverage: Optional[LabelReport] = None
+    process_std: Optional[float] = None
 
     @property
     def variant(self) -> variants.Variant:
@@ -259,11 +267,17 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
         base = BaseRef(base["path"], base["weights_sha256"])
 
     noise = card["noise"]
+    fix_noise = 'Write "noise" as {"measurement_std": 0.0} or {"measurement_std": 0.1, "process_std": 0.1}.'
     if (not isinstance(noise, Mapping) or "measurement_std" not in noise
             or not is_number(noise["measurement_std"])
             or not math.isfinite(noise["measurement_std"]) or noise["measurement_std"] < 0):
-        raise field_error(where, "noise.measurement_std", "a number >= 0", noise,
-                          'Write "noise" as {"measurement_std": 0.0}.')
+        raise field_error(where, "noise.measurement_std", "a number >= 0", noise, fix_noise)
+    if not set(noise) <= {"measurement_std", "process_std"}:
+        raise field_error(where, "noise", "the keys measurement_std and optionally process_std", sorted(noise),
+                          fix_noise)
+    process_std = noise.get("process_std")
+    if process_std is not None and not (is_number(process_std) and math.isfinite(process_std) and process_std >= 0):
+        raise field_error(where, "noise.process_std", "a number >= 0", process_std, fix_noise)
     if not isinstance(card["training"], Mapping):
         raise field_error(where, "training", "an object", card["training"],
                           "Use {} if there is nothing to record.")
@@ -278,10 +292,42 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
                           "Remove the field, or use a method that takes it.")
     spec = variant.parse(card, variants.Sizes(nx, nu, ny, a.shape[0]), where)
     domain = _domain(card.get("domain"), nx, a.shape[0], where)
+    coverage = _coverage(card.get("coverage"), nx, where)
     for matrix in (a, b):
         matrix.setflags(write=False)
     return ModelSpec(card["method"], SystemSpec(system["name"], nx, nu, ny, fingerprint), a, b, float(card["dt"]),
-                     window, spec, base, float(noise["measurement_std"]), domain)
+                     window, spec, base, float(noise["measurement_std"]), domain, coverage,
+                     None if process_std is None else float(process_std))
+
+
+_COVERAGE_KEYS = ("labels", "runs", "escaped", "burn_in", "per_state", "grid", "cells_per_axis")
+
+
+def _coverage(entry: Any, nx: int, where: str) -> Optional[LabelReport]:
+    if entry is None:
+        return None
+    fix = ('Write "coverage" as {"labels": kind, "runs": int, "escaped": int, "burn_in": seconds, '
+           '"per_state": [nx shares], "grid": share, "cells_per_axis": int} (shares in [0, 1]), or remove it.')
+    if not isinstance(entry, Mapping) or set(entry) != set(_COVERAGE_KEYS):
+        raise field_error(where, "coverage", f"an object with exactly the keys {list(_COVERAGE_KEYS)}", entry, fix)
+    kinds = [k for k in LABEL_KINDS if k != "auto"]
+    if entry["labels"] not in kinds:
+        raise field_error(where, "coverage.labels", f"one of {kinds}", entry["labels"], fix)
+    for key, lowest in (("runs", 1), ("escaped", 0), ("cells_per_axis", 1)):
+        if not is_int(entry[key]) or entry[key] < lowest:
+            raise field_error(where, f"coverage.{key}", f"an integer >= {lowest}", entry[key], fix)
+    if entry["escaped"] > entry["runs"]:
+        raise field_error(where, "coverage.escaped", f"at most runs = {entry['runs']}", entry["escaped"], fix)
+    if not (is_number(entry["burn_in"]) and math.isfinite(entry["burn_in"]) and entry["burn_in"] >= 0):
+        raise field_error(where, "coverage.burn_in", "a number of seconds >= 0", entry["burn_in"], fix)
+    share = lambda v: is_number(v) and 0 <= v <= 1  # noqa: E731
+    per_state = entry["per_state"]
+    if not (isinstance(per_state, list) and len(per_state) == nx and all(share(v) for v in per_state)):
+        raise field_error(where, "coverage.per_state", f"a list of {nx} numbers in [0, 1]", per_state, fix)
+    if not share(entry["grid"]):
+        raise field_error(where, "coverage.grid", "a number in [0, 1]", entry["grid"], fix)
+    return LabelReport(entry["labels"], int(entry["runs"]), int(entry["escaped"]), float(entry["burn_in"]),
+                       tuple(float(v) for v in per_state), float(entry["grid"]), int(entry["cells_per_axis"]))
 
 
 def _domain(entry: Any, nx: int, nz: int, where: str) -> Optional[Domain]:
@@ -319,7 +365,8 @@ def model_array_shapes(card: Mapping[str, Any], where: str = CARD_FILE) -> dict[
 def make_card(system: System | SystemSpec, design: Design, method: str, spec: Any, *, dt: float,
               window: int = 1, training: Optional[Mapping[str, Any]] = None,
               base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0,
-              domain: Optional[Domain] = None) -> dict:
+              domain: Optional[Domain] = None, coverage: Optional[LabelReport] = None,
+              process_std: Optional[float] = None) -> dict:
     """The card of a model: the one way training, :func:`derive_model` and tests write one.
 
     Parameters
@@ -345,6 +392,10 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
         The noise level the decoder was fit for.
     domain : Domain, optional
         Where the maps were trained (recorded for the observer's domain monitor).
+    coverage : kklcasadi.plant.data.LabelReport, optional
+        How the Phase-1 labels were made and how well they cover the box.
+    process_std : float, optional
+        The process-noise level of the training data, where the method uses one.
 
     Returns
     -------
@@ -359,9 +410,11 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
             "design": {"A": np.asarray(design.A).tolist(), "B": np.asarray(design.B).tolist()},
             "dt": float(dt), "window": int(window), "architecture": spec.to_card(),
             "base": None if base is None else dict(base),
-            "noise": {"measurement_std": float(measurement_std)},
+            "noise": {"measurement_std": float(measurement_std),
+                      **({} if process_std is None else {"process_std": float(process_std)})},
             "training": dict(training or {}), **variant.card_entries(spec),
-            **({} if domain is None else {"domain": domain.to_card()})}
+            **({} if domain is None else {"domain": domain.to_card()}),
+            **({} if coverage is None else {"coverage": coverage.to_card()})}
 
 
 @dataclass(frozen=True)
@@ -614,7 +667,7 @@ def derive_model(base: str | os.PathLike, out_dir: str | os.PathLike, method: st
                  overwrite: bool = False) -> Path:
     """Write a model that its variant makes from a base model without training (e.g. ``inject``).
 
-    The new card has the base model's system, design, sample period, noise level and domain,
+    The new card has the base model's system, design, sample period, noise levels, domain and label coverage,
     window 1, and the arrays and architecture the variant keeps
     (:meth:`kklcasadi.model.variants.Variant.derive`). The model is self-contained: its ``base`` is null
     and ``training.derived_from`` records the base (path relative to the new model, SHA-256 and
@@ -650,5 +703,5 @@ def derive_model(base: str | os.PathLike, out_dir: str | os.PathLike, method: st
                                              "weights_sha256": source.card["weights_sha256"], "method": source.method}}
     card = make_card(source.spec.system, Design(source.A, source.B), method, spec, dt=source.dt,
                      window=1, training=training, measurement_std=source.spec.measurement_std,
-                     domain=source.spec.domain)
+                     domain=source.spec.domain, coverage=source.spec.coverage, process_std=source.spec.process_std)
     return save_model(out, arrays, card, overwrite=overwrite)

@@ -1,7 +1,9 @@
 """The observers that ship with kklcasadi, ``models/<system>/<method>/``, and the one lookup of them.
 
-The shipped models live in the ``models/`` directory of the source tree. A model directory given
-by path is the user's; only these are "shipped".
+The shipped models live in the ``models/`` directory of the source tree, which the package reaches
+as ``kklcasadi/_models`` (a link to it in the tree; ``pip install .`` copies the models' cards and
+weights there as package data, so an installed kklcasadi finds them from any directory). A model
+directory given by path is the user's; only these are "shipped".
 """
 
 from __future__ import annotations
@@ -14,8 +16,8 @@ from ..validation import Text, error
 
 __all__ = ["SHIPPED_ROOT", "METHOD_ORDER", "shipped", "shipped_models", "shipped_model", "is_shipped"]
 
-#: Where the shipped models live.
-SHIPPED_ROOT = Path(__file__).resolve().parents[2] / "models"
+#: Where the shipped models live: the package's ``_models`` (in a source tree a link to ``models/``), resolved.
+SHIPPED_ROOT = (Path(__file__).resolve().parents[1] / "_models").resolve()
 #: Order of the shipped methods in tables; other model directories follow alphabetically.
 METHOD_ORDER = ("autonomous", "inject", "obs", "obs-inject", "dyn", "curriculum")
 

@@ -3,7 +3,11 @@
 Phase-1 labels ``z = T(x)`` come from simulating the plant at ``u = 0`` backward and then forward
 together with the latent system ``zdot = A z + B h(x)``, long enough that the initial latent is
 forgotten: the decay bound ``kappa exp(-lam t_b) |z0 - T(x)|`` is below ``tol`` (docs/design.md
-"Phase-1 labels"; see :func:`phase1`).
+"Phase-1 labels"; see :func:`phase1_labels`). Where backward runs escape (a damped plant runs away
+in reversed time) the exact labels would sit where the forward flow ends; ``labels="auto"``
+detects the escapes and freezes the past where it leaves twice the box instead. Every set of
+labels is measured against the X0 box (:class:`LabelReport`: per state and on a grid), and
+training refuses labels that do not cover it.
 
 The input window convention (shared by training, evaluation, export and C) lives in
 :func:`input_windows`: ``w_k`` holds the last ``window`` input samples up to and including ``u_k``,
@@ -27,7 +31,8 @@ from .simulate import TrajectoryBatch, simulate_batch, time_grid
 from .systems import System
 from .windows import input_windows
 
-__all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "phase1", "pde_points", "phase2", "driven_labels", "input_windows"]
+__all__ = ["Phase1Data", "PDEPoints", "Phase2Data", "LabelReport", "phase1", "phase1_labels", "label_coverage",
+           "pde_points", "phase2", "driven_labels", "input_windows", "LABEL_KINDS"]
 
 log = logging.getLogger(__name__)
 
@@ -80,10 +85,121 @@ def _reversed(system: System) -> System:
     return System(f"{system.name}_reversed", x, u, -system.f(x, 0), system.h(x), system.x0_box)
 
 
+#: Label kinds of :func:`phase1`.
+LABEL_KINDS = ("auto", "exact", "frozen", "forward", "cold")
+#: Bins per state of the per-state coverage (:func:`label_coverage`).
+COVERAGE_BINS = 10
+#: Below these the labels do not cover the box (:attr:`LabelReport.poor`): the share of a state's bins
+#: holding a label, and the share of occupied grid cells.
+MIN_STATE_COVERAGE, MIN_GRID_COVERAGE = 0.5, 0.1
+
+
+@dataclass(frozen=True)
+class LabelReport:
+    """How Phase-1 labels were made and how well they cover the X0 box.
+
+    Attributes
+    ----------
+    kind : str
+        The label kind used (``"exact"``, ``"frozen"``, ``"forward"`` or ``"cold"``; ``"auto"`` picks one).
+    runs : int
+        Trajectories simulated.
+    escaped : int
+        Backward runs that left the domain (their past frozen at the exit; 0 where no backward pass ran).
+    burn_in : float
+        Seconds simulated before the kept window (forward labels), 0 otherwise.
+    per_state : tuple of float
+        Per state, the share of :data:`COVERAGE_BINS` equal bins of its box range holding a label.
+    grid : float
+        The share of the cells of a grid over the box (``cells_per_axis`` per state) holding a label.
+    cells_per_axis : int
+    """
+
+    kind: str
+    runs: int
+    escaped: int
+    burn_in: float
+    per_state: tuple
+    grid: float
+    cells_per_axis: int
+
+    @property
+    def poor(self) -> bool:
+        """Whether the labels miss too much of the box (:data:`MIN_STATE_COVERAGE`, :data:`MIN_GRID_COVERAGE`)."""
+        return min(self.per_state) < MIN_STATE_COVERAGE or self.grid < MIN_GRID_COVERAGE
+
+    def to_card(self) -> dict:
+        """The card entry ``coverage`` (``docs/model-format.md``)."""
+        return {"labels": self.kind, "runs": int(self.runs), "escaped": int(self.escaped),
+                "burn_in": float(self.burn_in), "per_state": [float(c) for c in self.per_state],
+                "grid": float(self.grid),
+                "cells_per_axis": int(self.cells_per_axis)}
+
+    def summary(self) -> str:
+        """One line: the kind, the escapes and the coverage."""
+        states = ", ".join(f"x{i + 1} {100 * c:.0f} %" for i, c in enumerate(self.per_state))
+        escaped = f", {self.escaped} of {self.runs} backward runs escaped" if self.escaped else ""
+        burn = f", burn-in {self.burn_in:.3g} s" if self.burn_in else ""
+        return (f"{self.kind} labels ({self.runs} runs{escaped}{burn}) cover {states} of the box's ranges and "
+                f"{100 * self.grid:.0f} % of a {self.cells_per_axis}^{len(self.per_state)} grid over it")
+
+
+def label_coverage(x: np.ndarray, box: np.ndarray, *, cells: int, bins: int = COVERAGE_BINS
+                   ) -> tuple[tuple, float, int]:
+    """How well states ``x`` cover a box: per state and on a grid.
+
+    Parameters
+    ----------
+    x : numpy.ndarray, shape (M, nx)
+        Labelled states (those outside the box count for nothing).
+    box : numpy.ndarray, shape (nx, 2)
+    bins : int
+        Equal bins per state for the per-state share.
+    cells : int
+        About how many cells the grid has: ``k = max(2, floor(cells^(1/nx)))`` per state (phase-1
+        labels: one per trajectory, so that starts spread evenly over the box alone would fill most).
+
+    Returns
+    -------
+    per_state : tuple of float, length nx
+        Per state, the share of its ``bins`` bins that hold a state of ``x``.
+    grid : float
+        The share of the ``k^nx`` grid cells that hold a state of ``x``.
+    k : int
+        Cells per axis.
+    """
+    x = np.asarray(x, dtype=float)
+    box = np.asarray(box, dtype=float)
+    nx = box.shape[0]
+    unit = (x - box[:, 0]) / (box[:, 1] - box[:, 0])          # the box is [0, 1]^nx
+    inside = np.all((unit >= 0) & (unit <= 1), axis=1)
+    per_state = []
+    for i in range(nx):
+        u = unit[(unit[:, i] >= 0) & (unit[:, i] <= 1), i]
+        per_state.append(np.unique(np.minimum((u * bins).astype(int), bins - 1)).size / bins)
+    k = max(2, int(np.floor(cells ** (1.0 / nx) + 1e-9)))
+    occupied = np.unique(np.minimum((unit[inside] * k).astype(int), k - 1), axis=0)
+    return tuple(per_state), len(occupied) / float(k) ** nx, k
+
+
 def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, t_keep: float = 10.0,
            dt: float = 0.05, tol: float = 1e-7, domain_scale: float | None = None, box_scale: float = 1.0,
-           labels: str = "exact", starts: np.ndarray | None = None, progress: bool = False) -> Phase1Data:
-    """States over the X0 box and their exact latent labels ``z = T(x)`` under ``u = 0``.
+           labels: str = "exact", starts: np.ndarray | None = None, burn_in_tol: float = 1e-3,
+           progress: bool = False) -> Phase1Data:
+    """States over the X0 box and their latent labels ``z = T(x)`` under ``u = 0``.
+
+    The labels of :func:`phase1_labels` without its report (same parameters).
+    """
+    return phase1_labels(system, design, n_traj, seed, t_keep=t_keep, dt=dt, tol=tol, domain_scale=domain_scale,
+                         box_scale=box_scale, labels=labels, starts=starts, burn_in_tol=burn_in_tol,
+                         progress=progress)[0]
+
+
+def phase1_labels(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, t_keep: float = 10.0,
+                  dt: float = 0.05, tol: float = 1e-7, domain_scale: float | None = None, box_scale: float = 1.0,
+                  labels: str = "exact", starts: np.ndarray | None = None, burn_in_tol: float = 1e-3,
+                  progress: bool = False) -> tuple[Phase1Data, LabelReport]:
+    """States over the X0 box, their latent labels ``z = T(x)`` under ``u = 0``, and how well they cover the box.
 
     Each trajectory starts at a Latin-hypercube state ``x0`` (or at ``starts``), runs backward in
     time for ``t_b`` (or until it leaves the domain, the X0 box scaled by ``domain_scale``), and then
@@ -97,11 +213,21 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
     released at once instead, so that its kept samples, ``t_b`` or more after the release, agree
     with the true map to ``tol`` too (they then lie further along the flow than ``x0``).
 
-    ``labels="cold"`` runs no backward pass: each trajectory starts at ``x0`` with ``z = 0`` and all
-    its samples are kept. These are the latents a cold-started observer (z(0) = 0, as in the
-    benchmark) actually sees; use them where backward solutions escape at once and every forward
-    solution settles, so that neither exact nor frozen labels cover the operating region
-    (FitzHugh-Nagumo: the backward flow is stiff and unstable, its frozen labels are noise).
+    ``labels="forward"`` runs no backward pass: each trajectory starts at ``x0`` with the latent
+    at its equilibrium ``z = -A^{-1} B h(x0)``, runs a burn-in set by the latent's slowest pole
+    (``2 kappa exp(-lam t_b) <= burn_in_tol``), and keeps the ``t_keep`` seconds after it: the
+    latents an observer sees once it has forgotten its start, on the states the plant reaches from
+    the box. Use them where backward solutions escape (a damped plant runs away in reversed time,
+    and the released exact labels then sit where the forward flow ends, near its equilibrium).
+    ``labels="cold"`` is the burn-in-free case started at ``z = 0``: all samples are kept. These are
+    the latents a cold-started observer (z(0) = 0, as in the benchmark) actually sees; use them
+    where backward solutions escape at once and every forward solution settles, so that neither
+    exact nor frozen labels cover the operating region (FitzHugh-Nagumo: the backward flow is stiff
+    and unstable, its frozen labels are noise). ``labels="auto"`` runs the backward pass and keeps
+    the exact labels where no backward run escapes, else makes forward labels.
+
+    Every kind is then measured (:func:`label_coverage`): the report says which kind was used, how
+    many backward runs escaped and how well the labelled states cover the X0 box.
 
     Parameters
     ----------
@@ -113,6 +239,10 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         Seed of the Latin hypercube.
     t_keep : float
         Labelled horizon per trajectory, sampled every ``dt``: ``round(t_keep / dt)`` samples each.
+    dt : float
+        Label spacing (seconds; the plant is simulated on this grid), its own setting: the
+        observer's sample time does not enter the labels, so the budget is ``n_traj`` runs of
+        ``t_keep`` seconds at any observer ``dt``.
     tol : float
         Relative label accuracy: the burn-in ``t_b`` makes ``kappa exp(-lam t_b) * 2 <= tol``,
         2 bounding ``|z0 - T(x_b)|`` relative to the latent bound ``kappa |B| max|y| / lam``.
@@ -125,11 +255,13 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         near the equilibrium.
     box_scale : float
         Scale of the sampling box about its centre.
-    labels : {"exact", "frozen", "cold"}
+    labels : {"exact", "frozen", "forward", "cold", "auto"}
         How the past is treated (see above).
     starts : numpy.ndarray, shape (M, nx), optional
         The starting states instead of a Latin hypercube over the box (``n_traj`` is then M), e.g.
         states an input-driven plant visits.
+    burn_in_tol : float
+        Relative accuracy of forward labels (their burn-in, see above).
     progress : bool
         Show a progress bar (the trajectories are simulated in chunks).
 
@@ -138,14 +270,18 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
     Phase1Data
         ``x`` (M, nx), ``z`` (M, nz), ``y`` (M, ny), ``M = n_traj * round(t_keep / dt)`` minus
         trajectories that failed (reported with a warning).
+    LabelReport
+        The kind used, the escaped backward runs, the burn-in and the coverage of the X0 box.
     """
     if not isinstance(design, Design):
         raise error("design", "a kklcasadi.Design", Text(type(design).__name__), kind=TypeError)
     if not 0 < finite_number(tol, "tol") < 1:
         raise error("tol", "a number in (0, 1)", tol)
+    if not 0 < finite_number(burn_in_tol, "burn_in_tol") < 1:
+        raise error("burn_in_tol", "a number in (0, 1)", burn_in_tol)
     if domain_scale is not None and finite_number(domain_scale, "domain_scale") < 1:
         raise error("domain_scale", "a number >= 1 (the domain contains the X0 box)", domain_scale)
-    one_of(labels, "labels", ("exact", "frozen", "cold"))
+    one_of(labels, "labels", LABEL_KINDS)
     if starts is None:
         x0 = system.sample_box(n_traj, seed, scale=box_scale)
     else:
@@ -155,10 +291,56 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         n_traj = len(x0)
     n_keep = time_grid(t_keep, dt).size
     run = _chunked(progress, "phase-1 labels")
-    if labels == "cold":
-        fwd = run(_latent_system(system, design), np.hstack([x0, np.zeros((n_traj, design.nz))]),
-                  [np.ones(n_keep)] * n_traj, n_keep * dt, dt)
-        return _kept(system, design, fwd, n_keep, n_traj)
+    escaped = 0
+    if labels in ("exact", "frozen", "auto"):
+        back = _backward(system, design, x0, dt, tol, domain_scale, labels)
+        escaped = int(back.frozen.sum())
+        if escaped:
+            log.info("%d of %d backward runs left the domain; their past is frozen at the exit state",
+                     escaped, n_traj)
+        if labels == "auto" and escaped:
+            if progress:
+                print(f"phase-1 labels: {escaped} of {n_traj} backward runs of {system.name!r} escaped; making "
+                      "frozen labels (the past frozen where it leaves twice the box) instead of exact ones", flush=True)
+            labels = "frozen"
+            back = _backward(system, design, x0, dt, tol, domain_scale, labels)
+            escaped = int(back.frozen.sum())
+        elif labels == "auto":
+            labels = "exact"
+    if labels in ("forward", "cold"):
+        n_burn = 0 if labels == "cold" else int(np.ceil(design.forgetting_time(2.0, burn_in_tol) / dt))
+        z0 = (np.zeros((n_traj, design.nz)) if labels == "cold"
+              else design.latent_equilibrium(system.h_batch(x0)))
+        n_total = n_burn + n_keep
+        fwd = run(_latent_system(system, design), np.hstack([x0, z0]), [np.ones(n_total)] * n_traj,
+                  n_total * dt, dt)
+    else:
+        n_burn = 0
+        # A frozen past leaves a label error kappa exp(-lam t) |T_frozen - T| at time t after unfreezing.
+        # "exact": unfreeze at once, so every kept sample is t_b or more after it (error below tol too);
+        # "frozen": hold the exit state until the kept window starts at x0 (labels of the frozen plant).
+        n_back = back.n_back
+        n_total = n_back + n_keep
+        gates = [np.ones(n_total) if labels == "exact" else np.r_[np.zeros(n_back - (k - 1)), np.ones(n_keep + k - 1)]
+                 for k in back.n_in]
+        fwd = run(_latent_system(system, design), np.hstack([back.x_b, design.latent_equilibrium(
+            system.h_batch(back.x_b))]), gates, n_total * dt, dt)
+    result = _kept(system, design, fwd, n_keep, n_traj)
+    per_state, grid, k = label_coverage(result.x, system.x0_box, cells=n_traj)
+    return result, LabelReport(labels, n_traj, escaped, n_burn * dt, per_state, grid, k)
+
+
+class _Backward(NamedTuple):
+    n_back: int             # backward samples
+    n_in: np.ndarray        # (n_traj,) samples of each backward run inside the domain
+    frozen: np.ndarray      # (n_traj,) runs that left the domain
+    x_b: np.ndarray         # (n_traj, nx) where each forward pass starts
+
+
+def _backward(system: System, design: Design, x0: np.ndarray, dt: float, tol: float, domain_scale: float | None,
+              labels: str) -> _Backward:
+    """The backward pass of exact and frozen labels (see :func:`phase1_labels`)."""
+    n_traj = len(x0)
     centre = system.x0_box.mean(axis=1)
     unit = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0])
     y_ref = float(np.max(np.abs(system.h_batch(x0)))) or 1.0
@@ -172,7 +354,7 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
         reach = np.max(np.abs(back.x - centre) / unit, axis=(1, 2))      # scale each past needs; NaN if it escapes
         if domain_scale is not None:
             scale = domain_scale
-        elif labels == "exact":
+        elif labels in ("exact", "auto"):
             held = reach[np.isfinite(reach) & (reach <= MAX_DOMAIN_SCALE)]
             scale = float(max(2.0, 1.01 * held.max())) if held.size else 2.0
         else:
@@ -186,20 +368,7 @@ def phase1(system: System, design: Design, n_traj: int = 200, seed: int = 0, *, 
     else:
         raise RuntimeError(f"phase1: outputs keep growing into the past of {system.name!r} (|y| up to {y_past:.3g}); "
                            "lower domain_scale so that the past is frozen earlier")
-    frozen = n_in <= n_back
-    if frozen.any():
-        log.info("%d of %d backward runs left the domain; their past is frozen at the exit state",
-                 int(frozen.sum()), n_traj)
-    x_b = back.x[np.arange(n_traj), n_in - 1]
-    z_b = design.latent_equilibrium(system.h_batch(x_b))
-    n_total = n_back + n_keep
-    # A frozen past leaves a label error kappa exp(-lam t) |T_frozen - T| at time t after unfreezing.
-    # "exact": unfreeze at once, so every kept sample is t_b or more after it (error below tol too);
-    # "frozen": hold the exit state until the kept window starts at x0 (labels of the frozen plant).
-    gates = [np.ones(n_total) if labels == "exact" else np.r_[np.zeros(n_back - (k - 1)), np.ones(n_keep + k - 1)]
-             for k in n_in]
-    fwd = run(_latent_system(system, design), np.hstack([x_b, z_b]), gates, n_total * dt, dt)
-    return _kept(system, design, fwd, n_keep, n_traj)
+    return _Backward(n_back, n_in, n_in <= n_back, back.x[np.arange(n_traj), n_in - 1])
 
 
 def _chunked(progress: bool, label: str, chunk: int = 32):

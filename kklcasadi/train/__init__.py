@@ -36,13 +36,17 @@ from .config import (
     ObsStreamConfig,
     Phase1Config,
     Phase2DataConfig,
+    config_field,
     default_config,
+    has_field,
     with_epochs,
+    with_field,
 )
 from .result import Trained
 
-__all__ = ["train_observer", "default_config", "with_epochs", "LoopConfig", "Phase1Config", "Phase2DataConfig",
-           "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig", "DynStreamConfig", "Trained", "METHODS"]
+__all__ = ["train_observer", "default_config", "with_epochs", "config_field", "has_field", "with_field", "LoopConfig",
+           "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig",
+           "DynStreamConfig", "Trained", "METHODS"]
 
 #: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.model.variants`).
 METHODS = variants.trainable()
@@ -165,6 +169,8 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         design = Design(base_model.A, base_model.B)
     design = design or (Design.paper(plant) if plant.paper_design else Design.default(plant))
     workdir = out / ".train"
+    if progress:
+        print(f"training {method} for {plant.name!r} at dt = {dt:g} s into {out}", flush=True)
     torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
     t0 = time.perf_counter()
     trained: Trained = variant.load_trainer()(plant, design, base_model, config, dt=dt, seed=seed, device=device,
@@ -173,7 +179,8 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
                 "device": device}
     card = make_card(plant, trained.design, method, trained.spec, dt=dt, window=trained.window,
                      training=training, measurement_std=trained.measurement_std, domain=trained.domain,
-                     base=None if base_model is None else _base_reference(out, base_model))
+                     base=None if base_model is None else _base_reference(out, base_model),
+                     coverage=trained.coverage, process_std=config_field(config, "process_std"))
     path = save_model(out, trained.arrays, card, overwrite=overwrite or resume)
     if trained.histories:
         (out / "history.json").write_text(json.dumps(_jsonable(trained.histories)))

@@ -2,22 +2,24 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, is_dataclass, replace
 from typing import Any, Optional
 
 from ..model import variants
+from ..plant.data import LABEL_KINDS
 from ..validation import Text, error, finite_number, one_of, positive_int, positive_number
 
 __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig",
            "ObsStreamConfig", "DynStreamConfig", "with_epochs",
-           "default_config", "PAPER_WIDTH", "NEW_PLANT_PHASE1"]
+           "default_config", "config_field", "has_field", "with_field", "PAPER_WIDTH", "NEW_PLANT_PHASE1"]
 
 #: Hidden width of the encoder/decoder per system in the paper (150 or 350 units). The default here
 #: is 150 for every system: a 350-unit model costs 5x more per observer step (in CasADi's VM, 25 ms
 #: per RK4 step of a Roessler inject observer, 2 cores), which the benchmark has to pay 10^5 times.
 #: ``default_config(system, "autonomous", width=PAPER_WIDTH[system])`` gives the paper's size.
 PAPER_WIDTH = {"duffing": 150, "vdp": 150, "rossler": 350, "fhn": 350}
-#: Phase-1 label kind per system (see Phase1Config.labels).
+#: Phase-1 label kind per shipped system (see Phase1Config.labels); a plant kklcasadi does not ship gets
+#: ``"auto"`` (exact labels, or frozen ones where backward runs escape).
 LABELS = {"fhn": "cold"}
 #: Phase-1 budget of a plant kklcasadi does not ship (a first observer in about a minute on 2 cores):
 #: the damped pendulum of ``examples/own_plant.py`` trains Phase 1 + inject in 53 s here (2 cores shared
@@ -83,12 +85,23 @@ class Phase1Config:
         Hidden width and number of hidden layers of T and T*.
     n_traj, t_keep, box_scale
         Phase-1 data: trajectories from a Latin hypercube over the X0 box (scaled by ``box_scale``),
-        each labelled over ``t_keep`` seconds (:func:`kklcasadi.plant.data.phase1`).
-    labels : {"exact", "frozen", "cold"}
-        Phase-1 labels (:func:`kklcasadi.plant.data.phase1`): ``exact`` match the true map to the
-        tolerance; ``cold`` are the latents of a cold-started observer, for plants whose every
-        solution settles and whose backward flow escapes (FitzHugh-Nagumo), where exact labels
-        exist only at the equilibrium. With ``cold`` labels the PDE term is off (they do not solve it).
+        each labelled over ``t_keep`` seconds (:func:`kklcasadi.plant.data.phase1_labels`). The
+        budget is ``n_traj`` runs of ``t_keep`` seconds whatever the observer's sample time.
+    label_dt : float
+        Spacing of the labels along each run, seconds (its own setting, not the observer's ``dt``:
+        a 4 ms observer gets the labels, and the cost, of a 50 ms one).
+    labels : {"exact", "frozen", "forward", "cold", "auto"}
+        Phase-1 labels (:func:`kklcasadi.plant.data.phase1_labels`): ``exact`` match the true map to the
+        tolerance; ``frozen`` freeze the past where it leaves twice the box (exact wherever it stays
+        inside, and the labelled runs start at the sampled states); ``cold`` are the latents of a
+        cold-started observer, for plants whose every solution settles and whose backward flow
+        escapes (FitzHugh-Nagumo), where exact labels exist only at the equilibrium; ``forward``
+        those after a burn-in from the box (``burn_in_tol``); ``auto`` (plants kklcasadi does not
+        ship) exact labels, or frozen ones where backward runs escape. With ``cold`` and ``forward``
+        labels the PDE term is off (they do not solve it). Labels that do not cover the X0 box
+        (:class:`kklcasadi.plant.data.LabelReport`) are refused.
+    burn_in_tol : float
+        Relative accuracy of ``forward`` labels (sets their burn-in from the latent's slowest pole).
     n_pde : int
         Extra PDE collocation points over the (scaled) box.
     nu_pde : float
@@ -108,7 +121,9 @@ class Phase1Config:
     n_traj: int = 400
     t_keep: float = 10.0
     box_scale: float = 1.0
+    label_dt: float = 0.05
     labels: str = "exact"
+    burn_in_tol: float = 1e-3
     n_pde: int = 20000
     nu_pde: float = 0.1
     warmup_epochs: int = 5
@@ -118,15 +133,21 @@ class Phase1Config:
     encoder: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=1024, lr=2e-3))
     decoder: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=40, batch_size=1024, lr=2e-3))
 
+    def __post_init__(self) -> None:
+        positive_number(self.label_dt, "label_dt")
+        one_of(self.labels, "labels", LABEL_KINDS)
+        if not 0 < finite_number(self.burn_in_tol, "burn_in_tol") < 1:
+            raise error("burn_in_tol", "a number in (0, 1)", self.burn_in_tol)
+
     @classmethod
     def for_system(cls, system: str) -> Phase1Config:
-        """The defaults for ``system``: its label kind (:data:`LABELS`), and for a plant kklcasadi
-        does not ship the smaller budget :data:`NEW_PLANT_PHASE1`."""
-        config = cls(labels=LABELS.get(system, "exact"))
+        """The defaults for ``system``: its label kind (:data:`LABELS`; ``"auto"`` for a plant kklcasadi
+        does not ship), and for a plant kklcasadi does not ship the smaller budget :data:`NEW_PLANT_PHASE1`."""
         if system in PAPER_WIDTH:
-            return config
+            return cls(labels=LABELS.get(system, "exact"))
         budget = dict(NEW_PLANT_PHASE1)
-        return with_epochs(replace(config, **{k: budget.pop(k) for k in ("n_traj", "n_pde")}), budget["epochs"])
+        config = cls(labels="auto", **{k: budget.pop(k) for k in ("n_traj", "n_pde")})
+        return with_epochs(config, budget["epochs"])
 
 
 @dataclass(frozen=True)
@@ -268,3 +289,51 @@ def default_config(system: str, method: str, *, epochs: Optional[int] = None, **
     config = cls.for_system(system) if hasattr(cls, "for_system") else cls()
     config = replace(config, **overrides)
     return config if epochs is None else with_epochs(config, epochs)
+
+
+def _field_path(config: Any, name: str) -> Optional[tuple[str, ...]]:
+    """Where ``config`` holds the field ``name``: at the top, else in the one nested configuration that has it."""
+    if not is_dataclass(config) or isinstance(config, type):
+        return None
+    if name in {f.name for f in fields(config)}:
+        return (name,)
+    nested = [f.name for f in fields(config) if is_dataclass(getattr(config, f.name))
+              and name in {g.name for g in fields(getattr(config, f.name))}]
+    return (nested[0], name) if len(nested) == 1 else None
+
+
+def has_field(config: Any, name: str) -> bool:
+    """Whether a training configuration has the field ``name`` (as :func:`config_field` finds it)."""
+    return _field_path(config, name) is not None
+
+
+def config_field(config: Any, name: str) -> Any:
+    """The value of the field ``name`` of a training configuration, or None where it has none.
+
+    The field is looked up at the top level, else in the one nested configuration that holds it
+    (``BankConfig.rollouts.measurement_std``): so the command line's flags (``--measurement-std``,
+    ``--process-std``) reach a method's setting wherever its configuration keeps it.
+    """
+    path = _field_path(config, name)
+    if path is None:
+        return None
+    value = config
+    for part in path:
+        value = getattr(value, part)
+    return value
+
+
+def with_field(config: Any, name: str, value: Any) -> Any:
+    """``config`` with the field ``name`` (found as by :func:`config_field`) set to ``value``.
+
+    Raises
+    ------
+    TypeError
+        The configuration has no such field.
+    """
+    path = _field_path(config, name)
+    if path is None:
+        raise error(name, f"a field of {type(config).__name__}", Text("no such field"), kind=TypeError)
+    if len(path) == 1:
+        return replace(config, **{name: value})
+    return replace(config, **{path[0]: replace(getattr(config, path[0]), **{name: value})})

@@ -21,12 +21,14 @@ from ..nets.specs import DECODER, ENCODER
 from ..plant import data as kdata
 from ..plant.design import Design
 from ..plant.systems import System
+from ..validation import Text, error
 from .config import Phase1Config
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
 from .result import Trained
 
-__all__ = ["Phase1Result", "train_phase1", "train_autonomous", "pde_residual", "latent_noise_covariance"]
+__all__ = ["Phase1Result", "train_phase1", "train_autonomous", "pde_residual", "latent_noise_covariance",
+           "check_coverage"]
 
 Tensor = torch.Tensor
 
@@ -40,6 +42,23 @@ class Phase1Result:
     n_labelled: int
     n_pde: int
     domain: Domain
+    coverage: kdata.LabelReport
+
+
+def check_coverage(report: kdata.LabelReport, system: System) -> None:
+    """Refuse Phase-1 labels that do not cover the X0 box (:attr:`kklcasadi.plant.data.LabelReport.poor`).
+
+    Raises
+    ------
+    ValueError
+        One line: what the labels cover, and what to do instead.
+    """
+    if report.poor:
+        raise error("labels", f"Phase-1 labels covering the X0 box of {system.name!r} (each state >= "
+                    f"{100 * kdata.MIN_STATE_COVERAGE:.0f} % of its range, >= {100 * kdata.MIN_GRID_COVERAGE:.0f} % "
+                    "of the grid cells)", Text(report.summary()),
+                    "Use labels='auto' (frozen labels where backward runs escape) or 'frozen', more runs (n_traj), "
+                    "or the bank observer, which needs no Phase-1 labels (kklcasadi train --method bank).")
 
 
 def latent_noise_covariance(design: Design, measurement_std: float, dt: float) -> np.ndarray:
@@ -67,7 +86,9 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
     """Generate the Phase-1 data and train the encoder (stage A) and the decoder (stage B).
 
     With ``encoder`` given (a trained ``T``), stage A is skipped: only a new decoder is trained,
-    e.g. for another measurement-noise level.
+    e.g. for another measurement-noise level. The labels are spaced by ``config.label_dt``
+    whatever the observer's ``dt`` (which sets only the decoder's latent noise), and refused when
+    they do not cover the X0 box (:func:`check_coverage`).
 
     Returns
     -------
@@ -75,8 +96,12 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
         The trained float64 networks (on the CPU) and the fits' histories.
     """
     dtype = torch_dtype(config.dtype)
-    labelled = kdata.phase1(system, design, config.n_traj, seed, t_keep=config.t_keep, dt=dt,
-                            box_scale=config.box_scale, labels=config.labels, progress=progress)
+    labelled, coverage = kdata.phase1_labels(system, design, config.n_traj, seed, t_keep=config.t_keep,
+                                             dt=config.label_dt, box_scale=config.box_scale, labels=config.labels,
+                                             burn_in_tol=config.burn_in_tol, progress=progress)
+    if progress:
+        print(f"phase-1 labels: {coverage.summary()}", flush=True)
+    check_coverage(coverage, system)
     pde = kdata.pde_points(system, config.n_pde, seed + 1, box_scale=config.box_scale)
     n_lab, n_pde = len(labelled.x), len(pde.x)
     x = np.vstack([labelled.x, pde.x])
@@ -99,7 +124,8 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
         mask = batch["labelled"]
         mse = (((z - batch["z"]) / z_scale) ** 2 * mask).sum() / (mask.sum() * design.nz).clamp_min(1.0)
         pde_loss = ((res / z_scale) ** 2).mean()
-        nu = 0.0 if config.labels == "cold" else config.nu_pde * min(1.0, (epoch + 1) / max(config.warmup_epochs, 1))
+        nu = (0.0 if coverage.kind in ("cold", "forward")          # labels that do not solve the PDE
+              else config.nu_pde * min(1.0, (epoch + 1) / max(config.warmup_epochs, 1)))
         return mse + nu * pde_loss, {"mse": mse.item(), "pde": pde_loss.item()}
 
     ckpt = Path(workdir) if workdir is not None else None
@@ -142,7 +168,7 @@ def train_phase1(system: System, design: Design, config: Phase1Config, *, dt: fl
             torch.nn.utils.parametrize.remove_parametrizations(layer, "weight", leave_parametrized=True)
     decoder.requires_grad_(False)
     return Phase1Result(encoder.cpu().double(), decoder.cpu().double(), enc_fit, dec_fit, n_lab, n_pde,
-                        Domain.of(x_dec, z_all))
+                        Domain.of(x_dec, z_all), coverage)
 
 
 def train_autonomous(system: System, design: Design, base: Model | None, config: Phase1Config, *,
@@ -163,8 +189,9 @@ def train_autonomous(system: System, design: Design, base: Model | None, config:
                           workdir=workdir, resume=resume, encoder=encoder)
     arrays = {**result.encoder.to_arrays(ENCODER), **result.decoder.to_arrays(DECODER)}
     fits = {ENCODER: result.encoder_fit, DECODER: result.decoder_fit}
-    training = {"config": config, "data": {"labelled": result.n_labelled, "pde": result.n_pde},
+    training = {"config": config, "data": {"labelled": result.n_labelled, "pde": result.n_pde,
+                                           "labels": result.coverage.summary()},
                 **{k: (f.summary() if f is not None else "kept from the base model") for k, f in fits.items()}}
     return Trained(arrays, MapsSpec(result.encoder.spec, result.decoder.spec), design, training,
                    {k: f.history for k, f in fits.items() if f is not None},
-                   measurement_std=config.measurement_std, domain=result.domain)
+                   measurement_std=config.measurement_std, domain=result.domain, coverage=result.coverage)

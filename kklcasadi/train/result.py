@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from ..model.files import Domain
+from ..plant.data import LabelReport
 from ..plant.design import Design
 
 __all__ = ["Trained"]
@@ -33,6 +34,8 @@ class Trained:
         The noise level the decoder was fit for.
     domain : Domain or None
         Where the maps were trained (states and latents of the training data).
+    coverage : LabelReport or None
+        How the Phase-1 labels were made and how well they cover the box (methods with Phase-1 labels).
     """
 
     arrays: dict
@@ -43,3 +46,4 @@ class Trained:
     window: int = 1
     measurement_std: float = 0.0
     domain: Optional[Domain] = None
+    coverage: Optional[LabelReport] = None

@@ -41,7 +41,8 @@ The speed rewrites of CasADi's C live in :mod:`.kernels`, the C text in ``templa
 ``kkl_obs_main.c``
     An example program: reads ``t, y[0..ny-1], u[0..nu-1]`` per line from a CSV file (first
     argument) or stdin, and prints ``t, xhat[0..nx-1]`` per line, exactly as
-    :meth:`KKLObserver.simulate` computes them. Build it with
+    :meth:`KKLObserver.simulate` computes them. A time step other than the model's ``dt`` (to
+    1e-6 of it) stops it with the line number and exit status 1. Build it with
     ``gcc -std=c99 -O3 kkl_obs.c kkl_obs_main.c -lm -o kkl_obs`` (the ``flags`` of
     :func:`generate_c`, written into both C files).
 """

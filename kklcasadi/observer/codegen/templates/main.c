@@ -3,8 +3,11 @@
  * Usage: __NAME__ [samples.csv]      (reads stdin without an argument)
  * Each input line: t, y[0..NY-1], u[0..NU-1] (commas or blanks). A first line that is not
  * numeric (a header) and lines starting with '#' are skipped. Each output line: t, xhat[0..NX-1].
+ * The times must be spaced by the model's sample period __MACRO___DT (to 1e-6 of it): a line whose
+ * time step differs stops the run with its line number and exit status 1.
  * Build: __BUILD__
  */
+#include <float.h>
 #include <math.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -14,6 +17,8 @@
 
 #define NCOL (1 + __MACRO___NY + __MACRO___NU)
 #define LINE_LEN (64 * NCOL + 256)
+/* Largest accepted |t_k - t_k-1 - DT|: 1e-6 of DT, plus the rounding of the times themselves. */
+#define DT_TOL(t) (1e-6 * __MACRO___DT + 4.0 * DBL_EPSILON * fabs(t))
 
 static casadi_real z[__MACRO___NZ], z_next[__MACRO___NZ];
 static casadi_real win[__MACRO___NW], win_next[__MACRO___NW];
@@ -44,6 +49,7 @@ int main(int argc, char** argv) {
   char line[LINE_LEN];
   casadi_real values[NCOL];
   long k = 0, lineno = 0;
+  casadi_real t_prev = 0;
   int i, n;
   if (argc > 2) {
     fprintf(stderr, "usage: %s [samples.csv]\n", argv[0]);
@@ -74,6 +80,12 @@ int main(int argc, char** argv) {
         return 1;
       }
     }
+    if (k > 0 && fabs(values[0] - t_prev - __MACRO___DT) > DT_TOL(values[0])) {
+      fprintf(stderr, "line %ld (sample %ld): time step %.9g s from %.17g to %.17g, expected the model's dt = "
+              "%.17g s; resample the data at dt\n", lineno, k, values[0] - t_prev, t_prev, values[0], __MACRO___DT);
+      return 1;
+    }
+    t_prev = values[0];
     y = values + 1;
     u = values + 1 + __MACRO___NY;
     if (k == 0) {                 /* z_0 = 0, w_0 = init(y_0, u_0) */

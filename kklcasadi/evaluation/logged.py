@@ -1,0 +1,247 @@
+"""An observer (and the EKF) over a recorded log, in one call: ``kklcasadi estimate`` from Python.
+
+:func:`estimate_log` reads a CSV log onto the observer's grid (:func:`kklcasadi.plant.logs.read_log`:
+``y`` linear, angle columns unwrapped and moved onto the branch of the plant's box, ``u``
+zero-order hold), runs the observer from ``z = 0``, optionally the EKF beside it with the
+model's noise levels, and scores both against recorded states where the log has them (errors
+of angle states wrapped to ``(-pi, pi]``). :meth:`LogEstimate.write` writes the estimates, the
+domain flags and the EKF's estimates as CSV.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence, Union
+
+import numpy as np
+
+from .. import metrics
+from ..estimators.ekf import EKF
+from ..observer.kkl import KKLObserver
+from ..plant.logs import Log, read_log, write_estimates
+from ..plant.systems import System
+from ..validation import Text, error, nonnegative_number
+
+__all__ = ["LogEstimate", "estimate_log", "read_plant_log", "output_ranges", "ekf_for_model"]
+
+#: Samples of the X0 box at which :func:`output_ranges` evaluates ``h``.
+_RANGE_SAMPLES = 4096
+
+
+@dataclass(frozen=True, eq=False)
+class LogEstimate:
+    """An observer run over a log.
+
+    Attributes
+    ----------
+    log : Log
+        The log on the observer's grid.
+    t : numpy.ndarray, shape (N,)
+        Grid times, in the log's clock.
+    xhat : numpy.ndarray, shape (N, nx)
+        The observer's estimates (``z(0) = 0``).
+    z : numpy.ndarray, shape (N, nz)
+    in_domain : numpy.ndarray of bool, shape (N,), or None
+        The domain monitor (None when the model records no domain).
+    ekf : numpy.ndarray, shape (N, nx), or None
+        The EKF's estimates, when it ran.
+    ekf_noise : tuple of float or None
+        ``(process_std, measurement_std)`` of that EKF (:meth:`kklcasadi.EKF.for_noise`), None for an
+        EKF passed in or none.
+    reference : dict
+        ``{state index: column}``: the log's recorded states.
+    scores : dict
+        Per recorded state ``i``: ``{"column", "rmse", "rmse_ekf"}`` over ``t - t[0] >= settle``
+        (``rmse_ekf`` None without the EKF); wrapped errors for the plant's angle states.
+    settle : float
+        Seconds from the start left out of the scores.
+    """
+
+    log: Log
+    t: np.ndarray
+    xhat: np.ndarray
+    z: np.ndarray
+    in_domain: Optional[np.ndarray]
+    ekf: Optional[np.ndarray]
+    ekf_noise: Optional[tuple]
+    reference: dict
+    scores: dict
+    settle: float
+
+    def write(self, path: str | os.PathLike, *, state_names: Optional[Sequence[str]] = None) -> Path:
+        """Write ``time``, the estimates, ``in_domain`` (where recorded) and ``ekf_<state>`` columns (with
+        the EKF) as CSV, atomically (:func:`kklcasadi.plant.logs.write_estimates`).
+
+        Parameters
+        ----------
+        path : str or path-like
+        state_names : sequence of str, optional
+            Column names of the states; default ``x1 .. xn``.
+        """
+        nx = self.xhat.shape[1]
+        names = tuple(state_names) if state_names is not None else tuple(f"x{i + 1}" for i in range(nx))
+        extra = None if self.ekf is None else {f"ekf_{name}": self.ekf[:, i] for i, name in enumerate(names)}
+        return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain, extra=extra)
+
+    def table(self, state_names: Optional[Sequence[str]] = None) -> str:
+        """The scores as a few lines of text (one per recorded state)."""
+        if not self.scores:
+            return "no recorded states to score against (reference columns)"
+        lines = [f"RMSE for t >= {self.settle:g} s after the start (angle states wrapped):"]
+        for i, s in self.scores.items():
+            name = state_names[i] if state_names is not None else f"x{i + 1}"
+            ekf = "" if s["rmse_ekf"] is None else f"   EKF {s['rmse_ekf']:.4g}"
+            lines.append(f"  {name:<12s} against {s['column']!r}: KKL {s['rmse']:.4g}{ekf}")
+        return "\n".join(lines)
+
+
+def output_ranges(system: System) -> np.ndarray:
+    """The range of each output ``h(x)`` over the X0 box, (ny, 2): a Latin hypercube of the box and its corners."""
+    points = [system.sample_box(_RANGE_SAMPLES, 0)]
+    if system.nx <= 12:                                   # the 2^nx corners, where a monotone output peaks
+        points.append(np.array(list(itertools.product(*system.x0_box))))
+    y = system.h_batch(np.vstack(points))
+    return np.column_stack([y.min(axis=0), y.max(axis=0)])
+
+
+def _reference_columns(reference_cols: Sequence[Optional[str]], nx: int) -> dict:
+    if isinstance(reference_cols, str) or not isinstance(reference_cols, (list, tuple)):
+        raise error("reference_cols", "a sequence of nx column names (None for a state without one)",
+                    Text(type(reference_cols).__name__), kind=TypeError)
+    if reference_cols and len(reference_cols) != nx:
+        raise error("reference_cols", f"{nx} entries, one per state in order (None for a state the log does not "
+                    "record)", list(reference_cols))
+    return {i: name for i, name in enumerate(reference_cols) if name is not None}
+
+
+def read_plant_log(path: str | os.PathLike, observer: KKLObserver, *, time_col: str, y_cols: Sequence[str],
+                   u_cols: Sequence[str] = (), reference_cols: Sequence[Optional[str]] = (),
+                   angle_cols: Optional[Sequence[str]] = None, t0: Optional[float] = None,
+                   max_dt_ratio: float = 1.5) -> tuple[Log, dict]:
+    """A log on ``observer``'s grid, checked against its plant.
+
+    The outputs' plausible ranges are those of ``h`` over the plant's X0 box
+    (:func:`output_ranges`; a logged output far outside is an error naming its row and column, an
+    angle is moved onto the box's branch). Angle columns default to the ``y_cols`` of the plant's
+    ``angle_outputs`` and the ``reference_cols`` of its ``angle_states``.
+
+    Returns
+    -------
+    Log
+    dict
+        ``{state index: column}`` of the reference columns.
+    """
+    plant = observer.system
+    y_cols = tuple(y_cols)
+    if len(y_cols) != plant.ny:
+        raise error("y_cols", f"{plant.ny} columns (the outputs of {plant.name!r}, in order)", list(y_cols))
+    if u_cols and len(u_cols) != plant.nu:
+        raise error("u_cols", f"{plant.nu} columns (the inputs of {plant.name!r}, in order) or none (u = 0)",
+                    list(u_cols))
+    reference = _reference_columns(reference_cols, plant.nx)
+    extra = tuple(dict.fromkeys(name for name in reference.values() if name not in y_cols))  # others are y's
+    if angle_cols is None:
+        angle_cols = ([y_cols[j] for j in plant.angle_outputs]
+                      + [name for i, name in reference.items() if i in plant.angle_states and name in extra])
+    ranges = output_ranges(plant)
+    box = {name: tuple(ranges[j]) for j, name in enumerate(y_cols) if ranges[j, 1] > ranges[j, 0]}
+    log = read_log(path, time_col=time_col, y_cols=y_cols, u_cols=tuple(u_cols), reference_cols=extra,
+                   dt=observer.dt, angle_cols=tuple(dict.fromkeys(angle_cols)), t0=t0, max_dt_ratio=max_dt_ratio,
+                   box=box)
+    return log, reference
+
+
+def ekf_for_model(observer: KKLObserver, *, process_std: Optional[float] = None,
+                  measurement_std: Optional[float] = None) -> tuple[EKF, tuple]:
+    """The EKF for the model's noise (:meth:`kklcasadi.EKF.for_noise`): the card's levels unless given.
+
+    Raises
+    ------
+    ValueError
+        A level neither given nor recorded in the card (cards record ``process_std`` for methods
+        trained on noisy runs).
+    """
+    spec = observer.model.spec
+    if process_std is None:
+        if spec.process_std is None:
+            raise error("process_std", "the process-noise level of the EKF", Text("none given, and the card records "
+                        "none"), "Pass it (kklcasadi estimate --process-std).")
+        process_std = spec.process_std
+    if measurement_std is None:
+        if spec.measurement_std <= 0:
+            raise error("measurement_std", "the measurement-noise level of the EKF", Text("none given, and the card "
+                        "records 0"), "Pass it (kklcasadi estimate --measurement-std).")
+        measurement_std = spec.measurement_std
+    levels = (nonnegative_number(process_std, "process_std"), nonnegative_number(measurement_std, "measurement_std"))
+    return EKF.for_noise(observer.system, observer.dt, process_std=levels[0], measurement_std=levels[1]), levels
+
+
+def _recorded(log: Log, name: str) -> np.ndarray:
+    """The column ``name`` of a log on its grid, (N,): a reference column, or a measured output."""
+    for key, values in (("reference", log.reference), ("y", log.y)):
+        if name in log.columns[key]:
+            return values[:, log.columns[key].index(name)]
+    raise error("reference", f"columns of the log {list(log.columns['y'] + log.columns['reference'])}", name)
+
+
+def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, time_col: str = "time",
+                 y_cols: Sequence[str] = (), u_cols: Sequence[str] = (),
+                 reference_cols: Sequence[Optional[str]] = (), angle_cols: Optional[Sequence[str]] = None,
+                 ekf: Union[bool, EKF] = False, process_std: Optional[float] = None,
+                 measurement_std: Optional[float] = None, settle: float = 0.0,
+                 reference: Optional[dict] = None) -> LogEstimate:
+    """Run ``observer`` (and the EKF) over a recorded log and score it against recorded states.
+
+    Parameters
+    ----------
+    observer : KKLObserver
+    log : Log or path
+        A log already on the observer's grid (:func:`read_plant_log`; then ``reference`` maps
+        state indices to its reference columns), or a CSV file read with the column arguments.
+    time_col, y_cols, u_cols, angle_cols
+        See :func:`read_plant_log` (without ``u_cols`` the input is 0).
+    reference_cols : sequence of str or None
+        ``nx`` entries in state order: the column of each recorded state, None for the others (a
+        measured output's column may be one: the angles of a pendulum are states and outputs).
+    ekf : bool or EKF
+        Run an EKF beside the observer: True for :func:`ekf_for_model` (the card's noise levels,
+        or ``process_std``/``measurement_std``), or an :class:`~kklcasadi.EKF` to use as it is.
+    settle : float
+        Seconds from the start left out of the scores.
+
+    Returns
+    -------
+    LogEstimate
+    """
+    plant = observer.system
+    if isinstance(log, Log):
+        reference = {} if reference is None else dict(reference)
+        if log.y.shape[1] != plant.ny:
+            raise error("log", f"a log of {plant.ny} outputs", Text(f"{log.y.shape[1]} outputs"))
+    else:
+        log, reference = read_plant_log(log, observer, time_col=time_col, y_cols=y_cols, u_cols=u_cols,
+                                        reference_cols=reference_cols, angle_cols=angle_cols)
+    settle = nonnegative_number(settle, "settle")
+    u = log.u if log.u.shape[1] else np.zeros((log.t.size, plant.nu))
+    est = observer.simulate(log.t, log.y, u)
+    ekf_xhat, noise = None, None
+    if ekf is True:
+        ekf, noise = ekf_for_model(observer, process_std=process_std, measurement_std=measurement_std)
+    if isinstance(ekf, EKF):
+        ekf_xhat = ekf.simulate(log.t, log.y, u).xhat
+    elif ekf is not False:
+        raise error("ekf", "True, False or a kklcasadi.EKF", Text(type(ekf).__name__), kind=TypeError)
+    keep = log.t - log.t[0] >= settle
+    if reference and not keep.any():
+        raise error("settle", f"less than the log's {log.t[-1] - log.t[0]:.6g} s", settle)
+    scores = {}
+    for i, name in reference.items():
+        recorded = _recorded(log, name)[keep, None]
+        wrap = (0,) if i in plant.angle_states else ()
+        scores[i] = {"column": name, "rmse": float(metrics.rmse(recorded, est.xhat[keep, i:i + 1], angles=wrap)),
+                     "rmse_ekf": None if ekf_xhat is None else float(metrics.rmse(recorded, ekf_xhat[keep, i:i + 1],
+                                                                                  angles=wrap))}
+    return LogEstimate(log, log.t, est.xhat, est.z, est.in_domain, ekf_xhat, noise, reference, scores, settle)

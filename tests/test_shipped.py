@@ -1,0 +1,61 @@
+"""The shipped models' one lookup: the package's _models (a link to models/ in the tree, package data when
+installed), found from any directory; a user's models elsewhere are not shipped."""
+
+import configparser
+import fnmatch
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from kklcasadi.model import shipped
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_package_reaches_the_models_of_the_tree():
+    assert (ROOT / "kklcasadi" / "_models").is_symlink()
+    assert shipped.SHIPPED_ROOT == (ROOT / "models").resolve()
+    cards = sorted(ROOT.glob("models/*/*/card.json"))
+    assert len(cards) >= 4
+    listing = shipped.shipped()
+    assert sum(len(methods) for methods in listing.values()) == len(cards)
+    assert shipped.is_shipped(ROOT / "models" / "duffing" / "bank")
+
+
+def test_the_package_data_holds_every_shipped_card_and_weights_file():
+    config = configparser.ConfigParser()
+    config.read(ROOT / "setup.cfg")
+    patterns = [p.strip() for p in config["options.package_data"]["kklcasadi"].replace("\n", ",").split(",")
+                if p.strip()]
+    files = [f"_models/{p.relative_to(ROOT / 'models')}" for p in (ROOT / "models").glob("*/*/*")
+             if p.name in ("card.json", "weights.npz")]
+    assert files and all(any(fnmatch.fnmatch(f, pattern) for pattern in patterns) for f in files)
+
+
+def test_a_copy_elsewhere_is_the_users_model(tmp_path):
+    copy = tmp_path / "models" / "duffing" / "bank"
+    shutil.copytree(ROOT / "models" / "duffing" / "bank", copy)
+    assert not shipped.is_shipped(copy)
+
+
+def test_an_installed_package_finds_its_models_from_any_directory(tmp_path):
+    """The layout pip install . writes: kklcasadi/_models/<system>/<method>/ holding real files."""
+    site = tmp_path / "site"
+    shutil.copytree(ROOT / "kklcasadi", site / "kklcasadi", symlinks=True,
+                    ignore=shutil.ignore_patterns("__pycache__", "_models"))
+    for name in ("card.json", "weights.npz"):
+        target = site / "kklcasadi" / "_models" / "duffing" / "bank" / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(ROOT / "models" / "duffing" / "bank" / name, target)
+    elsewhere = tmp_path / "work"
+    (elsewhere / "models" / "duffing" / "mine").mkdir(parents=True)      # a user's ./models is not listed
+    shutil.copyfile(ROOT / "models" / "duffing" / "bank" / "card.json", elsewhere / "models" / "duffing" / "mine" /
+                    "card.json")
+    code = ("import kklcasadi.model.shipped as s\n"
+            "print(s.SHIPPED_ROOT)\nprint(s.shipped())\nprint(s.shipped_model('duffing', 'bank'))\n"
+            "print(s.is_shipped(s.shipped_model('duffing', 'bank')))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=elsewhere, capture_output=True, text=True, check=True,
+                         env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}).stdout.splitlines()
+    assert out == [str((site / "kklcasadi" / "_models").resolve()), "{'duffing': ['bank']}",
+                   str(site / "kklcasadi" / "_models" / "duffing" / "bank"), "True"]
