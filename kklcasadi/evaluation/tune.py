@@ -532,8 +532,15 @@ def _public_url(url: str) -> str:
     return make_url(url).render_as_string(hide_password=True)
 
 
+def _driver_url(url: str) -> str:
+    """A bare ``postgresql://`` URL with the driver the tune extra installs (psycopg 3), which SQLAlchemy
+    before 2.1 does not take by default."""
+    return "postgresql+psycopg://" + url[len("postgresql://"):] if url.startswith("postgresql://") else url
+
+
 def _storage(url: str, heartbeat: int) -> Any:
     optuna = _optuna()
+    url = _driver_url(url)
     engine = {"connect_args": {"timeout": 60}} if url.startswith("sqlite") else {"pool_pre_ping": True}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -612,7 +619,8 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
         score in the study (once per study).
     copy_from : str, optional
         A storage URL to copy the study from before joining it (e.g. a local SQLite study that is
-        to continue on PostgreSQL); nothing is copied when the study already exists in ``storage``.
+        to continue on PostgreSQL); nothing is copied when the study already exists in ``storage``
+        (several workers may be started with it: one copies, the others join).
     sampler_seed : int, optional
         Seed of this worker's TPE sampler (default: none; workers must not share one).
     progress : bool
@@ -639,7 +647,10 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
     optuna.logging.set_verbosity(optuna.logging.INFO if progress else optuna.logging.WARNING)
     storage_obj = _storage(url, heartbeat)
     if copy_from and name not in optuna.get_all_study_names(storage_obj):
-        optuna.copy_study(from_study_name=name, from_storage=copy_from, to_storage=storage_obj)
+        try:
+            optuna.copy_study(from_study_name=name, from_storage=_driver_url(copy_from), to_storage=storage_obj)
+        except optuna.exceptions.DuplicatedStudyError:
+            pass                          # another worker started with --copy-from copied it first: join it
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         sampler = optuna.samplers.TPESampler(seed=sampler_seed, multivariate=True, group=True, constant_liar=True,
