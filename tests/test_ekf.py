@@ -86,9 +86,10 @@ def _tanh_plant():
 
 
 @pytest.mark.skipif(__import__("shutil").which("gcc") is None, reason="gcc is not installed")
-@pytest.mark.parametrize("plant,math", [("duffing", "libm"), ("duffing", "vector"), ("tanh3", "libm"),
-                                        ("tanh3", "vector")])
-def test_ekf_c_step_is_the_vm_step(tmp_path, plant, math):
+@pytest.mark.parametrize("plant,math,form", [("duffing", "libm", "sx"), ("duffing", "vector", "dense"),
+                                             ("tanh3", "libm", "sx"), ("tanh3", "vector", "sx"),
+                                             ("tanh3", "libm", "dense"), ("tanh3", "vector", "dense")])
+def test_ekf_c_step_is_the_vm_step(tmp_path, plant, math, form):
     import subprocess
 
     import casadi as ca
@@ -97,15 +98,18 @@ def test_ekf_c_step_is_the_vm_step(tmp_path, plant, math):
 
     s = kc.systems.get(plant) if plant == "duffing" else _tanh_plant()
     ekf = EKF(s, 0.05)
-    files = ekf.generate_c(tmp_path, "filt", math=math)
+    files = ekf.generate_c(tmp_path, "filt", math=math, form=form)
+    source = files[0].read_text()
     assert [f.name for f in files] == ["filt.c", "filt.h"] and f"#define FILT_NS {s.nx + s.nx ** 2}\n" in \
         files[1].read_text()
-    assert ("kklc_tanh(" in files[0].read_text()) == (plant == "tanh3" and math == "vector")    # the rewrites ran
+    assert ("kklc_tanh(" in source) == (plant == "tanh3" and math == "vector")      # the rewrites ran
+    assert ("kklc_mv_" in source) == (form == "dense")                              # the axpy kernels
     library = tmp_path / "libfilt.so"
     build = subprocess.run(["gcc", *C_FLAGS, "-Wall", "-Wextra", "-Werror", "-fPIC", "-shared", str(files[0]), "-o",
                             str(library), "-lm"], capture_output=True, text=True)
     assert build.returncode == 0, build.stderr
     step, start = ca.external("filt_step", str(library)), ca.external("filt_start", str(library))
+    vm = ekf.step_of(form)
     tr = kc.simulate(s, [0.5, -0.3] + [0.2] * (s.nx - 2), sig.make("sinusoid", amplitude=0.8, omega=1.3), T=5.0,
                      dt=0.05, process_std=0.1, measurement_std=0.1, seed=2)
     reference = ekf.simulate(tr.t, tr.y, tr.u).xhat
@@ -115,13 +119,15 @@ def test_ekf_c_step_is_the_vm_step(tmp_path, plant, math):
     for k in range(len(tr.t) - 1):
         uy = np.concatenate([tr.u[k], tr.y[k + 1]])
         c_next = np.array(step(state, uy)).ravel()
-        vm_next = np.array(ekf.step(state, uy)).ravel()                       # one step from the same state
+        vm_next = np.array(vm(state, uy)).ravel()                       # one step of the VM from the same state
         assert np.all(np.abs(c_next - vm_next) <= tol * (1 + np.abs(vm_next)))
         state = c_next
         xhat.append(state[:s.nx])
-    if tol == 0.0:                                                               # bitwise the whole run
+    if tol == 0.0 and form == "sx":                                        # bitwise the whole run of simulate
         np.testing.assert_array_equal(np.array(xhat), reference)
-    else:
-        np.testing.assert_allclose(np.array(xhat), reference, rtol=1e-11, atol=1e-11)
+    else:                                                                  # the dense form: rounding apart
+        np.testing.assert_allclose(np.array(xhat), reference, rtol=1e-10, atol=1e-10)
     with pytest.raises(FileExistsError):
         ekf.generate_c(tmp_path, "filt")
+    with pytest.raises(ValueError, match="form: expected one of"):
+        ekf.step_of("sparse")

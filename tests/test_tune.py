@@ -157,6 +157,8 @@ def _running_trial_of(study_name: str, out: Path, pid: int, timeout: float = 60)
 def test_two_workers_one_killed_mid_trial_is_retried_and_the_study_resumes(tmp_path):
     out = tmp_path / "study"
     url = tn.storage_url(None, out)
+    out.mkdir()
+    optuna.storages.RDBStorage(url)          # Optuna's tables first (workers that create them at once can clash)
     a, b = _worker(out, 3, 1), _worker(out, 3, 2)
     try:
         killed = _running_trial_of("duffing-bank", out, a.pid)

@@ -20,9 +20,12 @@ import numpy as np
 from ..observer.codegen import DEFAULT_FLAGS, casadi_source, check_c_name, check_flags, renamed
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
-from ..validation import Text, error, positive_number
+from ..validation import Text, error, one_of, positive_number
 
-__all__ = ["EKF", "EKFEstimate"]
+__all__ = ["EKF", "EKFEstimate", "EKF_FORMS"]
+
+#: Forms of the EKF step (:meth:`EKF.step_of`, :meth:`EKF.generate_c`).
+EKF_FORMS = ("sx", "dense")
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,6 +101,34 @@ class EKF:
         y0 = ca.MX.sym("y0", ny)
         xs0, Ps0 = self.update(ca.DM(self.x0), ca.DM(self.P0), y0)
         self.start = ca.Function("ekf_start", [y0], [ca.vertcat(xs0, ca.vec(Ps0))], ["y0"], ["s0"])
+        # the same step with the covariance algebra as dense matrix products (see generate_c's form)
+        self._rk4 = ca.Function("ekf_rk4", [x, u], [x_next, ca.densify(F)], ["x", "u"], ["x_next", "F"])
+        self._measure = ca.Function("ekf_measure", [x], [system.h(x), ca.densify(H)], ["x"], ["y", "H"])
+
+    def _dense_step(self) -> ca.Function:
+        """:attr:`step` with ``P`` propagated and updated by dense matrix products (MX ``mtimes``, which the
+        C code makes axpy kernels): the same filter, summed in another order."""
+        nx, ny, nu = self.system.nx, self.system.ny, self.system.nu
+        s, uy = ca.MX.sym("s", nx + nx * nx), ca.MX.sym("uy", nu + ny)
+        x_pred, F = self._rk4(s[:nx], uy[:nu])
+        P_pred = ca.mtimes(ca.mtimes(F, ca.reshape(s[nx:], nx, nx)), F.T) + ca.DM(self.Q)
+        h, H = self._measure(x_pred)
+        PHt = ca.mtimes(P_pred, H.T)
+        K = ca.mtimes(PHt, ca.inv(ca.mtimes(H, PHt) + ca.DM(self.R)))
+        I_KH = ca.DM.eye(nx) - ca.mtimes(K, H)
+        P_upd = ca.mtimes(ca.mtimes(I_KH, P_pred), I_KH.T) + ca.mtimes(ca.mtimes(K, ca.DM(self.R)), K.T)
+        x_upd = x_pred + ca.mtimes(K, uy[nu:] - h)
+        return ca.Function("ekf_step_dense", [s, uy], [ca.vertcat(x_upd, ca.vec(P_upd))], ["s", "uy"], ["s_next"])
+
+    def step_of(self, form: str = "sx") -> ca.Function:
+        """The filter step ``(s, uy) -> s_next`` (see :meth:`generate_c`) in ``form``.
+
+        ``"sx"``: :attr:`step`, the one :meth:`simulate` runs (CasADi SX scalar code: sparse
+        Jacobians exploited, one straight-line C function); ``"dense"``: the covariance algebra as
+        dense matrix products, about ``4 nx^3`` multiply-adds in short loops, equal to :attr:`step`
+        to rounding (the summation order differs).
+        """
+        return self.step if one_of(form, "form", EKF_FORMS) == "sx" else self._dense_step()
 
     @staticmethod
     def _matrix(value: object, shape: tuple[int, int], arg: str) -> np.ndarray:
@@ -108,16 +139,20 @@ class EKF:
             raise error(arg, "a symmetric positive semi-definite matrix", m.tolist())
         return m
 
-    def generate_c(self, out_dir: Union[str, os.PathLike], name: str = "ekf", *, overwrite: bool = False,
-                   matvec: str = "axpy", math: str = "vector", dispatch: bool = True,
+    def generate_c(self, out_dir: Union[str, os.PathLike], name: str = "ekf", *, form: str = "sx",
+                   overwrite: bool = False, matvec: str = "axpy", math: str = "vector", dispatch: bool = True,
                    flags: Sequence[str] = DEFAULT_FLAGS) -> list[Path]:
         """Write the filter step as C99: ``name.c`` and ``name.h``.
 
-        The code is CasADi's code generation of :attr:`step` and :attr:`start` with the rewrites of
-        :func:`kklcasadi.generate_c` (its ``matvec``, ``math``, ``dispatch`` and ``flags`` mean
-        the same here): with ``math="libm"`` the C step is bitwise the CasADi VM's, with the
-        default ``"vector"`` within :data:`kklcasadi.observer.codegen.VECTOR_MATH_TOLERANCE` (the
-        same where the plant has no ``exp``/``tanh``). No dynamic allocation.
+        The code is CasADi's code generation of :meth:`step_of` ``(form)`` and :attr:`start` with
+        the rewrites of :func:`kklcasadi.generate_c` (its ``matvec``, ``math``, ``dispatch`` and
+        ``flags`` mean the same here): with ``math="libm"`` the C step is bitwise the CasADi VM's
+        of that form, with the default ``"vector"`` within
+        :data:`kklcasadi.observer.codegen.VECTOR_MATH_TOLERANCE` (the same where the plant has no
+        ``exp``/``tanh``). No dynamic allocation. ``form="sx"`` (default) is the step
+        :meth:`simulate` runs, one straight-line function: the fewest operations, but its source
+        grows about like ``nx^3`` (1.2 MB at nx = 32, where ``gcc -O2`` takes minutes); ``"dense"``
+        is a few loops at every size (the axpy kernels), faster from a few tens of states on.
 
         ``name_start(arg: y_0) -> res: s_0`` and ``name_step(arg: s_k, uy_k) -> res: s_k+1``, with the
         state ``s = [xhat (NX); vec(P) (NX*NX, column-major)]`` and ``uy_k = [u_k; y_k+1]``: the
@@ -148,7 +183,7 @@ class EKF:
         if existing and not overwrite:
             raise FileExistsError(f"{existing[0]}: already exists; pass overwrite=True to replace it, or choose "
                                   "another out_dir or name.")
-        functions = [renamed(self.step, f"{name}_step"), renamed(self.start, f"{name}_start")]
+        functions = [renamed(self.step_of(form), f"{name}_step"), renamed(self.start, f"{name}_start")]
         source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch)
         nx, macro = self.system.nx, name.upper()
         defines = {"NX": nx, "NU": self.system.nu, "NY": self.system.ny, "NS": nx + nx * nx, **sizes}
