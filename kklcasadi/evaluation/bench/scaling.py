@@ -365,7 +365,7 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
     with tempfile.TemporaryDirectory() as tmp:
         # a first, untimed training: torch's and CasADi's one-off start-up costs stay out of the first size
         train_observer(oscillator_chain(1), "bank", Path(tmp) / "warm-up",
-                       config=_bank_config(oscillator_chain(1), 4, 1, T), progress=False, threads=threads)
+                       config=_bank_config(oscillator_chain(1), 8, 1, 50.0), progress=False, threads=threads)
         for n in sizes:
             plant = oscillator_chain(n)
             work = Path(tmp) / plant.name
