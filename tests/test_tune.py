@@ -40,17 +40,17 @@ def test_every_space_names_fields_of_its_default_config(method):
 def test_bank_space_sets_the_fields_it_names():
     space = tn.search_space("bank", system="duffing", caps={"runs": 40, "epochs": 6})
     params = {"y_filters_n": 3, "y_filters_slow": 0.1, "y_filters_span": 100.0, "u_filters_n": 0, "clock_on": False,
-              "decoder_width": 64, "decoder_depth": 2, "noise": 0.07, "lr": 2e-3, "runs": 12, "epochs": 5}
+              "decoder_width": 64, "decoder_depth": 2, "noise": 0.07, "lr": 2e-3, "runs": 24, "epochs": 5}
     config = space.suggest(optuna.trial.FixedTrial(params))
     np.testing.assert_allclose(config.y_poles, [0.1, 1.0, 10.0], rtol=1e-12)
     assert config.u_poles == () and config.clock is None and config.decoder.hidden == (64, 64)
     assert config.rollouts.measurement_std == config.rollouts.process_std == 0.07
-    assert (config.rollouts.n_traj, config.decoder.loop.epochs, config.decoder.loop.lr) == (12, 5, 2e-3)
+    assert (config.rollouts.n_traj, config.decoder.loop.epochs, config.decoder.loop.lr) == (24, 5, 2e-3)
     base = space.baseline()
     assert (base.rollouts.n_traj, base.decoder.loop.epochs) == (40, 6)
     assert replace(base, rollouts=space.base.rollouts, decoder=space.base.decoder) == space.base
     runs = next(d for d in space.dims if d.name == "runs")
-    assert (runs.low, runs.high, runs.log) == (10, 40, True)
+    assert (runs.low, runs.high, runs.log) == (20, 40, True)
 
 
 def test_a_renamed_field_names_the_table_to_update(monkeypatch):
@@ -114,9 +114,18 @@ def test_a_bad_search_entry_names_the_field(model_dir_factory, entry, match):
         model_dir_factory("bank", card_extra={"search": entry})
 
 
+def test_the_command_line_errors_are_one_line(tmp_path, capsys):
+    from kklcasadi.cli import main
+
+    assert main(["tune", "--trials", "1", "--out", str(tmp_path)]) == 2
+    assert capsys.readouterr().err.startswith("error: --system/--plant: give exactly one")
+    assert main(["tune", "--system", "duffing", "--method", "obs", "--trials", "1", "--out", str(tmp_path)]) == 2
+    assert "error: --method obs: expected the Phase-1 model 'obs' builds on" in capsys.readouterr().err
+
+
 # -- a real study: worker processes on one SQLite file -------------------------------------------------
 
-#: Tiny budgets: 8-32 runs of 50 s, 1-3 epochs, 4 validation trials per cell (a trial takes 1-3 s).
+#: Tiny budgets: 16-32 runs of 50 s, 2-3 epochs, 4 validation trials per cell (a trial takes 1-3 s).
 TINY = ["--system", "duffing", "--runs", "32", "--epochs", "3", "--val-trials", "4", "--heartbeat", "1", "--quiet"]
 
 

@@ -43,6 +43,7 @@ import numpy as np
 
 from .. import metrics
 from ..estimators.ekf import EKF
+from ..model import variants
 from ..model.files import Search, load_model, save_model
 from ..observer.kkl import KKLObserver, load_observer
 from ..plant import signals as sig
@@ -197,7 +198,7 @@ class Budget:
 
     name: str
     paths: Union[str, tuple]
-    fraction: float = 0.25
+    fraction: float = 0.5
 
     def resolve(self, cap: int) -> Int:
         cap = positive_int(cap, f"{self.name} budget")
@@ -640,6 +641,9 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
     name = study or f"{system.name}-{method}"
     url = storage_url(storage, out)
     space = search_space(method, config, system=system.name, caps=caps)
+    if base is None and variants.get(method).needs_base:
+        raise error("base", f"the Phase-1 model {method!r} builds on (every worker's trials share it)", None,
+                    "Train it once first: kklcasadi train --method autonomous --out DIR, then pass --base DIR.")
     base_path = None if base is None else Path(base).resolve()
     validation = Validation.build(system, validation_cells(space.base, n_trials=val_trials),
                                   trials=TrialCache(out / "cache"))
