@@ -394,8 +394,9 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
                              1e3 * float(np.mean(run.stats.solve_time[:, mhe_horizon:])), run.stats.n_failed,
                              smape_obs, smape_ekf)
             rows.append(row)
-            if progress:
-                print(ScalingResult([row]).table().split("\n\n")[0], flush=True)
+            if progress:                    # the header with the first row, then a row per size
+                lines = ScalingResult([row]).table().split("\n\n")[0].splitlines()
+                print("\n".join(lines if len(rows) == 1 else lines[2:]), flush=True)
     result = ScalingResult(rows, {"runs": runs, "epochs": epochs, "T": T, "trials": trials, "mhe_steps": mhe_steps,
                                   "mhe_horizon": mhe_horizon, "flags": list(flags), "ekf_flags": list(ekf_flags)})
     if out is not None:
