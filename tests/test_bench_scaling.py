@@ -2,6 +2,7 @@
 loops against the CasADi VM (they run the step they time), the growth fits on known power laws, and
 one tiny run end to end."""
 
+import json
 import shutil
 import subprocess
 
@@ -108,3 +109,5 @@ def test_a_tiny_scaling_run(tmp_path):
     assert row.observer_work == 12 * (12 + 2 + 1 + 1) + 14 * 256 + 2 * 256 * 256 + 256 * 2     # the recipe's decoder
     assert 0 < row.smape_observer and 0 < row.smape_ekf and row.simulated_s == 8 * 20.0
     assert (tmp_path / "scaling.png").stat().st_size > 0 and "| 2 | 1 | 12 |" in (tmp_path / "scaling.md").read_text()
+    saved = json.loads((tmp_path / "scaling.json").read_text())
+    assert sc.ScalingRow(**saved["rows"][0]) == row and saved["settings"]["runs"] == 8
