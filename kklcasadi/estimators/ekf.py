@@ -151,8 +151,9 @@ class EKF:
         :data:`kklcasadi.observer.codegen.VECTOR_MATH_TOLERANCE` (the same where the plant has no
         ``exp``/``tanh``). No dynamic allocation. ``form="sx"`` (default) is the step
         :meth:`simulate` runs, one straight-line function: the fewest operations, but its source
-        grows about like ``nx^3`` (1.2 MB at nx = 32, where ``gcc -O2`` takes minutes); ``"dense"``
-        is a few loops at every size (the axpy kernels), faster from a few tens of states on.
+        grows faster than ``nx^2`` (1.2 MB at nx = 32, where ``gcc -O3`` takes over a minute and
+        ``-O1`` 8 s); ``"dense"`` is a few loops at every size (the axpy kernels), 2.4x faster at
+        nx = 64 (``kklcasadi bench scaling``).
 
         ``name_start(arg: y_0) -> res: s_0`` and ``name_step(arg: s_k, uy_k) -> res: s_k+1``, with the
         state ``s = [xhat (NX); vec(P) (NX*NX, column-major)]`` and ``uy_k = [u_k; y_k+1]``: the
