@@ -143,7 +143,8 @@ def _finish(proc: subprocess.Popen, timeout: float = 120) -> str:
 
 
 def _running_trial_of(study_name: str, out: Path, pid: int, timeout: float = 60):
-    """The trial that worker ``pid`` is running, once its objective has started (its heartbeat is on)."""
+    """The trial that worker ``pid`` is running, once it trains: its objective has started (so its
+    heartbeat is on) and drawn its last parameter (``epochs``)."""
     worker = f"{socket.gethostname()}:{pid}"
     url = tn.storage_url(None, out)
     deadline = time.monotonic() + timeout
@@ -157,7 +158,7 @@ def _running_trial_of(study_name: str, out: Path, pid: int, timeout: float = 60)
             time.sleep(0.1)
             continue
         for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
-            if trial.user_attrs.get("worker") == worker:
+            if trial.user_attrs.get("worker") == worker and "epochs" in trial.params:
                 return trial
         time.sleep(0.05)
     pytest.fail(f"worker {pid} started no trial within {timeout} s")
