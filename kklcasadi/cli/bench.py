@@ -39,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "libm)")
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
     b.add_argument("--threads", type=positive_int,
-                   help="training benchmarks: torch CPU threads; protocol benchmark: worker threads over trials")
+                   help="training and scaling benchmarks: torch CPU threads; protocol benchmark: worker threads over "
+                        "trials")
     b.set_defaults(func=run)
 
 
