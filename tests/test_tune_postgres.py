@@ -83,9 +83,10 @@ def postgres():
 def test_a_sqlite_study_continues_on_postgresql_with_two_workers(tmp_path, postgres):
     local, sqlite_url = tmp_path / "here", f"sqlite:///{tmp_path / 'here' / 'study.db'}"
     settings = dict(caps={"runs": 32, "epochs": 3}, val_trials=4, heartbeat=1, sampler_seed=1, progress=False)
-    tn.tune(get("duffing"), "bank", local, n_trials=1, **settings)        # a trial on this machine's SQLite file
+    assert tn.tune(get("duffing"), "bank", local, n_trials=1, **settings).ran == 1     # on this machine's SQLite
     # the first worker on a new server alone (it creates Optuna's tables): it copies the study, which is complete
-    tn.tune(get("duffing"), "bank", local, n_trials=1, storage=postgres, copy_from=sqlite_url, **settings)
+    copied = tn.tune(get("duffing"), "bank", local, n_trials=1, storage=postgres, copy_from=sqlite_url, **settings)
+    assert copied.ran == 0 and len(copied.study.trials) == 1
     workers = [_worker(tmp_path / f"w{i}", 3, 10 + i, "--storage", postgres) for i in range(2)]   # then two join
     for proc in workers:
         _finish(proc)

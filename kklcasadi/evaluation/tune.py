@@ -61,7 +61,7 @@ PathLike = Union[str, os.PathLike]
 
 #: Seed of the validation trials (the protocol's scored trials use 2026; training runs their own).
 VALIDATION_SEED = 7
-#: Trials of a retried trial: a trial that was killed this many times is not queued again.
+#: How often a killed trial is queued again (Optuna's ``RetryHeartbeatStaleTrialCallback(max_retry)``).
 MAX_RETRY = 2
 #: Directory names under the study's ``--out``.
 TRIALS_DIR, BEST_DIR, BASELINE_DIR = "trials", "best", "baseline"
@@ -552,7 +552,8 @@ def _storage(url: str, heartbeat: int) -> Any:
 
 @dataclass(frozen=True, eq=False)
 class TuneResult:
-    """What :func:`tune` did: the study, its best trial and where things were written."""
+    """What :func:`tune` did: the study, where the best model, the summary and the plot were written,
+    and how many trials this worker ran."""
 
     study: Any
     best_dir: Optional[Path]
@@ -668,7 +669,10 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
         value, cells = score(load_observer(path, system=system), validation)
         the_study.set_user_attr("baseline", {"value": value, "cells": cells, "train_s": round(seconds, 1)})
 
+    started: list[int] = []                       # the trials this worker starts
+
     def objective(trial: Any) -> float:
+        started.append(trial.number)
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
         path = out / TRIALS_DIR / f"{trial.number:04d}"
         seconds = _train(system, method, space.suggest(trial), path, base=base_path, seed=seed, threads=threads)
@@ -688,7 +692,7 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
     summary = out / "summary.md"
     summary.write_text(summary_table(the_study, url) + "\n")
     plot = search_plot(the_study, out / "search.png")
-    return TuneResult(the_study, best_dir, summary, plot, max(todo, 0))
+    return TuneResult(the_study, best_dir, summary, plot, len(started))
 
 
 def _check_record(study: Any, record: dict, name: str) -> None:
