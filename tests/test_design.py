@@ -231,3 +231,33 @@ def test_linear_labels_match_the_sylvester_solution(n, ny, which):
 
 def test_min_margin_is_far_below_the_default_designs_and_far_above_rounding():
     assert 1e3 * np.finfo(float).eps < MIN_MARGIN < 1e-5
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_the_filter_bank_margin_is_the_svd_margin(seed):
+    """Diagonal A, one output per latent (Design.from_poles, .default): the secular-equation path
+    gives the general path's margin, eigenvalue and least reachable direction, also with a repeated
+    pole, an undriven latent or a barely driven one."""
+    from kklcasadi.plant import design as dz
+
+    rng = np.random.default_rng(seed)
+    nz, ny = int(rng.integers(1, 25)), int(rng.integers(1, 4))
+    rates = rng.uniform(0.1, 10.0, nz)
+    if seed % 4 == 1 and nz > 2:
+        rates[1] = rates[0]
+    B = np.zeros((nz, ny))
+    B[np.arange(nz), rng.integers(0, ny, nz)] = rates * rng.uniform(0.5, 2.0, nz)
+    if seed % 5 == 2:
+        B[rng.integers(nz)] = 0.0
+    if seed % 7 == 3:
+        B[0][B[0] != 0] = 1e-9
+    A = -np.diag(rates)
+    assert dz._filter_bank(A, B)
+    margin, lam, multiplicity, w = dz._pbh_filters(A, B)
+    scale = np.linalg.norm(np.hstack([A, B]), 2)
+    svd = [np.linalg.svd(np.hstack([A - a * np.eye(nz), B]), compute_uv=False)[-1] / scale for a in np.diag(A)]
+    assert margin == pytest.approx(min(svd), rel=1e-9, abs=1e-15)
+    assert svd[int(np.argmin(np.abs(np.diag(A) - lam.real)))] == pytest.approx(min(svd), rel=1e-9, abs=1e-15)
+    reached = np.linalg.norm(w @ np.hstack([A - lam.real * np.eye(nz), B])) / scale
+    assert np.linalg.norm(w) == pytest.approx(1.0) and reached == pytest.approx(margin, rel=1e-7, abs=1e-14)
+    assert multiplicity == np.sum(np.abs(np.diag(A) - lam.real) <= 1e-4 * np.abs(A).max())

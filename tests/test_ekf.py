@@ -74,3 +74,60 @@ def test_ekf_bad_input():
         EKF(s, 0.05, Q=np.eye(3))
     with pytest.raises(ValueError, match="t: expected samples spaced by dt = 0.05"):
         ekf.simulate(t * 2, np.zeros((10, 1)), np.zeros((10, 1)))
+
+
+def _tanh_plant():
+    """A plant with exp and tanh in f (so the vector math rewrites apply) and two outputs."""
+    import casadi as ca
+
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u")
+    xdot = [x[1], -x[0] - 0.2 * x[1] + ca.tanh(u + x[2]), -0.5 * x[2] + 0.1 * ca.exp(-x[0] ** 2)]
+    return kc.System("tanh3", x, u, xdot, ca.vertcat(x[0], x[2]), [[-1, 1]] * 3)
+
+
+@pytest.mark.skipif(__import__("shutil").which("gcc") is None, reason="gcc is not installed")
+@pytest.mark.parametrize("plant,math,form", [("duffing", "libm", "sx"), ("duffing", "vector", "dense"),
+                                             ("tanh3", "libm", "sx"), ("tanh3", "vector", "sx"),
+                                             ("tanh3", "libm", "dense"), ("tanh3", "vector", "dense")])
+def test_ekf_c_step_is_the_vm_step(tmp_path, plant, math, form):
+    import subprocess
+
+    import casadi as ca
+
+    from kklcasadi.observer.codegen import C_FLAGS, VECTOR_MATH_TOLERANCE
+
+    s = kc.systems.get(plant) if plant == "duffing" else _tanh_plant()
+    ekf = EKF(s, 0.05)
+    files = ekf.generate_c(tmp_path, "filt", math=math, form=form)
+    source = files[0].read_text()
+    assert [f.name for f in files] == ["filt.c", "filt.h"] and f"#define FILT_NS {s.nx + s.nx ** 2}\n" in \
+        files[1].read_text()
+    assert ("kklc_tanh(" in source) == (plant == "tanh3" and math == "vector")      # the rewrites ran
+    assert ("kklc_mv_" in source) == (form == "dense")                              # the axpy kernels
+    library = tmp_path / "libfilt.so"
+    build = subprocess.run(["gcc", *C_FLAGS, "-Wall", "-Wextra", "-Werror", "-fPIC", "-shared", str(files[0]), "-o",
+                            str(library), "-lm"], capture_output=True, text=True)
+    assert build.returncode == 0, build.stderr
+    step, start = ca.external("filt_step", str(library)), ca.external("filt_start", str(library))
+    vm = ekf.step_of(form)
+    tr = kc.simulate(s, [0.5, -0.3] + [0.2] * (s.nx - 2), sig.make("sinusoid", amplitude=0.8, omega=1.3), T=5.0,
+                     dt=0.05, process_std=0.1, measurement_std=0.1, seed=2)
+    reference = ekf.simulate(tr.t, tr.y, tr.u).xhat
+    state = np.array(start(tr.y[0])).ravel()
+    xhat = [state[:s.nx]]
+    tol = 0.0 if math == "libm" or plant == "duffing" else VECTOR_MATH_TOLERANCE
+    for k in range(len(tr.t) - 1):
+        uy = np.concatenate([tr.u[k], tr.y[k + 1]])
+        c_next = np.array(step(state, uy)).ravel()
+        vm_next = np.array(vm(state, uy)).ravel()                       # one step of the VM from the same state
+        assert np.all(np.abs(c_next - vm_next) <= tol * (1 + np.abs(vm_next)))
+        state = c_next
+        xhat.append(state[:s.nx])
+    if tol == 0.0 and form == "sx":                                        # bitwise the whole run of simulate
+        np.testing.assert_array_equal(np.array(xhat), reference)
+    else:                                                                  # the dense form: rounding apart
+        np.testing.assert_allclose(np.array(xhat), reference, rtol=1e-10, atol=1e-10)
+    with pytest.raises(FileExistsError):
+        ekf.generate_c(tmp_path, "filt")
+    with pytest.raises(ValueError, match="form: expected one of"):
+        ekf.step_of("sparse")

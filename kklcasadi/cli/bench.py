@@ -11,12 +11,22 @@ from .flags import CommandError, flagged, needs_torch, positive_int, shipped
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     b = sub.add_parser("bench", help="speed benchmarks, each against its alternative in the same run")
-    b.add_argument("what", nargs="?", default="all", choices=("all", "simulation", "observer", "training", "protocol"))
+    b.add_argument("what", nargs="?", default="all",
+                   choices=("all", "simulation", "observer", "training", "protocol", "scaling"),
+                   help="which benchmark ('all' is every one but scaling, which trains an observer per size)")
     b.add_argument("--system", default="duffing", choices=systems.names())
     b.add_argument("--model", help="model directory for the observer benchmark")
     b.add_argument("--models", nargs="+", help="protocol benchmark: model directories (default: the shipped ones)")
     b.add_argument("--trials", type=positive_int,
-                   help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100)")
+                   help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100), "
+                        "scaling benchmark's accuracy (default 10)")
+    b.add_argument("--sizes", type=positive_int, nargs="+", default=[1, 2, 4, 8, 16, 32],
+                   help="scaling benchmark: chain lengths n, nx = 2n (default 1 2 4 8 16 32)")
+    b.add_argument("--runs", type=positive_int, default=200,
+                   help="scaling benchmark: training runs of the observer (default 200)")
+    b.add_argument("--epochs", type=positive_int, default=10,
+                   help="scaling benchmark: training epochs of the observer (default 10)")
+    b.add_argument("--out", help="scaling benchmark: where to write scaling.md and scaling.png")
     b.add_argument("--vm-trials", type=positive_int, default=4,
                    help="protocol benchmark: trials per cell also run in the CasADi VM (default 4)")
     b.add_argument("--no-ekf", action="store_true", help="protocol benchmark: leave the EKF out")
@@ -29,7 +39,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "libm)")
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
     b.add_argument("--threads", type=positive_int,
-                   help="training benchmarks: torch CPU threads; protocol benchmark: worker threads over trials")
+                   help="training and scaling benchmarks: torch CPU threads; protocol benchmark: worker threads over "
+                        "trials")
     b.set_defaults(func=run)
 
 
@@ -47,8 +58,16 @@ def _compiler(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.bench.simulation import bench_simulation
 
-    if args.what in ("observer", "training"):
-        needs_torch(f"kklcasadi bench {args.what} (it times torch beside CasADi)")
+    if args.what in ("observer", "training", "scaling"):
+        needs_torch(f"kklcasadi bench {args.what} (it times torch beside CasADi, or trains)")
+    if args.what == "scaling":
+        from ..evaluation.bench.scaling import bench_scaling
+
+        print("== the cost as the plant grows: chains of coupled oscillators ==")
+        result = flagged("--sizes", bench_scaling, args.sizes, runs=args.runs, epochs=args.epochs,
+                         trials=args.trials or 10, threads=args.threads or 1, out=args.out)
+        print(result.table())
+        return 0
     if args.what in ("all", "simulation"):
         print("== data generation: trajectories per second ==")
         bench_simulation(args.system, n_trials=args.trials or 32)

@@ -12,7 +12,7 @@ One meaning per flag name across commands:
 ``--measurement-std``, ``--process-std`` noise standard deviations: of a run, of the training data
                        where the method uses them, and of the EKF/MHE beside the observer
 ``--dt SECONDS``       the sample time (train: the observer's; evaluate, compare: the protocol's)
-``--trials N``         trials (per benchmark cell where there are cells)
+``--trials N``         how many trials the command runs (the benchmark: per cell; tune: design trials)
 ``--kinds``            input regimes of the benchmark
 ``--seed``             the seed of what the command draws
 ``--out``              where the command writes

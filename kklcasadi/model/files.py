@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from ..plant.systems import System
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "WEIGHTS_FILE", "CARD_FILE", "Model", "ModelSpec",
-           "SystemSpec", "BaseRef", "Domain", "load_model", "save_model", "make_card", "derive_model",
+           "SystemSpec", "BaseRef", "Domain", "Search", "load_model", "save_model", "make_card", "derive_model",
            "parse_card", "model_array_shapes"]
 
 FORMAT = "kklcasadi.model"
@@ -110,6 +110,45 @@ class Domain:
         return {k: np.asarray(getattr(self, k)).tolist() for k in ("x_lo", "x_hi", "z_lo", "z_hi")}
 
 
+@dataclass(frozen=True, eq=False)
+class Search:
+    """The design search a model was chosen by (``kklcasadi tune``): card entry ``"search"``.
+
+    Attributes
+    ----------
+    study, storage : str
+        The Optuna study's name and its storage URL (password hidden).
+    trial : int
+        The number of the trial whose configuration this model was trained with.
+    value : float
+        Its validation score (lower is better; ``objective`` says what it is).
+    params : dict
+        The trial's parameters (Optuna names, JSON values).
+    space : list of dict
+        The search space: one entry per dimension, each with at least ``name``.
+    objective : dict
+        What the score is and the validation cells it was measured on.
+    baseline : float or None
+        The hand-made recipe's score on the same validation cells, where it was measured.
+    """
+
+    study: str
+    storage: str
+    trial: int
+    value: float
+    params: dict
+    space: list
+    objective: dict
+    baseline: Optional[float] = None
+
+    def to_card(self) -> dict:
+        """The card entry."""
+        return {"study": self.study, "storage": self.storage, "trial": int(self.trial), "value": float(self.value),
+                "params": dict(self.params), "space": [dict(d) for d in self.space],
+                "objective": dict(self.objective),
+                "baseline": None if self.baseline is None else float(self.baseline)}
+
+
 @dataclass(frozen=True)
 class BaseRef:
     """The model a model was built on: ``path`` relative to the model directory, and its SHA-256."""
@@ -145,6 +184,8 @@ class ModelSpec:
         without Phase-1 labels and in cards written before coverage was recorded).
     process_std : float or None
         The process-noise level the training data had, where the method uses one (None: not recorded).
+    search : Search or None
+        The design search the model was chosen by (``kklcasadi tune``), where it was.
     """
 
     method: str
@@ -159,6 +200,7 @@ class ModelSpec:
     domain: Optional[Domain] = None
     coverage: Optional[LabelReport] = None
     process_std: Optional[float] = None
+    search: Optional[Search] = None
 
     @property
     def variant(self) -> variants.Variant:
@@ -293,11 +335,12 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
     spec = variant.parse(card, variants.Sizes(nx, nu, ny, a.shape[0]), where)
     domain = _domain(card.get("domain"), nx, a.shape[0], where)
     coverage = _coverage(card.get("coverage"), nx, where)
+    search = _search(card.get("search"), where)
     for matrix in (a, b):
         matrix.setflags(write=False)
     return ModelSpec(card["method"], SystemSpec(system["name"], nx, nu, ny, fingerprint), a, b, float(card["dt"]),
                      window, spec, base, float(noise["measurement_std"]), domain, coverage,
-                     None if process_std is None else float(process_std))
+                     None if process_std is None else float(process_std), search)
 
 
 _COVERAGE_KEYS = ("labels", "runs", "escaped", "burn_in", "per_state", "grid", "cells_per_axis")
@@ -328,6 +371,46 @@ def _coverage(entry: Any, nx: int, where: str) -> Optional[LabelReport]:
         raise field_error(where, "coverage.grid", "a number in [0, 1]", entry["grid"], fix)
     return LabelReport(entry["labels"], int(entry["runs"]), int(entry["escaped"]), float(entry["burn_in"]),
                        tuple(float(v) for v in per_state), float(entry["grid"]), int(entry["cells_per_axis"]))
+
+
+def _finite(value: Any) -> bool:
+    return is_number(value) and math.isfinite(value)
+
+
+def _search(entry: Any, where: str) -> Optional[Search]:
+    if entry is None:
+        return None
+    keys = ("study", "storage", "trial", "value", "params", "space", "objective", "baseline")
+    fix = ('Write "search" as {"study": str, "storage": str, "trial": int >= 0, "value": number, "params": {...}, '
+           '"space": [{"name": str, ...}, ...], "objective": {...}, "baseline": number or null} (kklcasadi tune '
+           'writes it), or remove it.')
+    if not isinstance(entry, Mapping) or set(entry) != set(keys):
+        found = sorted(entry) if isinstance(entry, Mapping) else entry
+        raise field_error(where, "search", f"an object with exactly the keys {list(keys)}", found, fix)
+    for key in ("study", "storage"):
+        if not isinstance(entry[key], str) or (key == "study" and not entry[key]):
+            raise field_error(where, f"search.{key}", "a non-empty string" if key == "study" else "a string",
+                              entry[key], fix)
+    if not is_int(entry["trial"]) or entry["trial"] < 0:
+        raise field_error(where, "search.trial", "an integer >= 0 (the Optuna trial number)", entry["trial"], fix)
+    if not _finite(entry["value"]):
+        raise field_error(where, "search.value", "a finite number", entry["value"], fix)
+    if entry["baseline"] is not None and not _finite(entry["baseline"]):
+        raise field_error(where, "search.baseline", "null or a finite number", entry["baseline"], fix)
+    params = entry["params"]
+    if not isinstance(params, Mapping) or not all(
+            value is None or isinstance(value, (str, bool)) or _finite(value) for value in params.values()):
+        raise field_error(where, "search.params", "an object of finite numbers, strings, booleans or nulls",
+                          params, fix)
+    space = entry["space"]
+    if (not isinstance(space, list) or not space
+            or not all(isinstance(d, Mapping) and isinstance(d.get("name"), str) for d in space)):
+        raise field_error(where, "search.space", "a non-empty list of objects, each with a string 'name'", space, fix)
+    if not isinstance(entry["objective"], Mapping):
+        raise field_error(where, "search.objective", "an object", entry["objective"], fix)
+    return Search(entry["study"], entry["storage"], int(entry["trial"]), float(entry["value"]), dict(params),
+                  [dict(d) for d in space], dict(entry["objective"]),
+                  None if entry["baseline"] is None else float(entry["baseline"]))
 
 
 def _domain(entry: Any, nx: int, nz: int, where: str) -> Optional[Domain]:
@@ -366,7 +449,7 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
               window: int = 1, training: Optional[Mapping[str, Any]] = None,
               base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0,
               domain: Optional[Domain] = None, coverage: Optional[LabelReport] = None,
-              process_std: Optional[float] = None) -> dict:
+              process_std: Optional[float] = None, search: Optional[Search] = None) -> dict:
     """The card of a model: the one way training, :func:`derive_model` and tests write one.
 
     Parameters
@@ -396,6 +479,8 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
         How the Phase-1 labels were made and how well they cover the box.
     process_std : float, optional
         The process-noise level of the training data, where the method uses one.
+    search : Search, optional
+        The design search the model was chosen by (``kklcasadi tune``).
 
     Returns
     -------
@@ -414,7 +499,8 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
                       **({} if process_std is None else {"process_std": float(process_std)})},
             "training": dict(training or {}), **variant.card_entries(spec),
             **({} if domain is None else {"domain": domain.to_card()}),
-            **({} if coverage is None else {"coverage": coverage.to_card()})}
+            **({} if coverage is None else {"coverage": coverage.to_card()}),
+            **({} if search is None else {"search": search.to_card()})}
 
 
 @dataclass(frozen=True)

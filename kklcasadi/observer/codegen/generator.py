@@ -61,7 +61,8 @@ from ...validation import one_of
 from ..kkl import DOMAIN_MARGIN, KKLObserver
 from .kernels import rewrite, template
 
-__all__ = ["generate_c", "check_c_name", "check_flags", "C_FLAGS", "DEFAULT_FLAGS", "NATIVE_FLAGS", "MATVECS", "MATHS"]
+__all__ = ["generate_c", "casadi_source", "renamed", "check_c_name", "check_flags", "C_FLAGS", "DEFAULT_FLAGS",
+           "NATIVE_FLAGS", "MATVECS", "MATHS"]
 
 #: The warning flags the generated code is tested with, at -O2 (it is also tested at
 #: ``DEFAULT_FLAGS`` with the same warnings).
@@ -104,7 +105,7 @@ def check_c_name(name: object) -> str:
     return name
 
 
-def _renamed(f: ca.Function, name: str, symbol: type = ca.MX) -> ca.Function:
+def renamed(f: ca.Function, name: str, symbol: type = ca.MX) -> ca.Function:
     """``f`` under another name (a thin wrapper of ``symbol`` type, same inputs and outputs)."""
     args = [symbol.sym(f.name_in(i), f.sparsity_in(i)) for i in range(f.n_in())]
     return ca.Function(name, args, f.call(args), f.name_in(), f.name_out())
@@ -203,6 +204,47 @@ def check_flags(flags: object) -> tuple[str, ...]:
     return tuple(flags)
 
 
+def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = "axpy", math: str = "vector",
+                  dispatch: bool = True) -> tuple[str, str, dict[str, int]]:
+    """The C of CasADi Functions as :func:`generate_c` writes it: CasADi's code generation, the
+    rewrites of :mod:`.kernels` and the ``#pragma`` lines that let it compile with ``-Wall -Wextra
+    -Werror`` (the EKF's :meth:`~kklcasadi.estimators.ekf.EKF.generate_c` uses it too).
+
+    Parameters
+    ----------
+    functions : sequence of casadi.Function
+        Named as their C symbols are to be (``name_step``, ...).
+    name : str
+        The C file's name (``name.c``), a C identifier.
+    matvec, math, dispatch
+        As for :func:`generate_c`.
+
+    Returns
+    -------
+    source : str
+        The C source.
+    casadi_header : str
+        CasADi's header of it (declarations and the ``<function>_SZ_*`` work-size macros).
+    sizes : dict
+        The largest work sizes over the functions: ``SZ_ARG``, ``SZ_RES``, ``SZ_IW``, ``SZ_W``.
+    """
+    name = check_c_name(name)
+    matvec = one_of(matvec, "matvec", MATVECS)
+    math = one_of(math, "math", MATHS)
+    if not isinstance(dispatch, bool):
+        raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
+    generator = ca.CodeGenerator(f"{name}.c", {"with_header": True, "casadi_real": "double"})
+    for f in functions:
+        generator.add(f)
+    with tempfile.TemporaryDirectory() as tmp:
+        generator.generate(tmp + os.sep)
+        source = (Path(tmp) / f"{name}.c").read_text()
+        casadi_header = (Path(tmp) / f"{name}.h").read_text()
+    source = rewrite(source, matvec == "axpy", math == "vector", dispatch)
+    return (f"{template('pragma_push')}{source}{template('pragma_pop')}", casadi_header,
+            _work_sizes(casadi_header, [f.name() for f in functions]))
+
+
 def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
                *, overwrite: bool = False, matvec: str = "axpy", math: str = "vector",
                dispatch: bool = True, flags: Sequence[str] = DEFAULT_FLAGS) -> list[Path]:
@@ -278,25 +320,17 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         raise FileExistsError(f"{existing[0]}: already exists; pass overwrite=True to replace "
                               "it, or choose another out_dir or name.")
 
-    functions = [_renamed(observer.step, f"{name}_step"), _renamed(observer.decode, f"{name}_decode"),
+    functions = [renamed(observer.step, f"{name}_step"), renamed(observer.decode, f"{name}_decode"),
                  # the start only, once: as SX, so that it has no nested calls (gcc's -Wdangling-pointer)
-                 _renamed(observer.memory_init, f"{name}_init", ca.SX)]
+                 renamed(observer.memory_init, f"{name}_init", ca.SX)]
     if observer.domain_check is not None:          # the domain monitor, where the card records a domain
-        functions.append(_renamed(observer.domain_check, f"{name}_in_domain"))
-    generator = ca.CodeGenerator(f"{name}.c", {"with_header": True, "casadi_real": "double"})
-    for f in functions:
-        generator.add(f)
-    with tempfile.TemporaryDirectory() as tmp:
-        generator.generate(tmp + os.sep)
-        source = (Path(tmp) / f"{name}.c").read_text()
-        casadi_header = (Path(tmp) / f"{name}.h").read_text()
-    source = rewrite(source, matvec == "axpy", math == "vector", dispatch)
+        functions.append(renamed(observer.domain_check, f"{name}_in_domain"))
+    source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch)
     build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
 
     out.mkdir(parents=True, exist_ok=True)
     paths[0].write_text(f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h."
-                        f" */\n{template('pragma_push')}{source}{template('pragma_pop')}")
-    sizes = _work_sizes(casadi_header, [f.name() for f in functions])
+                        f" */\n{source}")
     paths[1].write_text(_header(observer, name, casadi_header, sizes, build, matvec,
                                 math, dispatch))
     paths[2].write_text(template("main").replace("__BUILD__", build).replace("__NAME__", name)
