@@ -1,13 +1,18 @@
-"""``kklcasadi evaluate``: score model directories (and the EKF, the MHE) on the docs/protocol.md cells.
+"""``kklcasadi evaluate``: score model directories (and the EKF, the particle filter, the MHE) on the
+docs/protocol.md cells.
 
-Trials come from the on-disk trial cache (simulated once per cell); observers and the EKF run as
-compiled trajectories mapped over the trials, with the vectorised exp/tanh (within 1e-14 of the
-VM; ``--math libm``: bitwise the VM; ``--vm``: the CasADi VM itself).
+Trials come from the on-disk trial cache (simulated once per cell, while the C compiler builds the
+estimators); observers, the EKF and the particle filter run as compiled code mapped over the trials
+on threads, with the vectorised exp/tanh (within 1e-14 of the VM; ``--math libm``: bitwise the VM;
+``--vm``: the CasADi VM itself). An observer sees the noise-free and noisy cells of a regime in one
+call, so that the work its inputs alone decide is done once for both (the same scores).
+``--profile`` prints where the time went.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -28,6 +33,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_kinds(e)
     e.add_argument("--regime", default="id", choices=sig.REGIMES)
     e.add_argument("--ekf", action="store_true", help="add the EKF baseline")
+    e.add_argument("--pf", type=positive_int, metavar="N",
+                   help="add the bootstrap particle filter with N particles (row 'PF N=...'; the protocol's noise "
+                   "levels, 4 RK4 steps per sample on fhn and rossler). Noisy cells only: the noise-free cells are "
+                   "skipped (its likelihood needs measurement noise)")
     e.add_argument("--mhe", nargs="+", type=positive_int, metavar="N",
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
     e.add_argument("--seed", type=int, default=2026)
@@ -41,32 +50,39 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--math", default="vector", choices=("vector", "libm"),
                    help="exp/tanh of the compiled observers: vectorised, within 1e-14 of the VM (default), or the C "
                    "library's, bitwise the VM")
-    e.add_argument("--threads", type=positive_int, help="worker threads over trials (default: the CPU count)")
+    e.add_argument("--threads", type=positive_int, help="worker threads over trials and C compilers at a time "
+                   "(default: the CPU count)")
+    e.add_argument("--profile", action="store_true", help="print where the time went (compile, simulate or read "
+                   "the trials, estimate, score: wall and CPU seconds) and the machine's load")
     e.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..estimators.ekf import EKF
-    from ..evaluation.compiled import Compiler, ekf_estimator, observer_estimator
-    from ..evaluation.protocol import Protocol
+    from ..estimators.pf import SUBSTEPS
+    from ..evaluation.compiled import Compiler, ekf_estimator, observer_estimator, pf_estimator, precompile
+    from ..evaluation.protocol import Profile, Protocol
     from ..evaluation.report import markdown_table, save_scores, score, smape_boxplot
     from ..evaluation.trialcache import TrialCache, cache_root
     from ..observer.codegen import axpy_matvec, fast_kernels
 
+    wall, cpu, load_start = time.perf_counter(), time.process_time(), os.getloadavg()
     if args.labels is not None and len(args.labels) != len(args.models):
         raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
                            f"received {len(args.labels)}")
     protocol = Protocol(n_trials=args.trials, seed=args.seed, regime=args.regime)
     noise = NOISE[args.noise]
+    if args.pf and True not in noise:
+        raise CommandError("--pf: the particle filter runs on the noisy cells only; pass --noise on or both")
     kinds = tuple(args.kinds)
     root = Path(args.cache_dir) if args.cache_dir else cache_root()
     trials = TrialCache(None if args.no_cache else root / "trials")
     kernels = {"vector": fast_kernels, "libm": axpy_matvec}[args.math]
     compiler = None if args.vm else Compiler(cache_dir=root / "compiled", postprocess=kernels)
+    profile = Profile() if args.profile else None
     print(f"trials: {'simulated, not cached' if trials.directory is None else trials.directory}; observers: "
           f"{'CasADi VM' if compiler is None else 'compiled (' + str(compiler.directory) + ')'}", file=sys.stderr)
-    scores = []
-    plant, own_plant = None, plant_of(args)
+    rows, plant, own_plant = [], None, plant_of(args)
     for i, model in enumerate(args.models):
         obs = load(model, own_plant, "MODELS")
         if plant is not None and obs.system.fingerprint != plant.fingerprint:
@@ -74,19 +90,37 @@ def run(args: argparse.Namespace) -> int:
                                f"after models for {plant.name!r}")
         plant = obs.system
         label = args.labels[i] if args.labels else Path(model).resolve().name
-        estimator = observer_estimator(obs, compiler=compiler, n_threads=args.threads)
+        rows.append((label, observer_estimator(obs, compiler=compiler, n_threads=args.threads, profile=profile)))
+    if args.ekf:
+        rows.append(("EKF", ekf_estimator(EKF(plant, protocol.dt), compiler=compiler, n_threads=args.threads,
+                                          profile=profile)))
+    cells = [(protocol if noisy else protocol.noise_free()).cell(kind) for noisy in noise for kind in kinds]
+    samples = cells[0].shape()[1]
+
+    def read_trials() -> None:
+        for cell in cells:
+            stored = trials.directory is not None and trials.path(plant, cell).exists()
+            with _phase(profile, "read" if stored else "simulate"):
+                trials.trials(plant, cell)
+
+    precompile([est for _, est in rows], samples, groups=(len(noise),), jobs=args.threads, meanwhile=read_trials)
+    scores = []
+    for label, estimator in rows:
         t0 = time.perf_counter()
         scores.append(score(label, estimator, plant, protocol, noise=noise, kinds=kinds, trials=trials,
-                            progress=True))
+                            progress=True, profile=profile))
         print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    if args.pf:
+        t0 = time.perf_counter()
+        with _phase(profile, "compile"):
+            pf = pf_estimator(plant, protocol.dt, compiler=compiler, n_threads=args.threads, n_particles=args.pf,
+                              process_std=protocol.process_std, measurement_std=protocol.measurement_std,
+                              substeps=SUBSTEPS.get(plant.name, 1), seed=protocol.seed)
+        scores.append(score(f"PF N={args.pf}", pf, plant, protocol, noise=(True,), kinds=kinds, trials=trials,
+                            progress=True, profile=profile))
+        print(f"PF N={args.pf}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     for horizon in args.mhe or ():
         scores.append(_mhe_scores(horizon, plant, protocol, noise, kinds, trials))
-    if args.ekf:
-        estimator = ekf_estimator(EKF(plant, protocol.dt), compiler=compiler, n_threads=args.threads)
-        t0 = time.perf_counter()
-        scores.append(score("EKF", estimator, plant, protocol, noise=noise, kinds=kinds, trials=trials,
-                            progress=True))
-        print(f"EKF: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     print(markdown_table(scores, kinds))
     if args.out:
         out = Path(args.out)
@@ -97,7 +131,21 @@ def run(args: argparse.Namespace) -> int:
                           kinds=kinds)
         (out / f"{plant.name}_table.md").write_text(markdown_table(scores, kinds) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
+    if profile is not None:
+        children = os.times()
+        print(f"\nwhere the time went ({os.cpu_count()} CPUs; load average {load_start[0]:.2f} at the start, "
+              f"{os.getloadavg()[0]:.2f} at the end; CPU: this process, its threads and the C compiler):",
+              file=sys.stderr)
+        print(profile.table(time.perf_counter() - wall,
+                            time.process_time() - cpu + children.children_user + children.children_system),
+              file=sys.stderr)
     return 0
+
+
+def _phase(profile: Any, name: str) -> Any:
+    from contextlib import nullcontext
+
+    return nullcontext() if profile is None else profile.phase(name)
 
 
 def _mhe_scores(horizon: int, plant: System, protocol: Any, noise: tuple, kinds: tuple, trials: Any) -> Any:

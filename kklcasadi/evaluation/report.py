@@ -16,7 +16,7 @@ from tqdm.auto import tqdm
 
 from ..plant import signals as sig
 from ..plant.systems import System
-from .protocol import BatchEstimator, CellResult, Protocol, evaluate
+from .protocol import BatchEstimator, CellResult, Profile, Protocol, evaluate_cells
 from .trialcache import TrialCache
 
 __all__ = ["MethodScores", "score", "markdown_table", "smape_boxplot", "trajectory_plot", "save_scores"]
@@ -41,8 +41,14 @@ class MethodScores:
 
 def score(label: str, estimator: BatchEstimator, system: System, protocol: Protocol, *,
           noise: Sequence[bool] = (False, True), kinds: Sequence[str] = sig.BENCHMARK_KINDS,
-          trials: TrialCache | None = None, progress: bool = False) -> MethodScores:
+          trials: TrialCache | None = None, progress: bool = False,
+          profile: Profile | None = None) -> MethodScores:
     """Evaluate ``estimator`` on the noise-free and/or noisy protocol.
+
+    An estimator whose ``shares_inputs`` is True (a
+    :class:`~kklcasadi.evaluation.compiled.CompiledEstimator` that does the work of trials with the
+    same inputs once) gets the noise-free and noisy cells of a regime in one call (they share their
+    inputs); any other gets one call per cell. The scores are the same either way.
 
     Parameters
     ----------
@@ -61,19 +67,26 @@ def score(label: str, estimator: BatchEstimator, system: System, protocol: Proto
         The cells' trials, shared across methods and runs (default: simulated for this call).
     progress : bool
         A progress bar over the cells, labelled ``label``.
+    profile : Profile, optional
+        Records where the time goes (:func:`kklcasadi.evaluation.protocol.evaluate_cells`).
 
     Returns
     -------
     MethodScores
     """
     trials = TrialCache(None) if trials is None else trials
+    cells = {(noisy, kind): (protocol if noisy else protocol.noise_free()).cell(kind)
+             for noisy in noise for kind in kinds}
+    together = getattr(estimator, "shares_inputs", False)
+    calls = ([[(noisy, kind) for noisy in noise] for kind in kinds] if together
+             else [[key] for key in cells])
     results = {}
-    cells = [(noisy, kind) for noisy in noise for kind in kinds]
-    for noisy, kind in tqdm(cells, desc=label, unit="cell", disable=not progress):
-        prot = protocol if noisy else protocol.noise_free()
-        (result,) = evaluate(estimator, system, prot, (kind,), trials=trials)
-        results[(noisy, kind)] = result
-    return MethodScores(label, system.name, results)
+    with tqdm(total=len(cells), desc=label, unit="cell", disable=not progress) as bar:
+        for keys in calls:
+            scored = evaluate_cells(estimator, system, [cells[key] for key in keys], trials=trials, profile=profile)
+            results.update(zip(keys, scored))
+            bar.update(len(keys))
+    return MethodScores(label, system.name, {key: results[key] for key in cells})
 
 
 def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BENCHMARK_KINDS, *,
