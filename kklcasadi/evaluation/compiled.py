@@ -348,50 +348,63 @@ def _holds_shared_work(f: ca.Function, tainted_in: Sequence[bool]) -> bool:
     return False
 
 
-def _outputs_of_calls(nodes: Sequence[ca.MX]) -> dict[int, list[ca.MX]]:
-    found: dict[int, list[ca.MX]] = {}
-    for node in nodes:
+def _replace_outputs(outputs: list[ca.MX],
+                     replacement: Callable[[ca.MX, list[ca.MX]], Optional[list[ca.MX]]]) -> list[ca.MX]:
+    """``outputs`` with the outputs of some calls replaced, in the order of the graph.
+
+    ``replacement(output, args)`` gives the new expression of a call's ``output`` node (or None to
+    keep it), from the call's arguments ``args`` in which the outputs replaced before are replaced.
+    """
+    old: list[ca.MX] = []
+    new: list[ca.MX] = []
+    for node in _nodes(outputs):
         if node.is_output():
-            found.setdefault(hash(node.dep(0)), []).append(node)
-    return found
+            args = _deps(node.dep(0))
+            expression = replacement(node, ca.graph_substitute(args, old, new) if old else args)
+            if expression is not None:
+                old.append(node)
+                new.append(expression)
+    return ca.graph_substitute(outputs, old, new) if old else outputs
 
 
 def _expand(outputs: list[ca.MX], sources: Sequence[ca.MX]) -> list[ca.MX]:
     """``outputs`` with every call inlined that depends on ``sources`` and holds work free of them."""
     while True:
-        nodes = _nodes(outputs)
-        tainted = _tainted(nodes, sources)
-        outs = _outputs_of_calls(nodes)
-        old, new = [], []
-        for node in nodes:
-            if node.is_call() and tainted[hash(node)]:
-                args = _deps(node)
-                if _holds_shared_work(node.which_function(), [tainted[hash(a)] for a in args]):
-                    inlined = node.which_function().call(args, True)
-                    for out in outs.get(hash(node), []):
-                        old.append(out)
-                        new.append(inlined[out.which_output()])
-        if not old:
+        tainted = _tainted(_nodes(outputs), sources)
+        inlined: dict[int, list[ca.MX]] = {}
+
+        def inline(output: ca.MX, args: list[ca.MX]) -> Optional[list[ca.MX]]:
+            call = output.dep(0)
+            if not tainted[hash(call)]:
+                return None
+            if hash(call) not in inlined:
+                f = call.which_function()
+                shared_work = _holds_shared_work(f, [tainted[hash(a)] for a in _deps(call)])
+                inlined[hash(call)] = f.call(args, True) if shared_work else None
+            values = inlined[hash(call)]
+            return None if values is None else values[output.which_output()]
+
+        expanded = _replace_outputs(outputs, inline)
+        if not any(v is not None for v in inlined.values()):
             return outputs
-        outputs = ca.graph_substitute(outputs, old, new)
+        outputs = expanded
 
 
 def _untangle(outputs: list[ca.MX], sources: Sequence[ca.MX]) -> list[ca.MX]:
     """``outputs`` with each source-free output of a call that takes a source it does not read
     called again with zeros for that argument (the same values, without the source)."""
-    nodes = _nodes(outputs)
-    tainted = _tainted(nodes, sources)
-    old, new = [], []
-    for node in nodes:
-        if node.is_output() and not tainted[hash(node)]:
-            call = node.dep(0)
-            args = _deps(call)
-            if any(tainted[hash(a)] for a in args):
-                f = call.which_function()
-                clean = [ca.DM.zeros(f.sparsity_in(i)) if tainted[hash(a)] else a for i, a in enumerate(args)]
-                old.append(node)
-                new.append(f.call(clean)[node.which_output()])
-    return ca.graph_substitute(outputs, old, new) if old else outputs
+    tainted = _tainted(_nodes(outputs), sources)
+
+    def clean(output: ca.MX, args: list[ca.MX]) -> Optional[ca.MX]:
+        call = output.dep(0)
+        mask = [tainted[hash(a)] for a in _deps(call)]
+        if tainted[hash(output)] or not any(mask):
+            return None
+        f = call.which_function()
+        return f.call([ca.DM.zeros(f.sparsity_in(i)) if t else a for i, (a, t) in enumerate(zip(args, mask))])[
+            output.which_output()]
+
+    return _replace_outputs(outputs, clean)
 
 
 @dataclass(frozen=True)
@@ -464,7 +477,7 @@ def split_step(step: ca.Function) -> Optional[SplitStep]:
     offsets = np.cumsum([0] + [v.nnz() for v in values]).tolist()
     s = ca.MX.sym("s", offsets[-1])
     parts = [ca.sparsity_cast(s[a:b], v.sparsity()) for a, b, v in zip(offsets, offsets[1:], values)]
-    core_out = ca.graph_substitute([outputs[0], outputs[2]], frontier, parts[:-1])
+    core_out = ca.graph_substitute([outputs[0], outputs[2]], values, parts)
     shared = ca.Function("shared", [w, u_next], [ca.vertcat(*packed)], ["w", "u_next"], ["s"])
     core = ca.Function("core", [z, w, y, y_next, u_next, s], core_out,
                        ["z", "w", "y", "y_next", "u_next", "s"], ["z_next", "xhat_next"])
@@ -495,15 +508,17 @@ def skip_at_zero_input(step: ca.Function, injection: ca.Function) -> ca.Function
     z, u = ca.MX.sym("z", injection.sparsity_in(0)), ca.MX.sym("u", injection.sparsity_in(1))
     zero = ca.Function("no_injection", [z, u], [ca.DM.zeros(injection.sparsity_out(0))])
     either = ca.Function.if_else(f"{injection.name()}_unless_u0", zero, injection)
-    old, new = [], []
-    for node in _nodes(outputs):
-        if node.is_output() and hash(node.dep(0).which_function()) == hash(injection):
-            zz, uu = _deps(node.dep(0))
-            old.append(node)
-            new.append(either(ca.mmin(uu == 0), zz, uu))
-    if not old:
+
+    def skip(output: ca.MX, call_args: list[ca.MX]) -> Optional[ca.MX]:
+        if hash(output.dep(0).which_function()) != hash(injection):
+            return None
+        zz, uu = call_args
+        return either(ca.mmin(uu == 0), zz, uu)
+
+    replaced = _replace_outputs(outputs, skip)
+    if replaced is outputs:
         return step
-    return ca.Function(step.name(), args, ca.graph_substitute(outputs, old, new), step.name_in(), step.name_out())
+    return ca.Function(step.name(), args, replaced, step.name_in(), step.name_out())
 
 
 # ---------------------------------------------------------------------- estimators
@@ -687,7 +702,8 @@ class CompiledObserver(CompiledEstimator):
             steps = self.step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
             _, _, xhat = steps(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:])
         else:
-            steps = self._group_step(group).mapaccum("trajectory", n - 1, [0, 1, 2, 3], [0, 1, 2, 3])
+            steps = self._group_step(group).mapaccum("trajectory", n - 1, [0, 1, 2, 3], [0, 1, 2, 3],
+                                                     {"base": 32})   # two levels (nested tens: three), each copying the states
             rows, cols = obs.memory_shape
             key0 = ca.DM.nan(rows * cols + obs.nu)                  # no previous memory: compute at the first step
             s0 = ca.DM.zeros(self.split.shared.size1_out(0))
@@ -713,10 +729,10 @@ class CompiledObserver(CompiledEstimator):
         memo = ca.Function.if_else("shared_memo", reuse, compute)
         key_next = ca.vertcat(ca.vec(w), u_next)
         s_next = memo(ca.mmin(key_next == key), s, w, u_next)
-        core = split.core if group == 1 else split.core.map("core_group", "serial", group, [1, 4, 5], [])
-        Z_next, xhat = core(Z, w, Y, Y_next, u_next, s_next)
+        trials = [split.core(Z[:, j], w, Y[:, j], Y_next[:, j], u_next, s_next) for j in range(group)]
         return ca.Function("group_step", [Z, w, key, s, Y, Y_next, u_next],
-                           [Z_next, split.w_next(s_next, (rows, cols)), key_next, s_next, xhat])
+                           [ca.horzcat(*[z for z, _ in trials]), split.w_next(s_next, (rows, cols)), key_next, s_next,
+                            ca.horzcat(*[x for _, x in trials])])
 
     def initial_state(self) -> np.ndarray:
         """``z_0 = 0`` (nz,)."""
