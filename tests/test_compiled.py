@@ -105,7 +105,7 @@ def test_trials_that_share_their_inputs_share_work_and_keep_every_value(model_di
     else:
         assert [g.tolist() for g in groups] == [[[i] for i in range(9)]]
     np.testing.assert_array_equal(vm(t, y, u), reference)
-    if variant in ("obs-inject", "dyn", "obs_stream") and shutil.which("gcc"):     # in C: the switches, the inlined LoRA decoder, a stream
+    if variant in ("obs-inject", "dyn", "obs_stream") and shutil.which("gcc"):   # in C: switches, LoRA inlined, stream
         compiled = observer_estimator(obs, compiler=Compiler(cache_dir=tmp_path))
         np.testing.assert_array_equal(compiled(t, y, u), reference)
     alone = observer_estimator(obs, compiler=None, group=1)          # no groups: the memo alone
@@ -289,17 +289,28 @@ def test_arguments_are_checked(model_dir_factory):
 
 
 @needs_gcc
-def test_bench_protocol_times_each_method_against_the_vm(model_dir_factory, tmp_path):
+def test_bench_protocol_times_each_method_cold_and_warm_against_the_plain_step_and_the_vm(model_dir_factory,
+                                                                                          tmp_path):
     from kklcasadi.evaluation.bench.protocol import bench_protocol
     from kklcasadi.model.shipped import shipped_models
 
-    result = bench_protocol("duffing", models=[model_dir_factory("autonomous")], n_trials=2, vm_trials=1,
-                            kinds=("zero",), cache_dir=tmp_path, progress=False)
-    assert result.cells == 2 and [m.label for m in result.methods] == ["autonomous", "EKF"]
+    counting = shutil.which("valgrind") is not None
+    models = [model_dir_factory("autonomous"), model_dir_factory("obs")]
+    result = bench_protocol("duffing", models=models, n_trials=2, vm_trials=1, plain_trials=1, kinds=("square",),
+                            cache_dir=tmp_path, progress=False, instructions=counting)
+    assert result.cells == 2 and [m.label for m in result.methods] == ["autonomous", "obs", "EKF"]
     assert all(m.max_diff <= 1e-14 and m.trials == 4 and m.vm_trials == 2 for m in result.methods)
-    assert result.warm_s < result.cold_s
+    obs, ekf = result.methods[1], result.methods[2]
+    assert obs.plain_trials == 2 and obs.plain_cpu_s > 0 and ekf.plain_s is None
+    assert {"simulate", "compile", "estimate", "score"} <= set(result.cold_profile.wall)
+    assert "read" in result.warm_profile.wall and "simulate" not in result.warm_profile.wall
+    assert len(result.load) == 3 and result.warm_s > 0
+    if counting:                                   # square-wave windows repeat: the memo saves work
+        assert obs.instructions < obs.plain_instructions and ekf.instructions > 0 and ekf.plain_instructions is None
     table = result.table()
-    assert "| autonomous |" in table and "full protocol, warm caches" in table
+    assert "| obs |" in table and "warm caches (read + load, then score)" in table and "| total |" in table
     assert [p.name for p in shipped_models("duffing")][:3] == ["autonomous", "inject", "obs"]
     with pytest.raises(ValueError, match="vm_trials: expected an int in"):
         bench_protocol("duffing", n_trials=2, vm_trials=3)
+    with pytest.raises(ValueError, match="plain_trials: expected an int in"):
+        bench_protocol("duffing", n_trials=2, vm_trials=1, plain_trials=3)

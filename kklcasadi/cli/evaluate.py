@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from ..estimators.ekf import EKF
     from ..estimators.pf import SUBSTEPS
     from ..evaluation.compiled import Compiler, ekf_estimator, observer_estimator, pf_estimator, precompile
-    from ..evaluation.protocol import Profile, Protocol
+    from ..evaluation.protocol import Profile, Protocol, read_cells
     from ..evaluation.report import markdown_table, save_scores, score, smape_boxplot
     from ..evaluation.trialcache import TrialCache, cache_root
     from ..observer.codegen import axpy_matvec, fast_kernels
@@ -95,15 +95,8 @@ def run(args: argparse.Namespace) -> int:
         rows.append(("EKF", ekf_estimator(EKF(plant, protocol.dt), compiler=compiler, n_threads=args.threads,
                                           profile=profile)))
     cells = [(protocol if noisy else protocol.noise_free()).cell(kind) for noisy in noise for kind in kinds]
-    samples = cells[0].shape()[1]
-
-    def read_trials() -> None:
-        for cell in cells:
-            stored = trials.directory is not None and trials.path(plant, cell).exists()
-            with _phase(profile, "read" if stored else "simulate"):
-                trials.trials(plant, cell)
-
-    precompile([est for _, est in rows], samples, groups=(len(noise),), jobs=args.threads, meanwhile=read_trials)
+    precompile([est for _, est in rows], cells[0].shape()[1], groups=(len(noise),), jobs=args.threads,
+               meanwhile=lambda: read_cells(plant, cells, trials, profile=profile))
     scores = []
     for label, estimator in rows:
         t0 = time.perf_counter()

@@ -672,10 +672,14 @@ class CompiledObserver(CompiledEstimator):
     observer : KKLObserver
     compiler, n_threads, group, profile
         See :class:`CompiledEstimator`.
+    shortcuts : bool
+        False: the step as it is folded over the samples, trial by trial (1000 steps of the
+        observer step per protocol trial: the per-step cost the shortcuts are measured against).
     """
 
     def __init__(self, observer: KKLObserver, *, compiler: Optional[Compiler] = Compiler(),
-                 n_threads: Optional[int] = None, group: int = GROUP, profile: Any = None) -> None:
+                 n_threads: Optional[int] = None, group: int = GROUP, profile: Any = None,
+                 shortcuts: bool = True) -> None:
         from ..observer.kkl import KKLObserver
 
         if not isinstance(observer, KKLObserver):
@@ -683,12 +687,13 @@ class CompiledObserver(CompiledEstimator):
         super().__init__(observer.nx, observer.nu, observer.ny, observer.dt, compiler=compiler,
                          n_threads=n_threads, group=group, profile=profile)
         self.observer = observer
+        self.shortcuts = bool(shortcuts)
         step = observer.step
-        if observer.model_injection is not None:
+        if shortcuts and observer.model_injection is not None:
             step = skip_at_zero_input(step, observer.model_injection)
         self.step = step
         y0 = observer.memory_init.sparsity_jac(0, 0).nnz() > 0        # the first memory reads y_0
-        self.split = None if y0 else split_step(step)
+        self.split = None if y0 or not shortcuts else split_step(step)
         self.shares_inputs = self.split is not None
 
     def trajectory(self, n: int, group: int = 1) -> ca.Function:
@@ -697,13 +702,14 @@ class CompiledObserver(CompiledEstimator):
             raise ValueError(f"group: expected 1 for an observer whose trials share no work, received {group!r}.")
         y, u, z0 = ca.MX.sym("y", obs.ny, group * n), ca.MX.sym("u", obs.nu, n), ca.MX.sym("z0", obs.nz)
         w0 = obs.memory_init(y[:, 0], u[:, 0])
-        name = f"{_c_name(obs.system.name)}_{_c_name(obs.method)}_n{n}" + (f"_g{group}" if group > 1 else "")
+        name = (f"{_c_name(obs.system.name)}_{_c_name(obs.method)}_n{n}" + (f"_g{group}" if group > 1 else "")
+                + ("" if self.shortcuts else "_plain"))
         if self.split is None:
             steps = self.step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
             _, _, xhat = steps(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:])
         else:
-            steps = self._group_step(group).mapaccum("trajectory", n - 1, [0, 1, 2, 3], [0, 1, 2, 3],
-                                                     {"base": 32})   # two levels (nested tens: three), each copying the states
+            # two levels of unrolled steps (the default tens: three), each copying the states it stores
+            steps = self._group_step(group).mapaccum("trajectory", n - 1, [0, 1, 2, 3], [0, 1, 2, 3], {"base": 32})
             rows, cols = obs.memory_shape
             key0 = ca.DM.nan(rows * cols + obs.nu)                  # no previous memory: compute at the first step
             s0 = ca.DM.zeros(self.split.shared.size1_out(0))
@@ -782,8 +788,8 @@ class CompiledEKF(CompiledEstimator):
 
 
 def observer_estimator(observer: KKLObserver, *, compiler: Optional[Compiler] = Compiler(),
-                       n_threads: Optional[int] = None, group: int = GROUP,
-                       profile: Any = None) -> CompiledObserver:
+                       n_threads: Optional[int] = None, group: int = GROUP, profile: Any = None,
+                       shortcuts: bool = True) -> CompiledObserver:
     """The fast estimator of an observer: its trajectory compiled, mapped over trials.
 
     Parameters
@@ -797,13 +803,16 @@ def observer_estimator(observer: KKLObserver, *, compiler: Optional[Compiler] = 
         Largest group of trials with the same inputs run together (:class:`CompiledEstimator`).
     profile : optional
         See :class:`CompiledEstimator`.
+    shortcuts : bool
+        False: the plain step folded (:class:`CompiledObserver`).
 
     Returns
     -------
     CompiledObserver
         ``est(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``.
     """
-    return CompiledObserver(observer, compiler=compiler, n_threads=n_threads, group=group, profile=profile)
+    return CompiledObserver(observer, compiler=compiler, n_threads=n_threads, group=group, profile=profile,
+                            shortcuts=shortcuts)
 
 
 def ekf_estimator(ekf: EKF, *, compiler: Optional[Compiler] = Compiler(), n_threads: Optional[int] = None,

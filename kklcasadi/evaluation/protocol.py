@@ -27,7 +27,7 @@ from ..plant.simulate import TrajectoryBatch, simulate_batch
 from ..plant.systems import System
 from .trialcache import TrialCache
 
-__all__ = ["Protocol", "Cell", "CellResult", "evaluate", "evaluate_cells", "BatchEstimator", "Profile"]
+__all__ = ["Protocol", "Cell", "CellResult", "evaluate", "evaluate_cells", "read_cells", "BatchEstimator", "Profile"]
 
 #: An estimator of many trials at once: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``.
 BatchEstimator = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
@@ -199,6 +199,21 @@ def _quiet() -> Iterator[None]:
     yield
 
 
+def read_cells(system: System, cells: Sequence[Cell], trials: TrialCache, *,
+               profile: Optional[Profile] = None) -> list[TrajectoryBatch]:
+    """The trials of ``cells`` from ``trials`` (memory, disk, else simulated and stored).
+
+    ``profile`` gets the phase ``read`` for a cell found on disk (or in memory), ``simulate`` for
+    one simulated.
+    """
+    batches = []
+    for cell in cells:
+        stored = trials.directory is not None and trials.path(system, cell).exists()
+        with _phase(profile, "read" if stored else "simulate"):
+            batches.append(trials.trials(system, cell))
+    return batches
+
+
 def evaluate_cells(estimator: BatchEstimator, system: System, cells: Sequence[Cell], *,
                    trials: Optional[TrialCache] = None, profile: Optional[Profile] = None) -> list[CellResult]:
     """Score ``estimator`` on several cells with one call: their trials concatenated along the trials.
@@ -223,12 +238,7 @@ def evaluate_cells(estimator: BatchEstimator, system: System, cells: Sequence[Ce
     list of CellResult
         One per cell, in order.
     """
-    trials = TrialCache(None) if trials is None else trials
-    batches = []
-    for cell in cells:
-        stored = trials.directory is not None and trials.path(system, cell).exists()
-        with _phase(profile, "read" if stored else "simulate"):
-            batches.append(trials.trials(system, cell))
+    batches = read_cells(system, cells, TrialCache(None) if trials is None else trials, profile=profile)
     t = batches[0].t
     for cell, batch in zip(cells, batches):
         if not np.array_equal(batch.t, t):
