@@ -144,11 +144,13 @@ def test_the_compiled_path_is_bitwise_the_jit_on_any_thread_count(duffing_record
     np.testing.assert_array_equal(pf_estimator(s, DT, compiler=None, **opts)(b.t, b.y, b.u), a.xhat)
 
 
-def test_evaluate_scores_the_pf_on_the_noisy_cells(model_dir_factory, capsys):
+def test_evaluate_scores_the_pf_on_the_noisy_cells(model_dir_factory, capsys, tmp_path):
     from kklcasadi.cli import main
 
     model = str(model_dir_factory("autonomous"))
-    assert main(["evaluate", model, "--trials", "2", "--kinds", "zero", "--pf", "50", "--ekf", "--profile"]) == 0
+    assert main(["evaluate", model, "--trials", "2", "--kinds", "zero", "--pf", "50", "--ekf", "--profile",
+                 "--out", str(tmp_path)]) == 0
+    assert {p.name for p in tmp_path.iterdir()} >= {"duffing_smape_clean.png", "duffing_smape_noisy.png"}
     captured = capsys.readouterr()
     rows = {line.split("|")[1].strip(): line.split("|")[2:4] for line in captured.out.splitlines()
             if line.startswith("| duffing")}

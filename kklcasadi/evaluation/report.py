@@ -145,20 +145,26 @@ def _pyplot():
 
 def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bool = True,
                   kinds: Sequence[str] = sig.BENCHMARK_KINDS) -> Path:
-    """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG)."""
+    """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG).
+
+    A method without cells in this noise column (the particle filter's noise-free one) is left out.
+    """
     plt = _pyplot()
+    system = scores[0].system
+    scores = [s for s in scores if any((noisy, k) in s.results for k in kinds)]
     fig, ax = plt.subplots(figsize=(2.2 * len(kinds) * max(1, len(scores)) / 2 + 3, 4))
     width = 0.8 / max(1, len(scores))
     for i, s in enumerate(scores):
-        data = [s.results[(noisy, k)].smape for k in kinds if (noisy, k) in s.results]
-        pos = [j + (i - (len(scores) - 1) / 2) * width for j in range(len(data))]
+        present = [j for j, k in enumerate(kinds) if (noisy, k) in s.results]
+        data = [s.results[(noisy, kinds[j])].smape for j in present]
+        pos = [j + (i - (len(scores) - 1) / 2) * width for j in present]
         bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False)
         for patch in bp["boxes"]:
             patch.set_facecolor(f"C{i}")
         ax.plot([], [], color=f"C{i}", lw=6, label=s.label)
     ax.set_xticks(range(len(kinds)), kinds)
     ax.set_ylabel("SMAPE (%)")
-    ax.set_title(f"{scores[0].system}: {'with' if noisy else 'without'} noise")
+    ax.set_title(f"{system}: {'with' if noisy else 'without'} noise")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
