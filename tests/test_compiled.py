@@ -15,6 +15,7 @@ from kklcasadi.evaluation.compiled import (
     ekf_estimator,
     observer_estimator,
     precompile,
+    reuse_decoded,
     skip_at_zero_input,
     split_step,
 )
@@ -99,6 +100,8 @@ def test_trials_that_share_their_inputs_share_work_and_keep_every_value(model_di
     reference = obs.simulate(t, y, u).xhat
     vm = observer_estimator(obs, compiler=None)
     assert vm.shares_inputs == (variant in SHARING)
+    assert vm.carries == (variant in ("inject", "obs-inject"))       # the estimate read back by the next step
+    assert not observer_estimator(obs, compiler=None, shortcuts=False).carries
     groups = vm._grouped(u)
     if vm.shares_inputs:
         assert [g.tolist() for g in groups] == [[[8]], [[0, 4], [1, 5], [2, 6], [3, 7]]]
@@ -170,6 +173,29 @@ def test_an_injection_is_skipped_exactly_where_the_input_is_zero():
     np.testing.assert_array_equal(np.asarray(skipped([1.0, 2.0], 0.5)), np.asarray(step([1.0, 2.0], 0.5)))
     other = ca.Function("other", [z, u], [z * u])
     assert skip_at_zero_input(step, other) is step
+
+
+def test_the_estimate_of_the_previous_step_stands_in_for_decoding_the_step_s_own_z():
+    z, u, w = ca.MX.sym("z", 2), ca.MX.sym("u"), ca.MX.sym("w")
+    a, b = ca.MX.sym("a", 2), ca.MX.sym("b")
+    decoder = ca.Function("decoder", [a, b], [ca.tanh(a) * 3])        # reads its first argument only
+    decode = ca.Function("decode", [z, w], [decoder(z, w)], ["z", "w"], ["xhat"])
+    c = ca.MX.sym("c")
+    injection = ca.Function("injection", [a, c], [decoder(a, 0) * c])   # own symbols: a call in the step
+    y, y_next = ca.MX.sym("y"), ca.MX.sym("y_next")
+    z_next = z + injection(z, u) + injection(z + 1, u)               # the second stage decodes z + 1 itself
+    step = ca.Function("step", [z, w, y, y_next, u], [z_next, u, decode(z_next, u)],
+                       ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
+    reused, of_xhat = reuse_decoded(step, injection, decode)
+    assert reused.name_in() == ["z", "w", "xhat", "y", "y_next", "u_next"] and of_xhat.name_in() == ["xhat", "u"]
+    zv = np.array([0.3, -0.2])
+    xhat = np.asarray(decode(zv, 0.0))
+    for out, ref in zip(reused(zv, 0.0, xhat, 0.0, 0.0, 0.7), step(zv, 0.0, 0.0, 0.0, 0.7)):
+        np.testing.assert_array_equal(np.asarray(out), np.asarray(ref))
+    np.testing.assert_array_equal(np.asarray(reused(zv, 0.0, 0 * xhat, 0.0, 0.0, 0.7)[0]),   # it reads xhat
+                                  zv[:, None] + np.asarray(injection(zv + 1, 0.7)))
+    assert reuse_decoded(step, ca.Function("other", [z, u], [z * u]), decode) is None
+    assert reuse_decoded(step, injection, ca.Function("d", [z, w], [z * w], ["z", "w"], ["xhat"])) is None
 
 
 @needs_gcc

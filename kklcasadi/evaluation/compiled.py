@@ -55,8 +55,8 @@ if TYPE_CHECKING:
     from ..observer.kkl import KKLObserver
 
 __all__ = ["Compiler", "CompilerWarning", "Build", "compile_function", "CompiledEstimator", "CompiledObserver",
-           "CompiledEKF", "SplitStep", "split_step", "skip_at_zero_input", "observer_estimator", "ekf_estimator",
-           "pf_estimator", "precompile", "DEFAULT_FLAGS", "GROUP"]
+           "CompiledEKF", "SplitStep", "split_step", "skip_at_zero_input", "reuse_decoded", "observer_estimator",
+           "ekf_estimator", "pf_estimator", "precompile", "DEFAULT_FLAGS", "GROUP"]
 
 #: Portable optimisation flags; ``-fPIC -shared`` are always added.
 DEFAULT_FLAGS = ("-O3", "-ffp-contract=off")
@@ -411,17 +411,17 @@ def _untangle(outputs: list[ca.MX], sources: Sequence[ca.MX]) -> list[ca.MX]:
 class SplitStep:
     """An observer step split into the part its input memory alone decides and the per-trial rest.
 
-    ``step(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` is
-    ``s = shared(w, u_next)`` (what depends on neither ``z`` nor the measurements, packed in one
-    column: the values the rest reads, then ``w_next``), then
-    ``(z_next, xhat_next) = core(z, w, y, y_next, u_next, s)``; bitwise the step.
+    ``step(z, w, ..., u_next) -> (z_next, w_next, ...)`` is ``s = shared(w, u_next)`` (what depends
+    on nothing but the memory ``w`` and the next input: the values the rest reads, then ``w_next``,
+    packed in one column), then ``core(z, w, ..., u_next, s)``, the step's outputs but ``w_next``;
+    bitwise the step.
 
     Attributes
     ----------
     shared : casadi.Function
         ``(w, u_next) -> s (ns, 1)``.
     core : casadi.Function
-        ``(z, w, y, y_next, u_next, s) -> (z_next, xhat_next)``.
+        The step's inputs, then ``s``; the step's outputs without ``w_next``.
     memory : tuple of int
         Rows of ``s`` that hold ``vec(w_next)`` (start, stop).
     """
@@ -439,13 +439,14 @@ def split_step(step: ca.Function) -> Optional[SplitStep]:
     """Split an observer step into its memory-only part and the rest (see :class:`SplitStep`).
 
     Calls are inlined where they mix both (the LoRA decoder of ``dyn`` reads ``z`` and the window's
-    GRU); the shared part is every value free of ``z``, ``y`` and ``y_next`` that does real work
-    (a matrix product) and that the rest reads, and the memory update.
+    GRU); the shared part is every value free of every input but ``w`` and ``u_next`` that does
+    real work (a matrix product) and that the rest reads, and the memory update.
 
     Parameters
     ----------
     step : casadi.Function
-        ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` (:attr:`KKLObserver.step`).
+        Inputs named ``z``, ``w``, ..., ``u_next`` and outputs ``z_next``, ``w_next``, ...
+        (:attr:`KKLObserver.step`: ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)``).
 
     Returns
     -------
@@ -454,34 +455,109 @@ def split_step(step: ca.Function) -> Optional[SplitStep]:
         trial has its own memory), or neither the memory update nor anything the rest reads from
         the memory does real work.
     """
-    args = [ca.MX.sym(step.name_in(i), step.sparsity_in(i)) for i in range(step.n_in())]
-    z, w, y, y_next, u_next = args
-    sources = [z, y, y_next]
+    names = step.name_in()
+    args = [ca.MX.sym(name, step.sparsity_in(i)) for i, name in enumerate(names)]
+    w, u_next = args[names.index("w")], args[names.index("u_next")]
+    sources = [a for a in args if a is not w and a is not u_next]
     outputs = _untangle(_expand(step.call(args, True), sources), sources)
+    memory = step.name_out().index("w_next")
     nodes = _nodes(outputs)
     tainted = _tainted(nodes, sources)
-    if tainted[hash(outputs[1])]:
+    if tainted[hash(outputs[memory])]:
         return None
     heavy = _heavy(nodes, tainted)
-    frontier, seen = [], {hash(outputs[1])}
+    frontier, seen = [], {hash(outputs[memory])}
     for node in nodes:
         if tainted[hash(node)]:
             for d in _deps(node):
                 if heavy[hash(d)] and hash(d) not in seen:
                     seen.add(hash(d))
                     frontier.append(d)
-    if not frontier and not heavy[hash(outputs[1])]:
+    if not frontier and not heavy[hash(outputs[memory])]:
         return None
-    values = frontier + [outputs[1]]
+    values = frontier + [outputs[memory]]
     packed = [ca.sparsity_cast(v, ca.Sparsity.dense(v.nnz(), 1)) for v in values]
     offsets = np.cumsum([0] + [v.nnz() for v in values]).tolist()
     s = ca.MX.sym("s", offsets[-1])
     parts = [ca.sparsity_cast(s[a:b], v.sparsity()) for a, b, v in zip(offsets, offsets[1:], values)]
-    core_out = ca.graph_substitute([outputs[0], outputs[2]], values, parts)
+    rest = [out for i, out in enumerate(outputs) if i != memory]
+    names_out = [name for i, name in enumerate(step.name_out()) if i != memory]
     shared = ca.Function("shared", [w, u_next], [ca.vertcat(*packed)], ["w", "u_next"], ["s"])
-    core = ca.Function("core", [z, w, y, y_next, u_next, s], core_out,
-                       ["z", "w", "y", "y_next", "u_next", "s"], ["z_next", "xhat_next"])
+    core = ca.Function("core", args + [s], ca.graph_substitute(rest, values, parts), names + ["s"], names_out)
     return SplitStep(shared, core, (offsets[-2], offsets[-1]))
+
+
+def reuse_decoded(step: ca.Function, injection: ca.Function,
+                  decode: ca.Function) -> Optional[tuple[ca.Function, ca.Function]]:
+    """``step`` reading ``xhat = decode(z, w)``, the estimate of the previous sample, instead of decoding
+    its own ``z`` again where it calls ``injection(z, u)``.
+
+    ``injection`` decodes its ``z`` with the decoder that ``decode`` calls (``inject``'s
+    ``dT/dx(xhat) (f(xhat, u) - f(xhat, 0))`` at ``xhat = T*(z)``); at the step's own ``z`` (the
+    first Runge-Kutta stage) that is the estimate the previous step output. The same values, one
+    decoder evaluation less per step.
+
+    Parameters
+    ----------
+    step : casadi.Function
+        ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)``.
+    injection : casadi.Function
+        ``(z, u) -> dz``.
+    decode : casadi.Function
+        ``(z, w) -> xhat``.
+
+    Returns
+    -------
+    (casadi.Function, casadi.Function) or None
+        The step with the input ``xhat`` after ``w``, and ``(xhat, u) -> dz`` (the injection of a
+        decoded state); None where ``injection`` and ``decode`` do not decode with the same
+        Function, or ``step`` does not call ``injection`` at its own ``z``.
+    """
+    z, u = ca.MX.sym("z", injection.sparsity_in(0)), ca.MX.sym("u", injection.sparsity_in(1))
+    inner = injection.call([z, u], True)
+    decoder = _decoded(inner, z)
+    zd, wd = ca.MX.sym("z", decode.sparsity_in(0)), ca.MX.sym("w", decode.sparsity_in(1))
+    outer = decode.call([zd, wd], True)[0]
+    if decoder is None or not outer.is_output() or _decoded([outer], zd) is None or \
+            hash(outer.dep(0).which_function()) != hash(decoder.dep(0).which_function()) or \
+            outer.which_output() != decoder.which_output():
+        return None
+    xhat = ca.MX.sym("xhat", decoder.sparsity())
+    rest = ca.graph_substitute(inner, [decoder], [xhat])
+    if any(ca.depends_on(r, z) for r in rest):
+        return None
+    of_xhat = ca.Function(f"{injection.name()}_of_xhat", [xhat, u], rest, ["xhat", "u"], injection.name_out())
+    names = step.name_in()
+    args = [ca.MX.sym(name, step.sparsity_in(i)) for i, name in enumerate(names)]
+    estimate = ca.MX.sym("xhat", decode.sparsity_out(0))
+    own_z = hash(args[names.index("z")])
+
+    def reuse(output: ca.MX, call_args: list[ca.MX]) -> Optional[ca.MX]:
+        call = output.dep(0)
+        if hash(call.which_function()) != hash(injection) or hash(call.dep(0)) != own_z:
+            return None
+        return of_xhat(estimate, call_args[1])
+
+    outputs = step.call(args, True)
+    replaced = _replace_outputs(outputs, reuse)
+    if replaced is outputs:
+        return None
+    at = names.index("w") + 1
+    new = ca.Function(step.name(), args[:at] + [estimate] + args[at:], replaced, names[:at] + ["xhat"] + names[at:],
+                      step.name_out())
+    return new, of_xhat
+
+
+def _decoded(outputs: list[ca.MX], z: ca.MX) -> Optional[ca.MX]:
+    """The one output of a call in ``outputs``'s graph that decodes ``z``: its first argument is ``z``
+    itself and it reads no other; None if there is not exactly one."""
+    found = []
+    for node in _nodes(outputs):
+        if node.is_output() and hash(node.dep(0).dep(0)) == hash(z):
+            f, j = node.dep(0).which_function(), node.which_output()
+            if all(f.sparsity_jac(i, j).nnz() == 0 for i in range(1, f.n_in())):
+                found.append(node)
+    return found[0] if len(found) == 1 else None
 
 
 def skip_at_zero_input(step: ca.Function, injection: ca.Function) -> ca.Function:
@@ -688,9 +764,14 @@ class CompiledObserver(CompiledEstimator):
                          n_threads=n_threads, group=group, profile=profile)
         self.observer = observer
         self.shortcuts = bool(shortcuts)
-        step = observer.step
-        if shortcuts and observer.model_injection is not None:
-            step = skip_at_zero_input(step, observer.model_injection)
+        step, self.carries = observer.step, False
+        injection = observer.model_injection
+        if shortcuts and injection is not None:
+            reused = reuse_decoded(step, injection, observer.decode)
+            if reused is not None:
+                step, of_xhat = reused
+                step, self.carries = skip_at_zero_input(step, of_xhat), True
+            step = skip_at_zero_input(step, injection)
         self.step = step
         y0 = observer.memory_init.sparsity_jac(0, 0).nnz() > 0        # the first memory reads y_0
         self.split = None if y0 or not shortcuts else split_step(step)
@@ -704,39 +785,45 @@ class CompiledObserver(CompiledEstimator):
         w0 = obs.memory_init(y[:, 0], u[:, 0])
         name = (f"{_c_name(obs.system.name)}_{_c_name(obs.method)}_n{n}" + (f"_g{group}" if group > 1 else "")
                 + ("" if self.shortcuts else "_plain"))
+        first = ca.repmat(obs.decode(z0, w0), 1, group)
+        carried = [first] if self.carries else []                # the estimate a step reads (reuse_decoded)
         if self.split is None:
-            steps = self.step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
-            _, _, xhat = steps(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:])
+            states = list(range(2 + len(carried)))
+            steps = self.step.mapaccum("trajectory", n - 1, states, states)
+            xhat = steps(z0, w0, *carried, y[:, :n - 1], y[:, 1:], u[:, 1:])[2]
         else:
+            states = list(range(4 + len(carried)))
             # two levels of unrolled steps (the default tens: three), each copying the states it stores
-            steps = self._group_step(group).mapaccum("trajectory", n - 1, [0, 1, 2, 3], [0, 1, 2, 3], {"base": 32})
+            steps = self._group_step(group).mapaccum("trajectory", n - 1, states, states, {"base": 32})
             rows, cols = obs.memory_shape
             key0 = ca.DM.nan(rows * cols + obs.nu)                  # no previous memory: compute at the first step
             s0 = ca.DM.zeros(self.split.shared.size1_out(0))
-            _, _, _, _, xhat = steps(ca.repmat(z0, 1, group), w0, key0, s0, y[:, :group * (n - 1)], y[:, group:],
-                                     u[:, 1:])
-        first = ca.repmat(obs.decode(z0, w0), 1, group)
+            xhat = steps(ca.repmat(z0, 1, group), w0, key0, s0, *carried, y[:, :group * (n - 1)], y[:, group:],
+                         u[:, 1:])[4]
         return ca.Function(name, [y, u, z0], [ca.horzcat(first, xhat)], ["y", "u", "s0"], ["xhat"])
 
     def _group_step(self, group: int) -> ca.Function:
         """One sample of ``group`` trials with the same inputs, the shared part memoised.
 
-        ``(Z (nz, group), w, key, s, Y (ny, group), Y_next (ny, group), u_next) -> (Z_next, w_next,
-        key_next, s_next, Xhat_next (nx, group))``; ``key = [vec(w); u_next]`` of the sample whose
-        shared part ``s`` is (NaN before the first).
+        ``(Z (nz, group), w, key, s, [Xhat (nx, group)], Y (ny, group), Y_next (ny, group), u_next)
+        -> (Z_next, w_next, key_next, s_next, Xhat_next)``; ``key = [vec(w); u_next]`` of the sample
+        whose shared part ``s`` is (NaN before the first); ``Xhat``, the previous estimates, where
+        the step reads them (:func:`reuse_decoded`).
         """
         obs, split = self.observer, self.split
         rows, cols = obs.memory_shape
         Z, w = ca.MX.sym("Z", obs.nz, group), ca.MX.sym("w", rows, cols)
         key, s = ca.MX.sym("key", rows * cols + obs.nu), ca.MX.sym("s", split.shared.size1_out(0))
+        X = [ca.MX.sym("Xhat", obs.nx, group)] if self.carries else []
         Y, Y_next, u_next = ca.MX.sym("Y", obs.ny, group), ca.MX.sym("Y_next", obs.ny, group), ca.MX.sym("u", obs.nu)
         reuse = ca.Function("reuse", [s, w, u_next], [s])
         compute = ca.Function("compute", [s, w, u_next], [split.shared(w, u_next)])
         memo = ca.Function.if_else("shared_memo", reuse, compute)
         key_next = ca.vertcat(ca.vec(w), u_next)
         s_next = memo(ca.mmin(key_next == key), s, w, u_next)
-        trials = [split.core(Z[:, j], w, Y[:, j], Y_next[:, j], u_next, s_next) for j in range(group)]
-        return ca.Function("group_step", [Z, w, key, s, Y, Y_next, u_next],
+        trials = [split.core(Z[:, j], w, *[x[:, j] for x in X], Y[:, j], Y_next[:, j], u_next, s_next)
+                  for j in range(group)]
+        return ca.Function("group_step", [Z, w, key, s, *X, Y, Y_next, u_next],
                            [ca.horzcat(*[z for z, _ in trials]), split.w_next(s_next, (rows, cols)), key_next, s_next,
                             ca.horzcat(*[x for _, x in trials])])
 
