@@ -302,6 +302,7 @@ def bench_protocol(system: str = "duffing", *, models: Optional[Sequence[PathLik
         batches = read_cells(plant, cells, TrialCache(root / "trials"))
         pairs = [_first(clean, noisy, vm_trials) for clean, noisy in zip(batches[:len(kinds)], batches[len(kinds):])]
         plain = dict(rows(compiler, None, shortcuts=False)) if plain_trials else {}
+        precompile(list(plain.values()), cells[0].shape()[1], jobs=n_threads)   # compiled before they are timed
         vms = dict(rows(None, None))
         timings = []
         for label, fast in rows(compiler, None):
