@@ -324,7 +324,7 @@ def _heavy(nodes: Sequence[ca.MX], tainted: dict[int, bool]) -> dict[int, bool]:
         if tainted[key]:
             heavy[key] = False
         elif node.is_output():
-            heavy[key] = _costly(node.dep(0).which_function())
+            heavy[key] = heavy[hash(node.dep(0))] or _costly(node.dep(0).which_function())
         else:
             heavy[key] = node.is_multiplication() or any(heavy[hash(d)] for d in _deps(node))
     return heavy
