@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from ..estimators.ekf import EKF
     from ..estimators.pf import SUBSTEPS
     from ..evaluation.compiled import Compiler, ekf_estimator, observer_estimator, pf_estimator, precompile
-    from ..evaluation.protocol import Profile, Protocol, read_cells
+    from ..evaluation.protocol import Profile, Protocol, phase, read_cells
     from ..evaluation.report import markdown_table, save_scores, score, smape_boxplot
     from ..evaluation.trialcache import TrialCache, cache_root
     from ..observer.codegen import axpy_matvec, fast_kernels
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     if args.pf:
         t0 = time.perf_counter()
-        with _phase(profile, "compile"):
+        with phase(profile, "compile"):
             pf = pf_estimator(plant, protocol.dt, compiler=compiler, n_threads=args.threads, n_particles=args.pf,
                               process_std=protocol.process_std, measurement_std=protocol.measurement_std,
                               substeps=SUBSTEPS.get(plant.name, 1), seed=protocol.seed)
@@ -133,12 +133,6 @@ def run(args: argparse.Namespace) -> int:
                             time.process_time() - cpu + children.children_user + children.children_system),
               file=sys.stderr)
     return 0
-
-
-def _phase(profile: Any, name: str) -> Any:
-    from contextlib import nullcontext
-
-    return nullcontext() if profile is None else profile.phase(name)
 
 
 def _mhe_scores(horizon: int, plant: System, protocol: Any, noise: tuple, kinds: tuple, trials: Any) -> Any:

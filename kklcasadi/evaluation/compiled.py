@@ -47,6 +47,7 @@ from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence, Union
 import casadi as ca
 import numpy as np
 
+from .protocol import Profile, phase
 from .trialcache import cache_root
 
 if TYPE_CHECKING:
@@ -624,16 +625,15 @@ class CompiledEstimator(ABC):
         Worker threads over trials (default: the CPU count).
     group : int
         Largest group of trials with the same inputs run together (default :data:`GROUP`).
-    profile : optional
-        Where to record the time spent compiling: an object with a ``phase(name)`` context
-        manager (:class:`kklcasadi.evaluation.protocol.Profile`).
+    profile : Profile, optional
+        Where to record the time spent compiling (:class:`kklcasadi.evaluation.protocol.Profile`).
     """
 
     #: Whether trials with the same inputs share work (see :meth:`trajectory`).
     shares_inputs: bool = False
 
     def __init__(self, nx: int, nu: int, ny: int, dt: float, *, compiler: Optional[Compiler] = Compiler(),
-                 n_threads: Optional[int] = None, group: int = GROUP, profile: Any = None) -> None:
+                 n_threads: Optional[int] = None, group: int = GROUP, profile: Optional[Profile] = None) -> None:
         if compiler is not None and not isinstance(compiler, Compiler):
             raise TypeError(f"compiler: expected a kklcasadi.evaluation.compiled.Compiler or None, received "
                             f"{type(compiler).__name__}.")
@@ -661,10 +661,11 @@ class CompiledEstimator(ABC):
         """:meth:`trajectory` as it runs: compiled (cached per ``n`` and ``group``), or the VM Function."""
         if (n, group) not in self._functions:
             children = os.times()
-            with _phase(self.profile, "compile"):
+            with phase(self.profile, "compile"):
                 f = self.trajectory(n, group)
                 self._functions[n, group] = f if self.compiler is None else self.compiler.compile(f)
-            _record(self.profile, "compile", 0.0, _children_cpu(children))
+            if self.profile is not None:
+                self.profile.add("compile", 0.0, _children_cpu(children))
         return self._functions[n, group]
 
     def __call__(self, t: Any, y: Any, u: Any) -> np.ndarray:
@@ -754,7 +755,7 @@ class CompiledObserver(CompiledEstimator):
     """
 
     def __init__(self, observer: KKLObserver, *, compiler: Optional[Compiler] = Compiler(),
-                 n_threads: Optional[int] = None, group: int = GROUP, profile: Any = None,
+                 n_threads: Optional[int] = None, group: int = GROUP, profile: Optional[Profile] = None,
                  shortcuts: bool = True) -> None:
         from ..observer.kkl import KKLObserver
 
@@ -847,7 +848,7 @@ class CompiledEKF(CompiledEstimator):
     """
 
     def __init__(self, ekf: EKF, *, compiler: Optional[Compiler] = Compiler(),
-                 n_threads: Optional[int] = None, profile: Any = None) -> None:
+                 n_threads: Optional[int] = None, profile: Optional[Profile] = None) -> None:
         from ..estimators.ekf import EKF
 
         if not isinstance(ekf, EKF):
@@ -875,7 +876,7 @@ class CompiledEKF(CompiledEstimator):
 
 
 def observer_estimator(observer: KKLObserver, *, compiler: Optional[Compiler] = Compiler(),
-                       n_threads: Optional[int] = None, group: int = GROUP, profile: Any = None,
+                       n_threads: Optional[int] = None, group: int = GROUP, profile: Optional[Profile] = None,
                        shortcuts: bool = True) -> CompiledObserver:
     """The fast estimator of an observer: its trajectory compiled, mapped over trials.
 
@@ -903,7 +904,7 @@ def observer_estimator(observer: KKLObserver, *, compiler: Optional[Compiler] = 
 
 
 def ekf_estimator(ekf: EKF, *, compiler: Optional[Compiler] = Compiler(), n_threads: Optional[int] = None,
-                  profile: Any = None) -> CompiledEKF:
+                  profile: Optional[Profile] = None) -> CompiledEKF:
     """The fast estimator of an EKF (see :func:`observer_estimator`); the filter is unchanged."""
     return CompiledEKF(ekf, compiler=compiler, n_threads=n_threads, profile=profile)
 
@@ -998,7 +999,8 @@ def precompile(estimators: Sequence[CompiledEstimator], n: int, *, groups: Seque
     for est, size, build, wall, cpu in pending:
         est._functions[n, size] = build.load()
         share = 1 / len(pending)
-        _record(est.profile, "compile", wall + waited * share, cpu + compilers * share)
+        if est.profile is not None:
+            est.profile.add("compile", wall + waited * share, cpu + compilers * share)
     return result
 
 
@@ -1006,23 +1008,6 @@ def _children_cpu(before: os.times_result) -> float:
     """CPU seconds of the child processes (the C compiler) waited for since ``before``."""
     after = os.times()
     return after.children_user + after.children_system - before.children_user - before.children_system
-
-
-class _Nothing:
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(self, *exc: Any) -> None:
-        return None
-
-
-def _phase(profile: Any, name: str) -> Any:
-    return _Nothing() if profile is None else profile.phase(name)
-
-
-def _record(profile: Any, name: str, wall: float, cpu: float) -> None:
-    if profile is not None:
-        profile.add(name, wall, cpu)
 
 
 def _c_name(text: str) -> str:

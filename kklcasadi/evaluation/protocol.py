@@ -14,9 +14,9 @@ and on disk, shared by every run). An estimator is any callable ``(t, y, u) -> x
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field, fields, replace
-from typing import Callable, Iterator, Optional, Sequence, Union
+from typing import Callable, ContextManager, Iterator, Optional, Sequence, Union
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -27,7 +27,8 @@ from ..plant.simulate import TrajectoryBatch, simulate_batch
 from ..plant.systems import System
 from .trialcache import TrialCache
 
-__all__ = ["Protocol", "Cell", "CellResult", "evaluate", "evaluate_cells", "read_cells", "BatchEstimator", "Profile"]
+__all__ = ["Protocol", "Cell", "CellResult", "evaluate", "evaluate_cells", "read_cells", "BatchEstimator", "Profile",
+           "phase"]
 
 #: An estimator of many trials at once: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``.
 BatchEstimator = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
@@ -190,13 +191,9 @@ class Profile:
         return "\n".join(lines)
 
 
-def _phase(profile: Optional[Profile], name: str):
-    return profile.phase(name) if profile is not None else _quiet()
-
-
-@contextmanager
-def _quiet() -> Iterator[None]:
-    yield
+def phase(profile: Optional[Profile], name: str) -> ContextManager[None]:
+    """``profile.phase(name)``, or a context that does nothing where ``profile`` is None."""
+    return nullcontext() if profile is None else profile.phase(name)
 
 
 def read_cells(system: System, cells: Sequence[Cell], trials: TrialCache, *,
@@ -209,7 +206,7 @@ def read_cells(system: System, cells: Sequence[Cell], trials: TrialCache, *,
     batches = []
     for cell in cells:
         stored = trials.directory is not None and trials.path(system, cell).exists()
-        with _phase(profile, "read" if stored else "simulate"):
+        with phase(profile, "read" if stored else "simulate"):
             batches.append(trials.trials(system, cell))
     return batches
 
@@ -245,7 +242,7 @@ def evaluate_cells(estimator: BatchEstimator, system: System, cells: Sequence[Ce
             raise ValueError(f"cells: expected the same sample times, received {cell.label} with {batch.t.size} "
                              f"samples (dt {cell.protocol.dt}) beside {t.size}.")
     oks = [batch.ok for batch in batches]
-    with _phase(profile, "estimate"):
+    with phase(profile, "estimate"):
         y = np.concatenate([batch.y[ok] for batch, ok in zip(batches, oks)])
         u = np.concatenate([batch.u[ok] for batch, ok in zip(batches, oks)])
         xhat = np.asarray(estimator(t, y, u), dtype=float)
@@ -253,7 +250,7 @@ def evaluate_cells(estimator: BatchEstimator, system: System, cells: Sequence[Ce
     if xhat.shape != expected:
         raise ValueError(f"estimator returned shape {xhat.shape}, expected {expected}")
     results, start = [], 0
-    with _phase(profile, "score"):
+    with phase(profile, "score"):
         for cell, batch, ok in zip(cells, batches, oks):
             part, start = xhat[start:start + int(ok.sum())], start + int(ok.sum())
             x = batch.x[ok]
