@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from ..estimators.ekf import EKF
     from ..estimators.pf import SUBSTEPS
     from ..evaluation.compiled import Compiler, ekf_estimator, observer_estimator, pf_estimator, precompile
-    from ..evaluation.protocol import Profile, Protocol, phase, read_cells
+    from ..evaluation.protocol import Profile, Protocol, read_cells
     from ..evaluation.report import markdown_table, save_scores, score, smape_boxplot
     from ..evaluation.trialcache import TrialCache, cache_root
     from ..observer.codegen import axpy_matvec, fast_kernels
@@ -105,10 +105,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     if args.pf:
         t0 = time.perf_counter()
-        with phase(profile, "compile"):
-            pf = pf_estimator(plant, protocol.dt, compiler=compiler, n_threads=args.threads, n_particles=args.pf,
-                              process_std=protocol.process_std, measurement_std=protocol.measurement_std,
-                              substeps=SUBSTEPS.get(plant.name, 1), seed=protocol.seed)
+        pf = pf_estimator(plant, protocol.dt, compiler=compiler, n_threads=args.threads, profile=profile,
+                          n_particles=args.pf, process_std=protocol.process_std,
+                          measurement_std=protocol.measurement_std, substeps=SUBSTEPS.get(plant.name, 1),
+                          seed=protocol.seed)
         scores.append(score(f"PF N={args.pf}", pf, plant, protocol, noise=(True,), kinds=kinds, trials=trials,
                             progress=True, profile=profile))
         print(f"PF N={args.pf}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)

@@ -910,7 +910,7 @@ def ekf_estimator(ekf: EKF, *, compiler: Optional[Compiler] = Compiler(), n_thre
 
 
 def pf_estimator(system: Any, dt: float, *, compiler: Optional[Compiler] = Compiler(),
-                 n_threads: Optional[int] = None, **options: Any) -> ParticleFilter:
+                 n_threads: Optional[int] = None, profile: Optional[Profile] = None, **options: Any) -> ParticleFilter:
     """A :class:`~kklcasadi.estimators.pf.ParticleFilter` whose per-sample Functions are compiled by ``compiler``.
 
     The libraries are cached with the observers' (:class:`Compiler`), instead of the filter's own
@@ -924,6 +924,8 @@ def pf_estimator(system: Any, dt: float, *, compiler: Optional[Compiler] = Compi
         None: the CasADi VM.
     n_threads : int, optional
         Worker threads over trials (default: the CPU count).
+    profile : Profile, optional
+        Gets the time spent building and compiling as the phase ``compile``.
     **options
         The filter's other options (``n_particles``, ``process_std``, ``measurement_std``,
         ``substeps``, ``seed``, ...).
@@ -938,8 +940,13 @@ def pf_estimator(system: Any, dt: float, *, compiler: Optional[Compiler] = Compi
     if compiler is not None and not isinstance(compiler, Compiler):
         raise TypeError(f"compiler: expected a kklcasadi.evaluation.compiled.Compiler or None, received "
                         f"{type(compiler).__name__}.")
-    return ParticleFilter(system, dt, compile=_vm if compiler is None else compiler.compile, n_threads=n_threads,
-                          **options)
+    children = os.times()
+    with phase(profile, "compile"):
+        pf = ParticleFilter(system, dt, compile=_vm if compiler is None else compiler.compile, n_threads=n_threads,
+                            **options)
+    if profile is not None:
+        profile.add("compile", 0.0, _children_cpu(children))
+    return pf
 
 
 def _vm(f: ca.Function) -> ca.Function:
