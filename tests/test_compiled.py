@@ -14,7 +14,12 @@ from kklcasadi.evaluation.compiled import (
     compile_function,
     ekf_estimator,
     observer_estimator,
+    precompile,
+    reuse_decoded,
+    skip_at_zero_input,
+    split_step,
 )
+from kklcasadi.evaluation.protocol import Profile
 from kklcasadi.model import variants
 from kklcasadi.observer.kkl import load_observer
 
@@ -23,6 +28,10 @@ needs_gcc = pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not inst
 #: Every registered variant (and obs on top of inject), as ``model_dir_factory`` arguments.
 VARIANTS = {name: (name, {"base": True} if name == "inject" else {}) for name in variants.names()}
 VARIANTS["obs-inject"] = ("obs", {"base": True, "card_extra": {"model_based_injection": True}})
+
+
+#: The variants whose trials with the same inputs share work (a memory that does work of its own).
+SHARING = {"obs", "obs-inject", "dyn", "obs_stream", "dyn_stream"}
 
 
 def _trials(plant, m=3, n=25, seed=0):
@@ -68,6 +77,153 @@ def test_the_evaluation_kernels_keep_the_vm_values(model_dir_factory, tmp_path, 
     assert np.max(np.abs(fast - reference) / (1 + np.abs(reference))) <= tol
     with pytest.raises(TypeError, match="source: expected the C source as str"):
         getattr(codegen, kernels)(b"int x;")
+
+
+def _shared_trials(plant, n=40, seed=0):
+    """Nine seeded trials: four pairs that share their inputs (a zero input, a constant, a square wave
+    whose windows repeat between its edges, a random input) with distinct measurements, and one
+    unpaired random input."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.05
+    inputs = np.stack([np.zeros(n), np.full(n, 0.7), 0.5 * np.sign(np.sin(2.0 * t + 0.3)), rng.uniform(-1, 1, n)])
+    u = np.repeat(inputs[:, :, None], plant.nu, axis=2)
+    u = np.concatenate([u, u, rng.uniform(-1, 1, (1, n, plant.nu))])
+    return t, rng.normal(size=(9, n, plant.ny)), u
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_trials_that_share_their_inputs_share_work_and_keep_every_value(model_dir_factory, tmp_path, variant):
+    """Grouped by their inputs (pairs here), memoised, injection skipped at u = 0: bitwise ``simulate``."""
+    method, options = VARIANTS[variant]
+    obs = load_observer(model_dir_factory(method, **options))
+    t, y, u = _shared_trials(obs.system)
+    reference = obs.simulate(t, y, u).xhat
+    vm = observer_estimator(obs, compiler=None)
+    assert vm.shares_inputs == (variant in SHARING)
+    assert vm.carries == (variant in ("inject", "obs-inject"))       # the estimate read back by the next step
+    assert not observer_estimator(obs, compiler=None, shortcuts=False).carries
+    groups = vm._grouped(u)
+    if vm.shares_inputs:
+        assert [g.tolist() for g in groups] == [[[8]], [[0, 4], [1, 5], [2, 6], [3, 7]]]
+    else:
+        assert [g.tolist() for g in groups] == [[[i] for i in range(9)]]
+    np.testing.assert_array_equal(vm(t, y, u), reference)
+    if variant in ("obs-inject", "dyn", "obs_stream") and shutil.which("gcc"):   # in C: switches, LoRA inlined, stream
+        compiled = observer_estimator(obs, compiler=Compiler(cache_dir=tmp_path))
+        np.testing.assert_array_equal(compiled(t, y, u), reference)
+    alone = observer_estimator(obs, compiler=None, group=1)          # no groups: the memo alone
+    assert [g.shape for g in alone._grouped(u)] == [(9, 1)]
+    np.testing.assert_array_equal(alone(t, y, u), reference)
+
+
+def test_trials_group_by_the_bits_of_their_inputs(model_dir_factory):
+    """Groups of at most ``group`` trials with bitwise equal inputs, by group size, in the trials' order."""
+    est = observer_estimator(load_observer(model_dir_factory("obs")), compiler=None, group=3)
+    u = np.zeros((7, 4, 1))
+    u[3, 1] = -0.0                                                 # equal to 0.0 but not bitwise: its own group
+    u[5:] = 1.0
+    assert [g.tolist() for g in est._grouped(u)] == [[[4], [3]], [[5, 6]], [[0, 1, 2]]]
+    assert est._grouped(u[:0]) == []
+    plain = ekf_estimator(EKF(kc.systems.get("duffing"), 0.05), compiler=None)
+    assert not plain.shares_inputs and [g.tolist() for g in plain._grouped(u[:3])] == [[[0], [1], [2]]]
+
+
+@pytest.mark.parametrize("variant", sorted(VARIANTS))
+def test_the_split_step_is_bitwise_the_step(model_dir_factory, variant):
+    method, options = VARIANTS[variant]
+    obs = load_observer(model_dir_factory(method, **options))
+    split = split_step(obs.step)
+    if variant not in SHARING:
+        assert split is None
+        return
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        z, w, y, y_next, u_next = (rng.normal(size=obs.step.size_in(i)) for i in range(5))
+        z_next, w_next, xhat_next = obs.step(z, w, y, y_next, u_next)
+        s = split.shared(w, u_next)
+        core = split.core(z, w, y, y_next, u_next, s)
+        np.testing.assert_array_equal(np.asarray(core[0]), np.asarray(z_next))
+        np.testing.assert_array_equal(np.asarray(core[1]), np.asarray(xhat_next))
+        np.testing.assert_array_equal(np.asarray(split.w_next(ca.DM(s), obs.memory_shape)), np.asarray(w_next))
+
+
+def test_the_shared_part_is_reused_while_its_key_repeats(model_dir_factory):
+    obs = load_observer(model_dir_factory("obs"))
+    est = observer_estimator(obs, compiler=None)
+    step = est._group_step(2)
+    rng = np.random.default_rng(0)
+    Z, Y, Y_next = rng.normal(size=(obs.nz, 2)), rng.normal(size=(1, 2)), rng.normal(size=(1, 2))
+    w, u_next = rng.normal(size=obs.memory_shape), np.array([0.3])
+    key = np.concatenate([w.ravel(order="F"), u_next])
+    stale = rng.normal(size=est.split.shared.size1_out(0))          # not what shared(w, u_next) gives
+    kept = step(Z, w, key, stale, Y, Y_next, u_next)
+    np.testing.assert_array_equal(np.asarray(kept[3]).ravel(), stale)   # same key: reused as it is
+    fresh = step(Z, w, key + 1.0, stale, Y, Y_next, u_next)
+    np.testing.assert_array_equal(np.asarray(fresh[3]), np.asarray(est.split.shared(w, u_next)))
+    np.testing.assert_array_equal(np.asarray(fresh[2]).ravel(), key)
+
+
+def test_an_injection_is_skipped_exactly_where_the_input_is_zero():
+    z, u = ca.MX.sym("z", 2), ca.MX.sym("u")
+    injection = ca.Function("injection", [z, u], [z + 1 + u])      # not 0 at u = 0: shows the skip
+    step = ca.Function("step", [z, u], [2 * injection(injection(z, u), u)], ["z", "u"], ["z_next"])
+    skipped = skip_at_zero_input(step, injection)
+    assert skipped.name() == "step" and skipped.name_in() == ["z", "u"]
+    np.testing.assert_array_equal(np.asarray(skipped([1.0, 2.0], 0.0)), 0.0)
+    np.testing.assert_array_equal(np.asarray(skipped([1.0, 2.0], 0.5)), np.asarray(step([1.0, 2.0], 0.5)))
+    other = ca.Function("other", [z, u], [z * u])
+    assert skip_at_zero_input(step, other) is step
+
+
+def test_the_estimate_of_the_previous_step_stands_in_for_decoding_the_step_s_own_z():
+    z, u, w = ca.MX.sym("z", 2), ca.MX.sym("u"), ca.MX.sym("w")
+    a, b = ca.MX.sym("a", 2), ca.MX.sym("b")
+    decoder = ca.Function("decoder", [a, b], [ca.tanh(a) * 3])        # reads its first argument only
+    decode = ca.Function("decode", [z, w], [decoder(z, w)], ["z", "w"], ["xhat"])
+    c = ca.MX.sym("c")
+    injection = ca.Function("injection", [a, c], [decoder(a, 0) * c])   # own symbols: a call in the step
+    y, y_next = ca.MX.sym("y"), ca.MX.sym("y_next")
+    z_next = z + injection(z, u) + injection(z + 1, u)               # the second stage decodes z + 1 itself
+    step = ca.Function("step", [z, w, y, y_next, u], [z_next, u, decode(z_next, u)],
+                       ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
+    reused, of_xhat = reuse_decoded(step, injection, decode)
+    assert reused.name_in() == ["z", "w", "xhat", "y", "y_next", "u_next"] and of_xhat.name_in() == ["xhat", "u"]
+    zv = np.array([0.3, -0.2])
+    xhat = np.asarray(decode(zv, 0.0))
+    for out, ref in zip(reused(zv, 0.0, xhat, 0.0, 0.0, 0.7), step(zv, 0.0, 0.0, 0.0, 0.7)):
+        np.testing.assert_array_equal(np.asarray(out), np.asarray(ref))
+    np.testing.assert_array_equal(np.asarray(reused(zv, 0.0, 0 * xhat, 0.0, 0.0, 0.7)[0]),   # it reads xhat
+                                  zv[:, None] + np.asarray(injection(zv + 1, 0.7)))
+    assert reuse_decoded(step, ca.Function("other", [z, u], [z * u]), decode) is None
+    assert reuse_decoded(step, injection, ca.Function("d", [z, w], [z * w], ["z", "w"], ["xhat"])) is None
+
+
+@needs_gcc
+def test_precompile_runs_the_compilers_beside_other_work(model_dir_factory, tmp_path):
+    obs = load_observer(model_dir_factory("obs"))
+    profile = Profile()
+    estimators = [observer_estimator(obs, compiler=Compiler(cache_dir=tmp_path), profile=profile),
+                  ekf_estimator(EKF(obs.system, 0.05), compiler=Compiler(cache_dir=tmp_path), profile=profile),
+                  observer_estimator(obs, compiler=None)]
+    assert precompile(estimators, 25, groups=(2,), meanwhile=lambda: "trials") == "trials"
+    assert sorted(estimators[0]._functions) == [(25, 2)] and sorted(estimators[1]._functions) == [(25, 1)]
+    assert not estimators[2]._functions and profile.wall["compile"] > 0 and profile.cpu["compile"] > 0
+    assert len(list(tmp_path.glob("*.so"))) == 2
+    t, y, u = _shared_trials(obs.system, n=25)
+    np.testing.assert_array_equal(estimators[0](t, y[:8], u[:8]), obs.simulate(t, y[:8], u[:8]).xhat)
+    assert sorted(estimators[0]._functions) == [(25, 2)]           # every trial in a pair: nothing new built
+
+
+def test_profile_phases_nest_without_counting_twice():
+    profile = Profile()
+    with profile.phase("estimate"):
+        with profile.phase("compile"):
+            sum(range(200000))
+        profile.add("compile", 1.0, 2.0)
+    assert set(profile.wall) == {"estimate", "compile"} and profile.cpu["compile"] >= 2.0
+    assert profile.wall["compile"] >= 1.0 and profile.wall["estimate"] < profile.wall["compile"]
+    table = profile.table(10.0, 4.0)
+    assert "| estimate |" in table and table.endswith("| total | 10.0 | 4.0 | 0.40 |")
 
 
 @needs_gcc
@@ -159,19 +315,30 @@ def test_arguments_are_checked(model_dir_factory):
 
 
 @needs_gcc
-def test_bench_protocol_times_each_method_against_the_vm(model_dir_factory, tmp_path):
+def test_bench_protocol_times_each_method_cold_and_warm_against_the_plain_step_and_the_vm(model_dir_factory,
+                                                                                          tmp_path):
     from kklcasadi.evaluation.bench.protocol import bench_protocol
     from kklcasadi.model.shipped import shipped_models
 
-    result = bench_protocol("duffing", models=[model_dir_factory("autonomous")], n_trials=2, vm_trials=1,
-                            kinds=("zero",), cache_dir=tmp_path, progress=False)
-    assert result.cells == 2 and [m.label for m in result.methods] == ["autonomous", "EKF"]
+    counting = shutil.which("valgrind") is not None
+    models = [model_dir_factory("autonomous"), model_dir_factory("obs")]
+    result = bench_protocol("duffing", models=models, n_trials=2, vm_trials=1, plain_trials=1, kinds=("square",),
+                            cache_dir=tmp_path, progress=False, instructions=counting)
+    assert result.cells == 2 and [m.label for m in result.methods] == ["autonomous", "obs", "EKF"]
     assert all(m.max_diff <= 1e-14 and m.trials == 4 and m.vm_trials == 2 for m in result.methods)
-    assert result.warm_s < result.cold_s
+    obs, ekf = result.methods[1], result.methods[2]
+    assert obs.plain_trials == 2 and obs.plain_s > 0 and ekf.plain_s is None
+    assert {"simulate", "compile", "estimate", "score"} <= set(result.cold_profile.wall)
+    assert "read" in result.warm_profile.wall and "simulate" not in result.warm_profile.wall
+    assert len(result.load) == 3 and result.warm_s > 0
+    if counting:                                   # square-wave windows repeat: the memo saves work
+        assert obs.instructions < obs.plain_instructions and ekf.instructions > 0 and ekf.plain_instructions is None
     table = result.table()
-    assert "| autonomous |" in table and "full protocol, warm caches" in table
+    assert "| obs |" in table and "warm caches (read + load, then score)" in table and "| total |" in table
     rows = [line for line in table.splitlines() if line.startswith("|")]
-    assert len(rows) == 4 and all(line.count("|") == 9 for line in rows)     # 8 columns, every row
+    assert len({line.count("|") for line in rows}) == 1                # every row has the header's columns
     assert [p.name for p in shipped_models("duffing")][:3] == ["autonomous", "inject", "obs"]
     with pytest.raises(ValueError, match="vm_trials: expected an int in"):
         bench_protocol("duffing", n_trials=2, vm_trials=3)
+    with pytest.raises(ValueError, match="plain_trials: expected an int in"):
+        bench_protocol("duffing", n_trials=2, vm_trials=1, plain_trials=3)

@@ -1,3 +1,5 @@
+import shutil
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -123,6 +125,41 @@ def test_compiled_step_is_bitwise_the_casadi_vm(duffing_record, resample):
     assert np.mean(a.ess < 0.8 * 200) > 0.05                            # resampling happened
 
 
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
+def test_the_compiled_path_is_bitwise_the_jit_on_any_thread_count(duffing_record, tmp_path):
+    """The evaluation's compiler (a cached library) instead of the jit, the trials on 2 threads: the same bits."""
+    from kklcasadi.evaluation.compiled import Compiler, pf_estimator
+
+    s, b = duffing_record
+    opts = dict(n_particles=200, ess_threshold=0.8)
+    jit = ParticleFilter(s, DT, n_threads=1, **opts)
+    compiled = pf_estimator(s, DT, compiler=Compiler(cache_dir=tmp_path), n_threads=2, **opts)
+    assert jit.jit and not compiled.jit and compiled.compile is not None
+    assert sorted(p.suffix for p in tmp_path.glob("pf_duffing_n200_*")) == [".c", ".c", ".so", ".so"]
+    a, c = jit.simulate(b.t, b.y, b.u), compiled.simulate(b.t, b.y, b.u)
+    for name in ("xhat", "var", "ess"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(c, name))
+    cached = pf_estimator(s, DT, compiler=Compiler(cache_dir=tmp_path), **opts)     # from the library cache
+    np.testing.assert_array_equal(cached(b.t, b.y, b.u), a.xhat)
+    np.testing.assert_array_equal(pf_estimator(s, DT, compiler=None, **opts)(b.t, b.y, b.u), a.xhat)
+
+
+def test_evaluate_scores_the_pf_on_the_noisy_cells(model_dir_factory, capsys, tmp_path):
+    from kklcasadi.cli import main
+
+    model = str(model_dir_factory("autonomous"))
+    assert main(["evaluate", model, "--trials", "2", "--kinds", "zero", "--pf", "50", "--ekf", "--profile",
+                 "--out", str(tmp_path)]) == 0
+    assert {p.name for p in tmp_path.iterdir()} >= {"duffing_smape_clean.png", "duffing_smape_noisy.png"}
+    captured = capsys.readouterr()
+    rows = {line.split("|")[1].strip(): line.split("|")[2:4] for line in captured.out.splitlines()
+            if line.startswith("| duffing")}
+    assert rows["duffing PF N=50"][0].strip() == "" and float(rows["duffing PF N=50"][1]) > 0   # noisy only
+    assert "| estimate |" in captured.err and "| total |" in captured.err and "load average" in captured.err
+    assert main(["evaluate", model, "--trials", "1", "--noise", "off", "--pf", "50"]) == 2
+    assert "--pf: the particle filter runs on the noisy cells only" in capsys.readouterr().err
+
+
 def test_shapes_and_the_protocol_estimator(duffing_record):
     s, b = duffing_record
     pf = ParticleFilter(s, DT, n_particles=100)
@@ -220,6 +257,8 @@ S = kc.systems.get("duffing")
      "x0_cov: expected a symmetric positive semi-definite matrix"),
     (dict(x0_mean=[0.0, 0.0], x0_cov=[[1.0, np.nan], [np.nan, 1.0]]), ValueError, "x0_cov: expected finite values"),
     (dict(jit="yes"), TypeError, "jit: expected a bool, received str"),
+    (dict(compile="gcc"), TypeError, "compile: expected a callable casadi.Function -> casadi.Function or None"),
+    (dict(n_threads=0), ValueError, "n_threads: expected a positive int, received 0"),
 ])
 def test_bad_arguments_name_the_argument(kwargs, kind, message):
     args = {"system": S, "dt": DT, **kwargs}

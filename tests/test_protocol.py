@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
-from kklcasadi.evaluation.protocol import Protocol, evaluate
+from kklcasadi.evaluation.protocol import Profile, Protocol, evaluate, evaluate_cells
+from kklcasadi.evaluation.report import score
 from kklcasadi.evaluation.trialcache import TrialCache
 
 
@@ -73,3 +74,41 @@ def test_the_fast_estimators_score_exactly_as_the_reference_path(model_dir_facto
         assert list(a.results) == list(b.results) == [(n, k) for n in (False, True) for k in kinds]
         for cell in a.results:
             np.testing.assert_array_equal(a.results[cell].smape, b.results[cell].smape)
+
+
+def _first_state_is_y(t, y, u):
+    return np.concatenate([y, np.zeros_like(y)], axis=2)
+
+
+class _SharingEstimator:
+    """Says it shares the work of trials with the same inputs; records the trials of each call."""
+
+    shares_inputs = True
+
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, t, y, u):
+        self.calls.append(y.shape[0])
+        return _first_state_is_y(t, y, u)
+
+
+def test_the_noise_columns_of_a_regime_go_in_one_call_and_score_as_cell_by_cell(tmp_path):
+    s = kc.systems.get("vdp")
+    p = Protocol(n_trials=3, T=6.0, method="rk")
+    kinds = ("zero", "square")
+    sharing = _SharingEstimator()
+    profile = Profile()
+    together = score("y", sharing, s, p, kinds=kinds, trials=TrialCache(tmp_path), profile=profile)
+    apart = score("y", _first_state_is_y, s, p, kinds=kinds)
+    assert sharing.calls == [6, 6]                                     # clean and noisy cells of a regime at once
+    assert list(together.results) == list(apart.results) == [(n, k) for n in (False, True) for k in kinds]
+    for cell in apart.results:
+        np.testing.assert_array_equal(together.results[cell].smape, apart.results[cell].smape)
+        np.testing.assert_array_equal(together.results[cell].rmse_after, apart.results[cell].rmse_after)
+    assert {"simulate", "estimate", "score"} <= set(profile.wall)
+    again = Profile()
+    evaluate_cells(_first_state_is_y, s, [p.cell("zero")], trials=TrialCache(tmp_path), profile=again)
+    assert "read" in again.wall and "simulate" not in again.wall
+    with pytest.raises(ValueError, match="cells: expected the same sample times"):
+        evaluate_cells(_first_state_is_y, s, [p.cell("zero"), Protocol(n_trials=3, T=4.0, method="rk").cell("zero")])

@@ -6,7 +6,7 @@ import argparse
 
 from ..model.shipped import shipped as shipped_listing
 from ..plant import systems
-from .flags import CommandError, flagged, needs_torch, positive_int, shipped
+from .flags import CommandError, flagged, needs_torch, nonnegative_int, positive_int, shipped
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -29,6 +29,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--out", help="scaling benchmark: where to write scaling.md and scaling.png")
     b.add_argument("--vm-trials", type=positive_int, default=4,
                    help="protocol benchmark: trials per cell also run in the CasADi VM (default 4)")
+    b.add_argument("--plain-trials", type=nonnegative_int, default=10,
+                   help="protocol benchmark: trials per cell also run with the plain observer step folded, 1000 steps "
+                   "per trial (default 10; 0: not timed)")
+    b.add_argument("--instructions", action="store_true",
+                   help="protocol benchmark: count the instructions per trial with valgrind (repeatable on a loaded "
+                   "machine; about a minute per method)")
     b.add_argument("--no-ekf", action="store_true", help="protocol benchmark: leave the EKF out")
     b.add_argument("--flags", help="protocol benchmark: C compiler flags, one string (default '-O3 "
                                    "-ffp-contract=off'; write --flags='-O2')")
@@ -40,7 +46,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where the training benchmark runs")
     b.add_argument("--threads", type=positive_int,
                    help="training and scaling benchmarks: torch CPU threads; protocol benchmark: worker threads over "
-                        "trials")
+                   "trials and C compilers at a time")
     b.set_defaults(func=run)
 
 
@@ -88,9 +94,10 @@ def run(args: argparse.Namespace) -> int:
     if args.what in ("all", "protocol"):
         from ..evaluation.bench.protocol import bench_protocol
 
-        print("== the full protocol of one system: trial cache, compiled observers, the VM beside them ==")
+        print("== the full protocol of one system, cold and warm caches: every method, the plain step and the VM "
+              "beside them ==")
         result = flagged("--system", bench_protocol, args.system, models=args.models, n_trials=args.trials or 100,
-                         vm_trials=args.vm_trials, ekf=not args.no_ekf, compiler=_compiler(args),
-                         n_threads=args.threads)
+                         vm_trials=args.vm_trials, plain_trials=args.plain_trials, ekf=not args.no_ekf,
+                         compiler=_compiler(args), n_threads=args.threads, instructions=args.instructions)
         print(result.table())
     return 0

@@ -1,13 +1,18 @@
-"""``kklcasadi evaluate``: score model directories (and the EKF, the MHE) on the docs/protocol.md cells.
+"""``kklcasadi evaluate``: score model directories (and the EKF, the particle filter, the MHE) on the
+docs/protocol.md cells.
 
-Trials come from the on-disk trial cache (simulated once per cell); observers and the EKF run as
-compiled trajectories mapped over the trials, with the vectorised exp/tanh (within 1e-14 of the
-VM; ``--math libm``: bitwise the VM; ``--vm``: the CasADi VM itself).
+Trials come from the on-disk trial cache (simulated once per cell, while the C compiler builds the
+estimators); observers, the EKF and the particle filter run as compiled code mapped over the trials
+on threads, with the vectorised exp/tanh (within 1e-14 of the VM; ``--math libm``: bitwise the VM;
+``--vm``: the CasADi VM itself). An observer sees the noise-free and noisy cells of a regime in one
+call, so that the work its inputs alone decide is done once for both (the same scores).
+``--profile`` prints where the time went.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -42,6 +47,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_dt(e, "the protocol's sample time (default 0.05, docs/protocol.md); the models' must equal it")
     add_noise_levels(e, "the noisy column's and the EKF's and MHE's (default docs/protocol.md's 0.1)")
     e.add_argument("--ekf", action="store_true", help="add the EKF baseline")
+    e.add_argument("--pf", type=positive_int, metavar="N",
+                   help="add the bootstrap particle filter with N particles (row 'PF N=...'; the protocol's noise "
+                   "levels, 4 RK4 steps per sample on fhn and rossler). Noisy cells only: the noise-free cells are "
+                   "skipped (its likelihood needs measurement noise)")
     e.add_argument("--mhe", nargs="+", type=positive_int, metavar="N",
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
     e.add_argument("--seed", type=int, default=2026)
@@ -55,18 +64,23 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--math", default="vector", choices=("vector", "libm"),
                    help="exp/tanh of the compiled observers: vectorised, within 1e-14 of the VM (default), or the C "
                    "library's, bitwise the VM")
-    e.add_argument("--threads", type=positive_int, help="worker threads over trials (default: the CPU count)")
+    e.add_argument("--threads", type=positive_int, help="worker threads over trials and C compilers at a time "
+                   "(default: the CPU count)")
+    e.add_argument("--profile", action="store_true", help="print where the time went (compile, simulate or read "
+                   "the trials, estimate, score: wall and CPU seconds) and the machine's load")
     e.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..estimators.ekf import EKF
-    from ..evaluation.compiled import Compiler, ekf_estimator, observer_estimator
-    from ..evaluation.protocol import Protocol
+    from ..estimators.pf import SUBSTEPS
+    from ..evaluation.compiled import Compiler, ekf_estimator, observer_estimator, pf_estimator, precompile
+    from ..evaluation.protocol import Profile, Protocol
     from ..evaluation.report import markdown_table, save_scores, score, smape_boxplot
     from ..evaluation.trialcache import TrialCache, cache_root
     from ..observer.codegen import axpy_matvec, fast_kernels
 
+    wall, cpu, load_start = time.perf_counter(), time.process_time(), os.getloadavg()
     if args.labels is not None and len(args.labels) != len(args.models):
         raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
                            f"received {len(args.labels)}")
@@ -83,32 +97,44 @@ def run(args: argparse.Namespace) -> int:
                                f"after models for {plant.name!r}")
         plant = obs.system
     noise = NOISE[args.noise]
+    if args.pf and True not in noise:
+        raise CommandError("--pf: the particle filter runs on the noisy cells only; pass --noise on or both")
     kinds = tuple(args.kinds)
     root = Path(args.cache_dir) if args.cache_dir else cache_root()
     trials = TrialCache(None if args.no_cache else root / "trials")
     kernels = {"vector": fast_kernels, "libm": axpy_matvec}[args.math]
     compiler = None if args.vm else Compiler(cache_dir=root / "compiled", postprocess=kernels)
+    profile = Profile() if args.profile else None
     print(f"trials: {'simulated, not cached' if trials.directory is None else trials.directory}; observers: "
           f"{'CasADi VM' if compiler is None else 'compiled (' + str(compiler.directory) + ')'}", file=sys.stderr)
-    scores = []
-    _simulate_cells(plant, protocol, noise, kinds, trials)
+    rows = []
     for i, (model, obs) in enumerate(zip(args.models, observers)):
         label = args.labels[i] if args.labels else Path(model).resolve().name
-        estimator = observer_estimator(obs, compiler=compiler, n_threads=args.threads)
-        t0 = time.perf_counter()
-        scores.append(score(label, estimator, plant, protocol, noise=noise, kinds=kinds, trials=trials,
-                            progress=True))
-        print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-    for horizon in args.mhe or ():
-        scores.append(_mhe_scores(horizon, plant, protocol, noise, kinds, trials))
+        rows.append((label, observer_estimator(obs, compiler=compiler, n_threads=args.threads, profile=profile)))
     if args.ekf:
         ekf = (EKF.for_noise(plant, protocol.dt, process_std=protocol.process_std,
                              measurement_std=protocol.measurement_std) if levels else EKF(plant, protocol.dt))
-        estimator = ekf_estimator(ekf, compiler=compiler, n_threads=args.threads)
+        rows.append(("EKF", ekf_estimator(ekf, compiler=compiler, n_threads=args.threads, profile=profile)))
+    cells = [(protocol if noisy else protocol.noise_free()).cell(kind) for noisy in noise for kind in kinds]
+    precompile([est for _, est in rows], cells[0].shape()[1], groups=(len(noise),), jobs=args.threads,
+               meanwhile=lambda: _read_cells(plant, cells, trials, profile))
+    scores = []
+    for label, estimator in rows:
         t0 = time.perf_counter()
-        scores.append(score("EKF", estimator, plant, protocol, noise=noise, kinds=kinds, trials=trials,
-                            progress=True))
-        print(f"EKF: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        scores.append(score(label, estimator, plant, protocol, noise=noise, kinds=kinds, trials=trials,
+                            progress=True, profile=profile))
+        print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    if args.pf:
+        t0 = time.perf_counter()
+        pf = pf_estimator(plant, protocol.dt, compiler=compiler, n_threads=args.threads, profile=profile,
+                          n_particles=args.pf, process_std=protocol.process_std,
+                          measurement_std=protocol.measurement_std, substeps=SUBSTEPS.get(plant.name, 1),
+                          seed=protocol.seed)
+        scores.append(score(f"PF N={args.pf}", pf, plant, protocol, noise=(True,), kinds=kinds, trials=trials,
+                            progress=True, profile=profile))
+        print(f"PF N={args.pf}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    for horizon in args.mhe or ():
+        scores.append(_mhe_scores(horizon, plant, protocol, noise, kinds, trials))
     print(markdown_table(scores, kinds))
     if args.out:
         out = Path(args.out)
@@ -119,24 +145,32 @@ def run(args: argparse.Namespace) -> int:
                           kinds=kinds)
         (out / f"{plant.name}_table.md").write_text(markdown_table(scores, kinds) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
+    if profile is not None:
+        children = os.times()
+        print(f"\nwhere the time went ({os.cpu_count()} CPUs; load average {load_start[0]:.2f} at the start, "
+              f"{os.getloadavg()[0]:.2f} at the end; CPU: this process, its threads and the C compiler):",
+              file=sys.stderr)
+        print(profile.table(time.perf_counter() - wall,
+                            time.process_time() - cpu + children.children_user + children.children_system),
+              file=sys.stderr)
     return 0
 
 
-def _simulate_cells(plant: System, protocol: Any, noise: tuple, kinds: tuple, trials: Any) -> None:
-    """Simulate (or read) every cell's trials, with what CasADi prints about a plant that escapes hidden,
-    and say in one line per cell how many trials escaped (they are counted in the table, not scored)."""
+def _read_cells(plant: System, cells: list, trials: Any, profile: Any) -> None:
+    """Read (or simulate and store) every cell's trials, with what CasADi prints about a plant that
+    escapes hidden, and say in one line per cell how many trials escaped (they are counted in the
+    table, not scored)."""
+    from ..evaluation.protocol import read_cells
     from .flags import quiet_casadi
 
-    for noisy in noise:
-        prot = protocol if noisy else protocol.noise_free()
-        for kind in kinds:
-            with quiet_casadi():
-                batch = trials.trials(plant, prot.cell(kind))
-            escaped = int((~batch.ok).sum())
-            if escaped:
-                print(f"{plant.name} {kind} {'noisy' if noisy else 'clean'}: {escaped} of {len(batch.ok)} trials "
-                      "escaped (the state left |x| < 1e6 or the integrator failed); the cell is scored on the "
-                      f"{len(batch.ok) - escaped} left", file=sys.stderr)
+    with quiet_casadi():
+        batches = read_cells(plant, cells, trials, profile=profile)
+    for cell, batch in zip(cells, batches):
+        escaped = int((~batch.ok).sum())
+        if escaped:
+            print(f"{plant.name} {cell.kind} {'noisy' if cell.protocol.noisy else 'clean'}: {escaped} of "
+                  f"{len(batch.ok)} trials escaped (the state left |x| < 1e6 or the integrator failed); the cell "
+                  f"is scored on the {len(batch.ok) - escaped} left", file=sys.stderr)
 
 
 def _mhe_scores(horizon: int, plant: System, protocol: Any, noise: tuple, kinds: tuple, trials: Any) -> Any:

@@ -38,8 +38,8 @@ from ..plant import signals as sig
 from ..plant import systems
 from ..plant.systems import System
 
-__all__ = ["CommandError", "Parser", "positive_int", "positive_float", "nonnegative_float", "c_name", "flagged",
-           "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_dt",
+__all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
+           "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_dt",
            "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "NOISE", "USER_ERRORS"]
 
 #: ``--noise`` choices -> the benchmark's noise columns (False: noise-free).
@@ -76,6 +76,7 @@ def _number(kind: type, lowest: float, strict: bool, what: str) -> Callable[[str
 
 
 positive_int = _number(int, 0, True, "a positive integer")
+nonnegative_int = _number(int, 0, False, "an integer >= 0")
 positive_float = _number(float, 0.0, True, "a positive number")
 nonnegative_float = _number(float, 0.0, False, "a number >= 0")
 

@@ -14,9 +14,10 @@ Each sample: weight by ``y_k`` (log space, normalised per trial), estimate (weig
 variance), then resample the trials whose effective sample size is below ``ess_threshold N``; then
 propagate with ``u_k`` to the next sample. Propagation, weighting, normalisation and the moments of
 all particles of all trials are one CasADi Function call per sample (the per-particle RK4 step
-mapped over the particles, just-in-time compiled with the system C compiler when there is one,
-mapped over the trials), evaluated in place on numpy buffers; the random draws and the resampling
-are numpy.
+mapped over the particles, just-in-time compiled with the system C compiler when there is one, or
+compiled by a given ``compile`` hook such as the cached libraries of
+:class:`kklcasadi.evaluation.compiled.Compiler`, mapped over the trials on threads), evaluated in
+place on numpy buffers; the random draws and the resampling are numpy.
 
 Random streams: trial ``i`` draws its prior, process noise and resampling uniforms, in that order
 of use, from ``default_rng(SeedSequence(seed).spawn(M)[i])``; the same seed gives bitwise the same
@@ -31,7 +32,7 @@ import shutil
 import tempfile
 import warnings
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import casadi as ca
 import numpy as np
@@ -50,10 +51,14 @@ from ..validation import (
     positive_number,
 )
 
-__all__ = ["ParticleFilter", "PFEstimate", "RESAMPLING"]
+__all__ = ["ParticleFilter", "PFEstimate", "RESAMPLING", "SUBSTEPS"]
 
 #: Resampling schemes accepted by ``resample``.
 RESAMPLING = ("systematic", "stratified", "multinomial")
+#: RK4 steps per sample interval that the benchmark's filter uses per system (one elsewhere): one
+#: step diverges on the stiff corners of FitzHugh-Nagumo's box, and its truncation error is
+#: measurable on Roessler.
+SUBSTEPS = {"fhn": 4, "rossler": 4}
 
 #: The C compiler of the just-in-time path, and its flags (``-ffp-contract=off``: bitwise the VM).
 JIT_COMPILER = "gcc"
@@ -105,6 +110,12 @@ class ParticleFilter:
         Compile the per-sample Function with the C compiler (bitwise the CasADi VM; the whole
         filter about 5x faster on Duffing); without a compiler on ``PATH`` it runs in the VM with
         a warning.
+    compile : callable ``casadi.Function -> casadi.Function``, optional
+        How to compile the per-sample Functions instead of the just-in-time build (``jit`` is then
+        not used): e.g. ``kklcasadi.evaluation.compiled.Compiler().compile``, whose libraries are
+        cached on disk (``kklcasadi evaluate --pf``).
+    n_threads : int, optional
+        Worker threads over the trials (default: the CPU count); the estimates do not depend on it.
 
     Notes
     -----
@@ -118,7 +129,8 @@ class ParticleFilter:
     def __init__(self, system: System, dt: float, *, n_particles: int = 1000, process_std: float = 0.1,
                  measurement_std: float = 0.1, substeps: int = 1, seed: int = 0, resample: str = "systematic",
                  ess_threshold: float = 0.5, x0_mean: object = None, x0_cov: object = None,
-                 jit: bool = True) -> None:
+                 jit: bool = True, compile: Optional[Callable[[ca.Function], ca.Function]] = None,
+                 n_threads: Optional[int] = None) -> None:
         if not isinstance(system, System):
             raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
         self.system = system
@@ -144,8 +156,13 @@ class ParticleFilter:
             self.x0_cov = _covariance(x0_cov, system.nx, "x0_cov")
         if not isinstance(jit, (bool, np.bool_)):
             raise error("jit", "a bool", Text(type(jit).__name__), kind=TypeError)
-        self.jit = bool(jit) and shutil.which(JIT_COMPILER) is not None
-        if jit and not self.jit:
+        if compile is not None and not callable(compile):
+            raise error("compile", "a callable casadi.Function -> casadi.Function or None",
+                        Text(type(compile).__name__), kind=TypeError)
+        self.n_threads = None if n_threads is None else positive_int(n_threads, "n_threads")
+        self.compile = compile
+        self.jit = compile is None and bool(jit) and shutil.which(JIT_COMPILER) is not None
+        if compile is None and jit and not self.jit:
             warnings.warn(f"C compiler {JIT_COMPILER!r} not found on PATH; the particle filter runs in the "
                           "CasADi VM (about 10x slower, same values).", RuntimeWarning, stacklevel=2)
         self.update, self.step = self._functions()
@@ -201,6 +218,8 @@ class ParticleFilter:
         return update, step
 
     def _build(self, name: str, inputs: list, outputs: list, names_in: list, names_out: list) -> ca.Function:
+        if self.compile is not None:
+            return self.compile(ca.Function(name, inputs, outputs, names_in, names_out))
         if not self.jit:
             return ca.Function(name, inputs, outputs, names_in, names_out)
         with tempfile.TemporaryDirectory(prefix="kklcasadi-pf-") as build:
@@ -278,8 +297,9 @@ class ParticleFilter:
         xhat, var, ess = np.empty((m, n_samples, nx)), np.empty((m, n_samples, nx)), np.empty((m, n_samples))
 
         results = [X_out, logw_out, ess_k, mean_k, var_k]
-        update = _in_place(self.update.map(m, "serial"), [X, logw, y_k], results)
-        step = _in_place(self.step.map(m, "serial"), [X, logw, u_k, noise, y_k], results)
+        threads = min(m, self.n_threads or os.cpu_count() or 1)
+        update = _in_place(self.update.map(m, "thread", threads), [X, logw, y_k], results)
+        step = _in_place(self.step.map(m, "thread", threads), [X, logw, u_k, noise, y_k], results)
         for k in range(n_samples):
             y_k[:] = y[:, k]
             if k == 0:

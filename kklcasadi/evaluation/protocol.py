@@ -13,8 +13,10 @@ and on disk, shared by every run). An estimator is any callable ``(t, y, u) -> x
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
-from typing import Callable, Optional, Sequence, Union
+import time
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass, field, fields, replace
+from typing import Callable, ContextManager, Iterator, Optional, Sequence, Union
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -25,7 +27,8 @@ from ..plant.simulate import TrajectoryBatch, simulate_batch
 from ..plant.systems import System
 from .trialcache import TrialCache
 
-__all__ = ["Protocol", "Cell", "CellResult", "evaluate", "BatchEstimator"]
+__all__ = ["Protocol", "Cell", "CellResult", "evaluate", "evaluate_cells", "read_cells", "BatchEstimator", "Profile",
+           "phase"]
 
 #: An estimator of many trials at once: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``.
 BatchEstimator = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
@@ -152,6 +155,124 @@ class CellResult:
         return len(self.smape) + self.escaped
 
 
+@dataclass
+class Profile:
+    """Where a run's time goes: wall and CPU seconds per phase (``compile``, ``simulate``, ``read``,
+    ``estimate``, ``score``).
+
+    Phases nest (:meth:`phase`): the time of an inner phase is not counted again in the one around
+    it. CPU time is this process's (all its threads); time measured elsewhere (the C compiler's
+    processes) is counted with :meth:`add`.
+    """
+
+    wall: dict = field(default_factory=dict)
+    cpu: dict = field(default_factory=dict)
+    _stack: list = field(default_factory=list, repr=False)
+
+    def add(self, name: str, wall: float, cpu: float) -> None:
+        """Count ``wall`` and ``cpu`` seconds, measured outside any phase of this thread, for ``name``."""
+        self.wall[name] = self.wall.get(name, 0.0) + wall
+        self.cpu[name] = self.cpu.get(name, 0.0) + cpu
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        """Time the ``with`` block as the phase ``name``."""
+        inner = [0.0, 0.0]
+        self._stack.append(inner)
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            self._stack.pop()
+            self.add(name, wall - inner[0], cpu - inner[1])
+            if self._stack:
+                self._stack[-1][0] += wall
+                self._stack[-1][1] += cpu
+
+    def table(self, wall: Optional[float] = None, cpu: Optional[float] = None) -> str:
+        """A markdown table of the phases, with the run's total ``wall`` and ``cpu`` when given."""
+        lines = ["| phase | wall (s) | CPU (s) | CPU / wall |", "|---|---|---|---|"]
+        rows = list(self.wall.items()) + ([("total", wall)] if wall is not None and cpu is not None else [])
+        for name, w in rows:
+            c = cpu if name == "total" else self.cpu[name]
+            lines.append(f"| {name} | {w:.1f} | {c:.1f} | {c / w if w > 0 else 0.0:.2f} |")
+        return "\n".join(lines)
+
+
+def phase(profile: Optional[Profile], name: str) -> ContextManager[None]:
+    """``profile.phase(name)``, or a context that does nothing where ``profile`` is None."""
+    return nullcontext() if profile is None else profile.phase(name)
+
+
+def read_cells(system: System, cells: Sequence[Cell], trials: TrialCache, *,
+               profile: Optional[Profile] = None) -> list[TrajectoryBatch]:
+    """The trials of ``cells`` from ``trials`` (memory, disk, else simulated and stored).
+
+    ``profile`` gets the phase ``read`` for a cell found on disk (or in memory), ``simulate`` for
+    one simulated.
+    """
+    batches = []
+    for cell in cells:
+        stored = trials.directory is not None and trials.path(system, cell).exists()
+        with phase(profile, "read" if stored else "simulate"):
+            batches.append(trials.trials(system, cell))
+    return batches
+
+
+def evaluate_cells(estimator: BatchEstimator, system: System, cells: Sequence[Cell], *,
+                   trials: Optional[TrialCache] = None, profile: Optional[Profile] = None) -> list[CellResult]:
+    """Score ``estimator`` on several cells with one call: their trials concatenated along the trials.
+
+    For estimators that do the work of trials with the same inputs once (the noise-free and noisy
+    cells of one regime share their inputs; :class:`kklcasadi.evaluation.compiled.CompiledEstimator`);
+    the scores are those of :func:`evaluate` cell by cell for estimators whose trials are independent.
+
+    Parameters
+    ----------
+    estimator : callable ``(t, y, u) -> xhat``
+    system : System
+    cells : sequence of Cell
+        Cells with the same sample times (horizon and ``dt``).
+    trials : TrialCache, optional
+        See :func:`evaluate`.
+    profile : Profile, optional
+        Records the phases ``simulate`` or ``read`` (the trials), ``estimate`` and ``score``.
+
+    Returns
+    -------
+    list of CellResult
+        One per cell, in order.
+    """
+    batches = read_cells(system, cells, TrialCache(None) if trials is None else trials, profile=profile)
+    t = batches[0].t
+    for cell, batch in zip(cells, batches):
+        if not np.array_equal(batch.t, t):
+            raise ValueError(f"cells: expected the same sample times, received {cell.label} with {batch.t.size} "
+                             f"samples (dt {cell.protocol.dt}) beside {t.size}.")
+    oks = [batch.ok for batch in batches]
+    with phase(profile, "estimate"):
+        y = np.concatenate([batch.y[ok] for batch, ok in zip(batches, oks)])
+        u = np.concatenate([batch.u[ok] for batch, ok in zip(batches, oks)])
+        xhat = (np.asarray(estimator(t, y, u), dtype=float) if y.shape[0] else np.zeros((0, t.size, system.nx)))
+    expected = (y.shape[0], t.size, system.nx)
+    if xhat.shape != expected:
+        raise ValueError(f"estimator returned shape {xhat.shape}, expected {expected}")
+    results, start = [], 0
+    with phase(profile, "score"):
+        for cell, batch, ok in zip(cells, batches, oks):
+            part, start = xhat[start:start + int(ok.sum())], start + int(ok.sum())
+            x = batch.x[ok]
+            escaped = int((~ok).sum())
+            if not ok.any():
+                results.append(CellResult(system.name, cell.kind, cell.protocol.noisy, np.zeros(0), np.zeros(0),
+                                          escaped=escaped))
+                continue
+            results.append(CellResult(system.name, cell.kind, cell.protocol.noisy, metrics.smape(x, part),
+                                      metrics.rmse_after(t, x, part, cell.protocol.t_settle), escaped=escaped))
+    return results
+
+
 def evaluate(estimator: BatchEstimator, system: System, protocol: Protocol = Protocol(),
              kinds: Sequence[str] = sig.BENCHMARK_KINDS, *, trials: Optional[TrialCache] = None,
              progress: Union[bool, str] = False) -> list[CellResult]:
@@ -178,19 +299,7 @@ def evaluate(estimator: BatchEstimator, system: System, protocol: Protocol = Pro
         One per kind, in order; trials whose state escaped in the simulation (``ok`` False) are not
         scored and counted in ``escaped``.
     """
-    results = []
     trials = TrialCache(None) if trials is None else trials
     label = progress if isinstance(progress, str) else system.name
-    for kind in tqdm(kinds, desc=label, unit="cell", disable=not progress):
-        batch = trials.trials(system, protocol.cell(kind))
-        ok = batch.ok
-        escaped = int((~ok).sum())
-        if not ok.any():
-            results.append(CellResult(system.name, kind, protocol.noisy, np.zeros(0), np.zeros(0), escaped=escaped))
-            continue
-        xhat = np.asarray(estimator(batch.t, batch.y[ok], batch.u[ok]), dtype=float)
-        if xhat.shape != batch.x[ok].shape:
-            raise ValueError(f"estimator returned shape {xhat.shape}, expected {batch.x[ok].shape}")
-        results.append(CellResult(system.name, kind, protocol.noisy, metrics.smape(batch.x[ok], xhat),
-                                  metrics.rmse_after(batch.t, batch.x[ok], xhat, protocol.t_settle), escaped=escaped))
-    return results
+    return [evaluate_cells(estimator, system, [protocol.cell(kind)], trials=trials)[0]
+            for kind in tqdm(kinds, desc=label, unit="cell", disable=not progress)]

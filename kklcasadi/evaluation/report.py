@@ -16,7 +16,7 @@ from tqdm.auto import tqdm
 
 from ..plant import signals as sig
 from ..plant.systems import System
-from .protocol import BatchEstimator, CellResult, Protocol, evaluate
+from .protocol import BatchEstimator, CellResult, Profile, Protocol, evaluate_cells
 from .trialcache import TrialCache
 
 __all__ = ["MethodScores", "score", "markdown_table", "smape_boxplot", "trajectory_plot", "save_scores"]
@@ -47,8 +47,14 @@ def _cell_text(result: CellResult) -> str:
 
 def score(label: str, estimator: BatchEstimator, system: System, protocol: Protocol, *,
           noise: Sequence[bool] = (False, True), kinds: Sequence[str] = sig.BENCHMARK_KINDS,
-          trials: TrialCache | None = None, progress: bool = False) -> MethodScores:
+          trials: TrialCache | None = None, progress: bool = False,
+          profile: Profile | None = None) -> MethodScores:
     """Evaluate ``estimator`` on the noise-free and/or noisy protocol.
+
+    An estimator whose ``shares_inputs`` is True (a
+    :class:`~kklcasadi.evaluation.compiled.CompiledEstimator` that does the work of trials with the
+    same inputs once) gets the noise-free and noisy cells of a regime in one call (they share their
+    inputs); any other gets one call per cell. The scores are the same either way.
 
     Parameters
     ----------
@@ -67,19 +73,26 @@ def score(label: str, estimator: BatchEstimator, system: System, protocol: Proto
         The cells' trials, shared across methods and runs (default: simulated for this call).
     progress : bool
         A progress bar over the cells, labelled ``label``.
+    profile : Profile, optional
+        Records where the time goes (:func:`kklcasadi.evaluation.protocol.evaluate_cells`).
 
     Returns
     -------
     MethodScores
     """
     trials = TrialCache(None) if trials is None else trials
+    cells = {(noisy, kind): (protocol if noisy else protocol.noise_free()).cell(kind)
+             for noisy in noise for kind in kinds}
+    together = getattr(estimator, "shares_inputs", False)
+    calls = ([[(noisy, kind) for noisy in noise] for kind in kinds] if together
+             else [[key] for key in cells])
     results = {}
-    cells = [(noisy, kind) for noisy in noise for kind in kinds]
-    for noisy, kind in tqdm(cells, desc=label, unit="cell", disable=not progress):
-        prot = protocol if noisy else protocol.noise_free()
-        (result,) = evaluate(estimator, system, prot, (kind,), trials=trials)
-        results[(noisy, kind)] = result
-    return MethodScores(label, system.name, results)
+    with tqdm(total=len(cells), desc=label, unit="cell", disable=not progress) as bar:
+        for keys in calls:
+            scored = evaluate_cells(estimator, system, [cells[key] for key in keys], trials=trials, profile=profile)
+            results.update(zip(keys, scored))
+            bar.update(len(keys))
+    return MethodScores(label, system.name, {key: results[key] for key in cells})
 
 
 def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BENCHMARK_KINDS, *,
@@ -144,21 +157,27 @@ def _pyplot():
 
 def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bool = True,
                   kinds: Sequence[str] = sig.BENCHMARK_KINDS) -> Path:
-    """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG)."""
+    """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG).
+
+    A method without cells in this noise column (the particle filter's noise-free one) is left out.
+    """
     plt = _pyplot()
+    system = scores[0].system
+    scores = [s for s in scores if any((noisy, k) in s.results for k in kinds)]
     fig, ax = plt.subplots(figsize=(2.2 * len(kinds) * max(1, len(scores)) / 2 + 3, 4))
     width = 0.8 / max(1, len(scores))
     for i, s in enumerate(scores):
-        data = [s.results[(noisy, k)].smape if len(s.results[(noisy, k)].smape) else [np.nan]
-                for k in kinds if (noisy, k) in s.results]
-        pos = [j + (i - (len(scores) - 1) / 2) * width for j in range(len(data))]
+        present = [j for j, k in enumerate(kinds) if (noisy, k) in s.results]
+        data = [s.results[(noisy, kinds[j])].smape if len(s.results[(noisy, kinds[j])].smape) else [np.nan]
+                for j in present]
+        pos = [j + (i - (len(scores) - 1) / 2) * width for j in present]
         bp = ax.boxplot(data, positions=pos, widths=width * 0.9, patch_artist=True, showfliers=False)
         for patch in bp["boxes"]:
             patch.set_facecolor(f"C{i}")
         ax.plot([], [], color=f"C{i}", lw=6, label=s.label)
     ax.set_xticks(range(len(kinds)), kinds)
     ax.set_ylabel("SMAPE (%)")
-    ax.set_title(f"{scores[0].system}: {'with' if noisy else 'without'} noise")
+    ax.set_title(f"{system}: {'with' if noisy else 'without'} noise")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
