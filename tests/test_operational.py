@@ -185,3 +185,26 @@ def test_process_noise_per_state_and_a_range_of_noise_levels() -> None:
     assert 0.5 <= lo < hi <= 2.0
     with pytest.raises(ValueError, match="noise_range"):
         RolloutConfig(noise_range=(2.0, 1.0))
+
+
+def test_the_broad_families_and_the_wide_regime() -> None:
+    """multisine stays within its amplitude, feedback is u = clip(g (r - y) / s, -2, 2) of the noisy y,
+    and the wide regime reaches the ood amplitudes."""
+    from kklcasadi.train.operational import FAMILIES
+
+    plant = kc.systems.get("duffing")
+    cfg = RolloutConfig(n_traj=60, T=20.0, kinds=FAMILIES, regime="wide", substeps=4, chunk=25)
+    runs = rollouts(plant, cfg, 4, measurement_std=0.05, process_std=0.05)
+    assert len(runs) == 60
+    kinds = np.array([FAMILIES[i % len(FAMILIES)] for i in range(60)])
+    amp = np.abs(runs.u).max(axis=(1, 2))
+    assert np.all(amp[kinds == "multisine"] <= 2.0) and np.ptp(runs.u[kinds == "multisine"], axis=1).min() > 0
+    assert amp[kinds == "constant"].max() > 1.0                        # beyond the train range [-1, 1]
+    loop = np.flatnonzero(kinds == "feedback")
+    assert np.all(amp[loop] <= 2.0 + 1e-12) and np.all(amp[loop] > 0)
+    # u_k depends on y_k through the law: its held value changes only where y_k moves it (not a fixed signal)
+    assert all(np.unique(runs.u[i, :, 0]).size > 50 for i in loop)
+    with pytest.raises(ValueError, match="kinds"):
+        RolloutConfig(kinds=("chirp",))
+    with pytest.raises(ValueError, match="regime"):
+        RolloutConfig(regime="huge")

@@ -36,19 +36,29 @@ from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER, MLPSpec
 from ..plant import signals as sig
 from ..plant.design import time_scales
-from ..plant.simulate import TrajectoryBatch, simulate_batch, time_grid
+from ..plant.simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
 from ..plant.systems import System
 from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
 
 __all__ = ["RolloutConfig", "DecoderConfig", "OperationalData", "operational_data", "rollouts", "fit_bank_decoder",
-           "BankFit", "LOSSES", "config_record", "fold_whitening", "torch_decoder", "RK_STEP"]
+           "BankFit", "LOSSES", "config_record", "fold_whitening", "torch_decoder", "RK_STEP", "FAMILIES",
+           "ROLLOUT_REGIMES"]
 
 Tensor = torch.Tensor
 
 #: Training losses of :func:`fit_bank_decoder`.
 LOSSES = ("mse", "smape", "mse+smape")
+#: Input families of the runs (:attr:`RolloutConfig.kinds`): the benchmark's four; ``multisine``, a
+#: random spectrum (2-6 tones with log-uniform frequencies over the sinusoid's range and Dirichlet
+#: weights of a sinusoid's amplitude); ``feedback``, a closed loop ``u_k = clip(g (r - y_k) / s, -l, l)``
+#: around a set point ``r`` redrawn every 2-10 s within the outputs' range over the box (gain
+#: ``|g|`` in [0.5, 3] of either sign, limit ``l`` the regime's largest constant input).
+FAMILIES = (*sig.BENCHMARK_KINDS, "multisine", "feedback")
+#: Parameter ranges of the runs: those of :data:`kklcasadi.plant.signals.REGIMES`, or ``wide``, the hull
+#: of the ``id`` and ``ood`` ranges of docs/protocol.md.
+ROLLOUT_REGIMES = (*sig.REGIMES, "wide")
 #: Largest RK4 step of the plant in units of its time scale (``h * omega``) when ``substeps`` is None.
 RK_STEP = 0.05
 
@@ -66,9 +76,10 @@ class RolloutConfig:
     T : float
         Horizon of each run in seconds (docs/protocol.md: 50 s).
     kinds : tuple of str
-        Input kinds, drawn with :func:`kklcasadi.plant.signals.sample` from ``regime``.
+        Input families (:data:`FAMILIES`), in turn over the runs; the card records them.
     regime : str
-        Parameter ranges (``train``; never the protocol's test draws).
+        Parameter ranges (:data:`ROLLOUT_REGIMES`: ``train``, or ``wide`` up to the ood ranges;
+        never the protocol's test draws).
     noise_range : (float, float)
         Each run's noise levels are the nominal ones times factors drawn log-uniformly from this
         range (measurement noise per run, process noise per chunk of runs); ``(1, 1)``: the nominal
@@ -97,7 +108,7 @@ class RolloutConfig:
     method: str = "rk"
     substeps: int | None = None
     box_scale: float = 1.0
-    escape_scale: float = 4.0
+    escape_scale: float = 10.0
     sample_period: float = 0.1
     dense_period: float = 0.05
     dense_time: float = 5.0
@@ -106,11 +117,11 @@ class RolloutConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.n_traj, int) or self.n_traj < 1:
             raise ValueError(f"n_traj: expected a positive integer, received {self.n_traj!r}.")
-        if self.regime not in sig.REGIMES:
-            raise ValueError(f"regime: expected one of {list(sig.REGIMES)}, received {self.regime!r}.")
-        bad = [k for k in self.kinds if k not in sig.BENCHMARK_KINDS]
+        if self.regime not in ROLLOUT_REGIMES:
+            raise ValueError(f"regime: expected one of {list(ROLLOUT_REGIMES)}, received {self.regime!r}.")
+        bad = [k for k in self.kinds if k not in FAMILIES]
         if bad or not self.kinds:
-            raise ValueError(f"kinds: expected a non-empty subset of {sig.BENCHMARK_KINDS}, received {self.kinds!r}.")
+            raise ValueError(f"kinds: expected a non-empty subset of {FAMILIES}, received {self.kinds!r}.")
         lo, hi = self.noise_range
         if not (0 < lo <= hi and math.isfinite(hi)):
             raise ValueError(f"noise_range: expected factors 0 < lo <= hi, received {self.noise_range!r}.")
@@ -181,7 +192,7 @@ class OperationalData:
         The true states there.
     record : dict
         ``runs`` simulated, ``cut`` (runs that escaped and were cut there), ``failed`` (of them, the
-        ones the integrator failed on), ``samples`` kept, ``simulated_s`` (seconds simulated), the
+        ones that blew up or that the integrator failed on), ``samples`` kept, ``simulated_s`` (seconds simulated), the
         per-run noise factors' range, ``substeps`` and ``seconds`` (wall time).
     """
 
@@ -240,14 +251,97 @@ def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
     return np.where(bad.any(axis=1), bad.argmax(axis=1), x.shape[1])
 
 
+def _ranges(kind: str, regime: str) -> Mapping[str, tuple[float, float]]:
+    """Parameter ranges of a benchmark kind: :data:`kklcasadi.plant.signals.RANGES`, or for ``wide`` the
+    hull of the ``id`` and ``ood`` ranges."""
+    if regime != "wide":
+        return sig.RANGES[regime][kind]
+    ranges = {}
+    for name in sig.RANGES["id"][kind]:
+        lo, hi = zip(sig.RANGES["id"][kind][name], sig.RANGES["ood"][kind][name])
+        ranges[name] = (min(lo), max(hi))
+    return ranges
+
+
+@dataclass(frozen=True)
+class _Feedback:
+    """``u_k = clip(gain (r(t_k) - y_k[j]) / y_scale, -limit, limit)`` per input, ``r`` piecewise constant."""
+
+    gain: np.ndarray          # (nu,)
+    output: np.ndarray        # (nu,) output index per input
+    y_scale: np.ndarray       # (nu,)
+    limit: float
+    times: np.ndarray         # (L,) switching times, first 0
+    levels: np.ndarray        # (L, nu) set points
+
+    def __call__(self, t: float, y: np.ndarray) -> np.ndarray:
+        r = self.levels[np.searchsorted(self.times, t, side="right") - 1]
+        return np.clip(self.gain * (r - y[self.output]) / self.y_scale, -self.limit, self.limit)
+
+
+def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System, t: np.ndarray,
+                y_range: np.ndarray) -> object:
+    """One run's input: a signal or samples (N, nu) for open-loop kinds, a :class:`_Feedback` law."""
+    nu = system.nu
+    if kind in sig.BENCHMARK_KINDS:
+        if regime != "wide" or kind == "zero":
+            return sig.sample(kind, rng, "train" if regime == "wide" else regime, nu=nu)
+        r = _ranges(kind, regime)
+        if kind == "constant":
+            return sig.make("constant", value=rng.uniform(*r["value"], size=nu))
+        return sig.make(kind, amplitude=rng.uniform(*r["amplitude"], size=nu), omega=rng.uniform(*r["omega"]),
+                        phase=rng.uniform(0.0, 2.0 * np.pi))
+    sine = _ranges("sinusoid", regime)
+    if kind == "multisine":          # a random spectrum: 2-6 tones, log-uniform frequencies
+        k = int(rng.integers(2, 7))
+        omega = np.exp(rng.uniform(*np.log(sine["omega"]), size=(k, 1)))
+        weights = rng.dirichlet(np.ones(k), size=nu).T                     # (k, nu)
+        amplitude = rng.uniform(*sine["amplitude"], size=nu)
+        phase = rng.uniform(0.0, 2.0 * np.pi, size=(k, nu))
+        return np.einsum("kn,tkn->tn", weights * amplitude, np.sin(omega[None] * t[:, None, None] + phase[None]))
+    limit = float(_ranges("constant", regime)["value"][1])
+    holds = rng.uniform(2.0, 10.0, size=int(np.ceil(t[-1] / 2.0)) + 1)
+    times = np.concatenate([[0.0], np.cumsum(holds)])[:-1]
+    lo, hi = y_range
+    output = np.arange(nu) % system.ny
+    levels = rng.uniform(lo[output], hi[output], size=(times.size, nu))
+    return _Feedback(rng.uniform(0.5, 3.0, size=nu) * rng.choice([-1.0, 1.0], size=nu), output,
+                     np.maximum(0.5 * (hi - lo)[output], 1e-9), limit, times, levels)
+
+
+def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: np.ndarray, process: np.ndarray,
+                 seeds: Sequence[object], v: np.ndarray, method: str, substeps: int) -> TrajectoryBatch:
+    """Runs under their feedback laws, one sample at a time (``v``: the measurement noise (M, N, ny))."""
+    m, n = len(x0), t.size
+    dt = float(t[1] - t[0])
+    step = step_function(system, dt, method, substeps=substeps).map(m)
+    h = system.h.map(m)
+    w = np.stack([np.random.default_rng(s).normal(0.0, 1.0, (n - 1, system.nx)) for s in seeds]) * process
+    x = np.full((m, n, system.nx), np.nan)
+    u, y = np.zeros((m, n, system.nu)), np.zeros((m, n, system.ny))
+    x[:, 0] = x0
+    for k in range(n):
+        y[:, k] = np.asarray(h(x[:, k].T)).T + v[:, k]
+        for i in np.flatnonzero(np.all(np.isfinite(y[:, k]), axis=1)):       # runs that have not blown up
+            u[i, k] = laws[i](t[k], y[i, k])
+        if k < n - 1:
+            with np.errstate(invalid="ignore", over="ignore"):
+                x[:, k + 1] = np.asarray(step(x[:, k].T, np.concatenate([u[:, k], w[:, k]], axis=1).T)).T
+                x[:, k + 1][~(np.abs(x[:, k + 1]) < 1e6)] = np.nan
+    ok = np.all(np.isfinite(x), axis=(1, 2))
+    return TrajectoryBatch(t, x, u, y, ok)
+
+
 def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measurement_std: float,
             process_std: float | Sequence[float], progress: bool,
             desc: str) -> Iterator[tuple[TrajectoryBatch, np.ndarray, dict]]:
     """The runs, ``config.chunk`` at a time: each chunk's batch (``y`` carries the measurement noise),
     the first escaped sample of each run, and the chunk's noise factors."""
     rng = np.random.default_rng([seed, 1])
+    t = time_grid(config.T, dt)
     x0 = system.sample_box(config.n_traj, seed, scale=config.box_scale)
-    inputs = [sig.sample(config.kinds[i % len(config.kinds)], rng, config.regime, nu=system.nu)
+    y_range = np.quantile(system.h_batch(system.sample_box(256, seed + 1)), [0.05, 0.95], axis=0)
+    inputs = [_draw_input(config.kinds[i % len(config.kinds)], rng, config.regime, system, t, y_range)
               for i in range(config.n_traj)]
     seeds = np.random.SeedSequence([seed, 2]).spawn(config.n_traj)
     noise = np.random.default_rng([seed, 3])
@@ -259,14 +353,27 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
             idx = np.arange(start, min(start + config.chunk, config.n_traj))
             p_factor = float(np.exp(noise.uniform(log_lo, log_hi)))
             m_factor = np.exp(noise.uniform(log_lo, log_hi, len(idx)))
-            batch = simulate_batch(system, x0[idx], [inputs[i] for i in idx], config.T, dt,
-                                   process_std=process * p_factor, seed=[seeds[i] for i in idx],
-                                   method=config.method, substeps=substeps)
-            v = noise.normal(size=batch.y.shape) * (measurement_std * m_factor)[:, None, None]
-            y = np.asarray(batch.y) + v
-            escape = _escaped(system, np.array(batch.x), config.escape_scale)
+            v = noise.normal(size=(len(idx), t.size, system.ny)) * (measurement_std * m_factor)[:, None, None]
+            loop = np.array([isinstance(inputs[i], _Feedback) for i in idx])
+            x = np.full((len(idx), t.size, system.nx), np.nan)
+            u, y = np.zeros((len(idx), t.size, system.nu)), np.zeros((len(idx), t.size, system.ny))
+            for part, closed in ((idx[~loop], False), (idx[loop], True)):
+                if not part.size:
+                    continue
+                where = part - start
+                if closed:
+                    batch = _closed_loop(system, x0[part], [inputs[i] for i in part], t, process * p_factor,
+                                         [seeds[i] for i in part], v[where], config.method, substeps)
+                    y[where] = batch.y
+                else:
+                    batch = simulate_batch(system, x0[part], [inputs[i] for i in part], config.T, dt,
+                                           process_std=process * p_factor, seed=[seeds[i] for i in part],
+                                           method=config.method, substeps=substeps)
+                    y[where] = np.asarray(batch.y) + v[where]
+                x[where], u[where] = batch.x, batch.u
+            escape = _escaped(system, x.copy(), config.escape_scale)
             bar.update(len(idx))
-            yield (TrajectoryBatch(batch.t, batch.x, batch.u, y, batch.ok), escape,
+            yield (TrajectoryBatch(t, x, u, y, escape == t.size), escape,
                    {"process": p_factor, "measurement": m_factor, "substeps": substeps})
 
 
@@ -307,12 +414,12 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
     for batch, escape, noise in _chunks(system, config, seed, dt, measurement_std, process_std, progress,
                                         "operational runs"):
         cut += int(np.sum(escape < n))
-        failed += int(np.sum(~batch.ok))
+        failed += int(np.sum(~np.all(np.isfinite(batch.x), axis=(1, 2))))
         factors.extend(noise["measurement"].tolist())
         substeps = noise["substeps"]
         valid = np.arange(n)[None, :] < escape[:, None]
         y = np.where(valid[..., None], batch.y, 0.0)          # after an escape: ignored, kept finite
-        u = np.asarray(batch.u)
+        u = np.where(valid[..., None], batch.u, 0.0)
         z = bank.run(y, u, dt)
         mask = valid & keep[None, :]
         for name, arr in (("z", z), ("y", y), ("u", u), ("x", np.asarray(batch.x))):
