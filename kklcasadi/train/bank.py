@@ -37,8 +37,9 @@ __all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_s
 #: (it sits near 0.007 and spikes to 20-37; per-state SMAPE weighs relative errors).
 SHIPPED = {"duffing": {}, "vdp": {}, "fhn": {}, "rossler": {"asinh_scale": (0.0, 0.0, 0.01)}}
 #: The budget of a plant kklcasadi does not ship (a first observer in minutes on 2 cores at any dt):
-#: runs, seconds per run and decoder epochs. The shipped systems keep 2000 runs x 50 s, 40 epochs.
-NEW_PLANT_BANK = {"n_traj": 1000, "T": 50.0, "epochs": 20}
+#: runs, horizon in units of 1 / time_scale (the Qube's 60 / 13.3 = 4.5 s) and decoder epochs. The
+#: shipped systems keep 2000 runs x 50 s, 40 epochs.
+NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 20}
 
 
 @dataclass(frozen=True)
@@ -55,9 +56,10 @@ class BankConfig:
     clock : float or None
         Rate of the clock latent in units of ``time_scale`` (None: none).
     time_scale : float or None
-        The rate (rad/s) the poles are given in units of; None: the plant's own, the median
-        spectral radius of ``df/dx`` over its X0 box (:func:`kklcasadi.plant.design.time_scales`:
-        Duffing 1.3, the Qube 13). The shipped systems use 1 (their poles 0.2-25 rad/s).
+        The rate (rad/s) the poles are given in units of, and the runs' times (horizon, sample
+        times) in units of its inverse; None: the plant's own, the median spectral radius of
+        ``df/dx`` over its X0 box (:func:`kklcasadi.plant.design.time_scales`: Duffing 1.3, the
+        Qube 13). The shipped systems use 1 (their poles 0.2-25 rad/s, runs of 50 s).
     measurement_std : float
         Std of the measurement noise of the runs the decoder is fit on (the card's noise level).
     process_std : float or tuple of float
@@ -155,7 +157,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     bank = design_bank(system, config, rate)
     angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
     data = operational_data(system, bank, config.rollouts, seed, dt=dt, measurement_std=config.measurement_std,
-                            process_std=config.process_std, progress=progress)
+                            process_std=config.process_std, time_scale=rate, progress=progress)
     if len(data) == 0:
         raise ValueError(f"rollouts: every one of the {config.rollouts.n_traj} runs escaped at once (no samples); "
                          "lower the inputs or box_scale, or raise escape_scale.")

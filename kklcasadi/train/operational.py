@@ -74,7 +74,9 @@ class RolloutConfig:
     n_traj : int
         Number of runs, spread evenly over ``kinds`` (round-robin).
     T : float
-        Horizon of each run in seconds (docs/protocol.md: 50 s).
+        Horizon of each run (docs/protocol.md: 50 s). This and every time below are in units of
+        ``1 / time_scale`` (seconds for the shipped systems, whose time scale is 1; see
+        :func:`operational_data`), and the inputs' frequencies in units of ``time_scale``.
     kinds : tuple of str
         Input families (:data:`FAMILIES`), in turn over the runs; the card records them.
     regime : str
@@ -218,16 +220,21 @@ class OperationalData:
                    runs.x[:, keep].reshape(-1, nx), record)
 
 
-def _keep(n: int, dt: float, config: RolloutConfig) -> np.ndarray:
+def _keep(n: int, dt: float, config: RolloutConfig, rate: float = 1.0) -> np.ndarray:
     """The kept samples of a run of ``n`` as a mask (N,): the first sample in each ``dense_period``
-    over the first ``dense_time`` seconds, and in each ``sample_period`` after (every sample where
-    the period is shorter than ``dt``)."""
-    t = np.arange(n) * dt
+    over the first ``dense_time``, and in each ``sample_period`` after (every sample where the period
+    is shorter than ``dt``); the times are in units of ``1 / rate``."""
+    t = np.arange(n) * dt * rate                   # in units of 1 / rate
     eps = 1e-9
     dense_bins = np.ceil(config.dense_time / config.dense_period - eps)
     bins = np.where(t < config.dense_time, np.floor(t / config.dense_period + eps),
                     dense_bins + np.floor((t - config.dense_time) / config.sample_period + eps))
     return np.concatenate([[True], bins[1:] != bins[:-1]])
+
+
+def _horizon(T: float, rate: float, dt: float) -> float:
+    """``T / rate`` seconds rounded to whole samples (at least 2)."""
+    return max(2, int(round(T / rate / dt))) * dt
 
 
 def _substeps(system: System, config: RolloutConfig, dt: float) -> int:
@@ -280,27 +287,32 @@ class _Feedback:
 
 
 def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System, t: np.ndarray,
-                y_range: np.ndarray) -> object:
-    """One run's input: a signal or samples (N, nu) for open-loop kinds, a :class:`_Feedback` law."""
+                y_range: np.ndarray, rate: float) -> object:
+    """One run's input: a signal or samples (N, nu) for open-loop kinds, a :class:`_Feedback` law.
+
+    Frequencies are the regime's times ``rate`` and hold times the regime's over ``rate`` (the
+    plant's time scale; 1 for the shipped systems, whose draws are those of
+    :func:`kklcasadi.plant.signals.sample`)."""
     nu = system.nu
-    if kind in sig.BENCHMARK_KINDS:
-        if regime != "wide" or kind == "zero":
-            return sig.sample(kind, rng, "train" if regime == "wide" else regime, nu=nu)
+    if kind == "zero":
+        return sig.make("zero", size=nu)
+    if kind in ("constant", "sinusoid", "square"):
         r = _ranges(kind, regime)
         if kind == "constant":
             return sig.make("constant", value=rng.uniform(*r["value"], size=nu))
-        return sig.make(kind, amplitude=rng.uniform(*r["amplitude"], size=nu), omega=rng.uniform(*r["omega"]),
-                        phase=rng.uniform(0.0, 2.0 * np.pi))
+        amplitude = rng.uniform(*r["amplitude"], size=nu)
+        omega = rng.uniform(*r["omega"]) * rate
+        return sig.make(kind, amplitude=amplitude, omega=omega, phase=rng.uniform(0.0, 2.0 * np.pi))
     sine = _ranges("sinusoid", regime)
     if kind == "multisine":          # a random spectrum: 2-6 tones, log-uniform frequencies
         k = int(rng.integers(2, 7))
-        omega = np.exp(rng.uniform(*np.log(sine["omega"]), size=(k, 1)))
+        omega = np.exp(rng.uniform(*np.log(sine["omega"]), size=(k, 1))) * rate
         weights = rng.dirichlet(np.ones(k), size=nu).T                     # (k, nu)
         amplitude = rng.uniform(*sine["amplitude"], size=nu)
         phase = rng.uniform(0.0, 2.0 * np.pi, size=(k, nu))
         return np.einsum("kn,tkn->tn", weights * amplitude, np.sin(omega[None] * t[:, None, None] + phase[None]))
     limit = float(_ranges("constant", regime)["value"][1])
-    holds = rng.uniform(2.0, 10.0, size=int(np.ceil(t[-1] / 2.0)) + 1)
+    holds = rng.uniform(2.0, 10.0, size=int(np.ceil(t[-1] * rate / 2.0)) + 1) / rate
     times = np.concatenate([[0.0], np.cumsum(holds)])[:-1]
     lo, hi = y_range
     output = np.arange(nu) % system.ny
@@ -333,15 +345,16 @@ def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: n
 
 
 def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measurement_std: float,
-            process_std: float | Sequence[float], progress: bool,
+            process_std: float | Sequence[float], rate: float, progress: bool,
             desc: str) -> Iterator[tuple[TrajectoryBatch, np.ndarray, dict]]:
     """The runs, ``config.chunk`` at a time: each chunk's batch (``y`` carries the measurement noise),
     the first escaped sample of each run, and the chunk's noise factors."""
     rng = np.random.default_rng([seed, 1])
-    t = time_grid(config.T, dt)
+    horizon = _horizon(config.T, rate, dt)
+    t = time_grid(horizon, dt)
     x0 = system.sample_box(config.n_traj, seed, scale=config.box_scale)
     y_range = np.quantile(system.h_batch(system.sample_box(256, seed + 1)), [0.05, 0.95], axis=0)
-    inputs = [_draw_input(config.kinds[i % len(config.kinds)], rng, config.regime, system, t, y_range)
+    inputs = [_draw_input(config.kinds[i % len(config.kinds)], rng, config.regime, system, t, y_range, rate)
               for i in range(config.n_traj)]
     seeds = np.random.SeedSequence([seed, 2]).spawn(config.n_traj)
     noise = np.random.default_rng([seed, 3])
@@ -366,7 +379,7 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
                                          [seeds[i] for i in part], v[where], config.method, substeps)
                     y[where] = batch.y
                 else:
-                    batch = simulate_batch(system, x0[part], [inputs[i] for i in part], config.T, dt,
+                    batch = simulate_batch(system, x0[part], [inputs[i] for i in part], horizon, dt,
                                            process_std=process * p_factor, seed=[seeds[i] for i in part],
                                            method=config.method, substeps=substeps)
                     y[where] = np.asarray(batch.y) + v[where]
@@ -378,7 +391,7 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
 
 
 def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig, seed: int, *, dt: float,
-                     measurement_std: float, process_std: float | Sequence[float] = 0.0,
+                     measurement_std: float, process_std: float | Sequence[float] = 0.0, time_scale: float = 1.0,
                      progress: bool = False) -> OperationalData:
     """Simulate the operational runs and keep the decoder's samples of them.
 
@@ -396,6 +409,9 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         Measurement-noise std (nominal; times the per-run factor of ``config.noise_range``).
     process_std : float or sequence of float (nx,)
         Process-noise std added to ``xdot`` (one for all states or one per state).
+    time_scale : float
+        The rate (rad/s) ``config``'s times are in units of (``T`` seconds at 1): its horizon and
+        sample times are divided by it, the inputs' frequencies multiplied.
     progress : bool
         A progress bar over the runs.
 
@@ -405,13 +421,13 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         Every run's samples before its escape (if any).
     """
     t0 = time.perf_counter()
-    n = time_grid(config.T, dt).size
-    keep = _keep(n, dt, config)
+    n = time_grid(_horizon(config.T, time_scale, dt), dt).size
+    keep = _keep(n, dt, config, time_scale)
     parts: dict[str, list[np.ndarray]] = {"z": [], "y": [], "u": [], "x": []}
     cut = failed = 0
     factors: list[float] = []
     substeps = 0
-    for batch, escape, noise in _chunks(system, config, seed, dt, measurement_std, process_std, progress,
+    for batch, escape, noise in _chunks(system, config, seed, dt, measurement_std, process_std, time_scale, progress,
                                         "operational runs"):
         cut += int(np.sum(escape < n))
         failed += int(np.sum(~np.all(np.isfinite(batch.x), axis=(1, 2))))
@@ -426,14 +442,16 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
             parts[name].append(arr[mask])
     data = {k: np.concatenate(v) for k, v in parts.items()}
     record = {"runs": config.n_traj, "cut": cut, "failed": failed, "samples": int(len(data["x"])),
-              "simulated_s": float(config.n_traj * config.T), "substeps": substeps,
+              "horizon_s": n * dt, "simulated_s": float(config.n_traj * n * dt),
+              "sample_period_s": config.sample_period / time_scale, "substeps": substeps,
               "measurement_factor_range": [float(min(factors)), float(max(factors))],
               "seconds": round(time.perf_counter() - t0, 2)}
     return OperationalData(data["z"], data["y"], data["u"], data["x"], record)
 
 
 def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.05, measurement_std: float = 0.1,
-             process_std: float | Sequence[float] = 0.1, progress: bool = False) -> TrajectoryBatch:
+             process_std: float | Sequence[float] = 0.1, time_scale: float = 1.0,
+             progress: bool = False) -> TrajectoryBatch:
     """The operational runs as whole trajectories (the runs that escaped are dropped).
 
     The same runs as :func:`operational_data` with the same arguments (for scoring a decoder on
@@ -445,11 +463,12 @@ def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.
         ``x`` (M, N, nx), ``y`` (M, N, ny), ``u`` (M, N, nu) with ``M <= n_traj``.
     """
     parts = []
-    for batch, escape, _ in _chunks(system, config, seed, dt, measurement_std, process_std, progress, "runs"):
+    for batch, escape, _ in _chunks(system, config, seed, dt, measurement_std, process_std, time_scale, progress,
+                                    "runs"):
         ok = escape == batch.t.size
         parts.append((batch.x[ok], batch.u[ok], batch.y[ok]))
     x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
-    return TrajectoryBatch(time_grid(config.T, dt), x, u, y, np.ones(len(x), dtype=bool))
+    return TrajectoryBatch(time_grid(_horizon(config.T, time_scale, dt), dt), x, u, y, np.ones(len(x), dtype=bool))
 
 
 def _whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
