@@ -25,13 +25,17 @@ from kklcasadi.train.operational import (  # noqa: E402
 )
 
 
+#: The benchmark's input kinds (the runs' default families are broader).
+BENCH = ("zero", "constant", "sinusoid", "square")
+
+
 def _bank() -> fb.FilterBank:
     return fb.FilterBank.design(1, 1, [0.5, 2.0, 6.0], [1.0], clock=0.5)
 
 
 def test_rollouts_cycle_kinds_and_carry_noise() -> None:
     plant = kc.systems.get("linear")
-    cfg = RolloutConfig(n_traj=8, T=4.0)
+    cfg = RolloutConfig(n_traj=8, T=4.0, kinds=BENCH, regime="train", noise_range=(1.0, 1.0))
     noise = {"process_std": 0.0, "measurement_std": 0.1}
     batch = rollouts(plant, cfg, seed=3, **noise)
     assert batch.x.shape == (8, 80, 2) and batch.y.shape == (8, 80, 1) and batch.u.shape == (8, 80, 1)
@@ -93,8 +97,8 @@ def test_operational_decoder_beats_noise_free_one_on_noisy_runs() -> None:
     bank = _bank()
     dec = DecoderConfig(hidden=(32, 32), loop=LoopConfig(epochs=12, batch_size=256, lr=3e-3, schedule="cosine",
                                                          val_fraction=0.1), dtype="float64")
-    cfg = RolloutConfig(n_traj=48, T=10.0)
-    test = rollouts(plant, RolloutConfig(n_traj=32, T=10.0), seed=99)
+    cfg = RolloutConfig(n_traj=48, T=10.0, kinds=BENCH, regime="train", noise_range=(1.0, 1.0))
+    test = rollouts(plant, cfg, seed=99)
     errs = {}
     for label, std in (("noisy", 0.1), ("clean", 0.0)):
         data = operational_data(plant, bank, cfg, 5, dt=0.05, measurement_std=std, process_std=std)
@@ -128,8 +132,8 @@ def test_input_filters_and_clock_lower_the_error_under_inputs() -> None:
                                                          val_fraction=0.1), dtype="float64")
     kinds = ("constant", "square")
     sampling = RolloutConfig()           # every sample over the first 5 s, every other one after
-    train = rollouts(plant, RolloutConfig(n_traj=48, T=10.0, kinds=kinds), seed=5)
-    test = rollouts(plant, RolloutConfig(n_traj=32, T=10.0, kinds=kinds), seed=99)
+    train = rollouts(plant, RolloutConfig(n_traj=48, T=10.0, kinds=kinds, regime="train"), seed=5)
+    test = rollouts(plant, RolloutConfig(n_traj=32, T=10.0, kinds=kinds, regime="train"), seed=99)
     errs = {}
     for label, bank in (("y only", fb.FilterBank.design(1, 1, [0.5, 2.0, 6.0])), ("y, u and clock", _bank())):
         fit = fit_bank_decoder(bank, OperationalData.from_runs(bank, train, sampling), dec, seed=0)

@@ -104,9 +104,9 @@ class RolloutConfig:
 
     n_traj: int = 2000
     T: float = 50.0
-    kinds: tuple[str, ...] = sig.BENCHMARK_KINDS
-    regime: str = "train"
-    noise_range: tuple[float, float] = (1.0, 1.0)
+    kinds: tuple[str, ...] = FAMILIES
+    regime: str = "wide"
+    noise_range: tuple[float, float] = (0.5, 2.0)
     method: str = "rk"
     substeps: int | None = None
     box_scale: float = 1.0
