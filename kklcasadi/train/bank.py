@@ -75,7 +75,7 @@ class BankConfig:
     """
 
     y_poles: tuple = (0.2, 0.4, 0.8, 1.5, 3.0, 6.0, 12.0, 25.0)
-    u_poles: tuple = (0.3, 1.0, 3.0)
+    u_poles: tuple = (0.1, 0.3, 1.0, 3.0, 10.0)
     y_resonators: tuple = ()
     clock: Optional[float] = 0.2
     time_scale: Optional[float] = None
