@@ -99,7 +99,7 @@ def test_a_new_plant_gets_its_own_time_scale_and_its_angles(arm_dir):
     assert bank["time_scale"] == pytest.approx(rate) and rate != 1.0
     np.testing.assert_allclose(bank["y_poles"], np.multiply(default_config("arm", "bank").y_poles, rate))
     assert bank["angles"] == {"outputs": [0], "measured": [[1, 0]], "free": [[0, 0.0]]}
-    assert model.spec.nz == 2 * 8 + 3 + 1 and model.card["architecture"]["decoder"]["sizes"] == [20 + 2 + 1 + 1, 8, 4]
+    assert model.spec.nz == 2 * 8 + 5 + 1 and model.card["architecture"]["decoder"]["sizes"] == [22 + 2 + 1 + 1, 8, 4]
     assert model.card["training"]["process_std"] == [0.0, 0.0, 0.2]
 
 
