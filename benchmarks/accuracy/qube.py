@@ -73,7 +73,8 @@ def train(args: argparse.Namespace, plant: kc.System, out: Path) -> tuple[Path, 
     torch.set_num_threads(1)
     config = default_config(plant.name, "bank", epochs=args.epochs)
     ps = args.process_std
-    config = replace(config, measurement_std=args.measurement_std, process_std=(0.0, 0.0, ps, ps),
+    config = replace(config, measurement_std=args.measurement_std,
+                     process_std=ps if args.process_all else (0.0, 0.0, ps, ps),
                      angles=not args.no_angles,
                      rollouts=replace(config.rollouts, n_traj=args.n_traj, T=args.T, box_scale=args.box_scale,
                                       noise_range=(args.noise_lo, args.noise_hi), sample_period=args.sample_period,
@@ -92,13 +93,15 @@ def main() -> None:
     p.add_argument("--model", type=Path, help="score this model instead of training one")
     p.add_argument("--tag", default="bank")
     p.add_argument("--process-std", type=float, default=8.0, help="on the two velocities (rad/s^2)")
+    p.add_argument("--process-all", action="store_true", help="the process noise on every state (as the CLI's "
+                   "--process-std), not only the velocities")
     p.add_argument("--measurement-std", type=float, default=1e-3)
-    p.add_argument("--noise-lo", type=float, default=1.0)
-    p.add_argument("--noise-hi", type=float, default=1.0)
+    p.add_argument("--noise-lo", type=float, default=0.5)
+    p.add_argument("--noise-hi", type=float, default=2.0)
     p.add_argument("--box-scale", type=float, default=1.0)
     p.add_argument("--n-traj", type=int, default=1000)
     p.add_argument("--T", type=float, default=60.0, help="horizon in units of 1 / time scale (13.3 rad/s)")
-    p.add_argument("--epochs", type=int, default=20)
+    p.add_argument("--epochs", type=int, default=15)
     p.add_argument("--sample-period", type=float, default=0.1, help="in units of 1 / time scale")
     p.add_argument("--dense-period", type=float, default=0.05, help="in units of 1 / time scale")
     p.add_argument("--hidden", default="")

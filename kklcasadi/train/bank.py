@@ -39,7 +39,7 @@ SHIPPED = {"duffing": {}, "vdp": {}, "fhn": {}, "rossler": {"asinh_scale": (0.0,
 #: The budget of a plant kklcasadi does not ship (a first observer in minutes on 2 cores at any dt):
 #: runs, horizon in units of 1 / time_scale (the Qube's 60 / 13.3 = 4.5 s) and decoder epochs. The
 #: shipped systems keep 2000 runs x 50 s, 40 epochs.
-NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 20}
+NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 15}
 
 
 @dataclass(frozen=True)
