@@ -24,7 +24,6 @@ from kklcasadi.train.operational import (  # noqa: E402
     torch_decoder,
 )
 
-
 #: The benchmark's input kinds (the runs' default families are broader).
 BENCH = ("zero", "constant", "sinusoid", "square")
 

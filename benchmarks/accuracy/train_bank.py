@@ -45,7 +45,7 @@ def main() -> None:
     p.add_argument("--hidden")
     p.add_argument("--measurement-std", type=float)
     p.add_argument("--process-std", help="one std or one per state")
-    p.add_argument("--box-scale", type=float)
+    p.add_argument("--box-scale", help="a factor or lo,hi")
     p.add_argument("--sample-period", type=float)
     p.add_argument("--dt", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=11)
@@ -68,7 +68,10 @@ def main() -> None:
         runs["kinds"] = FAMILIES if args.kinds == "all" else tuple(args.kinds.split(","))
     if args.noise_range:
         runs["noise_range"] = floats(args.noise_range)
-    for name in ("regime", "n_traj", "T", "box_scale", "sample_period"):
+    if args.box_scale:
+        scale = floats(args.box_scale)
+        runs["box_scale"] = scale[0] if len(scale) == 1 else scale
+    for name in ("regime", "n_traj", "T", "sample_period"):
         if getattr(args, name) is not None:
             runs[name] = getattr(args, name)
     config = replace(config, **top, rollouts=replace(config.rollouts, **runs))

@@ -90,8 +90,10 @@ class RolloutConfig:
         Plant integrator (see :func:`kklcasadi.plant.simulate.step_function`); ``substeps=None``
         takes the fewest RK4 steps per sample with ``h * omega <= RK_STEP`` (``omega``: the plant's
         time scale, :func:`kklcasadi.plant.design.time_scales`).
-    box_scale : float
-        Scale of the X0 box (about its centre) the initial states are drawn from.
+    box_scale : float or (float, float)
+        Scale of the X0 box (about its centre) the initial states are drawn from, or a range: each
+        run's initial state scaled about the centre by a factor drawn uniformly from it (a wider
+        spread of energies, e.g. the upper branch of a hardening resonance).
     escape_scale : float
         A run is cut where its state leaves the X0 box scaled by this about its centre.
     sample_period, dense_period, dense_time : float
@@ -109,7 +111,7 @@ class RolloutConfig:
     noise_range: tuple[float, float] = (0.5, 2.0)
     method: str = "rk"
     substeps: int | None = None
-    box_scale: float = 1.0
+    box_scale: float | tuple[float, float] = 1.0
     escape_scale: float = 10.0
     sample_period: float = 0.1
     dense_period: float = 0.05
@@ -127,7 +129,10 @@ class RolloutConfig:
         lo, hi = self.noise_range
         if not (0 < lo <= hi and math.isfinite(hi)):
             raise ValueError(f"noise_range: expected factors 0 < lo <= hi, received {self.noise_range!r}.")
-        for name in ("T", "box_scale", "escape_scale", "sample_period", "dense_period"):
+        scales = np.atleast_1d(np.asarray(self.box_scale, dtype=float))
+        if scales.size not in (1, 2) or not np.all(np.isfinite(scales)) or not (0 < scales[0] <= scales[-1]):
+            raise ValueError(f"box_scale: expected a factor > 0 or a range 0 < lo <= hi, received {self.box_scale!r}.")
+        for name in ("T", "escape_scale", "sample_period", "dense_period"):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"{name}: expected a finite number > 0, received {getattr(self, name)!r}.")
         if not self.dense_time >= 0:
@@ -258,6 +263,16 @@ def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
     return np.where(bad.any(axis=1), bad.argmax(axis=1), x.shape[1])
 
 
+def _initial_states(system: System, config: RolloutConfig, seed: int) -> np.ndarray:
+    """The runs' initial states (n_traj, nx): a Latin hypercube over the X0 box, scaled about its centre."""
+    if np.ndim(config.box_scale) == 0:
+        return system.sample_box(config.n_traj, seed, scale=float(config.box_scale))
+    lo, hi = config.box_scale
+    centre = system.x0_box.mean(axis=1)
+    factor = np.random.default_rng([seed, 4]).uniform(lo, hi, (config.n_traj, 1))
+    return centre + (system.sample_box(config.n_traj, seed) - centre) * factor
+
+
 def _ranges(kind: str, regime: str) -> Mapping[str, tuple[float, float]]:
     """Parameter ranges of a benchmark kind: :data:`kklcasadi.plant.signals.RANGES`, or for ``wide`` the
     hull of the ``id`` and ``ood`` ranges."""
@@ -352,7 +367,7 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
     rng = np.random.default_rng([seed, 1])
     horizon = _horizon(config.T, rate, dt)
     t = time_grid(horizon, dt)
-    x0 = system.sample_box(config.n_traj, seed, scale=config.box_scale)
+    x0 = _initial_states(system, config, seed)
     y_range = np.quantile(system.h_batch(system.sample_box(256, seed + 1)), [0.05, 0.95], axis=0)
     inputs = [_draw_input(config.kinds[i % len(config.kinds)], rng, config.regime, system, t, y_range, rate)
               for i in range(config.n_traj)]
