@@ -211,3 +211,16 @@ def test_the_broad_families_and_the_wide_regime() -> None:
         RolloutConfig(kinds=("chirp",))
     with pytest.raises(ValueError, match="regime"):
         RolloutConfig(regime="huge")
+
+
+def test_a_range_of_box_scales_spreads_the_initial_states() -> None:
+    plant = kc.systems.get("duffing")
+    one = rollouts(plant, RolloutConfig(n_traj=40, T=0.1, kinds=("zero",)), 3, measurement_std=0.0, process_std=0.0)
+    wide = rollouts(plant, RolloutConfig(n_traj=40, T=0.1, kinds=("zero",), box_scale=(1.0, 3.0)), 3,
+                    measurement_std=0.0, process_std=0.0)
+    assert np.abs(one.x[:, 0]).max() <= 1.0 < np.abs(wide.x[:, 0]).max() <= 3.0
+    ratio = wide.x[:, 0] / one.x[:, 0]                    # the same hypercube, each run scaled by its factor
+    np.testing.assert_allclose(ratio[:, 0], ratio[:, 1], rtol=1e-9)
+    assert 1.0 <= ratio.min() and ratio.max() <= 3.0
+    with pytest.raises(ValueError, match="box_scale"):
+        RolloutConfig(box_scale=(2.0, 1.0))
