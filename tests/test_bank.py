@@ -36,7 +36,7 @@ def test_bank_card_records_its_noise_level_design_and_domain(bank_dir):
     assert model.card["architecture"]["bank"] == {"y_poles": [0.5, 2.0], "u_poles": [1.0], "y_resonators": [],
                                                   "clock": 0.2, "time_scale": 1.0}
     training = model.card["training"]
-    assert training["measurement_std"] == 0.1 and training["process_std"] == 0.1
+    assert training["measurement_std"] == 0.1 and training["process_std"] == [0.1, 0.1, 0.1]
     assert training["runs"]["runs"] == 8 and training["runs"]["cut"] == 0 and training["runs"]["simulated_s"] == 32.0
     assert model.spec.nz == 2 + 1 + 1 and model.spec.domain is not None
     assert np.array_equal(model.arrays["decoder/asinh_scale"], [0.0, 0.0, 0.01])
@@ -126,3 +126,18 @@ def test_the_angle_observer_equals_the_reference_and_its_c_code(arm_dir, tmp_pat
     out = subprocess.run([str(tmp_path / "arm")], input=rows + "\n", capture_output=True, text=True, check=True)
     np.testing.assert_allclose(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:], est.xhat, rtol=0,
                                atol=1e-12)
+
+
+def test_a_single_process_std_acts_where_process_on_says():
+    from kklcasadi.train.bank import BankConfig, process_stds
+
+    arm = _arm()                                   # theta' = omega is kinematic, phi' = 0.5 omega is not
+    assert default_config("arm", "bank").process_on == "forced"
+    assert default_config("duffing", "bank").process_on == "all"
+    np.testing.assert_array_equal(process_stds(arm, BankConfig(process_std=0.3, process_on="forced")), [0.3, 0, 0.3])
+    np.testing.assert_array_equal(process_stds(arm, BankConfig(process_std=0.3)), [0.3, 0.3, 0.3])
+    np.testing.assert_array_equal(process_stds(arm, BankConfig(process_std=(0.1, 0.2, 0.0))), [0.1, 0.2, 0.0])
+    with pytest.raises(ValueError, match="process_std"):
+        process_stds(arm, BankConfig(process_std=(0.1, 0.2)))
+    with pytest.raises(ValueError, match="process_on"):
+        BankConfig(process_on="some")

@@ -30,7 +30,8 @@ from .operational import (
 )
 from .result import Trained
 
-__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale", "SHIPPED", "NEW_PLANT_BANK"]
+__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale", "process_stds", "SHIPPED",
+           "NEW_PLANT_BANK", "PROCESS_ON"]
 
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
 #: given (``time_scale = 1``), RK4 with 4 substeps, and Roessler's x3 decoded as ``0.01 sinh(v)``
@@ -40,6 +41,8 @@ SHIPPED = {"duffing": {}, "vdp": {}, "fhn": {}, "rossler": {"asinh_scale": (0.0,
 #: runs, horizon in units of 1 / time_scale (the Qube's 60 / 13.3 = 4.5 s) and decoder epochs. The
 #: shipped systems keep 2000 runs x 50 s, 40 epochs.
 NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 15}
+#: Where a single process-noise std acts (:attr:`BankConfig.process_on`).
+PROCESS_ON = ("all", "forced")
 
 
 @dataclass(frozen=True)
@@ -63,8 +66,14 @@ class BankConfig:
     measurement_std : float
         Std of the measurement noise of the runs the decoder is fit on (the card's noise level).
     process_std : float or tuple of float
-        Std of the process noise added to ``xdot`` in those runs: one for all states, or one per
-        state (e.g. zero on the kinematic rows of a mechanical plant).
+        Std of the process noise added to ``xdot`` in those runs: one for all states (see
+        ``process_on``), or one per state.
+    process_on : {"all", "forced"}
+        Where a single ``process_std`` acts: on every state, or only on the states whose
+        derivative is not simply another state (``x_i' = x_j`` rows get none: noise as a force on a
+        mechanical plant, as the Qube's EKF assumes; with noise on its angles too its velocity
+        error triples). The shipped systems use ``all`` (the protocol's noise); a new plant
+        ``forced``.
     angles : bool
         Read the plant's angle outputs and write its angle states continuously on the circle
         (:class:`kklcasadi.model.variants.filterbank.Angles`); no effect on a plant without angles.
@@ -81,6 +90,7 @@ class BankConfig:
     time_scale: Optional[float] = None
     measurement_std: float = 0.1
     process_std: float | tuple = 0.1
+    process_on: str = "all"
     angles: bool = True
     rollouts: RolloutConfig = field(default_factory=RolloutConfig)
     decoder: DecoderConfig = field(default_factory=lambda: DecoderConfig(
@@ -94,6 +104,8 @@ class BankConfig:
         std = np.asarray(self.process_std, dtype=float)
         if std.ndim > 1 or not np.all(np.isfinite(std)) or np.any(std < 0):
             raise error("process_std", "a finite number >= 0 or one per state", self.process_std)
+        if self.process_on not in PROCESS_ON:
+            raise error("process_on", f"one of {list(PROCESS_ON)}", self.process_on)
 
     @classmethod
     def for_system(cls, system: str) -> BankConfig:
@@ -106,8 +118,21 @@ class BankConfig:
                 config = replace(config, decoder=replace(config.decoder, asinh_scale=SHIPPED[system]["asinh_scale"]))
             return config
         budget = dict(NEW_PLANT_BANK)
-        config = replace(config, rollouts=replace(config.rollouts, n_traj=budget["n_traj"], T=budget["T"]))
+        config = replace(config, process_on="forced",
+                         rollouts=replace(config.rollouts, n_traj=budget["n_traj"], T=budget["T"]))
         return with_epochs(config, budget["epochs"])
+
+
+def process_stds(system: System, config: BankConfig) -> np.ndarray:
+    """The process-noise std of each state (nx,): ``config.process_std`` per state, or the one std on the
+    states ``config.process_on`` names (``forced``: not on rows ``x_i' = x_j``)."""
+    std = np.asarray(config.process_std, dtype=float)
+    if std.ndim == 1:
+        if std.shape != (system.nx,):
+            raise error("process_std", f"one number or nx = {system.nx} (one per state)", config.process_std)
+        return std
+    forced = np.array([not system.xdot_expr[i].is_symbolic() for i in range(system.nx)])
+    return np.where(forced | (config.process_on == "all"), float(std), 0.0)
 
 
 def bank_time_scale(system: System, config: BankConfig) -> float:
@@ -150,21 +175,19 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     """The training hook of ``bank`` (no base model; ``design`` is replaced by the bank's)."""
     if type(config) is not BankConfig:
         raise TypeError(f"config: expected a BankConfig for 'bank', received {type(config).__name__}.")
-    std = np.asarray(config.process_std, dtype=float)
-    if std.ndim == 1 and std.shape != (system.nx,):
-        raise error("process_std", f"one number or nx = {system.nx} (one per state)", config.process_std)
+    process = process_stds(system, config)
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
     angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
     data = operational_data(system, bank, config.rollouts, seed, dt=dt, measurement_std=config.measurement_std,
-                            process_std=config.process_std, time_scale=rate, progress=progress)
+                            process_std=process, time_scale=rate, progress=progress)
     if len(data) == 0:
         raise ValueError(f"rollouts: every one of the {config.rollouts.n_traj} runs escaped at once (no samples); "
                          "lower the inputs or box_scale, or raise escape_scale.")
     fitted = fit_bank_decoder(bank, data, config.decoder, angles=angles, seed=seed, progress=progress)
     arrays, spec, domain = bank_model(system, bank, config, rate, fitted, data, dt)
     training = {"config": config, **config_record(config.rollouts, config.decoder), "time_scale": rate,
-                "measurement_std": config.measurement_std, "process_std": config.process_std,
+                "measurement_std": config.measurement_std, "process_std": process.tolist(),
                 "runs": data.record, "decoder_fit": fitted.fit.summary(), "samples": fitted.n_samples,
                 "state_percentiles": fitted.domain}
     return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, {"decoder": fitted.fit.history}, 1,
