@@ -4,6 +4,7 @@ fit the decoder on them (:mod:`kklcasadi.train.operational`), write the model.""
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
@@ -175,6 +176,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     """The training hook of ``bank`` (no base model; ``design`` is replaced by the bank's)."""
     if type(config) is not BankConfig:
         raise TypeError(f"config: expected a BankConfig for 'bank', received {type(config).__name__}.")
+    load_start = os.getloadavg()
     process = process_stds(system, config)
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
@@ -189,6 +191,8 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     training = {"config": config, **config_record(config.rollouts, config.decoder), "time_scale": rate,
                 "measurement_std": config.measurement_std, "process_std": process.tolist(),
                 "runs": data.record, "decoder_fit": fitted.fit.summary(), "samples": fitted.n_samples,
-                "state_percentiles": fitted.domain}
+                "state_percentiles": fitted.domain,
+                "machine": {"cpus": os.cpu_count(), "load_average_start": [round(v, 2) for v in load_start],
+                            "load_average_end": [round(v, 2) for v in os.getloadavg()]}}
     return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, {"decoder": fitted.fit.history}, 1,
                    config.measurement_std, domain)
