@@ -117,8 +117,12 @@ def main() -> None:
     obs = kc.load_observer(model, system=plant)
     outputs = [0, 1] if args.outputs == "both" else [1]
     ekf = kc.EKF(plant, DT, Q=np.diag([0.0, 0.0, 1e-3, 1e-3]), R=1e-6 * np.eye(plant.ny))
+    card = json.loads((Path(model) / "card.json").read_text())["training"]
     record = {"model": str(model), "outputs": args.outputs, "runs": args.runs, "wall_time_s": wall,
-              "args": {k: str(v) for k, v in vars(args).items()}, "bank": {}, "ekf": {}}
+              "args": {k: str(v) for k, v in vars(args).items()} if args.model is None else None,
+              "model_training": {k: card[k] for k in ("process_std", "measurement_std", "rollouts", "decoder_fit",
+                                                      "time_scale", "wall_time_s") if k in card},
+              "bank": {}, "ekf": {}}
     for n in RUNS[args.runs]:
         log, velocity = read(n, plant)
         y, u = log.y[:, outputs], np.zeros((log.t.size, 1))
