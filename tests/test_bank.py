@@ -10,6 +10,8 @@ import pytest
 
 pytest.importorskip("torch")
 
+import casadi as ca  # noqa: E402
+
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
@@ -32,7 +34,10 @@ def test_bank_card_records_its_noise_level_design_and_domain(bank_dir):
     model = load_model(bank_dir)
     assert model.method == "bank" and model.base is None and model.spec.measurement_std == 0.1
     assert model.card["architecture"]["bank"] == {"y_poles": [0.5, 2.0], "u_poles": [1.0], "y_resonators": [],
-                                                  "clock": 0.2}
+                                                  "clock": 0.2, "time_scale": 1.0}
+    training = model.card["training"]
+    assert training["measurement_std"] == 0.1 and training["process_std"] == [0.1, 0.1, 0.1]
+    assert training["runs"]["runs"] == 8 and training["runs"]["cut"] == 0 and training["runs"]["simulated_s"] == 32.0
     assert model.spec.nz == 2 + 1 + 1 and model.spec.domain is not None
     assert np.array_equal(model.arrays["decoder/asinh_scale"], [0.0, 0.0, 0.01])
 
@@ -65,3 +70,74 @@ def test_bank_compiles_to_c_that_reproduces_simulate(bank_dir, tmp_path):
     out = subprocess.run([str(tmp_path / "bank")], input=rows + "\n", capture_output=True, text=True, check=True)
     np.testing.assert_array_equal(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:],
                                   obs.simulate(tr.t, tr.y, tr.u).xhat)
+
+
+def _arm() -> kc.System:
+    """A damped pendulum on a cart-free arm: x = (phi, theta, omega), y = (theta, sin phi); phi and theta
+    are angles, theta is measured, phi only through sin phi (a free angle state)."""
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)
+    return kc.System("arm", x, u, [0.5 * x[2], x[2], -4.0 * ca.sin(x[1]) - 0.3 * x[2] + u],
+                     [x[1], ca.sin(x[0])], [[-1.0, 1.0], [-1.5, 1.5], [-2.0, 2.0]], angle_states=(0, 1),
+                     angle_outputs=(0,))
+
+
+@pytest.fixture(scope="module")
+def arm_dir(tmp_path_factory):
+    config = replace(default_config("arm", "bank", epochs=2), measurement_std=0.01, process_std=(0.0, 0.0, 0.2),
+                     rollouts=RolloutConfig(n_traj=8, T=3.0),
+                     decoder=DecoderConfig(hidden=(8,), loop=LoopConfig(epochs=2, batch_size=64)))
+    return train_observer(_arm(), "bank", tmp_path_factory.mktemp("arm") / "bank", config=config, dt=0.02,
+                          progress=False)
+
+
+def test_a_new_plant_gets_its_own_time_scale_and_its_angles(arm_dir):
+    from kklcasadi.plant.design import time_scales
+
+    model = load_model(arm_dir)
+    bank = model.card["architecture"]["bank"]
+    rate = time_scales(_arm())[0]
+    assert bank["time_scale"] == pytest.approx(rate) and rate != 1.0
+    np.testing.assert_allclose(bank["y_poles"], np.multiply(default_config("arm", "bank").y_poles, rate))
+    assert bank["angles"] == {"outputs": [0], "measured": [[1, 0]], "free": [[0, 0.0]]}
+    assert model.spec.nz == 2 * 8 + 5 + 1 and model.card["architecture"]["decoder"]["sizes"] == [22 + 2 + 1 + 1, 8, 4]
+    assert model.card["training"]["process_std"] == [0.0, 0.0, 0.2]
+
+
+def test_the_angle_observer_equals_the_reference_and_its_c_code(arm_dir, tmp_path):
+    obs = kc.load_observer(arm_dir, system=_arm())
+    tr = kc.simulate(obs.system, [0.3, 1.0, 0.0], kc.signals.make("sinusoid", amplitude=0.5, omega=2.0), T=3.0,
+                     dt=obs.dt, measurement_std=0.01, seed=4)
+    model = load_model(arm_dir)
+    arrays = {**model.arrays, "bank/A": model.A, "bank/By": model.B}
+    expected = fb.estimate(arrays, model.card["architecture"]["decoder"], tr.y, tr.u, obs.dt,
+                           angles=model.spec.architecture.angles)
+    est = obs.simulate(tr.t, tr.y, tr.u)
+    np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
+    assert np.all(np.abs(est.xhat[:, 0]) <= np.pi)              # the free angle, about its box centre 0
+    # theta measured on another branch: theta + 2 pi, up to the start of the filters from z(0) = 0
+    moved = obs.simulate(tr.t, tr.y + [2 * np.pi, 0.0], tr.u).xhat
+    np.testing.assert_allclose(moved[:, 1] - est.xhat[:, 1], 2 * np.pi, atol=1e-2)
+    if shutil.which("gcc") is None:
+        return
+    files = generate_c(obs, tmp_path, "arm", math="libm")
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
+                    "-o", str(tmp_path / "arm")], check=True)
+    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
+    out = subprocess.run([str(tmp_path / "arm")], input=rows + "\n", capture_output=True, text=True, check=True)
+    np.testing.assert_allclose(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:], est.xhat, rtol=0,
+                               atol=1e-12)
+
+
+def test_a_single_process_std_acts_where_process_on_says():
+    from kklcasadi.train.bank import BankConfig, process_stds
+
+    arm = _arm()                                   # theta' = omega is kinematic, phi' = 0.5 omega is not
+    assert default_config("arm", "bank").process_on == "forced"
+    assert default_config("duffing", "bank").process_on == "all"
+    np.testing.assert_array_equal(process_stds(arm, BankConfig(process_std=0.3, process_on="forced")), [0.3, 0, 0.3])
+    np.testing.assert_array_equal(process_stds(arm, BankConfig(process_std=0.3)), [0.3, 0.3, 0.3])
+    np.testing.assert_array_equal(process_stds(arm, BankConfig(process_std=(0.1, 0.2, 0.0))), [0.1, 0.2, 0.0])
+    with pytest.raises(ValueError, match="process_std"):
+        process_stds(arm, BankConfig(process_std=(0.1, 0.2)))
+    with pytest.raises(ValueError, match="process_on"):
+        BankConfig(process_on="some")

@@ -15,12 +15,17 @@ from kklcasadi.train.config import LoopConfig  # noqa: E402
 from kklcasadi.train.nets import MLP  # noqa: E402
 from kklcasadi.train.operational import (  # noqa: E402
     DecoderConfig,
+    OperationalData,
     RolloutConfig,
     fit_bank_decoder,
     fold_whitening,
+    operational_data,
     rollouts,
     torch_decoder,
 )
+
+#: The benchmark's input kinds (the runs' default families are broader).
+BENCH = ("zero", "constant", "sinusoid", "square")
 
 
 def _bank() -> fb.FilterBank:
@@ -29,17 +34,18 @@ def _bank() -> fb.FilterBank:
 
 def test_rollouts_cycle_kinds_and_carry_noise() -> None:
     plant = kc.systems.get("linear")
-    cfg = RolloutConfig(n_traj=8, T=4.0, process_std=0.0, measurement_std=0.1)
-    batch = rollouts(plant, cfg, seed=3)
+    cfg = RolloutConfig(n_traj=8, T=4.0, kinds=BENCH, regime="train", noise_range=(1.0, 1.0))
+    noise = {"process_std": 0.0, "measurement_std": 0.1}
+    batch = rollouts(plant, cfg, seed=3, **noise)
     assert batch.x.shape == (8, 80, 2) and batch.y.shape == (8, 80, 1) and batch.u.shape == (8, 80, 1)
     np.testing.assert_array_equal(batch.u[0], 0.0)                  # zero, constant, sinusoid, square, ...
     assert np.ptp(batch.u[1]) == 0.0 and abs(batch.u[1, 0, 0]) > 0
     assert np.unique(np.abs(batch.u[3])).size <= 2
     resid = batch.y[..., 0] - batch.x[..., 0]                         # y = x1 for the linear plant
     assert 0.08 < resid.std() < 0.12
-    again = rollouts(plant, cfg, seed=3)
+    again = rollouts(plant, cfg, seed=3, **noise)
     np.testing.assert_array_equal(again.y, batch.y)
-    assert not np.array_equal(rollouts(plant, cfg, seed=4).y, batch.y)
+    assert not np.array_equal(rollouts(plant, cfg, seed=4, **noise).y, batch.y)
 
 
 def test_fold_whitening_gives_the_same_map() -> None:
@@ -73,7 +79,7 @@ def test_torch_and_casadi_decoders_agree(scale: tuple[float, float]) -> None:
     for _ in range(5):
         f = rng.normal(size=d)
         ft = torch.tensor(f, requires_grad=True)
-        xt = dec_t(ft)
+        xt = dec_t(ft[:bank.nz], ft[bank.nz:bank.nz + 1], ft[-1:])
         jt = np.stack([torch.autograd.grad(xt[i], ft, retain_graph=True)[0].numpy() for i in range(2)])
         z, y, u = f[:bank.nz], f[bank.nz:bank.nz + 1], f[-1:]
         xc = np.asarray(dec_c(z, y, u)).ravel()
@@ -88,15 +94,14 @@ def test_operational_decoder_beats_noise_free_one_on_noisy_runs() -> None:
     torch.set_num_threads(1)
     plant = kc.systems.get("linear")
     bank = _bank()
-    dec = DecoderConfig(hidden=(32, 32), stride=2, loop=LoopConfig(epochs=12, batch_size=256, lr=3e-3,
-                                                                     schedule="cosine", val_fraction=0.1),
-                        dtype="float64")
-    noisy = RolloutConfig(n_traj=48, T=10.0, process_std=0.1, measurement_std=0.1)
-    clean = RolloutConfig(n_traj=48, T=10.0, process_std=0.0, measurement_std=0.0)
-    test = rollouts(plant, RolloutConfig(n_traj=32, T=10.0), seed=99)
+    dec = DecoderConfig(hidden=(32, 32), loop=LoopConfig(epochs=12, batch_size=256, lr=3e-3, schedule="cosine",
+                                                         val_fraction=0.1), dtype="float64")
+    cfg = RolloutConfig(n_traj=48, T=10.0, kinds=BENCH, regime="train", noise_range=(1.0, 1.0))
+    test = rollouts(plant, cfg, seed=99)
     errs = {}
-    for label, cfg in (("noisy", noisy), ("clean", clean)):
-        fit = fit_bank_decoder(bank, rollouts(plant, cfg, seed=5), dec, seed=0)
+    for label, std in (("noisy", 0.1), ("clean", 0.0)):
+        data = operational_data(plant, bank, cfg, 5, dt=0.05, measurement_std=std, process_std=std)
+        fit = fit_bank_decoder(bank, data, dec, seed=0)
         xhat = fb.estimate(fit.arrays, fit.arch, test.y, test.u, 0.05)
         errs[label] = float(np.mean((xhat - test.x) ** 2))
     assert errs["noisy"] < 0.8 * errs["clean"], errs
@@ -107,28 +112,115 @@ def test_asinh_fit_records_scale_and_domain() -> None:
     plant = kc.systems.get("linear")
     dec = DecoderConfig(hidden=(8,), asinh_scale=(0.0, 0.05),
                         loop=LoopConfig(epochs=1, batch_size=64, val_fraction=0.1), dtype="float64")
-    fit = fit_bank_decoder(_bank(), rollouts(plant, RolloutConfig(n_traj=4, T=2.0), seed=1), dec)
+    data = OperationalData.from_runs(_bank(), rollouts(plant, RolloutConfig(n_traj=4, T=2.0), seed=1),
+                                     RolloutConfig())
+    fit = fit_bank_decoder(_bank(), data, dec)
     np.testing.assert_array_equal(fit.arrays[fb.ASINH_SCALE], [0.0, 0.05])
     assert fit.arch == {"sizes": [_bank().nz + 2, 8, 2], "activation": "tanh"}
     lo, hi = np.array(fit.domain["x_p0.1"]), np.array(fit.domain["x_p99.9"])
     assert np.all(lo < hi)
     with pytest.raises(ValueError, match="asinh_scale"):
-        fit_bank_decoder(_bank(), rollouts(plant, RolloutConfig(n_traj=4, T=2.0), seed=1),
-                         DecoderConfig(asinh_scale=(0.0,)))
+        fit_bank_decoder(_bank(), data, DecoderConfig(asinh_scale=(0.0,)))
 
 
 def test_input_filters_and_clock_lower_the_error_under_inputs() -> None:
     """Lever 2: a bank with input filters and a clock beats an output-only bank on forced noisy runs."""
     torch.set_num_threads(1)
     plant = kc.systems.get("linear")
-    dec = DecoderConfig(hidden=(32, 32), stride=2, loop=LoopConfig(epochs=12, batch_size=256, lr=3e-3,
-                                                                     schedule="cosine", val_fraction=0.1),
-                        dtype="float64")
+    dec = DecoderConfig(hidden=(32, 32), loop=LoopConfig(epochs=12, batch_size=256, lr=3e-3, schedule="cosine",
+                                                         val_fraction=0.1), dtype="float64")
     kinds = ("constant", "square")
-    train = rollouts(plant, RolloutConfig(n_traj=48, T=10.0, kinds=kinds), seed=5)
-    test = rollouts(plant, RolloutConfig(n_traj=32, T=10.0, kinds=kinds), seed=99)
+    sampling = RolloutConfig()           # every sample over the first 5 s, every other one after
+    train = rollouts(plant, RolloutConfig(n_traj=48, T=10.0, kinds=kinds, regime="train"), seed=5)
+    test = rollouts(plant, RolloutConfig(n_traj=32, T=10.0, kinds=kinds, regime="train"), seed=99)
     errs = {}
     for label, bank in (("y only", fb.FilterBank.design(1, 1, [0.5, 2.0, 6.0])), ("y, u and clock", _bank())):
-        fit = fit_bank_decoder(bank, train, dec, seed=0)
+        fit = fit_bank_decoder(bank, OperationalData.from_runs(bank, train, sampling), dec, seed=0)
         errs[label] = float(np.mean((fb.estimate(fit.arrays, fit.arch, test.y, test.u, 0.05) - test.x) ** 2))
     assert errs["y, u and clock"] < 0.8 * errs["y only"], errs
+
+
+def _plant(name: str, rhs, box) -> kc.System:
+    x, u = ca.SX.sym("x", len(box)), ca.SX.sym("u", 1)
+    return kc.System(name, x, u, rhs(x, u), x[0], box)
+
+
+def test_runs_that_escape_are_cut_there_and_counted() -> None:
+    """xdot = x: a run from x0 > 0.5 leaves the box [-1, 1] scaled by 2 about 0 before t = 1 s; none of its
+    samples from there on is used, and rollouts() drops such runs."""
+    plant = _plant("grow", lambda x, u: ca.vertcat(x[0]), [[-1.0, 1.0]])
+    cfg = RolloutConfig(n_traj=20, T=2.0, kinds=("zero",), escape_scale=2.0, sample_period=0.05, dense_time=0.0)
+    data = operational_data(plant, fb.FilterBank.design(1, 1, [1.0]), cfg, 0, dt=0.05, measurement_std=0.0)
+    x0 = plant.sample_box(20, 0)[:, 0]
+    escapes = np.abs(x0) * np.exp(1.95) > 2.0                      # leaves |x| <= 2 within the horizon
+    assert data.record["cut"] == int(escapes.sum()) > 0 and data.record["failed"] == 0
+    assert np.all(np.abs(data.x) <= 2.0)
+    kept_per_run = np.minimum(40, np.floor(np.log(2.0 / np.abs(x0)) / 0.05) + 1).astype(int)
+    assert abs(len(data) - kept_per_run.sum()) <= 20              # up to one boundary sample per run
+    runs = rollouts(plant, cfg, 0, measurement_std=0.0, process_std=0.0)
+    assert len(runs) == int((~escapes).sum())
+
+
+@pytest.mark.parametrize("dt", [0.05, 0.01, 0.004])
+def test_the_budget_counts_seconds_not_samples(dt: float) -> None:
+    """The decoder's samples sit at fixed times: a run of 10 s gives 100 + 50 samples at every dt."""
+    plant = kc.systems.get("linear")
+    cfg = RolloutConfig(n_traj=3, T=10.0, kinds=("sinusoid",))
+    data = operational_data(plant, _bank(), cfg, 1, dt=dt, measurement_std=0.1, process_std=0.1)
+    assert data.record["samples"] == len(data) == 3 * 150
+    assert data.record["simulated_s"] == 30.0
+    assert data.record["substeps"] == max(1, int(np.ceil(dt * np.sqrt(2.0) / 0.05)))
+
+
+def test_process_noise_per_state_and_a_range_of_noise_levels() -> None:
+    """xdot = (0, 0) with process noise only on x2: x1 stays at x0, x2 wanders; the measurement noise of
+    each run is the nominal one times a factor within noise_range."""
+    plant = _plant("still", lambda x, u: ca.vertcat(0 * x[0], 0 * x[1]), [[-1.0, 1.0], [-1.0, 1.0]])
+    cfg = RolloutConfig(n_traj=40, T=5.0, kinds=("zero",), noise_range=(0.5, 2.0), chunk=10)
+    runs = rollouts(plant, cfg, 2, measurement_std=0.1, process_std=(0.0, 0.4))
+    np.testing.assert_array_equal(runs.x[:, :, 0], runs.x[:, :1, 0] * np.ones((1, runs.t.size)))
+    steps = np.diff(runs.x[:, :, 1], axis=1)
+    assert np.all(steps.std(axis=1) > 0)
+    stds = (runs.y[..., 0] - runs.x[..., 0]).std(axis=1) / 0.1
+    assert 0.45 < stds.min() < 0.8 and 1.4 < stds.max() < 2.1
+    data = operational_data(plant, _bank(), cfg, 2, dt=0.05, measurement_std=0.1, process_std=(0.0, 0.4))
+    lo, hi = data.record["measurement_factor_range"]
+    assert 0.5 <= lo < hi <= 2.0
+    with pytest.raises(ValueError, match="noise_range"):
+        RolloutConfig(noise_range=(2.0, 1.0))
+
+
+def test_the_broad_families_and_the_wide_regime() -> None:
+    """multisine stays within its amplitude, feedback is u = clip(g (r - y) / s, -2, 2) of the noisy y,
+    and the wide regime reaches the ood amplitudes."""
+    from kklcasadi.train.operational import FAMILIES
+
+    plant = kc.systems.get("duffing")
+    cfg = RolloutConfig(n_traj=60, T=20.0, kinds=FAMILIES, regime="wide", substeps=4, chunk=25)
+    runs = rollouts(plant, cfg, 4, measurement_std=0.05, process_std=0.05)
+    assert len(runs) == 60
+    kinds = np.array([FAMILIES[i % len(FAMILIES)] for i in range(60)])
+    amp = np.abs(runs.u).max(axis=(1, 2))
+    assert np.all(amp[kinds == "multisine"] <= 2.0) and np.ptp(runs.u[kinds == "multisine"], axis=1).min() > 0
+    assert amp[kinds == "constant"].max() > 1.0                        # beyond the train range [-1, 1]
+    loop = np.flatnonzero(kinds == "feedback")
+    assert np.all(amp[loop] <= 2.0 + 1e-12) and np.all(amp[loop] > 0)
+    # u_k depends on y_k through the law: its held value changes only where y_k moves it (not a fixed signal)
+    assert all(np.unique(runs.u[i, :, 0]).size > 50 for i in loop)
+    with pytest.raises(ValueError, match="kinds"):
+        RolloutConfig(kinds=("chirp",))
+    with pytest.raises(ValueError, match="regime"):
+        RolloutConfig(regime="huge")
+
+
+def test_a_range_of_box_scales_spreads_the_initial_states() -> None:
+    plant = kc.systems.get("duffing")
+    one = rollouts(plant, RolloutConfig(n_traj=40, T=0.1, kinds=("zero",)), 3, measurement_std=0.0, process_std=0.0)
+    wide = rollouts(plant, RolloutConfig(n_traj=40, T=0.1, kinds=("zero",), box_scale=(1.0, 3.0)), 3,
+                    measurement_std=0.0, process_std=0.0)
+    assert np.abs(one.x[:, 0]).max() <= 1.0 < np.abs(wide.x[:, 0]).max() <= 3.0
+    ratio = wide.x[:, 0] / one.x[:, 0]                    # the same hypercube, each run scaled by its factor
+    np.testing.assert_allclose(ratio[:, 0], ratio[:, 1], rtol=1e-9)
+    assert 1.0 <= ratio.min() and ratio.max() <= 3.0
+    with pytest.raises(ValueError, match="box_scale"):
+        RolloutConfig(box_scale=(2.0, 1.0))

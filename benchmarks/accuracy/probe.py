@@ -29,7 +29,7 @@ import kklcasadi as kc
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.plant.signals import BENCHMARK_KINDS
 from kklcasadi.train.config import LoopConfig
-from kklcasadi.train.operational import DecoderConfig, RolloutConfig, config_record, fit_bank_decoder
+from kklcasadi.train.operational import DecoderConfig, OperationalData, RolloutConfig, config_record, fit_bank_decoder
 
 OUT = Path("results/accuracy")
 #: Probe weights stay out of the repository (the final models go to results/accuracy/weights).
@@ -38,7 +38,7 @@ WEIGHTS = Path("/tmp/acc_weights")
 DEFAULTS = {"y_poles": "0.2,0.5,1,2,4,7", "u_poles": "0.5,2", "resonators": "", "clock": None, "n_traj": 1000,
             "n_val": 200, "seed": 11, "epochs": 20, "batch": 1024, "lr": 1e-3, "hidden": "256,256,256",
             "activation": "tanh", "loss": "mse", "smape_weight": 0.01, "smape_eps": 1e-3, "asinh": "",
-            "stride": 2, "no_whiten": False}
+            "sample_period": 0.1, "no_whiten": False}
 
 
 def floats(text: str) -> list[float]:
@@ -67,7 +67,7 @@ def parse() -> argparse.Namespace:
     p.add_argument("--smape-weight", type=float)
     p.add_argument("--smape-eps", type=float)
     p.add_argument("--asinh", help="per-state asinh scales, 0 for none")
-    p.add_argument("--stride", type=int)
+    p.add_argument("--sample-period", type=float, help="seconds between the decoder's samples after the first 5 s")
     p.add_argument("--no-whiten", action="store_true", default=None)
     args = p.parse_args()
     base = {**DEFAULTS, **(RECIPES[args.system] if args.recipe else {})}
@@ -86,15 +86,15 @@ def main() -> None:
                                 y_resonators=res, clock=args.clock)
     dec = DecoderConfig(hidden=tuple(int(h) for h in args.hidden.split(",")), activation=args.activation,
                         loss=args.loss, smape_weight=args.smape_weight, smape_eps=args.smape_eps,
-                        asinh_scale=tuple(floats(args.asinh)) or None, stride=args.stride,
-                        whiten=not args.no_whiten,
+                        asinh_scale=tuple(floats(args.asinh)) or None, whiten=not args.no_whiten,
                         loop=LoopConfig(epochs=args.epochs, batch_size=args.batch, lr=args.lr, schedule="cosine",
                                         val_fraction=0.05))
     t0 = time.time()
     train = cached_rollouts(args.system, args.n_traj, args.seed)
     val = cached_rollouts(args.system, args.n_val, 777)
     t_sim = time.time() - t0
-    result = fit_bank_decoder(bank, train, dec, seed=args.seed)
+    sampling = RolloutConfig(n_traj=args.n_traj, sample_period=args.sample_period)
+    result = fit_bank_decoder(bank, OperationalData.from_runs(bank, train, sampling), dec, seed=args.seed)
     arrays, arch = result.arrays, result.arch
 
     def est(y: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -123,7 +123,7 @@ def main() -> None:
     (OUT / "probes").mkdir(parents=True, exist_ok=True)
     args.save.mkdir(parents=True, exist_ok=True)
     record = {"system": args.system, "tag": args.tag, "args": {k: str(v) for k, v in vars(args).items()},
-              "nz": bank.nz, "config": config_record(RolloutConfig(n_traj=args.n_traj), dec),
+              "nz": bank.nz, "config": config_record(sampling, dec),
               "fit_seconds": result.seconds, "n_samples": result.n_samples, "best_epoch": result.fit.best_epoch,
               "history": result.fit.history, "domain": result.domain, "validation": val_scores,
               "noisy": noisy, "clean": clean, "arch": arch}

@@ -18,7 +18,7 @@ import scipy.linalg
 from ..validation import Text, error, finite_array, positive_int
 from .systems import System
 
-__all__ = ["Design", "MIN_MARGIN", "MIN_SPREAD", "MAX_SPREAD"]
+__all__ = ["Design", "time_scales", "MIN_MARGIN", "MIN_SPREAD", "MAX_SPREAD"]
 
 #: Smallest accepted :attr:`Design.controllability_margin`: below it a pair is uncontrollable to
 #: working precision (an unreachable defective eigenvalue shows only about ``eps^(1/2)``).
@@ -144,8 +144,8 @@ def _number(lam: complex) -> str:
     return f"{lam.real:.6g}" if lam.imag == 0 else f"{lam.real:.6g}{lam.imag:+.6g}j"
 
 
-def _plant_scales(system: System) -> tuple[float, float]:
-    """Typical rate ``omega`` and spread of the plant's linearisations over its X0 box at ``u = 0``.
+def time_scales(system: System) -> tuple[float, float]:
+    """Typical rate ``omega`` (rad/s) and spread of the plant's linearisations over its X0 box at ``u = 0``.
 
     ``omega`` is the median over :data:`_SCALE_SAMPLES` box states of the spectral radius of
     ``df/dx``; the spread is the ratio of the 90 % to the 10 % quantile of all their nonzero
@@ -309,7 +309,7 @@ class Design:
         if nz < ny:
             raise error("nz", f"at least ny = {ny} (one latent block per output)", nz)
         if poles is None:
-            omega, spread = _plant_scales(system)
+            omega, spread = time_scales(system)
             s = float(np.clip(spread, MIN_SPREAD, MAX_SPREAD))
             rates = omega * s ** ((np.arange(nz) - nz // 2 + 0.5) / nz)
             return cls.from_poles(np.concatenate([rates[j::ny] for j in range(ny)]), ny)

@@ -153,8 +153,18 @@ def _seeds(seed: int | Sequence[int] | None, m: int) -> list[Any]:
     return seeds
 
 
+def _process_std(value: Any, nx: int) -> float | np.ndarray:
+    """A scalar process-noise std, or one per state (nx,), validated (all finite and >= 0)."""
+    if np.ndim(value) == 0:
+        return nonnegative_number(value, "process_std")
+    std = finite_array(value, "process_std")
+    if std.shape != (nx,) or np.any(std < 0):
+        raise error("process_std", f"a number >= 0 or nx = {nx} of them (one per state)", std.tolist())
+    return std
+
+
 def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], T: float = 50.0, dt: float = 0.05,
-                   *, process_std: float = 0.0, measurement_std: float = 0.0,
+                   *, process_std: float | Sequence[float] = 0.0, measurement_std: float = 0.0,
                    seed: int | Sequence[int] | None = None, method: str = "cvodes", rtol: float = 1e-8,
                    atol: float = 1e-10, substeps: int = 4, blowup: float = 1e6,
                    n_threads: int | None = None) -> TrajectoryBatch:
@@ -169,9 +179,12 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
         Input of each trial (one shared input if a single signal/array is given).
     T, dt : float
         Horizon and sample period; ``N = round(T / dt)`` samples at ``t_k = k dt``.
-    process_std, measurement_std : float
-        Standard deviations of the process noise (added to ``xdot``, held per interval) and of the
-        measurement noise (added to ``y_k``).
+    process_std : float or array_like, shape (nx,)
+        Standard deviation of the process noise added to ``xdot`` (drawn per interval and held on
+        it): one for every state, or one per state (e.g. zero on the kinematic rows of a
+        mechanical plant, so that noise acts as a force).
+    measurement_std : float
+        Standard deviation of the measurement noise (added to ``y_k``).
     seed : int or sequence of M ints, optional
         Trial ``i`` draws its noise from ``default_rng(seed[i])``; an int is spawned into M streams
         (``SeedSequence``). With one trial an int seed is used directly, as in :func:`simulate`.
@@ -196,7 +209,7 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
     if len(inputs) != m:
         raise error("u", f"one input or a sequence of M = {m} inputs", Text(f"{len(inputs)} inputs"))
     us = np.stack([input_samples(ui, t, system.nu, f"u[{i}]") for i, ui in enumerate(inputs)])
-    process_std = nonnegative_number(process_std, "process_std")
+    process_std = _process_std(process_std, system.nx)
     measurement_std = nonnegative_number(measurement_std, "measurement_std")
     rngs = [np.random.default_rng(s) for s in _seeds(seed, m)]
     w = np.stack([rng.normal(0.0, 1.0, (n - 1, system.nx)) for rng in rngs]) * process_std

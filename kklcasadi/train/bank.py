@@ -3,10 +3,12 @@ fit the decoder on them (:mod:`kklcasadi.train.operational`), write the model.""
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -14,18 +16,34 @@ from ..model.files import Domain, Model
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER, MLPSpec
-from ..plant.design import Design
-from ..plant.simulate import TrajectoryBatch
+from ..plant.design import Design, time_scales
 from ..plant.systems import System
-from .config import LoopConfig
-from .operational import DecoderConfig, RolloutConfig, config_record, fit_bank_decoder, rollouts
+from ..validation import error
+from .config import LoopConfig, with_epochs
+from .operational import (
+    BankFit,
+    DecoderConfig,
+    OperationalData,
+    RolloutConfig,
+    config_record,
+    fit_bank_decoder,
+    operational_data,
+)
 from .result import Trained
 
-__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "ASINH"]
+__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale", "process_stds", "SHIPPED",
+           "NEW_PLANT_BANK", "PROCESS_ON"]
 
-#: Per-system output transforms: Roessler's x3 sits near 0.007 and spikes to 20-37, so its decoder
-#: predicts ``asinh(x3 / 0.01)`` (per-state SMAPE weighs relative errors).
-ASINH = {"rossler": (0.0, 0.0, 0.01)}
+#: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
+#: given (``time_scale = 1``), RK4 with 4 substeps, and Roessler's x3 decoded as ``0.01 sinh(v)``
+#: (it sits near 0.007 and spikes to 20-37; per-state SMAPE weighs relative errors).
+SHIPPED = {"duffing": {}, "vdp": {}, "fhn": {}, "rossler": {"asinh_scale": (0.0, 0.0, 0.01)}}
+#: The budget of a plant kklcasadi does not ship (a first observer in minutes on 2 cores at any dt):
+#: runs, horizon in units of 1 / time_scale (the Qube's 60 / 13.3 = 4.5 s) and decoder epochs. The
+#: shipped systems keep 2000 runs x 50 s, 40 epochs.
+NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 15}
+#: Where a single process-noise std acts (:attr:`BankConfig.process_on`).
+PROCESS_ON = ("all", "forced")
 
 
 @dataclass(frozen=True)
@@ -35,54 +53,122 @@ class BankConfig:
     Attributes
     ----------
     y_poles, u_poles : tuple of float
-        Speeds (rad/s) of the first-order filters of each output and input channel.
+        Speeds of the first-order filters of each output and input channel, in units of
+        ``time_scale`` (rad/s when it is 1).
     y_resonators : tuple of (zeta, omega)
-        Second-order filters of each output channel.
+        Second-order filters of each output channel (``omega`` in units of ``time_scale``).
     clock : float or None
-        Rate of the clock latent (None: none).
+        Rate of the clock latent in units of ``time_scale`` (None: none).
+    time_scale : float or None
+        The rate (rad/s) the poles are given in units of, and the runs' times (horizon, sample
+        times) in units of its inverse; None: the plant's own, the median spectral radius of
+        ``df/dx`` over its X0 box (:func:`kklcasadi.plant.design.time_scales`: Duffing 1.3, the
+        Qube 13). The shipped systems use 1 (their poles 0.2-25 rad/s, runs of 50 s).
+    measurement_std : float
+        Std of the measurement noise of the runs the decoder is fit on (the card's noise level).
+    process_std : float or tuple of float
+        Std of the process noise added to ``xdot`` in those runs: one for all states (see
+        ``process_on``), or one per state.
+    process_on : {"all", "forced"}
+        Where a single ``process_std`` acts: on every state, or only on the states whose
+        derivative is not simply another state (``x_i' = x_j`` rows get none: noise as a force on a
+        mechanical plant, as the Qube's EKF assumes; with noise on its angles too its velocity
+        error triples). The shipped systems use ``all`` (the protocol's noise); a new plant
+        ``forced``.
+    angles : bool
+        Read the plant's angle outputs and write its angle states continuously on the circle
+        (:class:`kklcasadi.model.variants.filterbank.Angles`); no effect on a plant without angles.
     rollouts : RolloutConfig
-        The noisy training runs (noise level, input ranges, horizon; ``dt`` is the model's).
+        The runs: how many and how long (the budget), inputs, noise range, sample times, escapes.
     decoder : DecoderConfig
         Architecture, loss and optimisation of the decoder.
     """
 
     y_poles: tuple = (0.2, 0.4, 0.8, 1.5, 3.0, 6.0, 12.0, 25.0)
-    u_poles: tuple = (0.3, 1.0, 3.0)
+    u_poles: tuple = (0.1, 0.3, 1.0, 3.0, 10.0)
     y_resonators: tuple = ()
     clock: Optional[float] = 0.2
+    time_scale: Optional[float] = None
+    measurement_std: float = 0.1
+    process_std: float | tuple = 0.1
+    process_on: str = "all"
+    angles: bool = True
     rollouts: RolloutConfig = field(default_factory=RolloutConfig)
     decoder: DecoderConfig = field(default_factory=lambda: DecoderConfig(
         loop=LoopConfig(epochs=40, batch_size=1024, lr=1e-3, schedule="cosine", val_fraction=0.05)))
 
+    def __post_init__(self) -> None:
+        if self.time_scale is not None and not (self.time_scale > 0 and math.isfinite(self.time_scale)):
+            raise error("time_scale", "a rate > 0 (rad/s) or None (the plant's own)", self.time_scale)
+        if not (self.measurement_std >= 0 and math.isfinite(self.measurement_std)):
+            raise error("measurement_std", "a finite number >= 0", self.measurement_std)
+        std = np.asarray(self.process_std, dtype=float)
+        if std.ndim > 1 or not np.all(np.isfinite(std)) or np.any(std < 0):
+            raise error("process_std", "a finite number >= 0 or one per state", self.process_std)
+        if self.process_on not in PROCESS_ON:
+            raise error("process_on", f"one of {list(PROCESS_ON)}", self.process_on)
+
     @classmethod
     def for_system(cls, system: str) -> BankConfig:
-        """The defaults for the plant named ``system`` (:data:`ASINH` output transforms)."""
+        """The defaults for the plant named ``system``: a shipped system's settings (:data:`SHIPPED`),
+        else the plant's own time scale and the budget :data:`NEW_PLANT_BANK`."""
         config = cls()
-        if system in ASINH:
-            config = replace(config, decoder=replace(config.decoder, asinh_scale=ASINH[system]))
-        return config
+        if system in SHIPPED:
+            config = replace(config, time_scale=1.0, rollouts=replace(config.rollouts, substeps=4))
+            if "asinh_scale" in SHIPPED[system]:
+                config = replace(config, decoder=replace(config.decoder, asinh_scale=SHIPPED[system]["asinh_scale"]))
+            return config
+        budget = dict(NEW_PLANT_BANK)
+        config = replace(config, process_on="forced",
+                         rollouts=replace(config.rollouts, n_traj=budget["n_traj"], T=budget["T"]))
+        return with_epochs(config, budget["epochs"])
 
 
-def design_bank(system: System, config: BankConfig) -> fb.FilterBank:
-    """The filter bank of ``config`` for ``system``'s outputs and inputs."""
-    return fb.FilterBank.design(system.ny, system.nu, config.y_poles, config.u_poles,
-                                y_resonators=config.y_resonators, clock=config.clock)
+def process_stds(system: System, config: BankConfig) -> np.ndarray:
+    """The process-noise std of each state (nx,): ``config.process_std`` per state, or the one std on the
+    states ``config.process_on`` names (``forced``: not on rows ``x_i' = x_j``)."""
+    std = np.asarray(config.process_std, dtype=float)
+    if std.ndim == 1:
+        if std.shape != (system.nx,):
+            raise error("process_std", f"one number or nx = {system.nx} (one per state)", config.process_std)
+        return std
+    forced = np.array([not system.xdot_expr[i].is_symbolic() for i in range(system.nx)])
+    return np.where(forced | (config.process_on == "all"), float(std), 0.0)
 
 
-def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, decoder_arrays: dict,
-               decoder_arch: dict, runs: TrajectoryBatch, dt: float) -> tuple[dict, BankSpec, Domain]:
-    """The model file's arrays, spec and domain of a decoder fitted on ``runs`` through ``bank``.
+def bank_time_scale(system: System, config: BankConfig) -> float:
+    """The rate (rad/s) ``config``'s poles are in units of: ``config.time_scale``, else the plant's."""
+    return float(config.time_scale) if config.time_scale is not None else time_scales(system)[0]
 
-    ``decoder_arrays`` and ``decoder_arch`` are a fit's ``arrays`` (any ``bank/*`` entries are
-    replaced by the bank's own) and ``arch``; the domain is the runs' states and latents.
+
+def _scaled(values: Sequence[float], rate: float) -> tuple[float, ...]:
+    return tuple(float(v) * rate for v in values)
+
+
+def design_bank(system: System, config: BankConfig, rate: float | None = None) -> fb.FilterBank:
+    """The filter bank of ``config`` for ``system``'s outputs and inputs, its speeds times ``rate``
+    (default :func:`bank_time_scale`): one block of filters per output and per input channel."""
+    rate = bank_time_scale(system, config) if rate is None else rate
+    return fb.FilterBank.design(system.ny, system.nu, _scaled(config.y_poles, rate), _scaled(config.u_poles, rate),
+                                y_resonators=[(z, w * rate) for z, w in config.y_resonators],
+                                clock=None if config.clock is None else config.clock * rate)
+
+
+def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: float, fitted: BankFit,
+               data: OperationalData, dt: float) -> tuple[dict, BankSpec, Domain]:
+    """The model file's arrays, spec and domain of a decoder ``fitted`` through ``bank`` on ``data``.
+
+    The card's ``architecture.bank`` records the speeds in rad/s (``config``'s times ``rate``) and
+    ``rate`` as ``time_scale``; the domain is the range of the data's states and latents.
     """
-    arrays = {name: value for name, value in decoder_arrays.items() if not name.startswith("bank/")}
+    arrays = {name: value for name, value in fitted.arrays.items() if not name.startswith("bank/")}
     arrays.update({"bank/Bu": np.array(bank.Bu), "bank/c": np.array(bank.c)})
-    params = {"y_poles": list(config.y_poles), "u_poles": list(config.u_poles),
-              "y_resonators": [list(r) for r in config.y_resonators], "clock": config.clock}
-    spec = BankSpec(MLPSpec.from_card(decoder_arch, "architecture", DECODER), bank.A, bank.By, dt, system.nu, params)
-    z = bank.run(runs.y, runs.u, dt)
-    return arrays, spec, Domain.of(runs.x.reshape(-1, system.nx), z.reshape(-1, bank.nz))
+    params = {"y_poles": list(_scaled(config.y_poles, rate)), "u_poles": list(_scaled(config.u_poles, rate)),
+              "y_resonators": [[z, w * rate] for z, w in config.y_resonators],
+              "clock": None if config.clock is None else config.clock * rate, "time_scale": rate}
+    spec = BankSpec(MLPSpec.from_card(fitted.arch, "architecture", DECODER), bank.A, bank.By, dt, system.nu, params,
+                    fitted.angles)
+    return arrays, spec, Domain.of(data.x, data.z)
 
 
 def train_bank(system: System, design: Design, base: Model | None, config: BankConfig, *, dt: float, seed: int,
@@ -90,11 +176,23 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     """The training hook of ``bank`` (no base model; ``design`` is replaced by the bank's)."""
     if type(config) is not BankConfig:
         raise TypeError(f"config: expected a BankConfig for 'bank', received {type(config).__name__}.")
-    bank = design_bank(system, config)
-    runs = rollouts(system, replace(config.rollouts, dt=dt), seed)
-    fit = fit_bank_decoder(bank, runs, config.decoder, seed=seed, progress=progress)
-    arrays, spec, domain = bank_model(system, bank, config, fit.arrays, fit.arch, runs, dt)
-    training = {"config": config, **config_record(config.rollouts, config.decoder), "decoder_fit": fit.fit.summary(),
-                "samples": fit.n_samples, "state_percentiles": fit.domain}
-    return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, {"decoder": fit.fit.history}, 1,
-                   config.rollouts.measurement_std, domain)
+    load_start = os.getloadavg()
+    process = process_stds(system, config)
+    rate = bank_time_scale(system, config)
+    bank = design_bank(system, config, rate)
+    angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
+    data = operational_data(system, bank, config.rollouts, seed, dt=dt, measurement_std=config.measurement_std,
+                            process_std=process, time_scale=rate, progress=progress)
+    if len(data) == 0:
+        raise ValueError(f"rollouts: every one of the {config.rollouts.n_traj} runs escaped at once (no samples); "
+                         "lower the inputs or box_scale, or raise escape_scale.")
+    fitted = fit_bank_decoder(bank, data, config.decoder, angles=angles, seed=seed, progress=progress)
+    arrays, spec, domain = bank_model(system, bank, config, rate, fitted, data, dt)
+    training = {"config": config, **config_record(config.rollouts, config.decoder), "time_scale": rate,
+                "measurement_std": config.measurement_std, "process_std": process.tolist(),
+                "runs": data.record, "decoder_fit": fitted.fit.summary(), "samples": fitted.n_samples,
+                "state_percentiles": fitted.domain,
+                "machine": {"cpus": os.cpu_count(), "load_average_start": [round(v, 2) for v in load_start],
+                            "load_average_end": [round(v, 2) for v in os.getloadavg()]}}
+    return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, {"decoder": fitted.fit.history}, 1,
+                   config.measurement_std, domain)

@@ -6,81 +6,141 @@ The observer runs on simulated noisy trajectories (initial states from the X0 bo
 For the linear filter-bank latent of :mod:`kklcasadi.model.variants.filterbank` the latent trajectory does not
 depend on the decoder, so one pass suffices.
 
-* :func:`rollouts` -- the noisy training trajectories (CasADi, mapped; no torch).
+Budgets count simulated seconds and runs, not samples: the runs are simulated in chunks (a progress
+bar per chunk), the latent is run over each chunk at the model's ``dt``, and the decoder keeps
+samples at fixed times (every ``dense_period`` seconds over the first ``dense_time``, every
+``sample_period`` after), so the data and the fit cost about the same at any sample time. A run
+whose state escapes (leaves the X0 box scaled by ``escape_scale`` about its centre, angle states
+compared on the circle, or fails in the integrator) is cut there: none of its samples from the
+escape on is used, and the record counts the cut runs.
+
+* :func:`operational_data` -- the decoder's samples of the noisy runs (CasADi and numpy; no torch).
+* :func:`rollouts` -- the runs themselves (full trajectories of the runs that did not escape).
 * :func:`fit_bank_decoder` -- fit the decoder MLP (torch) on ``[z; y_k; u_k] -> x_k`` with an
-  optional asinh output transform per state, and return the model arrays of the ``bank`` method.
+  optional asinh output transform per state and the angle layout of
+  :class:`kklcasadi.model.variants.filterbank.Angles`, and return the model arrays of ``bank``.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Callable, Mapping
+from typing import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER, MLPSpec
 from ..plant import signals as sig
-from ..plant.simulate import TrajectoryBatch, simulate_batch
+from ..plant.design import time_scales
+from ..plant.simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
 from ..plant.systems import System
 from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
 
-__all__ = ["RolloutConfig", "DecoderConfig", "rollouts", "fit_bank_decoder", "BankFit", "LOSSES", "config_record",
-           "fold_whitening", "torch_decoder"]
+__all__ = ["RolloutConfig", "DecoderConfig", "OperationalData", "operational_data", "rollouts", "fit_bank_decoder",
+           "BankFit", "LOSSES", "config_record", "fold_whitening", "torch_decoder", "RK_STEP", "FAMILIES",
+           "ROLLOUT_REGIMES"]
 
 Tensor = torch.Tensor
 
 #: Training losses of :func:`fit_bank_decoder`.
 LOSSES = ("mse", "smape", "mse+smape")
+#: Input families of the runs (:attr:`RolloutConfig.kinds`): the benchmark's four; ``multisine``, a
+#: random spectrum (2-6 tones with log-uniform frequencies over the sinusoid's range and Dirichlet
+#: weights of a sinusoid's amplitude); ``feedback``, a closed loop ``u_k = clip(g (r - y_k) / s, -l, l)``
+#: around a set point ``r`` redrawn every 2-10 s within the outputs' range over the box (gain
+#: ``|g|`` in [0.5, 3] of either sign, limit ``l`` the regime's largest constant input).
+FAMILIES = (*sig.BENCHMARK_KINDS, "multisine", "feedback")
+#: Parameter ranges of the runs: those of :data:`kklcasadi.plant.signals.REGIMES`, or ``wide``, the hull
+#: of the ``id`` and ``ood`` ranges of docs/protocol.md.
+ROLLOUT_REGIMES = (*sig.REGIMES, "wide")
+#: Largest RK4 step of the plant in units of its time scale (``h * omega``) when ``substeps`` is None.
+RK_STEP = 0.05
 
 
 @dataclass(frozen=True)
 class RolloutConfig:
-    """Noisy operational trajectories.
+    """The noisy operational runs and the samples the decoder takes from them.
+
+    The noise levels and the sample period are the caller's (:func:`operational_data`).
 
     Attributes
     ----------
     n_traj : int
         Number of runs, spread evenly over ``kinds`` (round-robin).
-    T, dt : float
-        Horizon and sample period (docs/protocol.md: 50 s, 0.05 s).
-    process_std, measurement_std : float
-        Noise levels the decoder is fitted for.
+    T : float
+        Horizon of each run (docs/protocol.md: 50 s). This and every time below are in units of
+        ``1 / time_scale`` (seconds for the shipped systems, whose time scale is 1; see
+        :func:`operational_data`), and the inputs' frequencies in units of ``time_scale``.
     kinds : tuple of str
-        Input kinds, drawn with :func:`kklcasadi.plant.signals.sample` from ``regime``.
+        Input families (:data:`FAMILIES`), in turn over the runs; the card records them.
     regime : str
-        Parameter ranges (``train``; never the protocol's test draws).
-    method, substeps : str, int
-        Plant integrator (see :func:`kklcasadi.plant.simulate.step_function`).
-    box_scale : float
-        Scale of the X0 box (about its centre) the initial states are drawn from.
+        Parameter ranges (:data:`ROLLOUT_REGIMES`: ``train``, or ``wide`` up to the ood ranges;
+        never the protocol's test draws).
+    noise_range : (float, float)
+        Each run's noise levels are the nominal ones times factors drawn log-uniformly from this
+        range (measurement noise per run, process noise per chunk of runs); ``(1, 1)``: the nominal
+        levels.
+    method, substeps : str, int or None
+        Plant integrator (see :func:`kklcasadi.plant.simulate.step_function`); ``substeps=None``
+        takes the fewest RK4 steps per sample with ``h * omega <= RK_STEP`` (``omega``: the plant's
+        time scale, :func:`kklcasadi.plant.design.time_scales`).
+    box_scale : float or (float, float)
+        Scale of the X0 box (about its centre) the initial states are drawn from, or a range: each
+        run's initial state scaled about the centre by a factor drawn uniformly from it (a wider
+        spread of energies, e.g. the upper branch of a hardening resonance).
+    escape_scale : float
+        A run is cut where its state leaves the X0 box scaled by this about its centre.
+    sample_period, dense_period, dense_time : float
+        The decoder's samples: one every ``dense_period`` seconds over the first ``dense_time``
+        (the transient from ``z = 0``), one every ``sample_period`` seconds after (the first
+        sample in each period; every sample where a period is shorter than ``dt``).
+    chunk : int
+        Runs simulated at once (the memory of a chunk is about ``chunk * T / dt * (nx + nz)`` numbers).
     """
 
     n_traj: int = 2000
     T: float = 50.0
-    dt: float = 0.05
-    process_std: float = 0.1
-    measurement_std: float = 0.1
-    kinds: tuple[str, ...] = sig.BENCHMARK_KINDS
-    regime: str = "train"
+    kinds: tuple[str, ...] = FAMILIES
+    regime: str = "wide"
+    noise_range: tuple[float, float] = (0.5, 2.0)
     method: str = "rk"
-    substeps: int = 4
-    box_scale: float = 1.0
+    substeps: int | None = None
+    box_scale: float | tuple[float, float] = 1.0
+    escape_scale: float = 10.0
+    sample_period: float = 0.1
+    dense_period: float = 0.05
+    dense_time: float = 5.0
+    chunk: int = 100
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_traj, int) or self.n_traj < 1:
-            raise ValueError(f"n_traj must be a positive integer, got {self.n_traj!r}")
-        if self.regime not in sig.REGIMES:
-            raise ValueError(f"unknown regime {self.regime!r}; known: {', '.join(sig.REGIMES)}")
-        bad = [k for k in self.kinds if k not in sig.BENCHMARK_KINDS]
+            raise ValueError(f"n_traj: expected a positive integer, received {self.n_traj!r}.")
+        if self.regime not in ROLLOUT_REGIMES:
+            raise ValueError(f"regime: expected one of {list(ROLLOUT_REGIMES)}, received {self.regime!r}.")
+        bad = [k for k in self.kinds if k not in FAMILIES]
         if bad or not self.kinds:
-            raise ValueError(f"kinds must be a non-empty subset of {sig.BENCHMARK_KINDS}, got {self.kinds!r}")
-        if not (self.box_scale > 0):
-            raise ValueError(f"box_scale must be > 0, got {self.box_scale!r}")
+            raise ValueError(f"kinds: expected a non-empty subset of {FAMILIES}, received {self.kinds!r}.")
+        lo, hi = self.noise_range
+        if not (0 < lo <= hi and math.isfinite(hi)):
+            raise ValueError(f"noise_range: expected factors 0 < lo <= hi, received {self.noise_range!r}.")
+        scales = np.atleast_1d(np.asarray(self.box_scale, dtype=float))
+        if scales.size not in (1, 2) or not np.all(np.isfinite(scales)) or not (0 < scales[0] <= scales[-1]):
+            raise ValueError(f"box_scale: expected a factor > 0 or a range 0 < lo <= hi, received {self.box_scale!r}.")
+        for name in ("T", "escape_scale", "sample_period", "dense_period"):
+            if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
+                raise ValueError(f"{name}: expected a finite number > 0, received {getattr(self, name)!r}.")
+        if not self.dense_time >= 0:
+            raise ValueError(f"dense_time: expected a number >= 0 (seconds), received {self.dense_time!r}.")
+        if self.substeps is not None and (not isinstance(self.substeps, int) or self.substeps < 1):
+            raise ValueError(f"substeps: expected a positive integer or None, received {self.substeps!r}.")
+        if not isinstance(self.chunk, int) or self.chunk < 1:
+            raise ValueError(f"chunk: expected a positive integer, received {self.chunk!r}.")
 
 
 @dataclass(frozen=True)
@@ -99,10 +159,6 @@ class DecoderConfig:
     smape_eps, smape_weight : float
     asinh_scale : tuple of float or None
         Per-state output transform scale (0: none); ``None`` for none at all.
-    stride : int
-        Keep every ``stride``-th sample of each run (all of the first ``dense_time`` seconds).
-    dense_time : float
-        Initial stretch of each run kept at every sample (the transient from ``z = 0``).
     whiten : bool
         Train on whitened features (the whitening is folded into the first layer afterwards).
     loop : LoopConfig
@@ -116,8 +172,6 @@ class DecoderConfig:
     smape_eps: float = 1e-3
     smape_weight: float = 0.01
     asinh_scale: tuple[float, ...] | None = None
-    stride: int = 2
-    dense_time: float = 5.0
     whiten: bool = True
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=1024, lr=1e-3,
                                                                   schedule="cosine", val_fraction=0.05))
@@ -125,73 +179,311 @@ class DecoderConfig:
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
-            raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
-        if not isinstance(self.stride, int) or self.stride < 1:
-            raise ValueError(f"stride must be a positive integer, got {self.stride!r}")
+            raise ValueError(f"loss: expected one of {LOSSES}, received {self.loss!r}.")
         if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
-            raise ValueError(f"hidden must be a non-empty tuple of positive widths, got {self.hidden!r}")
+            raise ValueError(f"hidden: expected a non-empty tuple of positive widths, received {self.hidden!r}.")
         torch_dtype(self.dtype)
 
 
 @dataclass(frozen=True, eq=False)
-class BankFit:
-    """Result of :func:`fit_bank_decoder`.
+class OperationalData:
+    """The decoder's samples of the operational runs.
 
     Attributes
     ----------
-    arrays : dict
-        ``bank/*``, ``decoder/*`` and ``decoder/asinh_scale`` arrays (float64).
-    arch : dict
-        The decoder's card entry.
-    fit : FitResult
-    n_samples : int
-    seconds : float
-    domain : dict
-        Per-state 0.1 / 50 / 99.9 percentiles of the training states (the domain the model covers).
+    z : numpy.ndarray, shape (S, nz)
+        The bank's latent at the kept samples (from ``z = 0`` at each run's start).
+    y : numpy.ndarray, shape (S, ny)
+    u : numpy.ndarray, shape (S, nu)
+    x : numpy.ndarray, shape (S, nx)
+        The true states there.
+    record : dict
+        ``runs`` simulated, ``cut`` (runs that escaped and were cut there), ``failed`` (of them, the
+        ones that blew up or that the integrator failed on), ``samples`` kept, ``simulated_s`` (seconds simulated), the
+        per-run noise factors' range, ``substeps`` and ``seconds`` (wall time).
     """
 
-    arrays: dict
-    arch: dict
-    fit: FitResult
-    n_samples: int
-    seconds: float
-    domain: dict
+    z: np.ndarray
+    y: np.ndarray
+    u: np.ndarray
+    x: np.ndarray
+    record: dict
+
+    def __len__(self) -> int:
+        return len(self.x)
+
+    @classmethod
+    def from_runs(cls, bank: fb.FilterBank, runs: TrajectoryBatch, config: RolloutConfig) -> OperationalData:
+        """The samples of given runs (all of each run valid), kept at ``config``'s sample times."""
+        dt = float(runs.t[1] - runs.t[0])
+        keep = _keep(runs.t.size, dt, config)
+        z = bank.run(runs.y, runs.u, dt)[:, keep]
+        nz, ny, nu, nx = z.shape[2], runs.y.shape[2], runs.u.shape[2], runs.x.shape[2]
+        record = {"runs": len(runs), "cut": 0, "failed": 0, "samples": int(keep.sum() * len(runs)),
+                  "simulated_s": float(len(runs) * runs.t.size * dt)}
+        return cls(z.reshape(-1, nz), runs.y[:, keep].reshape(-1, ny), runs.u[:, keep].reshape(-1, nu),
+                   runs.x[:, keep].reshape(-1, nx), record)
 
 
-def rollouts(system: System, config: RolloutConfig, seed: int) -> TrajectoryBatch:
-    """Simulate the operational training runs (failed runs are dropped).
+def _keep(n: int, dt: float, config: RolloutConfig, rate: float = 1.0) -> np.ndarray:
+    """The kept samples of a run of ``n`` as a mask (N,): the first sample in each ``dense_period``
+    over the first ``dense_time``, and in each ``sample_period`` after (every sample where the period
+    is shorter than ``dt``); the times are in units of ``1 / rate``."""
+    t = np.arange(n) * dt * rate                   # in units of 1 / rate
+    eps = 1e-9
+    dense_bins = np.ceil(config.dense_time / config.dense_period - eps)
+    bins = np.where(t < config.dense_time, np.floor(t / config.dense_period + eps),
+                    dense_bins + np.floor((t - config.dense_time) / config.sample_period + eps))
+    return np.concatenate([[True], bins[1:] != bins[:-1]])
+
+
+def _horizon(T: float, rate: float, dt: float) -> float:
+    """``T / rate`` seconds rounded to whole samples (at least 2)."""
+    return max(2, int(round(T / rate / dt))) * dt
+
+
+def _substeps(system: System, config: RolloutConfig, dt: float) -> int:
+    if config.substeps is not None:
+        return config.substeps
+    omega, _ = time_scales(system)
+    return max(1, int(math.ceil(dt * omega / RK_STEP)))
+
+
+def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
+    """First escaped sample of each run (M,), ``N`` where none: outside the X0 box scaled by ``scale``
+    about its centre (angle states on the circle: never), or not finite."""
+    lo, hi = system.x0_box[:, 0], system.x0_box[:, 1]
+    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * scale
+    dev = x - centre
+    if system.angle_states:
+        a = list(system.angle_states)
+        dev[..., a] = np.angle(np.exp(1j * dev[..., a]))
+    with np.errstate(invalid="ignore"):
+        bad = ~np.all(np.abs(dev) <= half, axis=-1)
+    return np.where(bad.any(axis=1), bad.argmax(axis=1), x.shape[1])
+
+
+def _initial_states(system: System, config: RolloutConfig, seed: int) -> np.ndarray:
+    """The runs' initial states (n_traj, nx): a Latin hypercube over the X0 box, scaled about its centre."""
+    if np.ndim(config.box_scale) == 0:
+        return system.sample_box(config.n_traj, seed, scale=float(config.box_scale))
+    lo, hi = config.box_scale
+    centre = system.x0_box.mean(axis=1)
+    factor = np.random.default_rng([seed, 4]).uniform(lo, hi, (config.n_traj, 1))
+    return centre + (system.sample_box(config.n_traj, seed) - centre) * factor
+
+
+def _ranges(kind: str, regime: str) -> Mapping[str, tuple[float, float]]:
+    """Parameter ranges of a benchmark kind: :data:`kklcasadi.plant.signals.RANGES`, or for ``wide`` the
+    hull of the ``id`` and ``ood`` ranges."""
+    if regime != "wide":
+        return sig.RANGES[regime][kind]
+    ranges = {}
+    for name in sig.RANGES["id"][kind]:
+        lo, hi = zip(sig.RANGES["id"][kind][name], sig.RANGES["ood"][kind][name])
+        ranges[name] = (min(lo), max(hi))
+    return ranges
+
+
+@dataclass(frozen=True)
+class _Feedback:
+    """``u_k = clip(gain (r(t_k) - y_k[j]) / y_scale, -limit, limit)`` per input, ``r`` piecewise constant."""
+
+    gain: np.ndarray          # (nu,)
+    output: np.ndarray        # (nu,) output index per input
+    y_scale: np.ndarray       # (nu,)
+    limit: float
+    times: np.ndarray         # (L,) switching times, first 0
+    levels: np.ndarray        # (L, nu) set points
+
+    def __call__(self, t: float, y: np.ndarray) -> np.ndarray:
+        r = self.levels[np.searchsorted(self.times, t, side="right") - 1]
+        return np.clip(self.gain * (r - y[self.output]) / self.y_scale, -self.limit, self.limit)
+
+
+def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System, t: np.ndarray,
+                y_range: np.ndarray, rate: float) -> object:
+    """One run's input: a signal or samples (N, nu) for open-loop kinds, a :class:`_Feedback` law.
+
+    Frequencies are the regime's times ``rate`` and hold times the regime's over ``rate`` (the
+    plant's time scale; 1 for the shipped systems, whose draws are those of
+    :func:`kklcasadi.plant.signals.sample`)."""
+    nu = system.nu
+    if kind == "zero":
+        return sig.make("zero", size=nu)
+    if kind in ("constant", "sinusoid", "square"):
+        r = _ranges(kind, regime)
+        if kind == "constant":
+            return sig.make("constant", value=rng.uniform(*r["value"], size=nu))
+        amplitude = rng.uniform(*r["amplitude"], size=nu)
+        omega = rng.uniform(*r["omega"]) * rate
+        return sig.make(kind, amplitude=amplitude, omega=omega, phase=rng.uniform(0.0, 2.0 * np.pi))
+    sine = _ranges("sinusoid", regime)
+    if kind == "multisine":          # a random spectrum: 2-6 tones, log-uniform frequencies
+        k = int(rng.integers(2, 7))
+        omega = np.exp(rng.uniform(*np.log(sine["omega"]), size=(k, 1))) * rate
+        weights = rng.dirichlet(np.ones(k), size=nu).T                     # (k, nu)
+        amplitude = rng.uniform(*sine["amplitude"], size=nu)
+        phase = rng.uniform(0.0, 2.0 * np.pi, size=(k, nu))
+        return np.einsum("kn,tkn->tn", weights * amplitude, np.sin(omega[None] * t[:, None, None] + phase[None]))
+    limit = float(_ranges("constant", regime)["value"][1])
+    holds = rng.uniform(2.0, 10.0, size=int(np.ceil(t[-1] * rate / 2.0)) + 1) / rate
+    times = np.concatenate([[0.0], np.cumsum(holds)])[:-1]
+    lo, hi = y_range
+    output = np.arange(nu) % system.ny
+    levels = rng.uniform(lo[output], hi[output], size=(times.size, nu))
+    return _Feedback(rng.uniform(0.5, 3.0, size=nu) * rng.choice([-1.0, 1.0], size=nu), output,
+                     np.maximum(0.5 * (hi - lo)[output], 1e-9), limit, times, levels)
+
+
+def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: np.ndarray, process: np.ndarray,
+                 seeds: Sequence[object], v: np.ndarray, method: str, substeps: int) -> TrajectoryBatch:
+    """Runs under their feedback laws, one sample at a time (``v``: the measurement noise (M, N, ny))."""
+    m, n = len(x0), t.size
+    dt = float(t[1] - t[0])
+    step = step_function(system, dt, method, substeps=substeps).map(m)
+    h = system.h.map(m)
+    w = np.stack([np.random.default_rng(s).normal(0.0, 1.0, (n - 1, system.nx)) for s in seeds]) * process
+    x = np.full((m, n, system.nx), np.nan)
+    u, y = np.zeros((m, n, system.nu)), np.zeros((m, n, system.ny))
+    x[:, 0] = x0
+    for k in range(n):
+        y[:, k] = np.asarray(h(x[:, k].T)).T + v[:, k]
+        for i in np.flatnonzero(np.all(np.isfinite(y[:, k]), axis=1)):       # runs that have not blown up
+            u[i, k] = laws[i](t[k], y[i, k])
+        if k < n - 1:
+            with np.errstate(invalid="ignore", over="ignore"):
+                x[:, k + 1] = np.asarray(step(x[:, k].T, np.concatenate([u[:, k], w[:, k]], axis=1).T)).T
+                x[:, k + 1][~(np.abs(x[:, k + 1]) < 1e6)] = np.nan
+    ok = np.all(np.isfinite(x), axis=(1, 2))
+    return TrajectoryBatch(t, x, u, y, ok)
+
+
+def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measurement_std: float,
+            process_std: float | Sequence[float], rate: float, progress: bool,
+            desc: str) -> Iterator[tuple[TrajectoryBatch, np.ndarray, dict]]:
+    """The runs, ``config.chunk`` at a time: each chunk's batch (``y`` carries the measurement noise),
+    the first escaped sample of each run, and the chunk's noise factors."""
+    rng = np.random.default_rng([seed, 1])
+    horizon = _horizon(config.T, rate, dt)
+    t = time_grid(horizon, dt)
+    x0 = _initial_states(system, config, seed)
+    y_range = np.quantile(system.h_batch(system.sample_box(256, seed + 1)), [0.05, 0.95], axis=0)
+    inputs = [_draw_input(config.kinds[i % len(config.kinds)], rng, config.regime, system, t, y_range, rate)
+              for i in range(config.n_traj)]
+    seeds = np.random.SeedSequence([seed, 2]).spawn(config.n_traj)
+    noise = np.random.default_rng([seed, 3])
+    log_lo, log_hi = np.log(config.noise_range)
+    substeps = _substeps(system, config, dt)
+    process = np.asarray(process_std, dtype=float)
+    with tqdm(total=config.n_traj, desc=desc, unit="run", disable=not progress, leave=False) as bar:
+        for start in range(0, config.n_traj, config.chunk):
+            idx = np.arange(start, min(start + config.chunk, config.n_traj))
+            p_factor = float(np.exp(noise.uniform(log_lo, log_hi)))
+            m_factor = np.exp(noise.uniform(log_lo, log_hi, len(idx)))
+            v = noise.normal(size=(len(idx), t.size, system.ny)) * (measurement_std * m_factor)[:, None, None]
+            loop = np.array([isinstance(inputs[i], _Feedback) for i in idx])
+            x = np.full((len(idx), t.size, system.nx), np.nan)
+            u, y = np.zeros((len(idx), t.size, system.nu)), np.zeros((len(idx), t.size, system.ny))
+            for part, closed in ((idx[~loop], False), (idx[loop], True)):
+                if not part.size:
+                    continue
+                where = part - start
+                if closed:
+                    batch = _closed_loop(system, x0[part], [inputs[i] for i in part], t, process * p_factor,
+                                         [seeds[i] for i in part], v[where], config.method, substeps)
+                    y[where] = batch.y
+                else:
+                    batch = simulate_batch(system, x0[part], [inputs[i] for i in part], horizon, dt,
+                                           process_std=process * p_factor, seed=[seeds[i] for i in part],
+                                           method=config.method, substeps=substeps)
+                    y[where] = np.asarray(batch.y) + v[where]
+                x[where], u[where] = batch.x, batch.u
+            escape = _escaped(system, x.copy(), config.escape_scale)
+            bar.update(len(idx))
+            yield (TrajectoryBatch(t, x, u, y, escape == t.size), escape,
+                   {"process": p_factor, "measurement": m_factor, "substeps": substeps})
+
+
+def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig, seed: int, *, dt: float,
+                     measurement_std: float, process_std: float | Sequence[float] = 0.0, time_scale: float = 1.0,
+                     progress: bool = False) -> OperationalData:
+    """Simulate the operational runs and keep the decoder's samples of them.
 
     Parameters
     ----------
     system : System
+    bank : FilterBank
+        The observer's latent, run over each run from ``z = 0``.
     config : RolloutConfig
     seed : int
         Seeds the initial states (Latin hypercube), the input parameters and the noise.
+    dt : float
+        The model's sample period.
+    measurement_std : float
+        Measurement-noise std (nominal; times the per-run factor of ``config.noise_range``).
+    process_std : float or sequence of float (nx,)
+        Process-noise std added to ``xdot`` (one for all states or one per state).
+    time_scale : float
+        The rate (rad/s) ``config``'s times are in units of (``T`` seconds at 1): its horizon and
+        sample times are divided by it, the inputs' frequencies multiplied.
+    progress : bool
+        A progress bar over the runs.
+
+    Returns
+    -------
+    OperationalData
+        Every run's samples before its escape (if any).
+    """
+    t0 = time.perf_counter()
+    n = time_grid(_horizon(config.T, time_scale, dt), dt).size
+    keep = _keep(n, dt, config, time_scale)
+    parts: dict[str, list[np.ndarray]] = {"z": [], "y": [], "u": [], "x": []}
+    cut = failed = 0
+    factors: list[float] = []
+    substeps = 0
+    for batch, escape, noise in _chunks(system, config, seed, dt, measurement_std, process_std, time_scale, progress,
+                                        "operational runs"):
+        cut += int(np.sum(escape < n))
+        failed += int(np.sum(~np.all(np.isfinite(batch.x), axis=(1, 2))))
+        factors.extend(noise["measurement"].tolist())
+        substeps = noise["substeps"]
+        valid = np.arange(n)[None, :] < escape[:, None]
+        y = np.where(valid[..., None], batch.y, 0.0)          # after an escape: ignored, kept finite
+        u = np.where(valid[..., None], batch.u, 0.0)
+        z = bank.run(y, u, dt)
+        mask = valid & keep[None, :]
+        for name, arr in (("z", z), ("y", y), ("u", u), ("x", np.asarray(batch.x))):
+            parts[name].append(arr[mask])
+    data = {k: np.concatenate(v) for k, v in parts.items()}
+    record = {"runs": config.n_traj, "cut": cut, "failed": failed, "samples": int(len(data["x"])),
+              "horizon_s": n * dt, "simulated_s": float(config.n_traj * n * dt),
+              "sample_period_s": config.sample_period / time_scale, "substeps": substeps,
+              "measurement_factor_range": [float(min(factors)), float(max(factors))],
+              "seconds": round(time.perf_counter() - t0, 2)}
+    return OperationalData(data["z"], data["y"], data["u"], data["x"], record)
+
+
+def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.05, measurement_std: float = 0.1,
+             process_std: float | Sequence[float] = 0.1, time_scale: float = 1.0,
+             progress: bool = False) -> TrajectoryBatch:
+    """The operational runs as whole trajectories (the runs that escaped are dropped).
+
+    The same runs as :func:`operational_data` with the same arguments (for scoring a decoder on
+    held-out runs, or caching runs for experiments).
 
     Returns
     -------
     TrajectoryBatch
-        ``x`` (M, N, nx), ``y`` (M, N, ny), ``u`` (M, N, nu) with ``M <= n_traj`` (only ``ok`` runs).
+        ``x`` (M, N, nx), ``y`` (M, N, ny), ``u`` (M, N, nu) with ``M <= n_traj``.
     """
-    rng = np.random.default_rng([seed, 1])
-    x0 = system.sample_box(config.n_traj, seed, scale=config.box_scale)
-    inputs = [sig.sample(config.kinds[i % len(config.kinds)], rng, config.regime, nu=system.nu)
-              for i in range(config.n_traj)]
-    seeds = np.random.SeedSequence([seed, 2]).spawn(config.n_traj)
-    batch = simulate_batch(system, x0, inputs, config.T, config.dt, process_std=config.process_std,
-                           measurement_std=config.measurement_std, seed=seeds, method=config.method,
-                           substeps=config.substeps)
-    ok = batch.ok
-    return TrajectoryBatch(batch.t, batch.x[ok], batch.u[ok], batch.y[ok], ok[ok])
-
-
-def _keep_mask(n: int, dt: float, stride: int, dense_time: float) -> np.ndarray:
-    k = np.arange(n)
-    return (k * dt < dense_time) | (k % stride == 0)
-
-
-def _transform(x: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    return np.where(scale > 0, np.arcsinh(x / np.where(scale > 0, scale, 1.0)), x)
+    parts = []
+    for batch, escape, _ in _chunks(system, config, seed, dt, measurement_std, process_std, time_scale, progress,
+                                    "runs"):
+        ok = escape == batch.t.size
+        parts.append((batch.x[ok], batch.u[ok], batch.y[ok]))
+    x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    return TrajectoryBatch(time_grid(_horizon(config.T, time_scale, dt), dt), x, u, y, np.ones(len(x), dtype=bool))
 
 
 def _whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
@@ -227,34 +519,84 @@ def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np
     return out
 
 
-def torch_decoder(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object]) -> Callable[[Tensor], Tensor]:
-    """The bank decoder in torch (float64): ``features (..., nz + ny + nu) -> xhat (..., nx)``.
+def _torch_outputs(v: Tensor, y: Tensor, scale: np.ndarray, angles: fb.Angles) -> Tensor:
+    """:func:`kklcasadi.model.variants.filterbank.decoder_outputs` in torch."""
+    nx = scale.size
+    s = torch.as_tensor(scale, dtype=v.dtype, device=v.device)
+    pos = s > 0
+    cols = list(torch.where(pos, torch.where(pos, s, torch.ones_like(s)) * torch.sinh(v[..., :nx]),
+                            v[..., :nx]).unbind(-1))
+    for i, j in angles.measured:
+        cols[i] = y[..., j] + v[..., i]
+    for k, (i, c) in enumerate(angles.free):
+        cols[i] = c + torch.atan2(v[..., nx + k], v[..., i])
+    return torch.stack(cols, dim=-1)
+
+
+def torch_decoder(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], *,
+                  angles: fb.Angles = fb.NO_ANGLES) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
+    """The bank decoder in torch (float64): ``(z (..., nz), y (..., ny), u (..., nu)) -> xhat (..., nx)``.
 
     The same map as :func:`kklcasadi.model.variants.filterbank.decode` and
     :func:`kklcasadi.model.variants.filterbank.decoder_function`.
     """
     mlp = MLP.from_arrays(arrays, DECODER, MLPSpec.from_card(arch, "architecture", DECODER), dtype=torch.float64)
-    scale = torch.as_tensor(np.asarray(arrays[fb.ASINH_SCALE], dtype=float))
-    pos = scale > 0
-    safe = torch.where(pos, scale, torch.ones_like(scale))
+    scale = np.asarray(arrays[fb.ASINH_SCALE], dtype=float)
+    a = list(angles.outputs)
+    other = [j for j in range(np.asarray(arrays["bank/By"]).shape[1]) if j not in angles.outputs]
+    gains = torch.as_tensor(fb.dc_gains(fb.bank_from_arrays(arrays))[:, a])
 
-    def apply(features: Tensor) -> Tensor:
-        v = mlp(features)
-        return torch.where(pos, safe * torch.sinh(v), v)
+    def apply(z: Tensor, y: Tensor, u: Tensor) -> Tensor:
+        if a:
+            ya = y[..., a]
+            f = torch.cat([z - ya @ gains.T, y[..., other], torch.sin(ya), torch.cos(ya), u], dim=-1)
+        else:
+            f = torch.cat([z, y, u], dim=-1)
+        return _torch_outputs(mlp(f), y, scale, angles)
 
     return apply
 
 
-def fit_bank_decoder(bank: fb.FilterBank, train: TrajectoryBatch, config: DecoderConfig, *, seed: int = 0,
-                     progress: bool = False) -> BankFit:
-    """Fit the decoder ``[z_k; y_k; u_k] -> x_k`` on operational runs of the bank observer.
+@dataclass(frozen=True, eq=False)
+class BankFit:
+    """Result of :func:`fit_bank_decoder`.
+
+    Attributes
+    ----------
+    arrays : dict
+        ``bank/*``, ``decoder/*`` and ``decoder/asinh_scale`` arrays (float64).
+    arch : dict
+        The decoder's card entry.
+    angles : Angles
+        The decoder's angle layout.
+    fit : FitResult
+    n_samples : int
+    seconds : float
+    domain : dict
+        Per-state 0.1 / 50 / 99.9 percentiles of the training states (the domain the model covers).
+    """
+
+    arrays: dict
+    arch: dict
+    angles: fb.Angles
+    fit: FitResult
+    n_samples: int
+    seconds: float
+    domain: dict
+
+
+def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: DecoderConfig, *,
+                     angles: fb.Angles = fb.NO_ANGLES, seed: int = 0, progress: bool = False) -> BankFit:
+    """Fit the decoder ``[z_k; y_k; u_k] -> x_k`` on operational samples of the bank observer.
 
     Parameters
     ----------
     bank : FilterBank
-    train : TrajectoryBatch
-        Noisy runs (see :func:`rollouts`); the latent is run on them from ``z = 0``.
+    data : OperationalData
+        Samples of noisy runs (:func:`operational_data`, or :meth:`OperationalData.from_runs`).
     config : DecoderConfig
+    angles : Angles
+        How angle outputs are read and angle states written (:meth:`Angles.of` the plant).
     seed : int
         Seeds torch, the split and the shuffles.
     progress : bool
@@ -265,17 +607,13 @@ def fit_bank_decoder(bank: fb.FilterBank, train: TrajectoryBatch, config: Decode
     BankFit
     """
     t0 = time.perf_counter()
-    nx = train.x.shape[2]
+    nx = data.x.shape[1]
     scale = np.zeros(nx) if config.asinh_scale is None else np.asarray(config.asinh_scale, dtype=float)
     if scale.shape != (nx,) or np.any(scale < 0):
-        raise ValueError(f"asinh_scale must have nx = {nx} entries >= 0, got {config.asinh_scale!r}")
-    dt = float(train.t[1] - train.t[0])
-    z = bank.run(train.y, train.u, dt)
-    keep = _keep_mask(train.t.size, dt, config.stride, config.dense_time)
-    feats = fb.decoder_features(z[:, keep], train.y[:, keep], train.u[:, keep]).reshape(-1, bank.nz + bank.ny + bank.nu)
-    x = train.x[:, keep].reshape(-1, nx)
-    v = _transform(x, scale)
-    sizes = (feats.shape[1], *config.hidden, nx)
+        raise ValueError(f"asinh_scale: expected nx = {nx} entries >= 0, received {config.asinh_scale!r}.")
+    feats = fb.decoder_features(data.z, data.y, data.u, angles=angles, gains=fb.dc_gains(bank))
+    v = fb.decoder_targets(data.x, data.y, scale, angles)
+    sizes = (feats.shape[1], *config.hidden, v.shape[1])
     dtype = torch_dtype(config.dtype)
     torch.manual_seed(seed)
     mlp = MLP(sizes, config.activation).to(torch.float64)
@@ -285,11 +623,8 @@ def fit_bank_decoder(bank: fb.FilterBank, train: TrajectoryBatch, config: Decode
         f_mean, white = feats.mean(axis=0), np.diag(1.0 / (feats.std(axis=0) + 1e-12))
     mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), v.mean(axis=0), v.std(axis=0) + 1e-12)
     mlp = mlp.to(dtype)
-    data = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v, "x": x}, dtype=dtype)
+    data_set = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v, "x": data.x, "y": data.y}, dtype=dtype)
     out_std = torch.as_tensor(mlp.out_std.detach().clone())
-    scale_t = torch.as_tensor(scale, dtype=dtype)
-    pos = scale_t > 0
-    safe = torch.where(pos, scale_t, torch.ones_like(scale_t))
 
     def loss_fn(batch: Mapping[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
         pred = mlp(batch["f"])
@@ -300,21 +635,21 @@ def fit_bank_decoder(bank: fb.FilterBank, train: TrajectoryBatch, config: Decode
             parts["mse"] = mse.item()
             total = total + mse
         if config.loss in ("smape", "mse+smape"):
-            xhat = torch.where(pos, safe * torch.sinh(pred), pred)
+            xhat = _torch_outputs(pred, batch["y"], scale, angles)
             xt = batch["x"]
             sm = (2.0 * (xt - xhat).abs() / (xt.abs() + xhat.abs() + config.smape_eps)).mean()
             parts["smape"] = sm.item()
             total = total + (sm if config.loss == "smape" else config.smape_weight * sm)
         return total, parts
 
-    result = fit(list(mlp.parameters()), loss_fn, data, config.loop, name="bank decoder", seed=seed,
+    result = fit(list(mlp.parameters()), loss_fn, data_set, config.loop, name="bank decoder", seed=seed,
                  progress=progress)
     arrays = fold_whitening(mlp.to(torch.float64).to_arrays(DECODER), f_mean, white)
     arrays[fb.ASINH_SCALE] = scale.copy()
     arrays.update(fb.bank_arrays(bank))
-    pct = np.percentile(train.x.reshape(-1, nx), [0.1, 50.0, 99.9], axis=0)
+    pct = np.percentile(data.x, [0.1, 50.0, 99.9], axis=0)
     domain = {"x_p0.1": pct[0].tolist(), "x_p50": pct[1].tolist(), "x_p99.9": pct[2].tolist()}
-    return BankFit(arrays, mlp.spec.to_card(), result, int(len(x)), time.perf_counter() - t0, domain)
+    return BankFit(arrays, mlp.spec.to_card(), angles, result, int(len(v)), time.perf_counter() - t0, domain)
 
 
 def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:

@@ -10,8 +10,12 @@ the newest measurement and input, which the observer's memory ``w = [y_k; u_k]``
 and input ranges its card records. There is no encoder: the latent is not a KKL map of the state
 but a fixed filter of the signals, and the decoder learns the state from it.
 
+Angles (``System.angle_outputs``, ``angle_states``) are read and written continuously on the circle
+(:class:`kklcasadi.model.variants.filterbank.Angles`).
+
 Card: ``design`` holds ``A`` and ``By`` (as ``B``); ``architecture`` holds ``decoder``
-(``[nz + ny + nu, ..., nx]``) and ``bank`` (the design parameters, for the record); the arrays
+(``[nz + ny + n_angle_outputs + nu, ..., nx + n_free_angle_states]``) and ``bank`` (the design
+parameters, for the record, and the angle layout ``angles`` where there are angles); the arrays
 ``bank/Bu`` (nz, nu), ``bank/c`` (nz,) and ``decoder/asinh_scale`` (nx,) complete it.
 """
 
@@ -24,23 +28,22 @@ from typing import Any, Mapping, Optional
 import casadi as ca
 import numpy as np
 
-from ...nets.builders import mlp_function
 from ...nets.specs import DECODER, MLPSpec, field_error
 from ...plant.systems import System
 from ...validation import is_number
 from .base import Memory, Networks, Sizes, Variant
-from .filterbank import FilterBank
+from .filterbank import ASINH_SCALE, Angles, FilterBank, decoder_expression
 
 __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
-#: Array of the per-state output scales: ``xhat_i = s_i sinh(v_i)`` where ``s_i > 0``, else ``v_i``.
-ASINH_SCALE = f"{DECODER}/asinh_scale"
 _BANK_KEYS = ("y_poles", "u_poles", "y_resonators", "clock")
+#: Keys of ``architecture.bank`` that cards written before them lack.
+_OPTIONAL_KEYS = ("time_scale", "angles")
 
 
 @dataclass(frozen=True, eq=False)
 class BankSpec:
-    """The decoder, the latent matrices and the bank's design parameters."""
+    """The decoder, the latent matrices, the bank's design parameters and its angle layout."""
 
     decoder: MLPSpec
     A: np.ndarray
@@ -48,16 +51,24 @@ class BankSpec:
     dt: float
     nu: int
     params: dict
+    angles: Angles = Angles()
 
     @property
     def nz(self) -> int:
         return self.A.shape[0]
 
+    @property
+    def nx(self) -> int:
+        return self.decoder.n_out - len(self.angles.free)
+
     def to_card(self) -> dict:
-        return {DECODER: self.decoder.to_card(), "bank": dict(self.params)}
+        bank = dict(self.params)
+        if self.angles:
+            bank["angles"] = self.angles.to_card()
+        return {DECODER: self.decoder.to_card(), "bank": bank}
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
-        return {**self.decoder.array_shapes(DECODER), ASINH_SCALE: (self.decoder.n_out,),
+        return {**self.decoder.array_shapes(DECODER), ASINH_SCALE: (self.nx,),
                 "bank/Bu": (self.nz, self.nu), "bank/c": (self.nz,)}
 
 
@@ -67,10 +78,11 @@ def _positive_numbers(value: Any) -> bool:
 
 def _params(entry: Any, where: str) -> dict:
     fix = ('Write "bank" as {"y_poles": [p, ...], "u_poles": [p, ...], "y_resonators": [[zeta, omega], ...], '
-           '"clock": rate or null}.')
-    if not isinstance(entry, Mapping) or set(entry) != set(_BANK_KEYS):
-        raise field_error(where, "architecture.bank", f"an object with exactly the keys {list(_BANK_KEYS)}",
-                          entry, fix)
+           '"clock": rate or null} (optionally "time_scale": rate and "angles": {...}).')
+    if (not isinstance(entry, Mapping) or not set(_BANK_KEYS) <= set(entry)
+            or not set(entry) <= set(_BANK_KEYS + _OPTIONAL_KEYS)):
+        raise field_error(where, "architecture.bank", f"an object with the keys {list(_BANK_KEYS)} (and optionally "
+                          f"{list(_OPTIONAL_KEYS)})", entry, fix)
     for name in ("y_poles", "u_poles"):
         if not _positive_numbers(entry[name]):
             raise field_error(where, f"architecture.bank.{name}", "a list of positive numbers", entry[name], fix)
@@ -81,7 +93,24 @@ def _params(entry: Any, where: str) -> dict:
     clock = entry["clock"]
     if clock is not None and not _positive_numbers([clock]):
         raise field_error(where, "architecture.bank.clock", "a rate > 0 or null", clock, fix)
-    return {key: entry[key] for key in _BANK_KEYS}
+    if "time_scale" in entry and not _positive_numbers([entry["time_scale"]]):
+        raise field_error(where, "architecture.bank.time_scale", "a rate > 0 (rad/s)", entry["time_scale"], fix)
+    return {key: entry[key] for key in _BANK_KEYS + ("time_scale",) if key in entry}
+
+
+def _angles(entry: Mapping[str, Any], where: str, sizes: Sizes) -> Angles:
+    if "angles" not in entry:
+        return Angles()
+    fix = 'Write "angles" as {"outputs": [j, ...], "measured": [[i, j], ...], "free": [[i, centre], ...]}.'
+    try:
+        angles = Angles.from_card(entry["angles"])
+    except ValueError as exc:
+        raise field_error(where, "architecture.bank.angles", "an angle layout", entry["angles"], fix) from exc
+    states = [i for i, _ in angles.measured] + [i for i, _ in angles.free]
+    if any(j >= sizes.ny for j in angles.outputs) or any(i >= sizes.nx for i in states):
+        raise field_error(where, "architecture.bank.angles", f"outputs < ny = {sizes.ny} and states < nx = {sizes.nx}",
+                          entry["angles"], fix)
+    return angles
 
 
 def feedthrough_memory(ny: int, nu: int) -> Memory:
@@ -106,25 +135,27 @@ class Bank(Variant):
 
     def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> BankSpec:
         decoder = MLPSpec.from_card(card["architecture"][DECODER], where, "architecture.decoder")
-        n_in = sizes.nz + sizes.ny + sizes.nu
-        if (decoder.n_in, decoder.n_out) != (n_in, sizes.nx):
-            raise field_error(where, "architecture.decoder.sizes", f"[nz + ny + nu = {n_in}, ..., nx = {sizes.nx}]",
-                              list(decoder.sizes), "The bank's decoder maps [z; y; u] to x.")
+        entry = card["architecture"]["bank"]
+        angles = _angles(entry, where, sizes) if isinstance(entry, Mapping) else Angles()
+        n_in, n_out = angles.n_features(sizes.nz, sizes.ny, sizes.nu), angles.n_outputs(sizes.nx)
+        if (decoder.n_in, decoder.n_out) != (n_in, n_out):
+            raise field_error(where, "architecture.decoder.sizes",
+                              f"[nz + ny + angle outputs + nu = {n_in}, ..., nx + free angle states = {n_out}]",
+                              list(decoder.sizes), "The bank's decoder maps [z; y; u] (angle outputs as sin and cos) "
+                              "to x (free angle states as cos and sin).")
         A = np.array(card["design"]["A"], dtype=float)
         By = np.array(card["design"]["B"], dtype=float)
         if np.max(np.linalg.eigvals(A).real) >= 0:
             raise field_error(where, "design.A", "a Hurwitz matrix (the filter bank is stable)",
                               float(np.max(np.linalg.eigvals(A).real)), "Use the bank's A.")
-        return BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(card["architecture"]["bank"], where))
+        return BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where), angles)
 
     def networks(self, spec: BankSpec, arrays: Mapping[str, Any], system: System, window: int) -> Networks:
+        full = {**arrays, "bank/A": spec.A, "bank/By": spec.By}
         bank = FilterBank(spec.A, spec.By, np.asarray(arrays["bank/Bu"]), np.asarray(arrays["bank/c"]))
-        mlp = mlp_function(spec.decoder, arrays, DECODER, "decoder_mlp")
         memory = feedthrough_memory(system.ny, system.nu)
         z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", *memory.shape)
-        v = mlp(ca.vertcat(z, w))
-        scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
-        xhat = ca.vertcat(*[float(s) * ca.sinh(v[i]) if s > 0 else v[i] for i, s in enumerate(scale)])
+        xhat = decoder_expression(full, spec.decoder.to_card(), z, w[:system.ny], w[system.ny:], angles=spec.angles)
         decoder = ca.Function("decoder", [z, w], [xhat], ["z", "w"], ["xhat"])
         bu, c = ca.DM(bank.Bu), ca.DM(bank.c)
 

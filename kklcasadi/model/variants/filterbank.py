@@ -41,9 +41,11 @@ from ...nets import builders as casadi_nets
 from ...nets.hold import FOHMatrices, foh_matrices
 from ...nets.numpy_mlp import mlp_numpy
 from ...nets.specs import DECODER, MLPSpec, check_arrays
+from ...plant.systems import System
 
-__all__ = ["FilterBank", "decoder_features", "decode", "decoder_function", "estimate",
-           "bank_arrays", "bank_from_arrays", "observer_step", "ASINH_SCALE"]
+__all__ = ["FilterBank", "Angles", "NO_ANGLES", "dc_gains", "decoder_features", "decoder_targets",
+           "decoder_outputs", "decode", "decoder_function", "decoder_expression", "estimate", "bank_arrays",
+           "bank_from_arrays", "observer_step", "ASINH_SCALE"]
 
 #: Array name of the per-state output transform scales (0: identity, > 0: asinh scale).
 ASINH_SCALE = "decoder/asinh_scale"
@@ -247,86 +249,272 @@ def _trials(y: Any, u: Any, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray, b
     return y, u, single
 
 
-def decoder_features(z: np.ndarray, y: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """The decoder's input ``[z; y_k; u_k]`` along the last axis.
+@dataclass(frozen=True)
+class Angles:
+    """How the decoder reads angle outputs and writes angle states, continuous on the circle.
+
+    An angle is defined modulo ``2 pi``; the observer is fed the unwrapped measurement (so the
+    filters see a continuous signal), and the decoder is given only what does not change when
+    the whole history of an angle output moves by ``2 pi``.
+
+    Attributes
+    ----------
+    outputs : tuple of int
+        Angle outputs ``j``. The decoder reads ``z - g_j y_j`` in place of ``z`` (``g_j = -A^-1 By[:, j]``,
+        the latents' DC gains to ``y_j``: each filter's deviation from its output) and
+        ``(sin y_j, cos y_j)`` in place of ``y_j``.
+    measured : tuple of (int, int)
+        ``(i, j)``: angle state ``i`` is output ``j`` (``h_j(x) = x_i``). The decoder predicts the
+        deviation ``v_i`` and ``xhat_i = y_j + v_i``, fitted to ``wrap(x_i - y_j)``.
+    free : tuple of (int, float)
+        ``(i, c)``: an angle state that no output measures. Its two outputs ``v_i`` and
+        ``v_{nx + k}`` (``k`` its place in ``free``) are fitted to ``cos(x_i - c)`` and
+        ``sin(x_i - c)``, and ``xhat_i = c + atan2(v_{nx + k}, v_i)``, within ``c +- pi`` (``c``: the
+        centre of its X0 box row).
+    """
+
+    outputs: tuple[int, ...] = ()
+    measured: tuple[tuple[int, int], ...] = ()
+    free: tuple[tuple[int, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "outputs", tuple(int(j) for j in self.outputs))
+        object.__setattr__(self, "measured", tuple((int(i), int(j)) for i, j in self.measured))
+        object.__setattr__(self, "free", tuple((int(i), float(c)) for i, c in self.free))
+        states = [i for i, _ in self.measured] + [i for i, _ in self.free]
+        if len(set(states)) != len(states) or len(set(self.outputs)) != len(self.outputs):
+            raise ValueError(f"angles: expected distinct outputs and states, received {self}.")
+        if any(j not in self.outputs for _, j in self.measured):
+            raise ValueError(f"angles: a measured angle state must be an angle output, received {self}.")
+        if any(i < 0 for i in states) or any(j < 0 for j in self.outputs) or not all(
+                np.isfinite(c) for _, c in self.free):
+            raise ValueError(f"angles: expected indices >= 0 and finite centres, received {self}.")
+
+    @classmethod
+    def of(cls, system: System) -> Angles:
+        """The layout of a plant's ``angle_outputs`` and ``angle_states``: an angle state is
+        ``measured`` by the angle output whose expression is that state's symbol."""
+        outputs = tuple(system.angle_outputs)
+        measured, free = [], []
+        for i in system.angle_states:
+            js = [j for j in outputs if ca.is_equal(system.y_expr[j], system.x_sym[i])]
+            if js:
+                measured.append((i, js[0]))
+            else:
+                free.append((i, float(np.mean(system.x0_box[i]))))
+        return cls(outputs, tuple(measured), tuple(free))
+
+    def __bool__(self) -> bool:
+        return bool(self.outputs or self.measured or self.free)
+
+    def n_features(self, nz: int, ny: int, nu: int) -> int:
+        """The decoder's input size: ``nz + ny + len(outputs) + nu``."""
+        return nz + ny + len(self.outputs) + nu
+
+    def n_outputs(self, nx: int) -> int:
+        """The decoder network's output size: ``nx + len(free)``."""
+        return nx + len(self.free)
+
+    def to_card(self) -> dict:
+        """The card entry ``{"outputs": [j], "measured": [[i, j]], "free": [[i, c]]}``."""
+        return {"outputs": list(self.outputs), "measured": [list(m) for m in self.measured],
+                "free": [list(f) for f in self.free]}
+
+    @classmethod
+    def from_card(cls, entry: Any) -> Angles:
+        """Inverse of :meth:`to_card` (``ValueError`` on a malformed entry)."""
+        if not (isinstance(entry, Mapping) and set(entry) == {"outputs", "measured", "free"}):
+            raise ValueError("angles: expected an object with the keys outputs, measured and free, "
+                             f"received {entry!r}.")
+        pairs = [entry["measured"], entry["free"]]
+        if not (isinstance(entry["outputs"], list) and all(isinstance(p, list) and all(
+                isinstance(q, list) and len(q) == 2 for q in p) for p in pairs)):
+            raise ValueError(f"angles: expected lists of indices and of pairs, received {entry!r}.")
+        return cls(tuple(entry["outputs"]), tuple(tuple(m) for m in entry["measured"]),
+                   tuple(tuple(f) for f in entry["free"]))
+
+
+#: No angles: the decoder reads ``[z; y; u]`` and writes ``x``.
+NO_ANGLES = Angles()
+
+
+def dc_gains(bank: FilterBank) -> np.ndarray:
+    """The latents' steady-state gains to the outputs, ``-A^-1 By`` (nz, ny): 1 for a unit-gain filter
+    of that output, 0 for latents of other signals."""
+    return -np.linalg.solve(bank.A, bank.By)
+
+
+def decoder_features(z: np.ndarray, y: np.ndarray, u: np.ndarray, *, angles: Angles = NO_ANGLES,
+                     gains: np.ndarray | None = None) -> np.ndarray:
+    """The decoder's input along the last axis: ``[z; y; u]``, or with angle outputs
+    ``[z - G_a y_a; y_other; sin y_a; cos y_a; u]`` (:class:`Angles`).
 
     Parameters
     ----------
     z : numpy.ndarray, shape (..., nz)
     y : numpy.ndarray, shape (..., ny)
     u : numpy.ndarray, shape (..., nu)
+    angles : Angles
+    gains : numpy.ndarray, shape (nz, ny)
+        :func:`dc_gains` of the bank (needed with angle outputs).
 
     Returns
     -------
-    numpy.ndarray, shape (..., nz + ny + nu)
+    numpy.ndarray, shape (..., nz + ny + len(angles.outputs) + nu)
     """
-    return np.concatenate([z, y, u], axis=-1)
+    if not angles.outputs:
+        return np.concatenate([z, y, u], axis=-1)
+    a = list(angles.outputs)
+    other = [j for j in range(y.shape[-1]) if j not in angles.outputs]
+    ya = y[..., a]
+    return np.concatenate([z - ya @ np.asarray(gains)[:, a].T, y[..., other], np.sin(ya), np.cos(ya), u], axis=-1)
 
 
-def _check_decoder(arrays: Mapping[str, Any], arch: Mapping[str, Any]) -> MLPSpec:
+def decoder_targets(x: np.ndarray, y: np.ndarray, scale: np.ndarray, angles: Angles = NO_ANGLES) -> np.ndarray:
+    """What the decoder network is fitted to: the inverse of :func:`decoder_outputs`.
+
+    Parameters
+    ----------
+    x : numpy.ndarray, shape (..., nx)
+    y : numpy.ndarray, shape (..., ny)
+    scale : numpy.ndarray, shape (nx,)
+        ``asinh`` scales (0: none).
+    angles : Angles
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., nx + len(angles.free))
+    """
+    v = np.where(scale > 0, np.arcsinh(x / np.where(scale > 0, scale, 1.0)), x)
+    for i, j in angles.measured:
+        v[..., i] = np.angle(np.exp(1j * (x[..., i] - y[..., j])))
+    extra = []
+    for i, c in angles.free:
+        v[..., i] = np.cos(x[..., i] - c)
+        extra.append(np.sin(x[..., i] - c)[..., None])
+    return np.concatenate([v, *extra], axis=-1)
+
+
+def decoder_outputs(v: Any, y: Any, scale: np.ndarray, angles: Angles = NO_ANGLES, *, lib: Any = np) -> Any:
+    """The state estimate from the network's output ``v``: ``s_i sinh(v_i)`` where ``s_i > 0``,
+    ``y_j + v_i`` for a measured angle, ``c + atan2(v_{nx+k}, v_i)`` for a free one, else ``v_i``.
+
+    ``lib`` is ``numpy`` (arrays ``(..., n)``) or ``casadi`` (column vectors); ``torch`` tensors use
+    :func:`kklcasadi.train.operational.torch_decoder`.
+    """
+    nx = scale.size
+    measured, free = dict(angles.measured), {i: (k, c) for k, (i, c) in enumerate(angles.free)}
+    if lib is np:
+        out = np.where(scale > 0, scale * np.sinh(v[..., :nx]), v[..., :nx])
+        for i, j in measured.items():
+            out[..., i] = y[..., j] + v[..., i]
+        for i, (k, c) in free.items():
+            out[..., i] = c + np.arctan2(v[..., nx + k], v[..., i])
+        return out
+    rows = []
+    for i, s in enumerate(scale):
+        if i in measured:
+            rows.append(y[measured[i]] + v[i])
+        elif i in free:
+            rows.append(free[i][1] + ca.atan2(v[nx + free[i][0]], v[i]))
+        else:
+            rows.append(float(s) * ca.sinh(v[i]) if s > 0 else v[i])
+    return ca.vertcat(*rows)
+
+
+def _check_decoder(arrays: Mapping[str, Any], arch: Mapping[str, Any], angles: Angles) -> tuple[MLPSpec, np.ndarray]:
     spec = MLPSpec.from_card(arch, "architecture.decoder", DECODER)
-    check_arrays(arrays, {**spec.array_shapes(DECODER), ASINH_SCALE: (spec.n_out,)}, "bank arrays")
+    nx = spec.n_out - len(angles.free)
+    check_arrays(arrays, {**spec.array_shapes(DECODER), ASINH_SCALE: (nx,)}, "bank arrays")
     scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
     if not np.all(np.isfinite(scale)) or np.any(scale < 0):
         raise ValueError(f"{ASINH_SCALE} must be finite and >= 0 (0: no transform), got {scale.tolist()}")
-    return spec
+    angle_states = [i for i, _ in angles.measured] + [i for i, _ in angles.free]
+    if any(i >= nx for i in angle_states) or np.any(scale[angle_states] > 0):
+        raise ValueError(f"angle states {angle_states} must be states (nx = {nx}) without an asinh scale")
+    return spec, scale
 
 
-def decode(arrays: Mapping[str, Any], arch: Mapping[str, Any], features: Any) -> np.ndarray:
-    """Evaluate the decoder with its output transform in numpy (float64).
+def decode(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: Any, y: Any, u: Any, *,
+           angles: Angles = NO_ANGLES) -> np.ndarray:
+    """Evaluate the decoder with its input and output maps in numpy (float64).
 
     Parameters
     ----------
     arrays : Mapping[str, array_like]
-        ``decoder/*`` MLP arrays and ``decoder/asinh_scale`` (nx,).
+        ``bank/*`` (the gains of angle outputs), ``decoder/*`` MLP arrays and ``decoder/asinh_scale`` (nx,).
     arch : Mapping
-        ``{"sizes": [nz + ny + nu, ..., nx], "activation": ...}``.
-    features : array_like, shape (..., nz + ny + nu)
+        ``{"sizes": [nz + ny + len(angles.outputs) + nu, ..., nx + len(angles.free)], "activation": ...}``.
+    z : array_like, shape (..., nz)
+    y : array_like, shape (..., ny)
+    u : array_like, shape (..., nu)
+    angles : Angles
 
     Returns
     -------
     numpy.ndarray, shape (..., nx)
     """
-    spec = _check_decoder(arrays, arch)
-    f = np.asarray(features, dtype=float)
+    spec, scale = _check_decoder(arrays, arch, angles)
+    y = np.asarray(y, dtype=float)
+    gains = dc_gains(bank_from_arrays(arrays)) if angles.outputs else None
+    f = decoder_features(np.asarray(z, dtype=float), y, np.asarray(u, dtype=float), angles=angles, gains=gains)
     if f.shape[-1] != spec.n_in:
         raise ValueError(f"features must have {spec.n_in} entries along the last axis, got shape {f.shape}")
-    v = mlp_numpy(spec, arrays, DECODER, f)
-    scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
-    return np.where(scale > 0, scale * np.sinh(v), v)
+    return decoder_outputs(mlp_numpy(spec, arrays, DECODER, f), y, scale, angles)
 
 
-def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: str = "bank_decoder") -> ca.Function:
-    """CasADi ``(z, y, u) -> xhat``: the decoder MLP on ``[z; y; u]`` and the output transform.
+def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: str = "bank_decoder", *,
+                     angles: Angles = NO_ANGLES) -> ca.Function:
+    """CasADi ``(z, y, u) -> xhat``: the decoder MLP with its input and output maps (see :func:`decode`).
 
     Parameters
     ----------
     arrays : Mapping[str, array_like]
-        ``bank/*`` arrays (for the sizes nz, ny, nu), ``decoder/*`` MLP arrays and
+        ``bank/*`` arrays (for the sizes nz, ny, nu and the gains), ``decoder/*`` MLP arrays and
         ``decoder/asinh_scale`` (nx,).
     arch : Mapping
-        The decoder's card entry ``{"sizes": [nz + ny + nu, ..., nx], "activation": ...}``.
+        The decoder's card entry.
     name : str
         Function name.
+    angles : Angles
 
     Returns
     -------
     ca.Function
         Inputs ``z`` (nz,), ``y`` (ny,), ``u`` (nu,); output ``xhat`` (nx,).
     """
-    bank = bank_from_arrays(arrays)
-    spec = _check_decoder(arrays, arch)
-    if spec.n_in != bank.nz + bank.ny + bank.nu:
-        raise ValueError(f"decoder input size {spec.n_in} != nz + ny + nu = {bank.nz + bank.ny + bank.nu}")
-    mlp = casadi_nets.mlp_function(MLPSpec.from_card(arch, "architecture", DECODER), arrays, DECODER, f"{name}_mlp")
-    z, y, u = ca.MX.sym("z", bank.nz), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
-    v = mlp(ca.vertcat(z, y, u))
-    scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
-    out = ca.vertcat(*[float(s) * ca.sinh(v[i]) if s > 0 else v[i] for i, s in enumerate(scale)])
+    z, y, u = _symbols(bank_from_arrays(arrays))
+    out = decoder_expression(arrays, arch, z, y, u, angles=angles, mlp_name=f"{name}_mlp")
     return ca.Function(name, [z, y, u], [out], ["z", "y", "u"], ["xhat"])
 
 
-def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float, name: str = "step") -> ca.Function:
+def _symbols(bank: FilterBank) -> tuple[ca.MX, ca.MX, ca.MX]:
+    return ca.MX.sym("z", bank.nz), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
+
+
+def decoder_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
+                       angles: Angles = NO_ANGLES, mlp_name: str = "decoder_mlp") -> ca.MX:
+    """The decoder's CasADi expression ``xhat (nx, 1)`` at the symbols ``z`` (nz,), ``y`` (ny,), ``u`` (nu,)
+    (what :func:`decoder_function` wraps; the ``bank`` variant builds its decoder from it)."""
+    bank = bank_from_arrays(arrays)
+    spec, scale = _check_decoder(arrays, arch, angles)
+    if spec.n_in != angles.n_features(bank.nz, bank.ny, bank.nu):
+        raise ValueError(f"decoder input size {spec.n_in} != nz + ny + len(angle outputs) + nu = "
+                         f"{angles.n_features(bank.nz, bank.ny, bank.nu)}")
+    mlp = casadi_nets.mlp_function(spec, arrays, DECODER, mlp_name)
+    if angles.outputs:
+        a = list(angles.outputs)
+        other = [j for j in range(bank.ny) if j not in angles.outputs]
+        ya = ca.vertcat(*[y[j] for j in a])
+        feats = ca.vertcat(z - ca.mtimes(ca.DM(dc_gains(bank)[:, a]), ya), *[y[j] for j in other], ca.sin(ya),
+                           ca.cos(ya), u)
+    else:
+        feats = ca.vertcat(z, y, u)
+    return decoder_outputs(mlp(feats), y, scale, angles, lib=ca)
+
+
+def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float, name: str = "step", *,
+                  angles: Angles = NO_ANGLES) -> ca.Function:
     """The whole observer step in the signature of :attr:`kklcasadi.observer.kkl.KKLObserver.step` (window 1).
 
     ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` with ``w = u_k`` (1, nu), the input
@@ -335,7 +523,7 @@ def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float,
 
     Parameters
     ----------
-    arrays, arch
+    arrays, arch, angles
         As in :func:`decoder_function`.
     dt : float
         Sample period.
@@ -344,7 +532,7 @@ def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float,
     """
     bank = bank_from_arrays(arrays)
     latent = bank.step_function(dt)
-    dec = decoder_function(arrays, arch)
+    dec = decoder_function(arrays, arch, angles=angles)
     z, w = ca.MX.sym("z", bank.nz), ca.MX.sym("w", 1, bank.nu)
     y, y_next, u_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny), ca.MX.sym("u_next", bank.nu)
     z_next = latent(z, y, y_next, w.T)
@@ -366,7 +554,8 @@ def bank_from_arrays(arrays: Mapping[str, Any]) -> FilterBank:
     return FilterBank(arrays["bank/A"], arrays["bank/By"], arrays["bank/Bu"], arrays["bank/c"])
 
 
-def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any, dt: float) -> np.ndarray:
+def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any, dt: float, *,
+             angles: Angles = NO_ANGLES) -> np.ndarray:
     """Reference implementation of the ``bank`` estimator: ``xhat_k = D(z_k, y_k, u_k)``, ``z_0 = 0``.
 
     Parameters
@@ -374,13 +563,15 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
     arrays : Mapping[str, array_like]
         ``bank/*`` (see :func:`bank_arrays`) and ``decoder/*`` arrays.
     arch : Mapping
-        The decoder's card entry ``{"sizes": [nz + ny + nu, ..., nx], "activation": ...}``.
+        The decoder's card entry ``{"sizes": [...], "activation": ...}``.
     y : array_like, shape (M, N, ny) or (N, ny)
-        Measurements ``y_k``.
+        Measurements ``y_k`` (angle outputs unwrapped).
     u : array_like, shape (M, N, nu) or (N, nu)
         Inputs ``u_k`` held over ``[t_k, t_k+1)``.
     dt : float
         Sample period.
+    angles : Angles
+        The decoder's angle layout (the card's ``architecture.bank.angles``).
 
     Returns
     -------
@@ -388,6 +579,5 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
     """
     bank = bank_from_arrays(arrays)
     y, u, single = _trials(y, u, bank.ny, bank.nu)
-    z = bank.run(y, u, dt)
-    xhat = decode(arrays, arch, decoder_features(z, y, u))
+    xhat = decode(arrays, arch, bank.run(y, u, dt), y, u, angles=angles)
     return xhat[0] if single else xhat
