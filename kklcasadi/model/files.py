@@ -34,6 +34,7 @@ import numpy as np
 from ..nets.specs import check_arrays, field_error
 from ..validation import Text, is_int, is_number
 from . import variants
+from .monitor import MonitorSpec, parse_monitor
 
 if TYPE_CHECKING:
     from ..plant.design import Design
@@ -139,6 +140,11 @@ class ModelSpec:
         The noise level the decoder was fit for (0: noise-free).
     domain : Domain or None
         Where the maps were trained (None in cards written before domains were recorded).
+    monitor : MonitorSpec or None
+        The decoder-input domain monitor (:mod:`kklcasadi.model.monitor`), where the card has one.
+    fit_families : dict or None
+        The input families the maps were fit on, ``{family: {parameter: (lo, hi)}}``, where the
+        card records them.
     """
 
     method: str
@@ -151,6 +157,8 @@ class ModelSpec:
     base: Optional[BaseRef]
     measurement_std: float
     domain: Optional[Domain] = None
+    monitor: Optional[MonitorSpec] = None
+    fit_families: Optional[dict] = None
 
     @property
     def variant(self) -> variants.Variant:
@@ -164,7 +172,7 @@ class ModelSpec:
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
         """Names and shapes of every array of the model file."""
-        return self.architecture.array_shapes()
+        return {**self.architecture.array_shapes(), **({} if self.monitor is None else self.monitor.array_shapes())}
 
 
 def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -> ModelSpec:
@@ -278,10 +286,35 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
                           "Remove the field, or use a method that takes it.")
     spec = variant.parse(card, variants.Sizes(nx, nu, ny, a.shape[0]), where)
     domain = _domain(card.get("domain"), nx, a.shape[0], where)
+    monitor = parse_monitor(card.get("monitor"), where)
+    families = _fit_families(card.get("fit_families"), where)
     for matrix in (a, b):
         matrix.setflags(write=False)
     return ModelSpec(card["method"], SystemSpec(system["name"], nx, nu, ny, fingerprint), a, b, float(card["dt"]),
-                     window, spec, base, float(noise["measurement_std"]), domain)
+                     window, spec, base, float(noise["measurement_std"]), domain, monitor, families)
+
+
+def _fit_families(entry: Any, where: str) -> Optional[dict]:
+    """The card's ``fit_families``: ``{family: {parameter: [lo, hi]}}`` (lo <= hi, finite), or None."""
+    if entry is None:
+        return None
+    fix = ('Write "fit_families" as {"constant": {"value": [-1.0, 1.0]}, "zero": {}, ...}: each input family the '
+           'maps were fit on with the range of each of its parameters (kklcasadi.plant.signals.family_ranges).')
+    if not isinstance(entry, Mapping) or not entry:
+        raise field_error(where, "fit_families", "a non-empty object of families", entry, fix)
+    out = {}
+    for family, ranges in entry.items():
+        if not isinstance(ranges, Mapping):
+            raise field_error(where, f"fit_families.{family}", "an object of parameter ranges", ranges, fix)
+        out[family] = {}
+        for name, bounds in ranges.items():
+            ok = (isinstance(bounds, list) and len(bounds) == 2
+                  and all(is_number(v) and math.isfinite(v) for v in bounds) and bounds[0] <= bounds[1])
+            if not ok:
+                raise field_error(where, f"fit_families.{family}.{name}",
+                                  "a range [lo, hi] of finite numbers, lo <= hi", bounds, fix)
+            out[family][name] = (float(bounds[0]), float(bounds[1]))
+    return out
 
 
 def _domain(entry: Any, nx: int, nz: int, where: str) -> Optional[Domain]:
@@ -319,7 +352,8 @@ def model_array_shapes(card: Mapping[str, Any], where: str = CARD_FILE) -> dict[
 def make_card(system: System | SystemSpec, design: Design, method: str, spec: Any, *, dt: float,
               window: int = 1, training: Optional[Mapping[str, Any]] = None,
               base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0,
-              domain: Optional[Domain] = None) -> dict:
+              domain: Optional[Domain] = None, monitor: Optional[MonitorSpec] = None,
+              fit_families: Optional[Mapping[str, Mapping[str, Any]]] = None) -> dict:
     """The card of a model: the one way training, :func:`derive_model` and tests write one.
 
     Parameters
@@ -345,6 +379,10 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
         The noise level the decoder was fit for.
     domain : Domain, optional
         Where the maps were trained (recorded for the observer's domain monitor).
+    monitor : MonitorSpec, optional
+        The decoder-input monitor's card entry (its arrays go into the model's arrays).
+    fit_families : Mapping, optional
+        The input families the maps were fit on, ``{family: {parameter: (lo, hi)}}``.
 
     Returns
     -------
@@ -361,7 +399,10 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
             "base": None if base is None else dict(base),
             "noise": {"measurement_std": float(measurement_std)},
             "training": dict(training or {}), **variant.card_entries(spec),
-            **({} if domain is None else {"domain": domain.to_card()})}
+            **({} if domain is None else {"domain": domain.to_card()}),
+            **({} if monitor is None else {"monitor": monitor.to_card()}),
+            **({} if fit_families is None else {"fit_families": {k: {p: list(b) for p, b in v.items()}
+                                                                 for k, v in fit_families.items()}})}
 
 
 @dataclass(frozen=True)

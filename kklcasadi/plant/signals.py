@@ -385,10 +385,11 @@ BENCHMARK_KINDS = ("zero", "constant", "sinusoid", "square")
 
 
 #: Parameter ranges of the held-out input families of docs/protocol.md "Generalisation": a swept sine
-#: and random steps of in-range amplitude, and a saturated PD controller around a stepping set point
+#: of in-range amplitude from below to above the sinusoid's fitted band (to the top of its ood band),
+#: random steps of in-range amplitude, and a saturated PD controller around a stepping set point
 #: (``setpoint``: the set point as a share of the output's half-range over the X0 box, about its centre).
 HELD_OUT_RANGES: Mapping[str, Mapping[str, tuple[float, float]]] = {
-    "chirp": {"amplitude": (0.1, 1.0), "omega0": (0.5, 3.0), "omega1": (0.5, 3.0)},
+    "chirp": {"amplitude": (0.1, 1.0), "omega0": (0.1, 0.5), "omega1": (3.0, 6.0)},
     "random": {"amplitude": (0.1, 1.0), "hold": (0.5, 5.0)},
     "feedback": {"setpoint": (-0.5, 0.5), "hold": (2.0, 10.0), "kp": (0.5, 2.0), "kd": (0.2, 1.0),
                  "tau": (0.1, 0.3), "u_max": (1.0, 1.0)},

@@ -1,0 +1,225 @@
+"""The decoder's domain monitor: how far the decoder's input is from what it was fit on.
+
+The decoder of an observer reads ``f_k = [z_k; vec(w_k)]`` (for ``bank``: ``[z_k; y_k; u_k]``). The
+monitor keeps ``K`` prototypes, samples of ``f`` drawn from the fitting runs, and a metric ``L``;
+a sample is in the domain when its distance to the nearest prototype,
+``min_j ||L f_k - P_j||`` (``P_j = L p_j``), is at most the threshold. The metric whitens the
+spread of fitting samples around their nearest prototype (the local residual covariance), so a
+direction the fitting data fill with measurement noise counts little and a direction they never
+leave (an input filter of a noise-free input) counts a lot. The threshold is a quantile of the
+distances of validation samples (runs of the fitting distribution that gave no prototype) after
+the settle time, so that share of fitting-distribution samples is flagged.
+
+Stored in the model file (``docs/model-format.md``): the card entry ``monitor`` (kind, feature size,
+prototypes, threshold, quantile, settle time, calibration record) and the arrays
+``monitor/metric`` (d, d) and ``monitor/prototypes`` (K, d).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import casadi as ca
+import numpy as np
+
+from ..nets.specs import field_error
+from ..validation import Text, error, is_int, is_number, positive_int
+
+__all__ = ["FeatureMonitor", "MonitorSpec", "calibrate", "parse_monitor", "KIND", "METRIC", "PROTOTYPES",
+           "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE"]
+
+#: The monitor's kind in the card.
+KIND = "nearest_prototype"
+#: Array names in ``weights.npz``.
+METRIC, PROTOTYPES = "monitor/metric", "monitor/prototypes"
+#: Calibration defaults: prototypes kept, and the share of validation samples after the settle time
+#: inside the threshold (2 % of fitting-distribution samples are flagged: the target is at most 5 %).
+DEFAULT_PROTOTYPES = 2048
+DEFAULT_QUANTILE = 0.98
+_KEYS = ("kind", "features", "prototypes", "threshold", "quantile", "settle_time", "calibration")
+_FIX = ('Write "monitor" as {"kind": "nearest_prototype", "features": d, "prototypes": K, "threshold": t > 0, '
+        '"quantile": q in (0, 1), "settle_time": s >= 0, "calibration": {...}} with the arrays monitor/metric (d, d) '
+        'and monitor/prototypes (K, d), or remove it.')
+
+
+@dataclass(frozen=True)
+class MonitorSpec:
+    """The card entry ``monitor``: sizes, threshold and the calibration record."""
+
+    features: int
+    prototypes: int
+    threshold: float
+    quantile: float
+    settle_time: float
+    calibration: dict = field(default_factory=dict)
+
+    def array_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The monitor's arrays in ``weights.npz``."""
+        return {METRIC: (self.features, self.features), PROTOTYPES: (self.prototypes, self.features)}
+
+    def to_card(self) -> dict:
+        return {"kind": KIND, "features": self.features, "prototypes": self.prototypes, "threshold": self.threshold,
+                "quantile": self.quantile, "settle_time": self.settle_time, "calibration": dict(self.calibration)}
+
+
+def parse_monitor(entry: Any, where: str) -> MonitorSpec | None:
+    """The card's ``monitor`` entry, checked (None where the card has none)."""
+    if entry is None:
+        return None
+    if not isinstance(entry, Mapping) or set(entry) != set(_KEYS):
+        raise field_error(where, "monitor", f"an object with exactly the keys {list(_KEYS)}", entry, _FIX)
+    if entry["kind"] != KIND:
+        raise field_error(where, "monitor.kind", repr(KIND), entry["kind"], _FIX)
+    for key in ("features", "prototypes"):
+        if not is_int(entry[key]) or entry[key] < 1:
+            raise field_error(where, f"monitor.{key}", "a positive integer", entry[key], _FIX)
+    checks = {"threshold": lambda v: v > 0, "quantile": lambda v: 0 < v < 1, "settle_time": lambda v: v >= 0}
+    for key, ok in checks.items():
+        value = entry[key]
+        if not (is_number(value) and math.isfinite(value) and ok(value)):
+            raise field_error(where, f"monitor.{key}", {"threshold": "a number > 0", "quantile": "a number in (0, 1)",
+                                                         "settle_time": "a number >= 0"}[key], value, _FIX)
+    if not isinstance(entry["calibration"], Mapping):
+        raise field_error(where, "monitor.calibration", "an object", entry["calibration"], _FIX)
+    return MonitorSpec(int(entry["features"]), int(entry["prototypes"]), float(entry["threshold"]),
+                       float(entry["quantile"]), float(entry["settle_time"]), dict(entry["calibration"]))
+
+
+@dataclass(frozen=True, eq=False)
+class FeatureMonitor:
+    """The nearest-prototype monitor of the decoder's input.
+
+    Attributes
+    ----------
+    spec : MonitorSpec
+    metric : numpy.ndarray, shape (d, d)
+        ``L``: the distance of a feature ``f`` to a prototype ``p`` is ``||L (f - p)||``.
+    prototypes : numpy.ndarray, shape (K, d)
+        The prototypes in the metric's coordinates, ``P_j = L p_j``.
+    """
+
+    spec: MonitorSpec
+    metric: np.ndarray
+    prototypes: np.ndarray
+
+    @classmethod
+    def from_arrays(cls, spec: MonitorSpec, arrays: Mapping[str, Any]) -> FeatureMonitor:
+        """The monitor of a model file's arrays (already checked against ``spec``)."""
+        return cls(spec, np.asarray(arrays[METRIC], dtype=float), np.asarray(arrays[PROTOTYPES], dtype=float))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The arrays to store in ``weights.npz``."""
+        return {METRIC: np.array(self.metric), PROTOTYPES: np.array(self.prototypes)}
+
+    @property
+    def features(self) -> int:
+        """Feature size d."""
+        return self.spec.features
+
+    def distance(self, features: Any, *, chunk: int = 16384) -> np.ndarray:
+        """Distance of each feature vector to its nearest prototype, in the monitor's metric.
+
+        Parameters
+        ----------
+        features : array_like, shape (..., d)
+
+        Returns
+        -------
+        numpy.ndarray, shape (...)
+        """
+        f = np.asarray(features, dtype=float)
+        if f.shape[-1:] != (self.features,):
+            raise error("features", f"shape (..., {self.features})", Text(f"shape {f.shape}"))
+        flat = f.reshape(-1, self.features) @ self.metric.T
+        norms = np.einsum("ij,ij->i", self.prototypes, self.prototypes)
+        out = np.empty(len(flat))
+        for start in range(0, len(flat), chunk):
+            g = flat[start:start + chunk]
+            out[start:start + chunk] = (norms[None, :] - 2.0 * g @ self.prototypes.T).min(axis=1) \
+                + np.einsum("ij,ij->i", g, g)
+        return np.sqrt(np.maximum(out, 0.0)).reshape(f.shape[:-1])
+
+    def inside(self, features: Any) -> np.ndarray:
+        """Whether each feature vector is within the threshold, shape (...)."""
+        return self.distance(features) <= self.spec.threshold
+
+    def expression(self, f: ca.MX) -> ca.MX:
+        """The in-domain test of one feature vector ``f`` (d, 1) as a CasADi expression (1 inside, else 0).
+
+        ``min_j (|P_j|^2 - 2 P_j . g) + |g|^2 <= threshold^2`` with ``g = L f``: one (K, d) mat-vec and
+        one minimum, as :meth:`distance` computes it.
+        """
+        g = ca.mtimes(ca.DM(self.metric), f)
+        norms = ca.DM(np.einsum("ij,ij->i", self.prototypes, self.prototypes))
+        nearest = ca.mmin(norms - 2.0 * ca.mtimes(ca.DM(self.prototypes), g)) + ca.sumsqr(g)
+        return nearest <= self.spec.threshold ** 2
+
+
+def _inverse_sqrt(cov: np.ndarray) -> np.ndarray:
+    values, vectors = np.linalg.eigh(np.atleast_2d(cov))
+    values = np.maximum(values, 1e-9 * values.max())
+    return (vectors / np.sqrt(values)) @ vectors.T
+
+
+def calibrate(fit: Any, validation: Any, *, n_prototypes: int = DEFAULT_PROTOTYPES,
+              quantile: float = DEFAULT_QUANTILE, settle_time: float = 5.0, seed: int = 0, iterations: int = 2,
+              n_residuals: int = 50000, calibration: Mapping[str, Any] | None = None) -> FeatureMonitor:
+    """Calibrate the monitor on the decoder's features over the fitting runs.
+
+    Parameters
+    ----------
+    fit : array_like, shape (S, d)
+        Feature samples of the fitting runs (the prototypes and the metric come from them).
+    validation : array_like, shape (V, d)
+        Feature samples after ``settle_time`` of other runs of the same distribution (the threshold
+        is their ``quantile``).
+    n_prototypes : int
+        Prototypes ``K`` (at most S): drawn without replacement from ``fit``.
+    quantile : float
+        Share of validation samples inside the threshold.
+    settle_time : float
+        Recorded: the time after which ``validation`` was sampled (the benchmark scores after it).
+    seed : int
+        Seeds the draws of prototypes and residual samples.
+    iterations : int
+        Rounds of the metric: the nearest prototype under the current metric, then the inverse
+        square root of the covariance of the residuals to it (the first round starts from the
+        global whitening).
+    n_residuals : int
+        Fitting samples (other than the prototypes) whose residuals estimate the metric.
+    calibration : Mapping, optional
+        Free-form record kept in the card (where the runs came from).
+
+    Returns
+    -------
+    FeatureMonitor
+    """
+    fit = np.asarray(fit, dtype=float)
+    validation = np.asarray(validation, dtype=float)
+    if fit.ndim != 2 or validation.ndim != 2 or validation.shape[1] != fit.shape[1]:
+        raise error("fit, validation", "feature samples (S, d) and (V, d) of one width d",
+                    Text(f"shapes {fit.shape} and {validation.shape}"))
+    n_prototypes = positive_int(n_prototypes, "n_prototypes")
+    if n_prototypes >= len(fit):
+        raise error("n_prototypes", f"fewer than the {len(fit)} fitting samples", n_prototypes)
+    if not 0 < quantile < 1:
+        raise error("quantile", "a number in (0, 1)", quantile)
+    rng = np.random.default_rng(seed)
+    picked = rng.choice(len(fit), n_prototypes, replace=False)
+    rest = np.setdiff1d(np.arange(len(fit)), picked)
+    protos = fit[picked]
+    sample = fit[rng.choice(rest, min(n_residuals, len(rest)), replace=False)]
+    metric = _inverse_sqrt(np.cov(fit.T))
+    for _ in range(positive_int(iterations, "iterations")):
+        p, s = protos @ metric.T, sample @ metric.T
+        nearest = np.argmin(np.einsum("ij,ij->i", p, p)[None, :] - 2.0 * s @ p.T, axis=1)
+        metric = _inverse_sqrt(np.cov((sample - protos[nearest]).T))
+    spec = MonitorSpec(fit.shape[1], n_prototypes, 1.0, float(quantile), float(settle_time), {})
+    monitor = FeatureMonitor(spec, metric, protos @ metric.T)
+    threshold = float(np.quantile(monitor.distance(validation), quantile))
+    record = {**dict(calibration or {}), "fit_samples": int(len(fit)), "validation_samples": int(len(validation)),
+              "seed": int(seed), "iterations": int(iterations)}
+    spec = MonitorSpec(fit.shape[1], n_prototypes, threshold, float(quantile), float(settle_time), record)
+    return FeatureMonitor(spec, metric, protos @ metric.T)
