@@ -2,7 +2,8 @@
 flags and the one error path in :mod:`.flags`.
 
 ``demo``, ``train``, ``evaluate``, ``export``, ``bench``, ``compare`` (the observer beside the EKF
-and MHE), ``certificate`` (Proposition 1 of the paper for a model). Every error is one line
+and MHE), ``certificate`` (Proposition 1 of the paper for a model), ``generalise`` (inputs and noise
+levels the observer was not fit on, with the domain monitor). Every error is one line
 ``error: ...`` on stderr with exit status 2 (``KKLCASADI_DEBUG=1`` shows the traceback instead).
 """
 
@@ -13,12 +14,12 @@ import os
 import sys
 from typing import Sequence
 
-from . import bench, certificate, compare, demo, evaluate, export, train
+from . import bench, certificate, compare, demo, evaluate, export, generalise, train
 from .flags import USER_ERRORS, Parser
 
 __all__ = ["main", "build_parser"]
 
-COMMANDS = (demo, train, evaluate, export, bench, compare, certificate)
+COMMANDS = (demo, train, evaluate, export, bench, compare, certificate, generalise)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -12,6 +12,9 @@ One meaning per flag name across commands:
 ``--measurement-std``, ``--process-std`` noise standard deviations of a run
 ``--trials N``         trials (per benchmark cell where there are cells)
 ``--kinds``            input regimes of the benchmark
+``--families``         input families of the generalisation benchmark (``kklcasadi.plant.signals.FAMILIES``)
+``--noise-levels``     process and measurement noise std of the generalisation cases
+``--pf N``             add the particle filter with N particles
 ``--seed``             the seed of what the command draws
 ``--out``              where the command writes
 ``--threads``          CPU threads the command may use
