@@ -27,7 +27,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--families", nargs="+", default=list(sig.FAMILIES), choices=sig.FAMILIES,
                    help="input families (default: all: the benchmark's four, chirp, random steps, feedback)")
     g.add_argument("--regimes", nargs="+", default=list(REGIMES), choices=REGIMES,
-                   help="parameter ranges: the protocol's id and ood ranges, the held-out families' ranges (default: all)")
+                   help="parameter ranges: the protocol's id and ood ranges, the held-out families' ranges "
+                   "(default: all)")
     g.add_argument("--noise-levels", nargs="+", type=positive_float, default=[0.05, 0.1, 0.2], metavar="STD",
                    help="process and measurement noise std of the cases (default: 0.05 0.1 0.2)")
     g.add_argument("--trials", type=positive_int, default=100, help="trials per case (default 100)")

@@ -27,8 +27,8 @@ import numpy as np
 from ..nets.specs import field_error
 from ..validation import Text, error, is_int, is_number, positive_int
 
-__all__ = ["FeatureMonitor", "MonitorSpec", "calibrate", "parse_monitor", "KIND", "METRIC", "PROTOTYPES",
-           "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE"]
+__all__ = ["FeatureMonitor", "MonitorSpec", "calibrate", "calibrate_runs", "parse_monitor", "KIND", "METRIC",
+           "PROTOTYPES", "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE"]
 
 #: The monitor's kind in the card.
 KIND = "nearest_prototype"
@@ -223,3 +223,42 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int = DEFAULT_PROTOTYP
               "seed": int(seed), "iterations": int(iterations)}
     spec = MonitorSpec(fit.shape[1], n_prototypes, threshold, float(quantile), float(settle_time), record)
     return FeatureMonitor(spec, metric, protos @ metric.T)
+
+
+def calibrate_runs(features: Any, t: Any, *, validation_share: float = 0.2, stride: int = 2, settle_time: float = 5.0,
+                   seed: int = 0, calibration: Mapping[str, Any] | None = None, **options: Any) -> FeatureMonitor:
+    """:func:`calibrate` on whole runs: the first runs give the prototypes and the metric, the last the threshold.
+
+    Parameters
+    ----------
+    features : array_like, shape (R, N, d)
+        The decoder's features along each fitting run (for ``bank``: ``[z_k; y_k; u_k]`` from ``z_0 = 0``).
+    t : array_like, shape (N,)
+        Sample times of the runs.
+    validation_share : float
+        Share of the runs (the last ones, at least one) whose samples after ``settle_time`` set the
+        threshold; the others give the prototypes and the metric.
+    stride : int
+        Keep every ``stride``-th sample of each run.
+    settle_time, seed, calibration, **options
+        See :func:`calibrate`.
+
+    Returns
+    -------
+    FeatureMonitor
+    """
+    features = np.asarray(features, dtype=float)
+    t = np.asarray(t, dtype=float)
+    if features.ndim != 3 or t.shape != features.shape[1:2] or features.shape[0] < 2:
+        raise error("features, t", "runs (R >= 2, N, d) and their times (N,)",
+                    Text(f"shapes {features.shape} and {t.shape}"))
+    if not 0 < validation_share < 1:
+        raise error("validation_share", "a number in (0, 1)", validation_share)
+    stride = positive_int(stride, "stride")
+    n_val = max(1, int(round(validation_share * features.shape[0])))
+    n_fit = features.shape[0] - n_val
+    keep = np.arange(t.size) % stride == 0
+    fit = features[:n_fit, keep].reshape(-1, features.shape[2])
+    validation = features[n_fit:, keep & (t >= settle_time)].reshape(-1, features.shape[2])
+    record = {**dict(calibration or {}), "fit_runs": int(n_fit), "validation_runs": int(n_val), "stride": stride}
+    return calibrate(fit, validation, settle_time=settle_time, seed=seed, calibration=record, **options)

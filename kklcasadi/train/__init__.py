@@ -173,7 +173,8 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
                 "device": device}
     card = make_card(plant, trained.design, method, trained.spec, dt=dt, window=trained.window,
                      training=training, measurement_std=trained.measurement_std, domain=trained.domain,
-                     base=None if base_model is None else _base_reference(out, base_model))
+                     base=None if base_model is None else _base_reference(out, base_model),
+                     monitor=trained.monitor, fit_families=trained.fit_families)
     path = save_model(out, trained.arrays, card, overwrite=overwrite or resume)
     if trained.histories:
         (out / "history.json").write_text(json.dumps(_jsonable(trained.histories)))

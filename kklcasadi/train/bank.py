@@ -11,9 +11,11 @@ from typing import Optional
 import numpy as np
 
 from ..model.files import Domain, Model
+from ..model.monitor import FeatureMonitor, calibrate_runs
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER, MLPSpec
+from ..plant import signals as sig
 from ..plant.design import Design
 from ..plant.simulate import TrajectoryBatch
 from ..plant.systems import System
@@ -21,7 +23,7 @@ from .config import LoopConfig
 from .operational import DecoderConfig, RolloutConfig, config_record, fit_bank_decoder, rollouts
 from .result import Trained
 
-__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "ASINH"]
+__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_monitor", "ASINH"]
 
 #: Per-system output transforms: Roessler's x3 sits near 0.007 and spikes to 20-37, so its decoder
 #: predicts ``asinh(x3 / 0.01)`` (per-state SMAPE weighs relative errors).
@@ -85,6 +87,16 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, decoder_
     return arrays, spec, Domain.of(runs.x.reshape(-1, system.nx), z.reshape(-1, bank.nz))
 
 
+def bank_monitor(bank: fb.FilterBank, runs: TrajectoryBatch, dt: float, seed: int) -> FeatureMonitor:
+    """The decoder-input domain monitor calibrated on the fitting runs (:func:`kklcasadi.model.monitor.calibrate_runs`).
+
+    The features are the decoder's input ``[z_k; y_k; u_k]`` along each run from ``z_0 = 0``.
+    """
+    z = bank.run(runs.y, runs.u, dt)
+    return calibrate_runs(fb.decoder_features(z, runs.y, runs.u), runs.t, seed=seed,
+                          calibration={"source": "the decoder's fitting runs"})
+
+
 def train_bank(system: System, design: Design, base: Model | None, config: BankConfig, *, dt: float, seed: int,
                device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
     """The training hook of ``bank`` (no base model; ``design`` is replaced by the bank's)."""
@@ -96,5 +108,9 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     arrays, spec, domain = bank_model(system, bank, config, fit.arrays, fit.arch, runs, dt)
     training = {"config": config, **config_record(config.rollouts, config.decoder), "decoder_fit": fit.fit.summary(),
                 "samples": fit.n_samples, "state_percentiles": fit.domain}
+    # the domain monitor and the input families of the fitting runs (read by kklcasadi.evaluation.generalisation)
+    monitor = bank_monitor(bank, runs, dt, seed)
+    arrays.update(monitor.arrays())
+    families = {kind: sig.family_ranges(kind, config.rollouts.regime) for kind in config.rollouts.kinds}
     return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, {"decoder": fit.fit.history}, 1,
-                   config.rollouts.measurement_std, domain)
+                   config.rollouts.measurement_std, domain, monitor.spec, families)

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from ..model.files import Domain
+from ..model.monitor import MonitorSpec
 from ..plant.design import Design
 
 __all__ = ["Trained"]
@@ -33,6 +34,10 @@ class Trained:
         The noise level the decoder was fit for.
     domain : Domain or None
         Where the maps were trained (states and latents of the training data).
+    monitor : MonitorSpec or None
+        The decoder-input monitor's card entry (its arrays are in ``arrays``).
+    fit_families : dict or None
+        The input families the maps were fit on, ``{family: {parameter: (lo, hi)}}``.
     """
 
     arrays: dict
@@ -43,3 +48,5 @@ class Trained:
     window: int = 1
     measurement_std: float = 0.0
     domain: Optional[Domain] = None
+    monitor: Optional[MonitorSpec] = None
+    fit_families: Optional[dict] = None
