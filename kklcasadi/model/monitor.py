@@ -25,7 +25,7 @@ import casadi as ca
 import numpy as np
 
 from ..nets.specs import field_error
-from ..validation import Text, error, is_int, is_number, positive_int
+from ..validation import Text, error, is_int, is_number, nonnegative_int, positive_int
 
 __all__ = ["FeatureMonitor", "MonitorSpec", "calibrate", "calibrate_runs", "parse_monitor", "KIND", "METRIC",
            "PROTOTYPES", "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE"]
@@ -186,7 +186,7 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int = DEFAULT_PROTOTYP
     iterations : int
         Rounds of the metric: the nearest prototype under the current metric, then the inverse
         square root of the covariance of the residuals to it (the first round starts from the
-        global whitening).
+        global whitening; 0 keeps the global whitening).
     n_residuals : int
         Fitting samples (other than the prototypes) whose residuals estimate the metric.
     calibration : Mapping, optional
@@ -212,7 +212,7 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int = DEFAULT_PROTOTYP
     protos = fit[picked]
     sample = fit[rng.choice(rest, min(n_residuals, len(rest)), replace=False)]
     metric = _inverse_sqrt(np.cov(fit.T))
-    for _ in range(positive_int(iterations, "iterations")):
+    for _ in range(nonnegative_int(iterations, "iterations")):
         p, s = protos @ metric.T, sample @ metric.T
         nearest = np.argmin(np.einsum("ij,ij->i", p, p)[None, :] - 2.0 * s @ p.T, axis=1)
         metric = _inverse_sqrt(np.cov((sample - protos[nearest]).T))

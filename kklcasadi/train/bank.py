@@ -87,14 +87,15 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, decoder_
     return arrays, spec, Domain.of(runs.x.reshape(-1, system.nx), z.reshape(-1, bank.nz))
 
 
-def bank_monitor(bank: fb.FilterBank, runs: TrajectoryBatch, dt: float, seed: int) -> FeatureMonitor:
+def bank_monitor(bank: fb.FilterBank, runs: TrajectoryBatch, dt: float, seed: int, *,
+                 source: str = "the decoder's fitting runs") -> FeatureMonitor:
     """The decoder-input domain monitor calibrated on the fitting runs (:func:`kklcasadi.model.monitor.calibrate_runs`).
 
-    The features are the decoder's input ``[z_k; y_k; u_k]`` along each run from ``z_0 = 0``.
+    The features are the decoder's input ``[z_k; y_k; u_k]`` along each run from ``z_0 = 0``;
+    ``source`` is recorded in the card's ``monitor.calibration``.
     """
     z = bank.run(runs.y, runs.u, dt)
-    return calibrate_runs(fb.decoder_features(z, runs.y, runs.u), runs.t, seed=seed,
-                          calibration={"source": "the decoder's fitting runs"})
+    return calibrate_runs(fb.decoder_features(z, runs.y, runs.u), runs.t, seed=seed, calibration={"source": source})
 
 
 def train_bank(system: System, design: Design, base: Model | None, config: BankConfig, *, dt: float, seed: int,
