@@ -6,6 +6,7 @@ import subprocess
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import bank_runs
 
 import kklcasadi as kc
 from kklcasadi.model import monitor as mon
@@ -76,30 +77,6 @@ def test_calibrate_runs_splits_by_run(rng):
 
 
 # ----------------------------------------------------------------------------- in a model file
-
-def bank_runs(system="duffing", n=12, T=10.0, seed=3):
-    plant = kc.systems.get(system)
-    rng = np.random.default_rng(seed)
-    inputs = [kc.signals.sample(k, rng, "train") for k in ("zero", "constant", "sinusoid", "square") * (n // 4)]
-    return kc.simulate_batch(plant, plant.sample_box(n, seed), inputs, T, 0.05, process_std=0.1, measurement_std=0.1,
-                             seed=seed, method="rk")
-
-
-@pytest.fixture
-def monitored_bank(model_dir_factory):
-    """A random-weight bank model with a monitor calibrated on its own features over noisy runs."""
-    path = model_dir_factory("bank")
-    obs = load_observer(path)
-    runs = bank_runs()
-    est = obs.simulate(runs.t, runs.y, runs.u)
-    features = np.concatenate([est.z, runs.y, runs.u], axis=-1)
-    monitor = mon.calibrate_runs(features, runs.t, n_prototypes=300, quantile=0.9, seed=0)
-    model = load_model(path)
-    card = {**model.card, "monitor": monitor.spec.to_card(),
-            "fit_families": {"zero": {}, "constant": {"value": [-1.0, 1.0]}}}
-    save_model(path, {**model.arrays, **monitor.arrays()}, card, overwrite=True)
-    return path, monitor
-
 
 def test_a_monitor_round_trips_through_the_model_file(monitored_bank):
     path, monitor = monitored_bank
