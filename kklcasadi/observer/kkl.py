@@ -150,6 +150,12 @@ class KKLObserver:
         ``xhat_next = decode(z_next, w_next)``.
     model_injection : casadi.Function or None
         ``model_injection(z, u) -> dz``, the model-based term, when present.
+    monitor : kklcasadi.model.monitor.FeatureMonitor or None
+        The decoder-input domain monitor of the card's ``monitor`` entry, when present.
+    domain_check : casadi.Function or None
+        ``domain_check(z, w, xhat) -> in_domain`` (1 or 0): the domain monitor of one sample (the
+        card's boxes and, with :attr:`monitor`, the decoder's input ``[z; vec(w)]``); None when the
+        card records neither. The C function ``name_in_domain`` of :func:`kklcasadi.generate_c`.
     """
 
     def __init__(self, model: Model, system: System, *, discretization: Optional[str] = None,
