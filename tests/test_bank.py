@@ -35,6 +35,10 @@ def test_bank_card_records_its_noise_level_design_and_domain(bank_dir):
                                                   "clock": 0.2}
     assert model.spec.nz == 2 + 1 + 1 and model.spec.domain is not None
     assert np.array_equal(model.arrays["decoder/asinh_scale"], [0.0, 0.0, 0.01])
+    # the hook calibrates the decoder-input monitor on the fitting runs and records their input families
+    assert model.spec.monitor.features == 4 + 1 + 1 and model.spec.monitor.calibration["fit_runs"] == 6
+    assert model.spec.fit_families["square"] == {"amplitude": (0.1, 1.0), "omega": (0.5, 2.0)}
+    assert set(model.spec.fit_families) == {"zero", "constant", "sinusoid", "square"}
 
 
 def test_bank_observer_equals_the_reference_estimator(bank_dir):

@@ -163,7 +163,7 @@ def _inverse_sqrt(cov: np.ndarray) -> np.ndarray:
     return (vectors / np.sqrt(values)) @ vectors.T
 
 
-def calibrate(fit: Any, validation: Any, *, n_prototypes: int = DEFAULT_PROTOTYPES,
+def calibrate(fit: Any, validation: Any, *, n_prototypes: int | None = None,
               quantile: float = DEFAULT_QUANTILE, settle_time: float = 5.0, seed: int = 0, iterations: int = 2,
               n_residuals: int = 50000, calibration: Mapping[str, Any] | None = None) -> FeatureMonitor:
     """Calibrate the monitor on the decoder's features over the fitting runs.
@@ -175,8 +175,10 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int = DEFAULT_PROTOTYP
     validation : array_like, shape (V, d)
         Feature samples after ``settle_time`` of other runs of the same distribution (the threshold
         is their ``quantile``).
-    n_prototypes : int
-        Prototypes ``K`` (at most S): drawn without replacement from ``fit``.
+    n_prototypes : int, optional
+        Prototypes ``K`` (fewer than S), drawn without replacement from ``fit``; default
+        :data:`DEFAULT_PROTOTYPES`, or a quarter of the fitting samples where they are fewer than
+        four times that.
     quantile : float
         Share of validation samples inside the threshold.
     settle_time : float
@@ -198,9 +200,11 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int = DEFAULT_PROTOTYP
     """
     fit = np.asarray(fit, dtype=float)
     validation = np.asarray(validation, dtype=float)
-    if fit.ndim != 2 or validation.ndim != 2 or validation.shape[1] != fit.shape[1]:
-        raise error("fit, validation", "feature samples (S, d) and (V, d) of one width d",
+    if fit.ndim != 2 or validation.ndim != 2 or validation.shape[1] != fit.shape[1] or not len(validation):
+        raise error("fit, validation", "feature samples (S, d) and (V >= 1, d) of one width d",
                     Text(f"shapes {fit.shape} and {validation.shape}"))
+    if n_prototypes is None:
+        n_prototypes = max(1, min(DEFAULT_PROTOTYPES, len(fit) // 4))
     n_prototypes = positive_int(n_prototypes, "n_prototypes")
     if n_prototypes >= len(fit):
         raise error("n_prototypes", f"fewer than the {len(fit)} fitting samples", n_prototypes)
@@ -240,7 +244,9 @@ def calibrate_runs(features: Any, t: Any, *, validation_share: float = 0.2, stri
         threshold; the others give the prototypes and the metric.
     stride : int
         Keep every ``stride``-th sample of each run.
-    settle_time, seed, calibration, **options
+    settle_time : float
+        See :func:`calibrate`; runs that end before it are read whole (the card records 0).
+    seed, calibration, **options
         See :func:`calibrate`.
 
     Returns
@@ -258,6 +264,8 @@ def calibrate_runs(features: Any, t: Any, *, validation_share: float = 0.2, stri
     n_val = max(1, int(round(validation_share * features.shape[0])))
     n_fit = features.shape[0] - n_val
     keep = np.arange(t.size) % stride == 0
+    if t[-1] < settle_time:                          # runs shorter than the settle time: all their samples
+        settle_time = 0.0
     fit = features[:n_fit, keep].reshape(-1, features.shape[2])
     validation = features[n_fit:, keep & (t >= settle_time)].reshape(-1, features.shape[2])
     record = {**dict(calibration or {}), "fit_runs": int(n_fit), "validation_runs": int(n_val), "stride": stride}
