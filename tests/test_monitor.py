@@ -24,9 +24,9 @@ def curve(rng, n, noise=0.05):
 
 
 def brute_distance(monitor, f):
-    """Nearest-prototype distance written out: min_j ||L f - P_j|| (independent of the monitor's algebra)."""
+    """The distance written out: min_j ||L f - P_j|| / r_j (independent of the monitor's algebra)."""
     g = f @ monitor.metric.T
-    return np.array([np.min(np.linalg.norm(monitor.prototypes - gi, axis=1)) for gi in g])
+    return np.array([np.min(np.linalg.norm(monitor.prototypes - gi, axis=1) / monitor.radii) for gi in g])
 
 
 def test_calibration_flags_its_quantile_of_fresh_samples(rng):
@@ -43,14 +43,14 @@ def test_calibration_flags_its_quantile_of_fresh_samples(rng):
 def test_the_metric_weighs_directions_the_fitting_data_never_leave(rng):
     """A step of twice the noise off the curve along its noise-free third coordinate is flagged; a
     step of the noise's size along the noisy coordinate is not; the global whitening (no rounds of
-    the metric) misses most of the first."""
+    the metric) misses a good part of the first."""
     fit, validation = curve(rng, 20000), curve(rng, 20000)
     monitor = mon.calibrate(fit, validation, n_prototypes=2000, quantile=0.99, seed=1)
     plain = mon.calibrate(fit, validation, n_prototypes=2000, quantile=0.99, seed=1, iterations=0)
     base = curve(np.random.default_rng(5), 2000)
     along_noise, off_curve = base + [0.0, 0.05, 0.0], base + [0.0, 0.0, 0.1]
     assert monitor.inside(along_noise).mean() > 0.9 and monitor.inside(off_curve).mean() < 0.05
-    assert plain.inside(off_curve).mean() > 0.5
+    assert plain.inside(off_curve).mean() > 0.2
 
 
 def test_the_casadi_expression_is_the_numpy_test(rng):
@@ -84,6 +84,7 @@ def test_a_monitor_round_trips_through_the_model_file(monitored_bank):
     assert model.spec.monitor == monitor.spec
     assert model.spec.fit_families == {"zero": {}, "constant": {"value": (-1.0, 1.0)}}
     np.testing.assert_array_equal(model.arrays[mon.PROTOTYPES], monitor.prototypes)
+    np.testing.assert_array_equal(model.arrays[mon.RADII], monitor.radii)
     obs = load_observer(path)
     np.testing.assert_array_equal(obs.monitor.metric, monitor.metric)
 
@@ -145,6 +146,7 @@ def test_c_in_domain_equals_the_vm(monitored_bank, tmp_path):
     (lambda c, a: c["monitor"].pop("calibration"), r"'monitor': expected an object with exactly the keys"),
     (lambda c, a: c["monitor"].update(prototypes=299), r"monitor/prototypes"),
     (lambda c, a: a.pop(mon.METRIC), r"monitor/metric"),
+    (lambda c, a: a.update({mon.RADII: np.zeros(300)}), r"'monitor/radii': expected radii > 0"),
     (lambda c, a: c.update(fit_families={"constant": {"value": [1.0, -1.0]}}),
      r"'fit_families\.constant\.value': expected a range \[lo, hi\]"),
     (lambda c, a: c.update(fit_families=[]), r"'fit_families': expected a non-empty object"),

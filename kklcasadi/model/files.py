@@ -34,7 +34,7 @@ import numpy as np
 from ..nets.specs import check_arrays, field_error
 from ..validation import Text, is_int, is_number
 from . import variants
-from .monitor import MonitorSpec, parse_monitor
+from .monitor import MonitorSpec, check_radii, parse_monitor
 
 if TYPE_CHECKING:
     from ..plant.design import Design
@@ -545,6 +545,8 @@ def _load(directory: Path, seen: frozenset) -> Model:
                      "model; restore the matching pair of files or save the model again.")
     arrays = _read_npz(weights_path, data)
     check_arrays(arrays, spec.array_shapes(), str(weights_path), exact=True)
+    if spec.monitor is not None:
+        check_radii(arrays, str(weights_path))
     base = _load_base(directory, card, where, seen)
     return Model(path=directory, card=card, spec=spec, arrays=arrays, base=base)
 
@@ -628,6 +630,8 @@ def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Ma
     spec = parse_card(card, where, require_sha=False)
     check_arrays(arrays, spec.array_shapes(), "arrays", exact=True)
     arrays = {name: np.array(value, dtype=np.float64) for name, value in arrays.items()}
+    if spec.monitor is not None:
+        check_radii(arrays, "arrays")
 
     existing = [p for p in (directory / CARD_FILE, directory / WEIGHTS_FILE) if p.exists()]
     if existing and not overwrite:

@@ -1,18 +1,20 @@
 """The decoder's domain monitor: how far the decoder's input is from what it was fit on.
 
 The decoder of an observer reads ``f_k = [z_k; vec(w_k)]`` (for ``bank``: ``[z_k; y_k; u_k]``). The
-monitor keeps ``K`` prototypes, samples of ``f`` drawn from the fitting runs, and a metric ``L``;
-a sample is in the domain when its distance to the nearest prototype,
-``min_j ||L f_k - P_j||`` (``P_j = L p_j``), is at most the threshold. The metric whitens the
-spread of fitting samples around their nearest prototype (the local residual covariance), so a
-direction the fitting data fill with measurement noise counts little and a direction they never
-leave (an input filter of a noise-free input) counts a lot. The threshold is a quantile of the
-distances of validation samples (runs of the fitting distribution that gave no prototype) after
-the settle time, so that share of fitting-distribution samples is flagged.
+monitor keeps ``K`` prototypes, samples of ``f`` drawn from the fitting runs, each with its radius
+``r_j``, and a metric ``L``; a sample is in the domain when its distance to the prototypes, in
+units of their radii, ``min_j ||L f_k - P_j|| / r_j`` (``P_j = L p_j``), is at most the threshold.
+The metric whitens the spread of fitting samples around their nearest prototype (the residual
+covariance), so a direction the fitting data fill with measurement noise counts little and a
+direction they never leave (an input filter of a noise-free input) counts a lot. A prototype's
+radius is the median distance of the fitting samples nearest to it, so that sparse and dense parts
+of the fitting data are flagged alike. The threshold is a quantile of the distances of validation
+samples (runs of the fitting distribution that gave no prototype) after the settle time, so that
+share of fitting-distribution samples is flagged.
 
 Stored in the model file (``docs/model-format.md``): the card entry ``monitor`` (kind, feature size,
 prototypes, threshold, quantile, settle time, calibration record) and the arrays
-``monitor/metric`` (d, d) and ``monitor/prototypes`` (K, d).
+``monitor/metric`` (d, d), ``monitor/prototypes`` (K, d) and ``monitor/radii`` (K,).
 """
 
 from __future__ import annotations
@@ -27,21 +29,24 @@ import numpy as np
 from ..nets.specs import field_error
 from ..validation import Text, error, is_int, is_number, nonnegative_int, positive_int
 
-__all__ = ["FeatureMonitor", "MonitorSpec", "calibrate", "calibrate_runs", "parse_monitor", "KIND", "METRIC",
-           "PROTOTYPES", "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE"]
+__all__ = ["FeatureMonitor", "MonitorSpec", "calibrate", "calibrate_runs", "parse_monitor", "check_radii", "KIND",
+           "METRIC",
+           "PROTOTYPES", "RADII", "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE"]
 
 #: The monitor's kind in the card.
 KIND = "nearest_prototype"
 #: Array names in ``weights.npz``.
-METRIC, PROTOTYPES = "monitor/metric", "monitor/prototypes"
+METRIC, PROTOTYPES, RADII = "monitor/metric", "monitor/prototypes", "monitor/radii"
 #: Calibration defaults: prototypes kept, and the share of validation samples after the settle time
 #: inside the threshold (2 % of fitting-distribution samples are flagged: the target is at most 5 %).
 DEFAULT_PROTOTYPES = 2048
 DEFAULT_QUANTILE = 0.98
+#: A prototype nearest to fewer residual samples than this gets the median radius of all.
+MIN_ASSIGNED = 5
 _KEYS = ("kind", "features", "prototypes", "threshold", "quantile", "settle_time", "calibration")
 _FIX = ('Write "monitor" as {"kind": "nearest_prototype", "features": d, "prototypes": K, "threshold": t > 0, '
-        '"quantile": q in (0, 1), "settle_time": s >= 0, "calibration": {...}} with the arrays monitor/metric (d, d) '
-        'and monitor/prototypes (K, d), or remove it.')
+        '"quantile": q in (0, 1), "settle_time": s >= 0, "calibration": {...}} with the arrays monitor/metric (d, d), '
+        'monitor/prototypes (K, d) and monitor/radii (K,), or remove it.')
 
 
 @dataclass(frozen=True)
@@ -57,7 +62,8 @@ class MonitorSpec:
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
         """The monitor's arrays in ``weights.npz``."""
-        return {METRIC: (self.features, self.features), PROTOTYPES: (self.prototypes, self.features)}
+        return {METRIC: (self.features, self.features), PROTOTYPES: (self.prototypes, self.features),
+                RADII: (self.prototypes,)}
 
     def to_card(self) -> dict:
         return {"kind": KIND, "features": self.features, "prototypes": self.prototypes, "threshold": self.threshold,
@@ -87,6 +93,13 @@ def parse_monitor(entry: Any, where: str) -> MonitorSpec | None:
                        float(entry["quantile"]), float(entry["settle_time"]), dict(entry["calibration"]))
 
 
+def check_radii(arrays: Mapping[str, Any], where: str) -> None:
+    """Refuse a model file whose monitor radii are not all > 0 (the shapes are checked with the other arrays)."""
+    radii = np.asarray(arrays[RADII])
+    if not np.all(radii > 0):
+        raise field_error(where, RADII, "radii > 0", Text(f"min {float(np.min(radii))}"), _FIX)
+
+
 @dataclass(frozen=True, eq=False)
 class FeatureMonitor:
     """The nearest-prototype monitor of the decoder's input.
@@ -98,28 +111,41 @@ class FeatureMonitor:
         ``L``: the distance of a feature ``f`` to a prototype ``p`` is ``||L (f - p)||``.
     prototypes : numpy.ndarray, shape (K, d)
         The prototypes in the metric's coordinates, ``P_j = L p_j``.
+    radii : numpy.ndarray, shape (K,)
+        Each prototype's radius ``r_j > 0``, the unit of distances to it.
     """
 
     spec: MonitorSpec
     metric: np.ndarray
     prototypes: np.ndarray
+    radii: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not (np.all(np.isfinite(self.radii)) and np.all(self.radii > 0)):
+            raise error("radii", "finite radii > 0", Text(f"min {np.min(self.radii)}"))
 
     @classmethod
     def from_arrays(cls, spec: MonitorSpec, arrays: Mapping[str, Any]) -> FeatureMonitor:
         """The monitor of a model file's arrays (already checked against ``spec``)."""
-        return cls(spec, np.asarray(arrays[METRIC], dtype=float), np.asarray(arrays[PROTOTYPES], dtype=float))
+        return cls(spec, *(np.asarray(arrays[name], dtype=float) for name in (METRIC, PROTOTYPES, RADII)))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The arrays to store in ``weights.npz``."""
-        return {METRIC: np.array(self.metric), PROTOTYPES: np.array(self.prototypes)}
+        return {METRIC: np.array(self.metric), PROTOTYPES: np.array(self.prototypes), RADII: np.array(self.radii)}
 
     @property
     def features(self) -> int:
         """Feature size d."""
         return self.spec.features
 
+    def _terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``a_j = |P_j|^2 / r_j^2``, ``B_j = 2 P_j / r_j^2`` and ``c_j = 1 / r_j^2``: the squared scaled
+        distance to prototype j is ``a_j - B_j . g + c_j |g|^2``."""
+        c = 1.0 / self.radii ** 2
+        return np.einsum("ij,ij->i", self.prototypes, self.prototypes) * c, 2.0 * self.prototypes * c[:, None], c
+
     def distance(self, features: Any, *, chunk: int = 16384) -> np.ndarray:
-        """Distance of each feature vector to its nearest prototype, in the monitor's metric.
+        """Distance of each feature vector to the prototypes in units of their radii, ``min_j ||L f - P_j|| / r_j``.
 
         Parameters
         ----------
@@ -133,12 +159,11 @@ class FeatureMonitor:
         if f.shape[-1:] != (self.features,):
             raise error("features", f"shape (..., {self.features})", Text(f"shape {f.shape}"))
         flat = f.reshape(-1, self.features) @ self.metric.T
-        norms = np.einsum("ij,ij->i", self.prototypes, self.prototypes)
+        a, b, c = self._terms()
         out = np.empty(len(flat))
         for start in range(0, len(flat), chunk):
             g = flat[start:start + chunk]
-            out[start:start + chunk] = (norms[None, :] - 2.0 * g @ self.prototypes.T).min(axis=1) \
-                + np.einsum("ij,ij->i", g, g)
+            out[start:start + chunk] = (a[None, :] - g @ b.T + np.einsum("ij,ij->i", g, g)[:, None] * c).min(axis=1)
         return np.sqrt(np.maximum(out, 0.0)).reshape(f.shape[:-1])
 
     def inside(self, features: Any) -> np.ndarray:
@@ -148,13 +173,13 @@ class FeatureMonitor:
     def expression(self, f: ca.MX) -> ca.MX:
         """The in-domain test of one feature vector ``f`` (d, 1) as a CasADi expression (1 inside, else 0).
 
-        ``min_j (|P_j|^2 - 2 P_j . g) + |g|^2 <= threshold^2`` with ``g = L f``: one (K, d) mat-vec and
-        one minimum, as :meth:`distance` computes it.
+        ``min_j (a_j - B_j . g + c_j |g|^2) <= threshold^2`` with ``g = L f`` (:meth:`distance`'s
+        terms): one (K, d) mat-vec, one scaled sum and one minimum.
         """
+        a, b, c = self._terms()
         g = ca.mtimes(ca.DM(self.metric), f)
-        norms = ca.DM(np.einsum("ij,ij->i", self.prototypes, self.prototypes))
-        nearest = ca.mmin(norms - 2.0 * ca.mtimes(ca.DM(self.prototypes), g)) + ca.sumsqr(g)
-        return nearest <= self.spec.threshold ** 2
+        scaled = ca.DM(a) - ca.mtimes(ca.DM(b), g) + ca.DM(c) * ca.sumsqr(g)
+        return ca.mmin(scaled) <= self.spec.threshold ** 2
 
 
 def _inverse_sqrt(cov: np.ndarray) -> np.ndarray:
@@ -165,7 +190,7 @@ def _inverse_sqrt(cov: np.ndarray) -> np.ndarray:
 
 def calibrate(fit: Any, validation: Any, *, n_prototypes: int | None = None,
               quantile: float = DEFAULT_QUANTILE, settle_time: float = 5.0, seed: int = 0, iterations: int = 2,
-              n_residuals: int = 50000, calibration: Mapping[str, Any] | None = None) -> FeatureMonitor:
+              n_residuals: int = 200000, calibration: Mapping[str, Any] | None = None) -> FeatureMonitor:
     """Calibrate the monitor on the decoder's features over the fitting runs.
 
     Parameters
@@ -190,7 +215,8 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int | None = None,
         square root of the covariance of the residuals to it (the first round starts from the
         global whitening; 0 keeps the global whitening).
     n_residuals : int
-        Fitting samples (other than the prototypes) whose residuals estimate the metric.
+        Fitting samples (other than the prototypes) whose residuals to their nearest prototype
+        estimate the metric and the radii.
     calibration : Mapping, optional
         Free-form record kept in the card (where the runs came from).
 
@@ -220,13 +246,24 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int | None = None,
         p, s = protos @ metric.T, sample @ metric.T
         nearest = np.argmin(np.einsum("ij,ij->i", p, p)[None, :] - 2.0 * s @ p.T, axis=1)
         metric = _inverse_sqrt(np.cov((sample - protos[nearest]).T))
+    # each prototype's radius: the median distance of the residual samples nearest to it (the median of all
+    # of them for a prototype with fewer than MIN_ASSIGNED)
+    p, s = protos @ metric.T, sample @ metric.T
+    d2 = np.einsum("ij,ij->i", p, p)[None, :] - 2.0 * s @ p.T
+    nearest = np.argmin(d2, axis=1)
+    dist = np.sqrt(np.maximum(d2[np.arange(len(s)), nearest] + np.einsum("ij,ij->i", s, s), 0.0))
+    radii = np.full(n_prototypes, np.median(dist))
+    counts = np.bincount(nearest, minlength=n_prototypes)
+    for j in np.flatnonzero(counts >= MIN_ASSIGNED):
+        radii[j] = np.median(dist[nearest == j])
+    radii = np.maximum(radii, 1e-6 * np.median(dist) + 1e-300)
     spec = MonitorSpec(fit.shape[1], n_prototypes, 1.0, float(quantile), float(settle_time), {})
-    monitor = FeatureMonitor(spec, metric, protos @ metric.T)
+    monitor = FeatureMonitor(spec, metric, p, radii)
     threshold = float(np.quantile(monitor.distance(validation), quantile))
     record = {**dict(calibration or {}), "fit_samples": int(len(fit)), "validation_samples": int(len(validation)),
-              "seed": int(seed), "iterations": int(iterations)}
+              "residual_samples": int(len(sample)), "seed": int(seed), "iterations": int(iterations)}
     spec = MonitorSpec(fit.shape[1], n_prototypes, threshold, float(quantile), float(settle_time), record)
-    return FeatureMonitor(spec, metric, protos @ metric.T)
+    return FeatureMonitor(spec, metric, p, radii)
 
 
 def calibrate_runs(features: Any, t: Any, *, validation_share: float = 0.2, stride: int = 2, settle_time: float = 5.0,
