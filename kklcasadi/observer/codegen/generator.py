@@ -142,9 +142,9 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
                          f"{DOMAIN_MARGIN!r} of their ranges")
         if observer.monitor is not None:
             lines.append(f"#define {macro}_HAS_FEATURE_MONITOR 1")
-            tests.append(f"the decoder's input [z; w] lies within {observer.monitor.spec.threshold:.6g} of the "
-                         f"nearest of the {observer.monitor.spec.prototypes} prototypes of its fitting data in "
-                         "the monitor's metric")
+            tests.append(f"the decoder's input [z; w] lies within {observer.monitor.spec.threshold:.6g} radii of "
+                         f"one of the {observer.monitor.spec.prototypes} prototypes of its fitting data, in the "
+                         "monitor's metric")
         monitor = (f"""
  * {name}_in_domain(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w (NW), arg[2] xhat (NX) -> res[0]
  *   1.0 if {" and ".join(tests)}, else 0.0: the domain monitor, to call after a step where wanted
