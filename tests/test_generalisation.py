@@ -153,3 +153,14 @@ def test_the_command(monitored_bank, tmp_path, capsys):
     assert (out / "duffing_generalisation.md").read_text().startswith("**duffing, mine**")
     assert main(["generalise", str(path), "--families", "chirp", "--regimes", "id"]) == 2
     assert "error: --families, --regimes: no case" in capsys.readouterr().err
+
+
+def test_a_model_without_a_monitor_or_a_record(model_dir_factory):
+    obs = load_observer(model_dir_factory("autonomous"))
+    assert obs.domain_check is None
+    report = gen.run([("plain", obs)], [gen.Case("zero", "id", 0.1)], SHORT, compiler=None)
+    (model,) = report.models
+    assert model.flagged_share == [None] and model.fit_families is None and report.monitor_summary(model) == []
+    assert "| zero | id | 0.1 | unknown | 3 |" in report.markdown() and report.markdown().endswith("| - | - |")
+    with pytest.raises(ValueError, match=r"^observer: expected an observer with a domain monitor"):
+        gen.MonitoredObserver(obs)
