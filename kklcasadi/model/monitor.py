@@ -182,6 +182,18 @@ class FeatureMonitor:
         return ca.mmin(scaled) <= self.spec.threshold ** 2
 
 
+def _nearest(points: np.ndarray, prototypes: np.ndarray, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+    """Index (S,) and distance (S,) of each point's nearest prototype, in blocks of ``chunk`` points."""
+    norms = np.einsum("ij,ij->i", prototypes, prototypes)
+    index, dist = np.empty(len(points), dtype=int), np.empty(len(points))
+    for start in range(0, len(points), chunk):
+        g = points[start:start + chunk]
+        d2 = norms[None, :] - 2.0 * g @ prototypes.T
+        index[start:start + chunk] = j = np.argmin(d2, axis=1)
+        dist[start:start + chunk] = d2[np.arange(len(g)), j] + np.einsum("ij,ij->i", g, g)
+    return index, np.sqrt(np.maximum(dist, 0.0))
+
+
 def _inverse_sqrt(cov: np.ndarray) -> np.ndarray:
     values, vectors = np.linalg.eigh(np.atleast_2d(cov))
     values = np.maximum(values, 1e-9 * values.max())
@@ -243,15 +255,12 @@ def calibrate(fit: Any, validation: Any, *, n_prototypes: int | None = None,
     sample = fit[rng.choice(rest, min(n_residuals, len(rest)), replace=False)]
     metric = _inverse_sqrt(np.cov(fit.T))
     for _ in range(nonnegative_int(iterations, "iterations")):
-        p, s = protos @ metric.T, sample @ metric.T
-        nearest = np.argmin(np.einsum("ij,ij->i", p, p)[None, :] - 2.0 * s @ p.T, axis=1)
+        nearest, _ = _nearest(sample @ metric.T, protos @ metric.T)
         metric = _inverse_sqrt(np.cov((sample - protos[nearest]).T))
     # each prototype's radius: the median distance of the residual samples nearest to it (the median of all
     # of them for a prototype with fewer than MIN_ASSIGNED)
-    p, s = protos @ metric.T, sample @ metric.T
-    d2 = np.einsum("ij,ij->i", p, p)[None, :] - 2.0 * s @ p.T
-    nearest = np.argmin(d2, axis=1)
-    dist = np.sqrt(np.maximum(d2[np.arange(len(s)), nearest] + np.einsum("ij,ij->i", s, s), 0.0))
+    p = protos @ metric.T
+    nearest, dist = _nearest(sample @ metric.T, p)
     radii = np.full(n_prototypes, np.median(dist))
     counts = np.bincount(nearest, minlength=n_prototypes)
     for j in np.flatnonzero(counts >= MIN_ASSIGNED):
