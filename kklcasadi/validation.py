@@ -11,7 +11,7 @@ from typing import Any, Collection, Optional
 
 import numpy as np
 
-__all__ = ["error", "Text", "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
+__all__ = ["state_stds", "error", "Text", "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
            "nonnegative_number", "finite_number", "one_of", "finite_array", "index_tuple"]
 
 
@@ -125,6 +125,16 @@ def finite_array(value: Any, argument: str, shape: Optional[tuple[int, ...]] = N
     if not np.all(np.isfinite(array)):
         raise error(argument, "finite values", Text("NaN or inf"))
     return array
+
+
+def state_stds(value: Any, nx: int, argument: str = "process_std") -> float | np.ndarray:
+    """A noise std for every state (a float) or one per state (an array (nx,)), all finite and >= 0, else raise."""
+    if np.ndim(value) == 0:
+        return nonnegative_number(value, argument)
+    std = finite_array(value, argument)
+    if std.shape != (nx,) or np.any(std < 0):
+        raise error(argument, f"a number >= 0 or nx = {nx} of them (one per state)", std.tolist())
+    return std
 
 
 def index_tuple(value: Any, argument: str, n: int) -> tuple[int, ...]:

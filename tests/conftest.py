@@ -101,3 +101,36 @@ def mimo_plant():
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 2)
     return kklcasadi.System("mimo", x, u, [x[1] + 0.5 * u[0], -x[0] - x[0] ** 3 + u[1]],
                             [x[0], x[0] + x[1] ** 2], [[-1, 1], [-1, 1]])
+
+
+def bank_runs(system="duffing", n=12, T=10.0, seed=3):
+    """Noisy RK runs under the four benchmark regimes' train ranges (the monitored bank's fitting runs)."""
+    import kklcasadi
+
+    plant = kklcasadi.systems.get(system)
+    rng = np.random.default_rng(seed)
+    kinds = ("zero", "constant", "sinusoid", "square") * (n // 4)
+    inputs = [kklcasadi.signals.sample(k, rng, "train") for k in kinds]
+    return kklcasadi.simulate_batch(plant, plant.sample_box(n, seed), inputs, T, 0.05, process_std=0.1,
+                                    measurement_std=0.1, seed=seed, method="rk")
+
+
+@pytest.fixture
+def monitored_bank(model_dir_factory):
+    """A random-weight bank model with a monitor calibrated on its own features over noisy runs
+    (:func:`bank_runs`), ``fit_families`` zero and constant and noise level 0.1; returns ``(path, monitor)``."""
+    from kklcasadi.model.files import load_model, save_model
+    from kklcasadi.model.monitor import calibrate_runs
+    from kklcasadi.observer.kkl import load_observer
+
+    path = model_dir_factory("bank")
+    obs = load_observer(path)
+    runs = bank_runs()
+    est = obs.simulate(runs.t, runs.y, runs.u)
+    features = np.concatenate([est.z, runs.y, runs.u], axis=-1)
+    monitor = calibrate_runs(features, runs.t, n_prototypes=300, quantile=0.9, seed=0)
+    model = load_model(path)
+    card = {**model.card, "monitor": monitor.spec.to_card(), "noise": {"measurement_std": 0.1},
+            "fit_families": {"zero": {}, "constant": {"value": [-1.0, 1.0]}}}
+    save_model(path, {**model.arrays, **monitor.arrays()}, card, overwrite=True)
+    return path, monitor

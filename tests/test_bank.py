@@ -40,6 +40,12 @@ def test_bank_card_records_its_noise_level_design_and_domain(bank_dir):
     assert training["runs"]["runs"] == 8 and training["runs"]["cut"] == 0 and training["runs"]["simulated_s"] == 32.0
     assert model.spec.nz == 2 + 1 + 1 and model.spec.domain is not None
     assert np.array_equal(model.arrays["decoder/asinh_scale"], [0.0, 0.0, 0.01])
+    # the hook calibrates the decoder-input monitor on the fitting runs and records their input families
+    assert model.spec.monitor.features == 4 + 1 + 1 and model.spec.monitor.calibration["fit_runs"] == 6
+    # the default runs: every family, the hull of docs/protocol.md's id and ood ranges
+    assert model.spec.fit_families["square"] == {"amplitude": (0.1, 2.0), "omega": (0.5, 4.0)}
+    assert model.spec.fit_families["feedback"] == {"gain": (0.5, 3.0), "hold": (2.0, 10.0), "limit": (2.0, 2.0)}
+    assert set(model.spec.fit_families) == {"zero", "constant", "sinusoid", "square", "multisine", "feedback"}
 
 
 def test_bank_observer_equals_the_reference_estimator(bank_dir):

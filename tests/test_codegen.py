@@ -550,6 +550,7 @@ def test_the_domain_monitor_is_an_optional_c_function(model_dir_factory, tmp_pat
     check = ca.external("mon_in_domain", str(library))
     points = [(rng.uniform(-1.5, 1.5, 2) * [1, 2], rng.uniform(-4, 4, 5)) for _ in range(200)]
     points += [(np.array([1.19, 0.0]), np.zeros(5)), (np.array([1.21, 0.0]), np.zeros(5))]
-    flags = [float(check(z, x)) for x, z in points]
-    assert flags == [float(obs.domain_check(z, x)) for x, z in points]
+    w = np.zeros(obs.memory_shape)
+    flags = [float(check(z, w, x)) for x, z in points]
+    assert flags == [float(obs.domain_check(z, w, x)) for x, z in points]
     assert flags[-2:] == [1.0, 0.0] and 0 < sum(flags) < len(points) - 1

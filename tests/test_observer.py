@@ -537,7 +537,7 @@ def test_domain_monitor_flags_estimates_outside_the_trained_domain(model_dir_fac
     assert not obs.in_domain([0.0, 0.0], [0, 0, 0, 0, 61.0])
     points = rng.uniform(-1.5, 1.5, (40, 2))
     flags = obs.in_domain(points, np.zeros((40, 5)))
-    checked = [bool(np.asarray(obs.domain_check(np.zeros(5), p))) for p in points]
+    checked = [bool(np.asarray(obs.domain_check(np.zeros(5), np.zeros(obs.memory_shape), p))) for p in points]
     assert flags.tolist() == checked and 0 < flags.sum() < 40
     tr = plant_run(T=2.0)
     est = obs.simulate(tr.t, tr.y, tr.u)

@@ -3,8 +3,9 @@ flags and the one error path in :mod:`.flags`.
 
 ``demo``, ``train``, ``evaluate``, ``estimate`` (an observer over a recorded log), ``export``,
 ``bench``, ``compare`` (the observer beside the EKF and MHE), ``certificate`` (Proposition 1 of the
-paper for a model), ``tune`` (a design search on Optuna). Every error is one line ``error: ...`` on
-stderr with exit status 2 (``KKLCASADI_DEBUG=1`` shows the traceback instead).
+paper for a model), ``tune`` (a design search on Optuna), ``generalise`` (inputs and noise levels the
+observer was not fit on, with the domain monitor). Every error is one line ``error: ...`` on stderr
+with exit status 2 (``KKLCASADI_DEBUG=1`` shows the traceback instead).
 """
 
 from __future__ import annotations
@@ -14,12 +15,12 @@ import os
 import sys
 from typing import Sequence
 
-from . import bench, certificate, compare, demo, estimate, evaluate, export, train, tune
+from . import bench, certificate, compare, demo, estimate, evaluate, export, generalise, train, tune
 from .flags import USER_ERRORS, Parser
 
 __all__ = ["main", "build_parser"]
 
-COMMANDS = (demo, train, evaluate, estimate, export, bench, compare, certificate, tune)
+COMMANDS = (demo, train, evaluate, estimate, export, bench, compare, certificate, tune, generalise)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -14,6 +14,9 @@ One meaning per flag name across commands:
 ``--dt SECONDS``       the sample time (train: the observer's; evaluate, compare: the protocol's)
 ``--trials N``         how many trials the command runs (the benchmark: per cell; tune: design trials)
 ``--kinds``            input regimes of the benchmark
+``--families``         input families of the generalisation benchmark (``kklcasadi.plant.signals.FAMILIES``)
+``--noise-levels``     process and measurement noise std of the generalisation cases
+``--pf N``             add the particle filter with N particles
 ``--seed``             the seed of what the command draws
 ``--out``              where the command writes
 ``--threads``          CPU threads the command may use

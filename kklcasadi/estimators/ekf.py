@@ -20,7 +20,7 @@ import numpy as np
 from ..observer.codegen import DEFAULT_FLAGS, casadi_source, check_c_name, check_flags, renamed
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
-from ..validation import Text, error, nonnegative_number, one_of, positive_number
+from ..validation import Text, error, nonnegative_number, one_of, positive_number, state_stds
 
 __all__ = ["EKF", "EKFEstimate", "NOISE_FLOOR", "EKF_FORMS"]
 
@@ -133,28 +133,30 @@ class EKF:
         return self.step if one_of(form, "form", EKF_FORMS) == "sx" else self._dense_step()
 
     @classmethod
-    def for_noise(cls, system: System, dt: float, *, process_std: float, measurement_std: float,
-                  **options: object) -> EKF:
+    def for_noise(cls, system: System, dt: float, *, process_std: float | Sequence[float],
+                  measurement_std: float, **options: object) -> EKF:
         """The EKF tuned for the simulator's noise model (``kklcasadi.simulate``).
 
-        ``Q = (process_std dt)^2 I`` (noise of std ``process_std`` on every ``xdot``, held over a
-        sample) and ``R = measurement_std^2 I``; a level of 0 is floored at :data:`NOISE_FLOOR` so
-        that the filter stays well defined on noise-free data. ``EKF(system, dt)`` is the
+        ``Q = diag(process_std dt)^2`` (noise of std ``process_std`` on every ``xdot``, or one std
+        per state, held over a sample) and ``R = measurement_std^2 I``; a level of 0 is floored at
+        :data:`NOISE_FLOOR` so that the filter stays well defined on noise-free data. ``EKF(system, dt)`` is the
         protocol's 0.1 and 0.1.
 
         Parameters
         ----------
         system : System
         dt : float
-        process_std, measurement_std : float
-            Noise levels, >= 0.
+        process_std : float or sequence of float (nx,)
+            Process-noise std, >= 0: one for every state or one per state.
+        measurement_std : float
+            Measurement-noise std, >= 0.
         **options
             ``x0``, ``P0``, ``substeps`` of :class:`EKF`.
         """
-        q = max(nonnegative_number(process_std, "process_std"), NOISE_FLOOR)
+        q = np.maximum(state_stds(process_std, system.nx), NOISE_FLOOR) * np.ones(system.nx)
         r = max(nonnegative_number(measurement_std, "measurement_std"), NOISE_FLOOR)
         dt = positive_number(dt, "dt")
-        return cls(system, dt, Q=(q * dt) ** 2 * np.eye(system.nx), R=r ** 2 * np.eye(system.ny), **options)
+        return cls(system, dt, Q=np.diag((q * dt) ** 2), R=r ** 2 * np.eye(system.ny), **options)
 
     @staticmethod
     def _matrix(value: object, shape: tuple[int, int], arg: str) -> np.ndarray:

@@ -23,7 +23,7 @@ from ..estimators.ekf import EKF
 from ..observer.kkl import KKLObserver
 from ..plant.logs import Log, read_log, write_estimates
 from ..plant.systems import System
-from ..validation import Text, error, nonnegative_number
+from ..validation import Text, error, nonnegative_number, state_stds
 
 __all__ = ["LogEstimate", "estimate_log", "read_plant_log", "output_ranges", "ekf_for_model"]
 
@@ -154,7 +154,7 @@ def read_plant_log(path: str | os.PathLike, observer: KKLObserver, *, time_col: 
     return log, reference
 
 
-def ekf_for_model(observer: KKLObserver, *, process_std: Optional[float] = None,
+def ekf_for_model(observer: KKLObserver, *, process_std: Optional[float | Sequence[float]] = None,
                   measurement_std: Optional[float] = None) -> tuple[EKF, tuple]:
     """The EKF for the model's noise (:meth:`kklcasadi.EKF.for_noise`): the card's levels unless given.
 
@@ -175,7 +175,7 @@ def ekf_for_model(observer: KKLObserver, *, process_std: Optional[float] = None,
             raise error("measurement_std", "the measurement-noise level of the EKF", Text("none given, and the card "
                         "records 0"), "Pass it (kklcasadi estimate --measurement-std).")
         measurement_std = spec.measurement_std
-    levels = (nonnegative_number(process_std, "process_std"), nonnegative_number(measurement_std, "measurement_std"))
+    levels = (state_stds(process_std, observer.nx), nonnegative_number(measurement_std, "measurement_std"))
     return EKF.for_noise(observer.system, observer.dt, process_std=levels[0], measurement_std=levels[1]), levels
 
 

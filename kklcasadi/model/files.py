@@ -27,7 +27,7 @@ import tempfile
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Optional
+from typing import TYPE_CHECKING, Any, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
@@ -35,6 +35,7 @@ from ..nets.specs import check_arrays, field_error
 from ..plant.data import LABEL_KINDS, LabelReport
 from ..validation import Text, is_int, is_number
 from . import variants
+from .monitor import MonitorSpec, check_radii, parse_monitor
 
 if TYPE_CHECKING:
     from ..plant.design import Design
@@ -182,10 +183,16 @@ class ModelSpec:
     coverage : kklcasadi.plant.data.LabelReport or None
         How the Phase-1 labels were made and how well they cover the X0 box (None for models
         without Phase-1 labels and in cards written before coverage was recorded).
-    process_std : float or None
-        The process-noise level the training data had, where the method uses one (None: not recorded).
+    process_std : float, tuple of float (nx,) or None
+        The process-noise level the training data had (one for every state, or one per state),
+        where the method uses one (None: not recorded).
     search : Search or None
         The design search the model was chosen by (``kklcasadi tune``), where it was.
+    monitor : MonitorSpec or None
+        The decoder-input domain monitor (:mod:`kklcasadi.model.monitor`), where the card has one.
+    fit_families : dict or None
+        The input families the maps were fit on, ``{family: {parameter: (lo, hi)}}``, where the
+        card records them.
     """
 
     method: str
@@ -199,8 +206,10 @@ class ModelSpec:
     measurement_std: float
     domain: Optional[Domain] = None
     coverage: Optional[LabelReport] = None
-    process_std: Optional[float] = None
+    process_std: Optional[Union[float, tuple]] = None
     search: Optional[Search] = None
+    monitor: Optional[MonitorSpec] = None
+    fit_families: Optional[dict] = None
 
     @property
     def variant(self) -> variants.Variant:
@@ -214,7 +223,7 @@ class ModelSpec:
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
         """Names and shapes of every array of the model file."""
-        return self.architecture.array_shapes()
+        return {**self.architecture.array_shapes(), **({} if self.monitor is None else self.monitor.array_shapes())}
 
 
 def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -> ModelSpec:
@@ -318,8 +327,11 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
         raise field_error(where, "noise", "the keys measurement_std and optionally process_std", sorted(noise),
                           fix_noise)
     process_std = noise.get("process_std")
-    if process_std is not None and not (is_number(process_std) and math.isfinite(process_std) and process_std >= 0):
-        raise field_error(where, "noise.process_std", "a number >= 0", process_std, fix_noise)
+    level = lambda v: is_number(v) and math.isfinite(v) and v >= 0  # noqa: E731
+    if process_std is not None and not (level(process_std) or (
+            isinstance(process_std, list) and len(process_std) == nx and all(map(level, process_std)))):
+        raise field_error(where, "noise.process_std", f"a number >= 0 or a list of nx = {nx} of them",
+                          process_std, fix_noise)
     if not isinstance(card["training"], Mapping):
         raise field_error(where, "training", "an object", card["training"],
                           "Use {} if there is nothing to record.")
@@ -336,11 +348,13 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
     domain = _domain(card.get("domain"), nx, a.shape[0], where)
     coverage = _coverage(card.get("coverage"), nx, where)
     search = _search(card.get("search"), where)
+    monitor = parse_monitor(card.get("monitor"), where)
+    families = _fit_families(card.get("fit_families"), where)
     for matrix in (a, b):
         matrix.setflags(write=False)
     return ModelSpec(card["method"], SystemSpec(system["name"], nx, nu, ny, fingerprint), a, b, float(card["dt"]),
                      window, spec, base, float(noise["measurement_std"]), domain, coverage,
-                     None if process_std is None else float(process_std), search)
+                     _levels(process_std), search, monitor, families)
 
 
 _COVERAGE_KEYS = ("labels", "runs", "escaped", "burn_in", "per_state", "grid", "cells_per_axis")
@@ -413,6 +427,40 @@ def _search(entry: Any, where: str) -> Optional[Search]:
                   None if entry["baseline"] is None else float(entry["baseline"]))
 
 
+def _levels(value: Any) -> float | tuple[float, ...] | None:
+    """A card's process-noise level as the spec keeps it: a float, a tuple per state, or None."""
+    if value is None:
+        return None
+    return float(value) if np.ndim(value) == 0 else tuple(float(v) for v in value)
+
+
+def _card_levels(value: Any) -> float | list[float]:
+    return float(value) if np.ndim(value) == 0 else [float(v) for v in value]
+
+
+def _fit_families(entry: Any, where: str) -> Optional[dict]:
+    """The card's ``fit_families``: ``{family: {parameter: [lo, hi]}}`` (lo <= hi, finite), or None."""
+    if entry is None:
+        return None
+    fix = ('Write "fit_families" as {"constant": {"value": [-1.0, 1.0]}, "zero": {}, ...}: each input family the '
+           'maps were fit on with the range of each of its parameters (kklcasadi.plant.signals.family_ranges).')
+    if not isinstance(entry, Mapping) or not entry:
+        raise field_error(where, "fit_families", "a non-empty object of families", entry, fix)
+    out = {}
+    for family, ranges in entry.items():
+        if not isinstance(ranges, Mapping):
+            raise field_error(where, f"fit_families.{family}", "an object of parameter ranges", ranges, fix)
+        out[family] = {}
+        for name, bounds in ranges.items():
+            ok = (isinstance(bounds, list) and len(bounds) == 2
+                  and all(is_number(v) and math.isfinite(v) for v in bounds) and bounds[0] <= bounds[1])
+            if not ok:
+                raise field_error(where, f"fit_families.{family}.{name}",
+                                  "a range [lo, hi] of finite numbers, lo <= hi", bounds, fix)
+            out[family][name] = (float(bounds[0]), float(bounds[1]))
+    return out
+
+
 def _domain(entry: Any, nx: int, nz: int, where: str) -> Optional[Domain]:
     if entry is None:
         return None
@@ -449,7 +497,9 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
               window: int = 1, training: Optional[Mapping[str, Any]] = None,
               base: Optional[Mapping[str, str]] = None, measurement_std: float = 0.0,
               domain: Optional[Domain] = None, coverage: Optional[LabelReport] = None,
-              process_std: Optional[float] = None, search: Optional[Search] = None) -> dict:
+              process_std: Optional[Union[float, Sequence[float]]] = None, search: Optional[Search] = None,
+              monitor: Optional[MonitorSpec] = None,
+              fit_families: Optional[Mapping[str, Mapping[str, Any]]] = None) -> dict:
     """The card of a model: the one way training, :func:`derive_model` and tests write one.
 
     Parameters
@@ -477,10 +527,15 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
         Where the maps were trained (recorded for the observer's domain monitor).
     coverage : kklcasadi.plant.data.LabelReport, optional
         How the Phase-1 labels were made and how well they cover the box.
-    process_std : float, optional
-        The process-noise level of the training data, where the method uses one.
+    process_std : float or sequence of float (nx,), optional
+        The process-noise level of the training data (one per state, or one for all), where the
+        method uses one.
     search : Search, optional
         The design search the model was chosen by (``kklcasadi tune``).
+    monitor : MonitorSpec, optional
+        The decoder-input monitor's card entry (its arrays go into the model's arrays).
+    fit_families : Mapping, optional
+        The input families the maps were fit on, ``{family: {parameter: (lo, hi)}}``.
 
     Returns
     -------
@@ -496,11 +551,14 @@ def make_card(system: System | SystemSpec, design: Design, method: str, spec: An
             "dt": float(dt), "window": int(window), "architecture": spec.to_card(),
             "base": None if base is None else dict(base),
             "noise": {"measurement_std": float(measurement_std),
-                      **({} if process_std is None else {"process_std": float(process_std)})},
+                      **({} if process_std is None else {"process_std": _card_levels(process_std)})},
             "training": dict(training or {}), **variant.card_entries(spec),
             **({} if domain is None else {"domain": domain.to_card()}),
             **({} if coverage is None else {"coverage": coverage.to_card()}),
-            **({} if search is None else {"search": search.to_card()})}
+            **({} if search is None else {"search": search.to_card()}),
+            **({} if monitor is None else {"monitor": monitor.to_card()}),
+            **({} if fit_families is None else {"fit_families": {k: {p: list(b) for p, b in v.items()}
+                                                                 for k, v in fit_families.items()}})}
 
 
 @dataclass(frozen=True)
@@ -643,6 +701,8 @@ def _load(directory: Path, seen: frozenset) -> Model:
                      "model; restore the matching pair of files or save the model again.")
     arrays = _read_npz(weights_path, data)
     check_arrays(arrays, spec.array_shapes(), str(weights_path), exact=True)
+    if spec.monitor is not None:
+        check_radii(arrays, str(weights_path))
     base = _load_base(directory, card, where, seen)
     return Model(path=directory, card=card, spec=spec, arrays=arrays, base=base)
 
@@ -726,6 +786,8 @@ def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Ma
     spec = parse_card(card, where, require_sha=False)
     check_arrays(arrays, spec.array_shapes(), "arrays", exact=True)
     arrays = {name: np.array(value, dtype=np.float64) for name, value in arrays.items()}
+    if spec.monitor is not None:
+        check_radii(arrays, "arrays")
 
     existing = [p for p in (directory / CARD_FILE, directory / WEIGHTS_FILE) if p.exists()]
     if existing and not overwrite:

@@ -47,6 +47,7 @@ import numpy as np
 
 from ..model import variants
 from ..model.files import CARD_FILE, Model, ModelSpec, derive_model, load_model
+from ..model.monitor import FeatureMonitor
 from ..model.variants import MODEL_BASED_INJECTION
 from ..nets.hold import foh_matrices
 from ..plant import systems
@@ -81,8 +82,10 @@ class Estimate:
     z : numpy.ndarray, shape (N, nz) or (M, N, nz)
         Latent states ``z_k``, ``z_0 = 0``.
     in_domain : numpy.ndarray of bool, shape (N,) or (M, N), or None
-        Whether ``(xhat_k, z_k)`` lies in the domain the maps were trained on (with the margin
-        :data:`DOMAIN_MARGIN`); None when the model records no domain.
+        The domain monitor per sample (:meth:`KKLObserver.in_domain`): whether ``(xhat_k, z_k)``
+        lies in the trained boxes (with the margin :data:`DOMAIN_MARGIN`) and, where the model has a
+        decoder-input monitor, whether the decoder's input ``[z_k; vec(w_k)]`` lies within its
+        threshold of the fitting data; None when the model records neither.
     """
 
     t: np.ndarray
@@ -147,6 +150,12 @@ class KKLObserver:
         ``xhat_next = decode(z_next, w_next)``.
     model_injection : casadi.Function or None
         ``model_injection(z, u) -> dz``, the model-based term, when present.
+    monitor : kklcasadi.model.monitor.FeatureMonitor or None
+        The decoder-input domain monitor of the card's ``monitor`` entry, when present.
+    domain_check : casadi.Function or None
+        ``domain_check(z, w, xhat) -> in_domain`` (1 or 0): the domain monitor of one sample (the
+        card's boxes and, with :attr:`monitor`, the decoder's input ``[z; vec(w)]``); None when the
+        card records neither. The C function ``name_in_domain`` of :func:`kklcasadi.generate_c`.
     """
 
     def __init__(self, model: Model, system: System, *, discretization: Optional[str] = None,
@@ -192,6 +201,12 @@ class KKLObserver:
         self.rhs = ca.Function("rhs", [z, y, u, w], [self._field(z, y, u, self._context_of(w))],
                                ["z", "y", "u", "w"], ["zdot"])
         self.step = self._build_step()
+        self.monitor = None if spec.monitor is None else FeatureMonitor.from_arrays(spec.monitor, model.arrays)
+        features = self.nz + self.memory_shape[0] * self.memory_shape[1]
+        if self.monitor is not None and self.monitor.features != features:
+            raise ValueError(f"{model.path / CARD_FILE}: 'monitor.features': expected the decoder's input size nz + "
+                             f"memory = {features}, received {self.monitor.features}. Calibrate the monitor on this "
+                             "model's decoder features (kklcasadi.model.monitor.calibrate).")
         self.domain_check = self._build_domain_check()
 
     # ------------------------------------------------------------------ construction
@@ -227,33 +242,55 @@ class KKLObserver:
                            ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
 
     def _build_domain_check(self) -> Optional[ca.Function]:
-        if self._domain_bounds is None:
+        if self._domain_bounds is None and self.monitor is None:
             return None
-        lo, hi = (ca.DM(b) for b in self._domain_bounds)
-        z, xhat = ca.MX.sym("z", self.nz), ca.MX.sym("xhat", self.nx)
-        point = ca.vertcat(xhat, z)
-        inside = ca.mmin(ca.vertcat(point - lo, hi - point)) >= 0
-        return ca.Function("domain_check", [z, xhat], [inside], ["z", "xhat"], ["in_domain"])
+        z, w, xhat = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape), ca.MX.sym("xhat", self.nx)
+        inside = ca.MX(1.0)
+        if self._domain_bounds is not None:
+            lo, hi = (ca.DM(b) for b in self._domain_bounds)
+            point = ca.vertcat(xhat, z)
+            inside = ca.mmin(ca.vertcat(point - lo, hi - point)) >= 0
+        if self.monitor is not None:
+            inside = ca.logic_and(inside, self.monitor.expression(ca.vertcat(z, ca.vec(w))))
+        return ca.Function("domain_check", [z, w, xhat], [inside], ["z", "w", "xhat"], ["in_domain"])
 
-    def in_domain(self, xhat: Any, z: Any) -> Optional[np.ndarray]:
+    def in_domain(self, xhat: Any, z: Any, w: Any = None) -> Optional[np.ndarray]:
         """Whether estimates lie in the domain the maps were trained on (the domain monitor).
 
         Parameters
         ----------
         xhat : array_like, shape (..., nx)
         z : array_like, shape (..., nz)
+        w : array_like, shape (..., *memory_shape), optional
+            The observer's memory at the same samples; needed where the model has a decoder-input
+            monitor (:attr:`monitor`).
 
         Returns
         -------
         numpy.ndarray of bool, shape (...), or None
             True where ``xhat`` and ``z`` are within the card's state and latent boxes, widened by
-            :data:`DOMAIN_MARGIN` of their ranges; None when the model records no domain.
+            :data:`DOMAIN_MARGIN` of their ranges, and (with a decoder-input monitor) where
+            ``[z; vec(w)]`` is within the monitor's threshold of its nearest prototype (``vec``
+            column-major, as ``ca.vec``); None when the model records neither.
         """
-        if self._domain_bounds is None:
+        if self._domain_bounds is None and self.monitor is None:
             return None
-        point = np.concatenate([np.asarray(xhat, dtype=float), np.asarray(z, dtype=float)], axis=-1)
-        lo, hi = self._domain_bounds
-        return np.all((point >= lo) & (point <= hi), axis=-1)
+        xhat, z = np.asarray(xhat, dtype=float), np.asarray(z, dtype=float)
+        inside = np.ones(xhat.shape[:-1], dtype=bool)
+        if self._domain_bounds is not None:
+            point = np.concatenate([xhat, z], axis=-1)
+            lo, hi = self._domain_bounds
+            inside &= np.all((point >= lo) & (point <= hi), axis=-1)
+        if self.monitor is not None:
+            if w is None:
+                raise ValueError(f"w: expected the observer's memory (shape (..., {self.memory_shape[0]}, "
+                                 f"{self.memory_shape[1]})) for the decoder-input monitor, received None.")
+            w = np.asarray(w, dtype=float)
+            if w.shape != z.shape[:-1] + self.memory_shape:
+                raise ValueError(f"w: expected shape {z.shape[:-1] + self.memory_shape}, received {w.shape}.")
+            flat = np.swapaxes(w, -1, -2).reshape(z.shape[:-1] + (-1,))          # column-major vec
+            inside &= self.monitor.inside(np.concatenate([z, flat], axis=-1))
+        return inside
 
     def __repr__(self) -> str:
         return (f"KKLObserver(method={self.method!r}, system={self.system.name!r}, nz={self.nz}, "
@@ -344,19 +381,25 @@ class KKLObserver:
         z = np.empty((m, n, nz))
         xhat[:, 0] = np.asarray(self.decode.map(m)(z_start, w0_cols)).T
         z[:, 0] = z_start.T
+        rows, cols = self.memory_shape
+        memory = np.empty((m, n, rows, cols)) if self.monitor is not None else None
+        if memory is not None:
+            memory[:, 0] = np.asarray(w0_cols).reshape(rows, m, cols).transpose(1, 0, 2)
         if n > 1:
             trajectory = self.step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
             if m > 1:
                 threads = (os.cpu_count() or 1) if n_threads is None else n_threads
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
-            z_out, _, xhat_out = trajectory(
+            z_out, w_out, xhat_out = trajectory(
                 z_start, w0_cols,
                 ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
                 us[:, 1:].reshape(columns, nu).T)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)
             xhat[:, 1:] = np.asarray(xhat_out).T.reshape(m, n - 1, self.nx)
-        flags = self.in_domain(xhat, z)
+            if memory is not None:
+                memory[:, 1:] = np.asarray(w_out).reshape(rows, m, n - 1, cols).transpose(1, 2, 0, 3)
+        flags = self.in_domain(xhat, z, memory)
         for array in (xhat, z) if flags is None else (xhat, z, flags):
             array.setflags(write=False)
         if batched_y:
@@ -436,7 +479,7 @@ class Estimator:
         self._z, self._w, self._y = z, w, y
         self.k += 1
         xhat = np.asarray(xhat).ravel()
-        inside = obs.in_domain(xhat, z)
+        inside = obs.in_domain(xhat, z, w)
         self._in_domain = None if inside is None else bool(inside)
         self._out_of_domain += inside is not None and not inside
         return xhat

@@ -1,7 +1,16 @@
-"""Known input signals ``u(t)`` and the seeded sampler of the benchmark's input regimes.
+"""Known input signals ``u(t)``, output-feedback laws, and the seeded samplers of the input families.
 
 Every signal is an immutable callable: ``u(t)`` returns shape (nu,) for a scalar ``t`` and
 (N, nu) for a time array of shape (N,). Simulation applies them zero-order hold, ``u_k = u(t_k)``.
+
+An :class:`OutputFeedback` law (:class:`PDFeedback`) is an input that depends on the run: the
+simulator computes ``u_k`` from the measured ``y_k`` and the law's own state, and holds it over
+``[t_k, t_k+1)`` (:func:`kklcasadi.plant.simulate.simulate_batch`).
+
+:func:`sample` draws the benchmark's four regimes from the docs/protocol.md ranges (:data:`RANGES`);
+:func:`draw` draws any family from explicit parameter ranges, among them the held-out families of
+docs/protocol.md "Generalisation" (:data:`HELD_OUT_RANGES`: a swept sine, random steps and a PD
+controller around a stepping set point).
 """
 
 from __future__ import annotations
@@ -9,12 +18,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+import casadi as ca
 import numpy as np
 
-from ..validation import Text, error, finite_number, one_of, positive_int, positive_number
+from ..validation import Text, error, finite_number, nonnegative_number, one_of, positive_int, positive_number
 
 __all__ = ["Signal", "Zero", "Constant", "Sinusoid", "Square", "Step", "Chirp", "RandomSteps",
-           "make", "kinds", "sample", "RANGES", "REGIMES", "BENCHMARK_KINDS"]
+           "OutputFeedback", "PDFeedback", "make", "kinds", "sample", "draw", "family_ranges",
+           "RANGES", "REGIMES", "BENCHMARK_KINDS", "HELD_OUT_RANGES", "FAMILIES"]
 
 
 def _vector(value: Any, arg: str) -> np.ndarray:
@@ -178,7 +189,7 @@ class Chirp(Signal):
 
 @dataclass(frozen=True)
 class RandomSteps(Signal):
-    """Seeded random piecewise-constant signal: a new level ``U[-amplitude, amplitude]`` every ``hold`` s.
+    """Seeded random piecewise-constant signal: a new level ``offset + U[-amplitude, amplitude]`` every ``hold`` s.
 
     Levels are drawn once from ``numpy.random.default_rng(seed)`` for ``[0, horizon]``; the last level
     is held after ``horizon`` and the first before 0.
@@ -188,14 +199,19 @@ class RandomSteps(Signal):
     hold: float = 1.0
     seed: int = 0
     horizon: float = 50.0
+    offset: Any = 0.0
     levels: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "amplitude", _vector(self.amplitude, "amplitude"))
+        object.__setattr__(self, "offset", _vector(self.offset, "offset"))
+        if self.offset.size not in (1, self.amplitude.size):
+            raise error("offset", f"a scalar or {self.amplitude.size} entries (one per input)",
+                        Text(f"size {self.offset.size}"))
         positive_number(self.hold, "hold")
         positive_number(self.horizon, "horizon")
         n = int(np.ceil(self.horizon / self.hold)) + 1
-        levels = np.random.default_rng(self.seed).uniform(-1.0, 1.0, (n, self.nu)) * self.amplitude
+        levels = self.offset + np.random.default_rng(self.seed).uniform(-1.0, 1.0, (n, self.nu)) * self.amplitude
         levels.setflags(write=False)
         object.__setattr__(self, "levels", levels)
 
@@ -206,6 +222,119 @@ class RandomSteps(Signal):
     def _eval(self, t: np.ndarray) -> np.ndarray:
         idx = np.clip(np.floor(t / self.hold).astype(int), 0, len(self.levels) - 1)
         return self.levels[idx]
+
+
+class OutputFeedback:
+    """An input computed from the measurement: a control law ``u_k = law(c_k, y_k, r_k)``.
+
+    The simulator calls the law once per sample with the measured (noisy) ``y_k``, the reference
+    ``r_k = reference(t_k)`` and the law's state ``c_k`` (``c_0 = state0(y_0)``), and holds ``u_k``
+    over ``[t_k, t_k+1)``. One CasADi Function serves every law of a class (their numbers are its
+    ``theta`` input), so the closed loops of many trials run as one mapped call.
+
+    Subclasses give :attr:`channels`, :attr:`n_state`, :meth:`function`, :meth:`theta`,
+    :meth:`reference` and :meth:`state0`.
+    """
+
+    @property
+    def channels(self) -> int:
+        """Inputs the law drives (the outputs it reads: one per input)."""
+        raise NotImplementedError
+
+    @property
+    def n_state(self) -> int:
+        """Size of the law's state ``c``."""
+        raise NotImplementedError
+
+    def function(self, dt: float) -> ca.Function:
+        """``law(c (n_state,), y (ny,), r (ny,), theta) -> (u (nu,), c_next (n_state,))`` at sample period ``dt``."""
+        raise NotImplementedError
+
+    def theta(self) -> np.ndarray:
+        """The law's numbers, the ``theta`` input of :meth:`function`."""
+        raise NotImplementedError
+
+    def reference(self, t: Any) -> np.ndarray:
+        """The reference ``r(t_k)``, shape (N, channels)."""
+        raise NotImplementedError
+
+    def state0(self, y0: Any) -> np.ndarray:
+        """The law's state at the first sample, from the first measurement ``y_0`` (ny,)."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class PDFeedback(OutputFeedback):
+    """A saturated PD controller on the measured output around a set point: what a controller sends.
+
+    ``yf_k = yf_k-1 + alpha (y_k - yf_k-1)`` (a first-order filter of the noisy measurement, time
+    constant ``tau``, ``alpha = 1 - exp(-dt / tau)``, ``yf_-1 = y_0``), then
+    ``u_k = clip(kp (r_k - y_k) - kd (yf_k - yf_k-1) / dt, -u_max, u_max)`` per channel (the
+    derivative acts on the filtered measurement, not on the set point). One input per output.
+
+    Attributes
+    ----------
+    setpoint : Signal
+        The set point ``r(t)``, one entry per output (e.g. :class:`RandomSteps`).
+    kp, kd : float or array_like (channels,)
+        Proportional gain and derivative gain (>= 0).
+    tau : float or array_like (channels,)
+        Time constant of the measurement filter of the derivative term, seconds (> 0).
+    u_max : float or array_like (channels,)
+        Saturation of the input (> 0).
+    """
+
+    setpoint: Signal = field(default_factory=Zero)
+    kp: Any = 1.0
+    kd: Any = 0.5
+    tau: Any = 0.2
+    u_max: Any = 1.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.setpoint, Signal):
+            raise error("setpoint", "a kklcasadi signal r(t)", Text(type(self.setpoint).__name__), kind=TypeError)
+        n = self.setpoint.nu
+        for name, check in (("kp", nonnegative_number), ("kd", nonnegative_number), ("tau", positive_number),
+                            ("u_max", positive_number)):
+            value = _vector(getattr(self, name), name)
+            if value.size not in (1, n):
+                raise error(name, f"a scalar or {n} entries (one per set-point channel)", Text(f"size {value.size}"))
+            value = np.broadcast_to(value, (n,)).copy()
+            for v in value:
+                check(float(v), name)
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    @property
+    def channels(self) -> int:
+        return self.setpoint.nu
+
+    @property
+    def nu(self) -> int:
+        return self.channels
+
+    @property
+    def n_state(self) -> int:
+        return self.channels
+
+    def function(self, dt: float) -> ca.Function:
+        dt = positive_number(dt, "dt")
+        n = self.channels
+        c, y, r, theta = ca.SX.sym("c", n), ca.SX.sym("y", n), ca.SX.sym("r", n), ca.SX.sym("theta", 4 * n)
+        kp, kd, tau, u_max = ca.vertsplit(theta, [0, n, 2 * n, 3 * n, 4 * n])
+        yf = c + (1.0 - ca.exp(-dt / tau)) * (y - c)
+        u = ca.fmin(ca.fmax(kp * (r - y) - kd * (yf - c) / dt, -u_max), u_max)
+        return ca.Function("pd_feedback", [c, y, r, theta], [u, yf], ["c", "y", "r", "theta"], ["u", "c_next"])
+
+    def theta(self) -> np.ndarray:
+        return np.concatenate([self.kp, self.kd, self.tau, self.u_max])
+
+    def reference(self, t: Any) -> np.ndarray:
+        times, _ = _times(t)
+        return self.setpoint(times)
+
+    def state0(self, y0: Any) -> np.ndarray:
+        return np.asarray(y0, dtype=float).reshape(self.channels).copy()
 
 
 _KINDS: dict[str, type[Signal]] = {
@@ -255,6 +384,114 @@ REGIMES = tuple(RANGES)
 BENCHMARK_KINDS = ("zero", "constant", "sinusoid", "square")
 
 
+#: Parameter ranges of the held-out input families of docs/protocol.md "Generalisation": a swept sine
+#: of in-range amplitude from below to above the sinusoid's fitted band (to the top of its ood band),
+#: random steps of in-range amplitude, and a saturated PD controller around a stepping set point
+#: (``setpoint``: the set point as a share of the output's half-range over the X0 box, about its centre).
+HELD_OUT_RANGES: Mapping[str, Mapping[str, tuple[float, float]]] = {
+    "chirp": {"amplitude": (0.1, 1.0), "omega0": (0.1, 0.5), "omega1": (3.0, 6.0)},
+    "random": {"amplitude": (0.1, 1.0), "hold": (0.5, 5.0)},
+    "feedback": {"setpoint": (-0.5, 0.5), "hold": (2.0, 10.0), "kp": (0.5, 2.0), "kd": (0.2, 1.0),
+                 "tau": (0.1, 0.3), "u_max": (1.0, 1.0)},
+}
+#: Every input family :func:`draw` knows, benchmark regimes first.
+FAMILIES = (*BENCHMARK_KINDS, *HELD_OUT_RANGES)
+_FAMILY_PARAMS = {"zero": (), "constant": ("value",), "sinusoid": ("amplitude", "omega"),
+                  "square": ("amplitude", "omega"), **{k: tuple(v) for k, v in HELD_OUT_RANGES.items()}}
+
+
+def family_ranges(kind: str, regime: str) -> dict[str, tuple[float, float]]:
+    """The parameter ranges of family ``kind`` in ``regime``, as :func:`draw` takes them.
+
+    Parameters
+    ----------
+    kind : str
+        One of :data:`FAMILIES`.
+    regime : {"train", "id", "ood", "held_out"}
+        :data:`RANGES` for the benchmark's families, ``"held_out"`` (:data:`HELD_OUT_RANGES`) for the others.
+
+    Returns
+    -------
+    dict
+        ``{parameter: (lo, hi)}``; empty for ``zero``.
+    """
+    one_of(kind, "kind", FAMILIES)
+    if kind == "zero":
+        return {}
+    table = {**RANGES, "held_out": HELD_OUT_RANGES}
+    ranges = table[one_of(regime, "regime", tuple(table))]
+    if kind not in ranges:
+        known = [name for name, r in table.items() if kind in r]
+        raise error("regime", f"a regime that defines family {kind!r}: one of {known}", regime)
+    return dict(ranges[kind])
+
+
+def draw(kind: str, rng: np.random.Generator, ranges: Mapping[str, tuple[float, float]], *, nu: int = 1,
+         horizon: float = 50.0, output_range: Any = None) -> Signal | OutputFeedback:
+    """Draw one input of family ``kind`` with every parameter uniform in ``ranges``.
+
+    Parameters
+    ----------
+    kind : str
+        One of :data:`FAMILIES`.
+    rng : numpy.random.Generator
+        Source of randomness (the caller seeds it).
+    ranges : Mapping
+        ``{parameter: (lo, hi)}`` with exactly the family's parameters (:func:`family_ranges`).
+    nu : int
+        Number of inputs. Constant, sinusoid, square, chirp and random-step inputs get independent
+        values/amplitudes per input; the other parameters are shared.
+    horizon : float
+        Duration of a chirp's sweep and of a random-step sequence (and of a set-point sequence), seconds.
+    output_range : (array_like (nu,), array_like (nu,)), optional
+        ``feedback`` only (required there): the low and high ends of the measured output, to which
+        the set points are relative (docs/protocol.md: ``h`` over the X0 box).
+
+    Returns
+    -------
+    Signal or OutputFeedback
+        For ``feedback``: a :class:`PDFeedback` whose set point is a :class:`RandomSteps`.
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise error("rng", "a numpy.random.Generator (np.random.default_rng(seed))", Text(type(rng).__name__),
+                    kind=TypeError)
+    one_of(kind, "kind", FAMILIES)
+    nu = positive_int(nu, "nu")
+    expected = set(_FAMILY_PARAMS[kind])
+    if not isinstance(ranges, Mapping) or set(ranges) != expected:
+        raise error("ranges", f"the parameters {sorted(expected)} of family {kind!r}",
+                    Text(repr(sorted(ranges)) if isinstance(ranges, Mapping) else type(ranges).__name__))
+    for name, bounds in ranges.items():
+        if (len(bounds) != 2 or not all(np.isfinite(bounds)) or bounds[0] > bounds[1]):
+            raise error(f"ranges[{name!r}]", "finite (lo, hi) with lo <= hi", tuple(bounds))
+    if kind == "zero":
+        return Zero(nu)
+    if kind == "constant":
+        return Constant(rng.uniform(*ranges["value"], size=nu))
+    if kind in ("sinusoid", "square"):
+        amplitude = rng.uniform(*ranges["amplitude"], size=nu)
+        omega = rng.uniform(*ranges["omega"])
+        phase = rng.uniform(0.0, 2.0 * np.pi)
+        return _KINDS[kind](amplitude=amplitude, omega=omega, phase=phase)
+    horizon = positive_number(horizon, "horizon")
+    if kind == "chirp":
+        amplitude = rng.uniform(*ranges["amplitude"], size=nu)
+        omega0, omega1 = rng.uniform(*ranges["omega0"]), rng.uniform(*ranges["omega1"])
+        return Chirp(amplitude, omega0, omega1, horizon, rng.uniform(0.0, 2.0 * np.pi))
+    if kind == "random":
+        amplitude = rng.uniform(*ranges["amplitude"], size=nu)
+        return RandomSteps(amplitude, rng.uniform(*ranges["hold"]), int(rng.integers(2 ** 32)), horizon)
+    if output_range is None:
+        raise error("output_range", "the (low, high) ends of the measured output for family 'feedback'", None)
+    lo, hi = (np.broadcast_to(np.asarray(b, dtype=float), (nu,)) for b in output_range)
+    centre, half = (lo + hi) / 2.0, (hi - lo) / 2.0
+    s_lo, s_hi = ranges["setpoint"]
+    setpoint = RandomSteps(half * (s_hi - s_lo) / 2.0, rng.uniform(*ranges["hold"]), int(rng.integers(2 ** 32)),
+                           horizon, offset=centre + half * (s_hi + s_lo) / 2.0)
+    gains = {name: rng.uniform(*ranges[name]) for name in ("kp", "kd", "tau", "u_max")}
+    return PDFeedback(setpoint, **gains)
+
+
 def sample(kind: str, rng: np.random.Generator, regime: str = "id", *, nu: int = 1) -> Signal:
     """Draw one signal of ``kind`` with parameters from the docs/protocol.md ranges of ``regime``.
 
@@ -273,12 +510,4 @@ def sample(kind: str, rng: np.random.Generator, regime: str = "id", *, nu: int =
                     kind=TypeError)
     ranges = RANGES[one_of(regime, "regime", REGIMES)]
     one_of(kind, "kind", ("zero", *ranges))
-    if kind == "zero":
-        return Zero(nu)
-    r = ranges[kind]
-    if kind == "constant":
-        return Constant(rng.uniform(*r["value"], size=nu))
-    amplitude = rng.uniform(*r["amplitude"], size=nu)
-    omega = rng.uniform(*r["omega"])
-    phase = rng.uniform(0.0, 2.0 * np.pi)
-    return _KINDS[kind](amplitude=amplitude, omega=omega, phase=phase)
+    return draw(kind, rng, family_ranges(kind, regime), nu=nu)

@@ -3,6 +3,10 @@
 One sample interval is a :func:`casadi.integrator` (CVODES by default, the docs/protocol.md reference;
 fixed-step ``"rk"`` for speed). A trajectory is that step folded with ``mapaccum``, and many trials
 are the folded trajectory mapped over ``"thread"`` workers: no Python loop per step or per trial.
+
+An output-feedback input (:class:`kklcasadi.plant.signals.OutputFeedback`) closes the loop inside
+the folded step: ``y_k = h(x_k) + v_k``, ``u_k = law(c_k, y_k, r_k)``, then the plant interval with
+``u_k`` held (:func:`closed_loop_step`).
 """
 
 from __future__ import annotations
@@ -24,19 +28,21 @@ from ..validation import (
     one_of,
     positive_int,
     positive_number,
+    state_stds,
 )
 from .rk4 import rk4_step
+from .signals import OutputFeedback
 from .systems import System
 
 __all__ = ["Trajectory", "TrajectoryBatch", "simulate", "simulate_batch", "time_grid", "input_samples",
-           "step_function", "INTEGRATORS"]
+           "step_function", "closed_loop_step", "INTEGRATORS"]
 
 log = logging.getLogger(__name__)
 
 #: Plant integrators accepted by ``method``.
 INTEGRATORS = ("cvodes", "rk")
 
-InputLike = Union[Callable[[np.ndarray], np.ndarray], np.ndarray, Sequence[float]]
+InputLike = Union[Callable[[np.ndarray], np.ndarray], np.ndarray, Sequence[float], OutputFeedback]
 
 
 @dataclass(frozen=True, eq=False)
@@ -144,6 +150,42 @@ def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: fl
     return ca.Function("step", [xs, ps], [integ(x0=xs, p=ps)["xf"]], ["x", "p"], ["x_next"])
 
 
+def closed_loop_step(system: System, law: OutputFeedback, dt: float, method: str = "cvodes", *, rtol: float = 1e-8,
+                     atol: float = 1e-10, substeps: int = 4) -> ca.Function:
+    """One sample interval of the plant under an output-feedback law.
+
+    ``cl(s, p) -> (s_next, u)`` with ``s = [x; c]`` (plant state, law state) and
+    ``p = [w; v; r; theta]``: process noise ``w`` (nx,) added to ``xdot`` over the interval,
+    measurement noise ``v`` (ny,) of ``y_k = h(x_k) + v``, the reference ``r_k`` and the law's numbers
+    ``theta``; ``u = law(c, y_k, r_k, theta)`` (nu,) is held over the interval.
+
+    Parameters
+    ----------
+    system : System
+    law : OutputFeedback
+        Its :meth:`~kklcasadi.plant.signals.OutputFeedback.function` (shared by every law of its class).
+    dt, method, rtol, atol, substeps
+        See :func:`step_function`.
+    """
+    _check_law(system, law, "u")
+    plant = step_function(system, dt, method, rtol=rtol, atol=atol, substeps=substeps)
+    f = law.function(dt)
+    nx, nc, ny = system.nx, law.n_state, system.ny
+    nr, nth = f.size1_in(2), f.size1_in(3)
+    s, p = ca.MX.sym("s", nx + nc), ca.MX.sym("p", nx + ny + nr + nth)
+    x, c = s[:nx], s[nx:]
+    w, v, r, theta = ca.vertsplit(p, np.cumsum([0, nx, ny, nr, nth]).tolist())
+    u, c_next = f(c, system.h(x) + v, r, theta)
+    x_next = plant(x, ca.vertcat(u, w))
+    return ca.Function("closed_loop_step", [s, p], [ca.vertcat(x_next, c_next), u], ["s", "p"], ["s_next", "u"])
+
+
+def _check_law(system: System, law: OutputFeedback, arg: str) -> None:
+    if law.channels != system.nu or system.ny != system.nu:
+        raise error(arg, f"an output-feedback law of one input per output for system {system.name!r} "
+                    f"(nu = {system.nu}, ny = {system.ny})", Text(f"a law of {law.channels} channels"))
+
+
 def _seeds(seed: int | Sequence[int] | None, m: int) -> list[Any]:
     if seed is None or isinstance(seed, (int, np.integer)):
         return list(np.random.SeedSequence(seed).spawn(m)) if m > 1 else [seed]
@@ -151,16 +193,6 @@ def _seeds(seed: int | Sequence[int] | None, m: int) -> list[Any]:
     if len(seeds) != m:
         raise error("seed", f"an int or one seed per trial ({m})", Text(f"{len(seeds)} seeds"))
     return seeds
-
-
-def _process_std(value: Any, nx: int) -> float | np.ndarray:
-    """A scalar process-noise std, or one per state (nx,), validated (all finite and >= 0)."""
-    if np.ndim(value) == 0:
-        return nonnegative_number(value, "process_std")
-    std = finite_array(value, "process_std")
-    if std.shape != (nx,) or np.any(std < 0):
-        raise error("process_std", f"a number >= 0 or nx = {nx} of them (one per state)", std.tolist())
-    return std
 
 
 def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], T: float = 50.0, dt: float = 0.05,
@@ -175,8 +207,11 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
     system : System
     x0 : array_like, shape (M, nx)
         Initial states.
-    u : signal, array (N, nu), or a sequence of M of them
-        Input of each trial (one shared input if a single signal/array is given).
+    u : signal, array (N, nu), output-feedback law, or a sequence of M of them
+        Input of each trial (one shared input if a single one is given). An
+        :class:`~kklcasadi.plant.signals.OutputFeedback` law (all trials' laws of one class) computes
+        ``u_k`` from the measured ``y_k = h(x_k) + v_k`` (the noisy one the run records) and holds it
+        over the interval; the batch's ``u`` holds the inputs it applied.
     T, dt : float
         Horizon and sample period; ``N = round(T / dt)`` samples at ``t_k = k dt``.
     process_std : float or array_like, shape (nx,)
@@ -204,36 +239,30 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
         raise error("x0", f"shape (M, nx) = (M, {system.nx}) for system {system.name!r}", Text(f"shape {x0.shape}"))
     finite_array(x0, "x0")
     m = x0.shape[0]
-    single = callable(u) or (not isinstance(u, (list, tuple)))
+    single = callable(u) or isinstance(u, OutputFeedback) or (not isinstance(u, (list, tuple)))
     inputs = [u] * m if single else list(u)
     if len(inputs) != m:
         raise error("u", f"one input or a sequence of M = {m} inputs", Text(f"{len(inputs)} inputs"))
-    us = np.stack([input_samples(ui, t, system.nu, f"u[{i}]") for i, ui in enumerate(inputs)])
-    process_std = _process_std(process_std, system.nx)
+    feedback = [isinstance(ui, OutputFeedback) for ui in inputs]
+    if any(feedback) and not (all(feedback) and len({type(ui) for ui in inputs}) == 1):
+        raise error("u", "signals or arrays for every trial, or output-feedback laws of one class for every trial",
+                    Text(f"{sum(feedback)} laws among {m} inputs"), kind=TypeError)
+    process_std = state_stds(process_std, system.nx)
     measurement_std = nonnegative_number(measurement_std, "measurement_std")
     rngs = [np.random.default_rng(s) for s in _seeds(seed, m)]
     w = np.stack([rng.normal(0.0, 1.0, (n - 1, system.nx)) for rng in rngs]) * process_std
     v = np.stack([rng.normal(0.0, 1.0, (n, system.ny)) for rng in rngs]) * measurement_std
-
-    step = step_function(system, dt, method, rtol=rtol, atol=atol, substeps=substeps)
-    traj = step.mapaccum("trajectory", n - 1)
-    params = np.concatenate([us[:, :-1, :], w], axis=2)          # (M, N-1, nu+nx)
     x = np.full((m, n, system.nx), np.nan)
     x[:, 0] = x0
-    ok = np.ones(m, dtype=bool)
-    threads = n_threads or os.cpu_count() or 1
-    try:
-        batch = traj.map(m, "thread", min(threads, m))
-        xs = np.asarray(batch(x0.T, params.reshape(m * (n - 1), -1).T))
-        x[:, 1:] = xs.T.reshape(m, n - 1, system.nx)
-    except RuntimeError as err:
-        log.info("batched simulation failed (%s); retrying trial by trial to isolate the failures", err)
-        for i in range(m):
-            try:
-                x[i, 1:] = np.asarray(traj(x0[i], params[i].T)).T
-            except RuntimeError as trial_err:
-                log.info("trial %d failed in the integrator: %s", i, trial_err)
-                ok[i] = False
+    options = {"rtol": rtol, "atol": atol, "substeps": substeps}
+    if all(feedback):
+        us, ok = _closed_loop(system, x0, inputs, t, dt, w, v, x, method, options, n_threads)
+    else:
+        us = np.stack([input_samples(ui, t, system.nu, f"u[{i}]") for i, ui in enumerate(inputs)])
+        traj = step_function(system, dt, method, **options).mapaccum("trajectory", n - 1)
+        params = np.concatenate([us[:, :-1, :], w], axis=2)          # (M, N-1, nu+nx)
+        states, ok = _fold(traj, x0.T, params, n_threads)
+        x[:, 1:] = states.reshape(m, n - 1, system.nx)
     with np.errstate(invalid="ignore"):
         x[~(np.abs(x) < blowup)] = np.nan                       # inf, NaN and blow-ups become NaN
     ok &= ~np.isnan(x).any(axis=(1, 2))
@@ -241,6 +270,69 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
     for arr in (x, us, y):
         arr.setflags(write=False)
     return TrajectoryBatch(t, x, us, y, ok)
+
+
+def _fold(traj: ca.Function, s0: np.ndarray, params: np.ndarray,
+          n_threads: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Run a folded trajectory (one input state, one parameter row and one output per interval) for
+    every trial: ``s0`` (ns, M) columns, ``params`` (M, N-1, np).
+
+    Returns the output per trial and interval, (M, N-1, rows), NaN for the trials that
+    failed in the integrator, and ``ok`` (M,). A failing batch is retried trial by trial to
+    isolate the failures.
+    """
+    m, steps = params.shape[:2]
+    rows = traj.size1_out(0)
+    out = np.full((m, steps, rows), np.nan)
+    ok = np.ones(m, dtype=bool)
+    threads = n_threads or os.cpu_count() or 1
+    try:
+        batch = traj.map(m, "thread", min(threads, m))
+        out[:] = np.asarray(batch(s0, params.reshape(m * steps, -1).T)).T.reshape(m, steps, rows)
+    except RuntimeError as err:
+        log.info("batched simulation failed (%s); retrying trial by trial to isolate the failures", err)
+        for i in range(m):
+            try:
+                out[i] = np.asarray(traj(s0[:, i], params[i].T)).T
+            except RuntimeError as trial_err:
+                log.info("trial %d failed in the integrator: %s", i, trial_err)
+                ok[i] = False
+    return out, ok
+
+
+def _closed_loop(system: System, x0: np.ndarray, laws: list, t: np.ndarray, dt: float, w: np.ndarray,
+                 v: np.ndarray, x: np.ndarray, method: str, options: dict,
+                 n_threads: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Simulate M closed loops in place in ``x`` (M, N, nx); return the applied inputs (M, N, nu) and ``ok``."""
+    for i, law in enumerate(laws):
+        _check_law(system, law, f"u[{i}]")
+    m, n = x.shape[:2]
+    nx, nu = system.nx, system.nu
+    refs = np.stack([input_samples(law.reference, t, law.channels, f"u[{i}].reference") for i, law in enumerate(laws)])
+    theta = np.stack([np.asarray(law.theta(), dtype=float) for law in laws])           # (M, nth)
+    y0 = system.h_batch(x0) + v[:, 0]
+    s0 = np.stack([np.concatenate([x0[i], laws[i].state0(y0[i])]) for i in range(m)])   # (M, nx + nc)
+    step = closed_loop_step(system, laws[0], dt, method, **options)
+    traj = ca.Function("closed_loop", *_with_inputs(step.mapaccum("closed_loop", n - 1)))
+    params = np.concatenate([w, v[:, :-1], refs[:, :-1], np.repeat(theta[:, None], n - 1, axis=1)], axis=2)
+    out, ok = _fold(traj, s0.T, params, n_threads)
+    x[:, 1:] = out[..., :nx]
+    us = np.full((m, n, nu), np.nan)
+    us[:, :-1] = out[..., nx + laws[0].n_state:]
+    # the last input, from the last measurement and the law's last state
+    law = laws[0].function(dt)
+    y_last = system.h_batch(np.nan_to_num(x[:, -1])) + v[:, -1]
+    c_last = out[:, -1, nx:nx + laws[0].n_state]
+    us[:, -1] = np.asarray(law.map(m)(np.nan_to_num(c_last).T, y_last.T, refs[:, -1].T, theta.T)[0]).T
+    us[~ok] = np.nan
+    return us, ok
+
+
+def _with_inputs(traj: ca.Function) -> tuple[list, list, list, list]:
+    """``traj`` (s0, P) -> (S, U) as a Function whose one output stacks ``[S; U]`` per interval."""
+    s0, params = ca.MX.sym("s0", traj.sparsity_in(0)), ca.MX.sym("P", traj.sparsity_in(1))
+    states, inputs = traj(s0, params)
+    return [s0, params], [ca.vertcat(states, inputs)], ["s0", "P"], ["SU"]
 
 
 def simulate(system: System, x0: Any, u: InputLike, T: float = 50.0, dt: float = 0.05, *, process_std: float = 0.0,

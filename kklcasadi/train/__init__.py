@@ -180,7 +180,10 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     card = make_card(plant, trained.design, method, trained.spec, dt=dt, window=trained.window,
                      training=training, measurement_std=trained.measurement_std, domain=trained.domain,
                      base=None if base_model is None else _base_reference(out, base_model),
-                     coverage=trained.coverage, process_std=config_field(config, "process_std"))
+                     coverage=trained.coverage,
+                     process_std=(config_field(config, "process_std") if trained.process_std is None
+                                  else trained.process_std),
+                     monitor=trained.monitor, fit_families=trained.fit_families)
     path = save_model(out, trained.arrays, card, overwrite=overwrite or resume)
     if trained.histories:
         (out / "history.json").write_text(json.dumps(_jsonable(trained.histories)))

@@ -13,12 +13,13 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..model.files import Domain, Model
+from ..model.monitor import FeatureMonitor, calibrate
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER, MLPSpec
 from ..plant.design import Design, time_scales
 from ..plant.systems import System
-from ..validation import error
+from ..validation import Text, error
 from .config import LoopConfig, with_epochs
 from .operational import (
     BankFit,
@@ -27,12 +28,13 @@ from .operational import (
     RolloutConfig,
     config_record,
     fit_bank_decoder,
+    fit_families,
     operational_data,
 )
 from .result import Trained
 
-__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale", "process_stds", "SHIPPED",
-           "NEW_PLANT_BANK", "PROCESS_ON"]
+__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_monitor", "bank_time_scale", "process_stds",
+           "SHIPPED", "NEW_PLANT_BANK", "PROCESS_ON"]
 
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
 #: given (``time_scale = 1``), RK4 with 4 substeps, and Roessler's x3 decoded as ``0.01 sinh(v)``
@@ -171,6 +173,29 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
     return arrays, spec, Domain.of(data.x, data.z)
 
 
+def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder's fitting runs",
+                 validation_share: float = 0.2, settle_time: float = 5.0) -> FeatureMonitor:
+    """The decoder-input domain monitor calibrated on the decoder's samples (:func:`kklcasadi.model.monitor.calibrate`).
+
+    The features are the decoder's input ``[z_k; y_k; u_k]`` (the observer's ``[z; vec(w)]``); the
+    first runs give the prototypes and the metric, the samples after ``settle_time`` of the last
+    ``validation_share`` of the runs the threshold (all their samples where the runs are shorter).
+    ``source`` is recorded in the card's ``monitor.calibration``.
+    """
+    features = fb.decoder_features(data.z, data.y, data.u)
+    n_runs = int(data.run.max()) + 1 if len(data) else 0
+    if n_runs < 2:
+        raise error("data", "samples of at least 2 runs (the monitor's threshold comes from runs it was not fit on)",
+                    Text(f"{n_runs} runs"))
+    first_val = n_runs - max(1, int(round(validation_share * n_runs)))
+    if data.t.max() < settle_time:                    # runs shorter than the settle time: all their samples
+        settle_time = 0.0
+    fit = features[data.run < first_val]
+    validation = features[(data.run >= first_val) & (data.t >= settle_time)]
+    return calibrate(fit, validation, settle_time=settle_time, seed=seed,
+                     calibration={"source": source, "fit_runs": first_val, "validation_runs": n_runs - first_val})
+
+
 def train_bank(system: System, design: Design, base: Model | None, config: BankConfig, *, dt: float, seed: int,
                device: str, progress: bool, workdir: Path | None, resume: bool) -> Trained:
     """The training hook of ``bank`` (no base model; ``design`` is replaced by the bank's)."""
@@ -194,5 +219,9 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
                 "state_percentiles": fitted.domain,
                 "machine": {"cpus": os.cpu_count(), "load_average_start": [round(v, 2) for v in load_start],
                             "load_average_end": [round(v, 2) for v in os.getloadavg()]}}
+    monitor = bank_monitor(data, seed)          # read by kklcasadi.evaluation.generalisation, with the families
+    arrays.update(monitor.arrays())
     return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, {"decoder": fitted.fit.history}, 1,
-                   config.measurement_std, domain)
+                   config.measurement_std, domain, coverage=None, monitor=monitor.spec,
+                   fit_families=fit_families(config.rollouts, rate),
+                   process_std=tuple(float(v) for v in process))

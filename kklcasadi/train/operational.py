@@ -44,7 +44,7 @@ from .nets import MLP
 
 __all__ = ["RolloutConfig", "DecoderConfig", "OperationalData", "operational_data", "rollouts", "fit_bank_decoder",
            "BankFit", "LOSSES", "config_record", "fold_whitening", "torch_decoder", "RK_STEP", "FAMILIES",
-           "ROLLOUT_REGIMES"]
+           "ROLLOUT_REGIMES", "fit_families"]
 
 Tensor = torch.Tensor
 
@@ -197,6 +197,10 @@ class OperationalData:
     u : numpy.ndarray, shape (S, nu)
     x : numpy.ndarray, shape (S, nx)
         The true states there.
+    t : numpy.ndarray, shape (S,)
+        Each sample's time from its run's start (seconds).
+    run : numpy.ndarray, shape (S,)
+        Each sample's run (int, ascending: the samples are ordered run by run).
     record : dict
         ``runs`` simulated, ``cut`` (runs that escaped and were cut there), ``failed`` (of them, the
         ones that blew up or that the integrator failed on), ``samples`` kept, ``simulated_s`` (seconds simulated), the
@@ -207,6 +211,8 @@ class OperationalData:
     y: np.ndarray
     u: np.ndarray
     x: np.ndarray
+    t: np.ndarray
+    run: np.ndarray
     record: dict
 
     def __len__(self) -> int:
@@ -221,8 +227,10 @@ class OperationalData:
         nz, ny, nu, nx = z.shape[2], runs.y.shape[2], runs.u.shape[2], runs.x.shape[2]
         record = {"runs": len(runs), "cut": 0, "failed": 0, "samples": int(keep.sum() * len(runs)),
                   "simulated_s": float(len(runs) * runs.t.size * dt)}
+        shape = (len(runs), int(keep.sum()))
         return cls(z.reshape(-1, nz), runs.y[:, keep].reshape(-1, ny), runs.u[:, keep].reshape(-1, nu),
-                   runs.x[:, keep].reshape(-1, nx), record)
+                   runs.x[:, keep].reshape(-1, nx), np.broadcast_to(runs.t[keep], shape).ravel(),
+                   np.broadcast_to(np.arange(len(runs))[:, None], shape).ravel(), record)
 
 
 def _keep(n: int, dt: float, config: RolloutConfig, rate: float = 1.0) -> np.ndarray:
@@ -283,6 +291,31 @@ def _ranges(kind: str, regime: str) -> Mapping[str, tuple[float, float]]:
         lo, hi = zip(sig.RANGES["id"][kind][name], sig.RANGES["ood"][kind][name])
         ranges[name] = (min(lo), max(hi))
     return ranges
+
+
+def fit_families(config: RolloutConfig, rate: float = 1.0) -> dict[str, dict[str, tuple[float, float]]]:
+    """The input families of ``config``'s runs with the range of each parameter, as a card's
+    ``fit_families`` records them (frequencies in rad/s and holds in seconds at the time scale ``rate``).
+
+    The benchmark's families carry :func:`kklcasadi.plant.signals.family_ranges`' parameters;
+    ``multisine`` its tones' amplitude and frequency ranges and their number; ``feedback`` (a
+    proportional law, not the PD law of the held-out family of that name) its gain, hold and limit.
+    """
+    out: dict[str, dict[str, tuple[float, float]]] = {}
+    sine = _ranges("sinusoid", config.regime)
+    for kind in config.kinds:
+        if kind == "zero":
+            out[kind] = {}
+        elif kind in ("constant", "sinusoid", "square"):
+            out[kind] = {name: ((lo * rate, hi * rate) if name == "omega" else (lo, hi))
+                         for name, (lo, hi) in _ranges(kind, config.regime).items()}
+        elif kind == "multisine":
+            out[kind] = {"amplitude": sine["amplitude"], "omega": (sine["omega"][0] * rate, sine["omega"][1] * rate),
+                         "tones": (2.0, 6.0)}
+        else:
+            limit = float(_ranges("constant", config.regime)["value"][1])
+            out[kind] = {"gain": (0.5, 3.0), "hold": (2.0 / rate, 10.0 / rate), "limit": (limit, limit)}
+    return out
 
 
 @dataclass(frozen=True)
@@ -438,7 +471,8 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
     t0 = time.perf_counter()
     n = time_grid(_horizon(config.T, time_scale, dt), dt).size
     keep = _keep(n, dt, config, time_scale)
-    parts: dict[str, list[np.ndarray]] = {"z": [], "y": [], "u": [], "x": []}
+    parts: dict[str, list[np.ndarray]] = {"z": [], "y": [], "u": [], "x": [], "t": [], "run": []}
+    first = 0
     cut = failed = 0
     factors: list[float] = []
     substeps = 0
@@ -453,7 +487,10 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         u = np.where(valid[..., None], batch.u, 0.0)
         z = bank.run(y, u, dt)
         mask = valid & keep[None, :]
-        for name, arr in (("z", z), ("y", y), ("u", u), ("x", np.asarray(batch.x))):
+        runs = np.broadcast_to(np.arange(first, first + len(escape))[:, None], mask.shape)
+        first += len(escape)
+        for name, arr in (("z", z), ("y", y), ("u", u), ("x", np.asarray(batch.x)),
+                          ("t", np.broadcast_to(batch.t, mask.shape)), ("run", runs)):
             parts[name].append(arr[mask])
     data = {k: np.concatenate(v) for k, v in parts.items()}
     record = {"runs": config.n_traj, "cut": cut, "failed": failed, "samples": int(len(data["x"])),
@@ -461,7 +498,7 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
               "sample_period_s": config.sample_period / time_scale, "substeps": substeps,
               "measurement_factor_range": [float(min(factors)), float(max(factors))],
               "seconds": round(time.perf_counter() - t0, 2)}
-    return OperationalData(data["z"], data["y"], data["u"], data["x"], record)
+    return OperationalData(data["z"], data["y"], data["u"], data["x"], data["t"], data["run"], record)
 
 
 def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.05, measurement_std: float = 0.1,

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from ..model.files import Domain
+from ..model.monitor import MonitorSpec
 from ..plant.data import LabelReport
 from ..plant.design import Design
 
@@ -36,6 +37,13 @@ class Trained:
         Where the maps were trained (states and latents of the training data).
     coverage : LabelReport or None
         How the Phase-1 labels were made and how well they cover the box (methods with Phase-1 labels).
+    monitor : MonitorSpec or None
+        The decoder-input monitor's card entry (its arrays are in ``arrays``).
+    fit_families : dict or None
+        The input families the maps were fit on, ``{family: {parameter: (lo, hi)}}``.
+    process_std : tuple of float (nx,) or None
+        The process-noise std of each state in the training data, where the hook knows it per
+        state (else the configuration's ``process_std`` is recorded).
     """
 
     arrays: dict
@@ -47,3 +55,6 @@ class Trained:
     measurement_std: float = 0.0
     domain: Optional[Domain] = None
     coverage: Optional[LabelReport] = None
+    monitor: Optional[MonitorSpec] = None
+    fit_families: Optional[dict] = None
+    process_std: Optional[tuple] = None

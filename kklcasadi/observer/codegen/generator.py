@@ -138,11 +138,19 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
     lines.append(f"#define {macro}_DT {observer.dt!r}")
     if observer.domain_check is not None:
         lines.append(f"#define {macro}_HAS_DOMAIN 1")
+        tests = []
+        if observer.domain is not None:
+            tests.append(f"the estimate and the latent lie in the card's state and latent boxes widened by "
+                         f"{DOMAIN_MARGIN!r} of their ranges")
+        if observer.monitor is not None:
+            lines.append(f"#define {macro}_HAS_FEATURE_MONITOR 1")
+            tests.append(f"the decoder's input [z; w] lies within {observer.monitor.spec.threshold:.6g} radii of "
+                         f"one of the {observer.monitor.spec.prototypes} prototypes of its fitting data, in the "
+                         "monitor's metric")
         monitor = (f"""
- * {name}_in_domain(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] xhat (NX) -> res[0] 1.0 if the
- *   estimate and the latent lie in the domain the maps were trained on (the card's state and
- *   latent boxes widened by {DOMAIN_MARGIN!r} of their ranges), else 0.0: the domain
- *   monitor, to call after a step where wanted ({macro}_HAS_DOMAIN is defined).""")
+ * {name}_in_domain(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w (NW), arg[2] xhat (NX) -> res[0]
+ *   1.0 if {" and ".join(tests)}, else 0.0: the domain monitor, to call after a step where wanted
+ *   (with the step's z_next, w_next, xhat_next; {macro}_HAS_DOMAIN is defined).""")
     else:
         monitor = "\n * (The model records no training domain: no domain monitor.)"
     scheme = ("exact (matrix exponential, first-order hold)" if observer.discretization == "exact"
@@ -323,7 +331,7 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     functions = [renamed(observer.step, f"{name}_step"), renamed(observer.decode, f"{name}_decode"),
                  # the start only, once: as SX, so that it has no nested calls (gcc's -Wdangling-pointer)
                  renamed(observer.memory_init, f"{name}_init", ca.SX)]
-    if observer.domain_check is not None:          # the domain monitor, where the card records a domain
+    if observer.domain_check is not None:          # the domain monitor, where the card records a domain or monitor
         functions.append(renamed(observer.domain_check, f"{name}_in_domain"))
     source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch)
     build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
