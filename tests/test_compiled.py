@@ -335,8 +335,9 @@ def test_bench_protocol_times_each_method_cold_and_warm_against_the_plain_step_a
         assert obs.instructions < obs.plain_instructions and ekf.instructions > 0 and ekf.plain_instructions is None
     table = result.table()
     assert "| obs |" in table and "warm caches (read + load, then score)" in table and "| total |" in table
-    rows = [line for line in table.splitlines() if line.startswith("|")]
-    assert len({line.count("|") for line in rows}) == 1                # every row has the header's columns
+    blocks = [[line for line in block.splitlines() if line.startswith("|")] for block in table.split("\n\n")]
+    blocks = [b for b in blocks if b]                   # the methods, the cold run's and the warm run's phases
+    assert len(blocks) == 3 and all(len({line.count("|") for line in b}) == 1 for b in blocks)   # rows as headers
     assert [p.name for p in shipped_models("duffing")][:3] == ["autonomous", "inject", "obs"]
     with pytest.raises(ValueError, match="vm_trials: expected an int in"):
         bench_protocol("duffing", n_trials=2, vm_trials=3)
