@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -94,6 +95,9 @@ def train(case: str, out: Path, measurement_std: float, *, epochs: Optional[int]
     for name, value in (("n_traj", runs), ("T", horizon)):      # a smaller budget than the recipe's, when asked
         if value is not None:
             config = with_field(config, name, value)
+    if runs is not None and runs < 100:                          # batches a tiny budget's few samples can fill
+        decoder = config.decoder
+        config = replace(config, decoder=replace(decoder, loop=replace(decoder.loop, batch_size=64)))
     return train_observer(plant, "bank", out / case, config=config, dt=DT, epochs=epochs, overwrite=True,
                           threads=1)
 

@@ -105,9 +105,10 @@ def test_a_tiny_scaling_run(tmp_path):
     result = sc.bench_scaling((1,), runs=8, epochs=1, T=20.0, trials=2, mhe_steps=8, mhe_horizon=4, repeat=5,
                               callgrind=False, out=tmp_path, progress=False)
     (row,) = result.rows
-    assert (row.nx, row.ny, row.nz) == (2, 1, 12) and row.observer_us > 0 and row.ekf_best_us > 0
-    assert row.observer_work == 12 * (12 + 2 + 1 + 1) + 14 * 256 + 2 * 256 * 256 + 256 * 2     # the recipe's decoder
+    # the recipe's bank: 8 output and 5 input filters and a clock, decoder 3 x 256
+    assert (row.nx, row.ny, row.nz) == (2, 1, 14) and row.observer_us > 0 and row.ekf_best_us > 0
+    assert row.observer_work == 14 * (14 + 2 + 1 + 1) + 16 * 256 + 2 * 256 * 256 + 256 * 2
     assert 0 < row.smape_observer and 0 < row.smape_ekf and row.simulated_s == 8 * 20.0
-    assert (tmp_path / "scaling.png").stat().st_size > 0 and "| 2 | 1 | 12 |" in (tmp_path / "scaling.md").read_text()
+    assert (tmp_path / "scaling.png").stat().st_size > 0 and "| 2 | 1 | 14 |" in (tmp_path / "scaling.md").read_text()
     saved = json.loads((tmp_path / "scaling.json").read_text())
     assert sc.ScalingRow(**saved["rows"][0]) == row and saved["settings"]["runs"] == 8

@@ -266,7 +266,8 @@ def test_train_without_a_method_trains_bank_at_the_given_dt_and_noise(tmp_path, 
 
     def tiny(system, method, **kw):          # the default bank recipe on a budget a test can afford
         config = training.default_config.__wrapped__(system, method, **kw)
-        return replace(config, rollouts=replace(config.rollouts, n_traj=12, T=2.0))
+        return replace(config, rollouts=replace(config.rollouts, n_traj=12, T=2.0),
+                       decoder=replace(config.decoder, loop=replace(config.decoder.loop, batch_size=64)))
 
     tiny.__wrapped__ = training.default_config
     monkeypatch.setattr(training, "default_config", tiny)
@@ -276,8 +277,8 @@ def test_train_without_a_method_trains_bank_at_the_given_dt_and_noise(tmp_path, 
     assert "method: bank (the observer for a new plant" in capsys.readouterr().out
     model = load_model(out)
     assert model.method == "bank" and model.dt == 0.02
-    assert model.spec.measurement_std == 0.03 and model.spec.process_std == 0.2
-    assert model.card["training"]["rollouts"]["measurement_std"] == 0.03
+    assert model.spec.measurement_std == 0.03 and model.spec.process_std == (0.2, 0.2)     # per state
+    assert model.card["training"]["measurement_std"] == 0.03
 
 
 def test_noise_flags_name_the_methods_that_take_them(model_dir_factory, tmp_path):

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import kklcasadi as kc
+
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
 KINDS = ("zero", "constant", "sinusoid", "square")
@@ -55,19 +57,29 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     cell = scores("duffing")[("bank", "square", True)]
     assert cell.min() <= smape <= cell.max()
 
-    # the domain monitor, from the card's domain widened by DOMAIN_MARGIN of its ranges
+    # the domain monitor: the card's domain widened by DOMAIN_MARGIN of its ranges, and the
+    # decoder-input monitor on the decoder's input [z_k; y_k; u_k] (bank's memory is [y_k; u_k])
     from kklcasadi.observer.kkl import DOMAIN_MARGIN
 
     domain = json.loads((ROOT / "models" / "duffing" / "bank" / "card.json").read_text())["domain"]
     box_lo, box_hi = (np.array(domain["x_" + e] + domain["z_" + e]) for e in ("lo", "hi"))
     lo, hi = box_lo - DOMAIN_MARGIN * (box_hi - box_lo), box_hi + DOMAIN_MARGIN * (box_hi - box_lo)
     points = np.concatenate([est.xhat, est.z], axis=1)
-    inside = np.all((points >= lo) & (points <= hi), axis=1)
+    in_box = np.all((points >= lo) & (points <= hi), axis=1)
+    features = np.concatenate([est.z, tr.y, tr.u], axis=1)
+    inside = in_box & obs.monitor.inside(features)
     np.testing.assert_array_equal(est.in_domain, inside)
-    np.testing.assert_array_equal(est.in_domain, [bool(obs.domain_check(zk, xk)) for zk, xk in zip(est.z, est.xhat)])
+    memory = np.concatenate([tr.y, tr.u], axis=1)
+    np.testing.assert_array_equal(est.in_domain, [bool(obs.domain_check(zk, wk, xk))
+                                                  for zk, wk, xk in zip(est.z, memory, est.xhat)])
     assert float(out[1]) == inside.mean()
-    # this run stays inside (share 1.0), so also points at the centre with one component past an
-    # edge of the card's box by 0-20 % of its range: inside exactly when that is at most DOMAIN_MARGIN
+    # the box part, on a shipped model with a domain and no decoder-input monitor: points at the
+    # centre of its box with one component past an edge by 0-20 % of its range are inside exactly
+    # when that is at most DOMAIN_MARGIN
+    boxed = kc.load_observer(ROOT / "models" / "duffing" / "inject")
+    assert boxed.monitor is None
+    domain = json.loads((ROOT / "models" / "duffing" / "inject" / "card.json").read_text())["domain"]
+    box_lo, box_hi = (np.array(domain["x_" + e] + domain["z_" + e]) for e in ("lo", "hi"))
     rng = np.random.default_rng(0)
     n, dim = 400, box_lo.size
     edge = np.tile((box_lo + box_hi) / 2, (n, 1))
@@ -76,8 +88,9 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     edge[np.arange(n), component] = np.where(upper, box_hi[component] + beyond * span,
                                              box_lo[component] - beyond * span)
     expected = beyond <= DOMAIN_MARGIN
-    np.testing.assert_array_equal(obs.in_domain(edge[:, :obs.nx], edge[:, obs.nx:]), expected)
-    np.testing.assert_array_equal([bool(obs.domain_check(p[obs.nx:], p[:obs.nx])) for p in edge], expected)
+    w = np.zeros(boxed.memory_shape)
+    np.testing.assert_array_equal(boxed.in_domain(edge[:, :boxed.nx], edge[:, boxed.nx:]), expected)
+    np.testing.assert_array_equal([bool(boxed.domain_check(p[boxed.nx:], w, p[:boxed.nx])) for p in edge], expected)
 
     # the certificate it prints is the stored record of results/estimators (kklcasadi certificate)
     record = json.loads((ROOT / "results" / "estimators" / "certificates_zero.json").read_text())[0]

@@ -44,7 +44,7 @@ def test_bank_space_sets_the_fields_it_names():
     config = space.suggest(optuna.trial.FixedTrial(params))
     np.testing.assert_allclose(config.y_poles, [0.1, 1.0, 10.0], rtol=1e-12)
     assert config.u_poles == () and config.clock is None and config.decoder.hidden == (64, 64)
-    assert config.rollouts.measurement_std == config.rollouts.process_std == 0.07
+    assert config.measurement_std == config.process_std == 0.07
     assert (config.rollouts.n_traj, config.decoder.loop.epochs, config.decoder.loop.lr) == (24, 5, 2e-3)
     base = space.baseline()
     assert (base.rollouts.n_traj, base.decoder.loop.epochs) == (40, 6)
@@ -62,9 +62,13 @@ def test_a_renamed_field_names_the_table_to_update(monkeypatch):
 
 
 def test_validation_leaves_out_what_the_config_fits_on():
-    config = train.default_config("duffing", "bank")
-    assert tn.fitted_families(config) == {(k, "id") for k in sig.BENCHMARK_KINDS}
-    names = [c.name for c in tn.validation_cells(config)]
+    config = train.default_config("duffing", "bank")             # every family, id and ood ranges ("wide")
+    assert tn.fitted_families(config) == {(k, r) for k in (*sig.BENCHMARK_KINDS, "multisine", "feedback")
+                                          for r in ("id", "ood")}
+    assert [c.name for c in tn.validation_cells(config)] == ["chirp", "random"]
+    narrow = replace(config, rollouts=replace(config.rollouts, kinds=sig.BENCHMARK_KINDS, regime="train"))
+    assert tn.fitted_families(narrow) == {(k, "id") for k in sig.BENCHMARK_KINDS}
+    names = [c.name for c in tn.validation_cells(narrow)]
     assert names == ["chirp", "random", "constant-ood", "sinusoid-ood", "square-ood"]
     ood = replace(config, rollouts=replace(config.rollouts, kinds=("constant", "square"), regime="ood"))
     assert [c.name for c in tn.validation_cells(ood)] == ["chirp", "random", "sinusoid-ood"]
@@ -73,9 +77,11 @@ def test_validation_leaves_out_what_the_config_fits_on():
 
 
 def test_validation_trials_are_their_own():
-    cells = tn.validation_cells(train.default_config("duffing", "bank"), n_trials=6)
+    config = train.default_config("duffing", "bank")
+    narrow = replace(config, rollouts=replace(config.rollouts, kinds=sig.BENCHMARK_KINDS, regime="train"))
+    cells = tn.validation_cells(narrow, n_trials=6)
     chirp, random, _, sine, _ = cells
-    again = tn.validation_cells(train.default_config("duffing", "bank"), n_trials=6)[0].signals(1)
+    again = tn.validation_cells(narrow, n_trials=6)[0].signals(1)
     t = np.linspace(0, 50, 101)
     for a, b in zip(chirp.signals(1), again):
         np.testing.assert_array_equal(a(t), b(t))
@@ -195,8 +201,7 @@ def test_two_workers_one_killed_mid_trial_is_retried_and_the_study_resumes(tmp_p
     best = load_model(out / "best").spec.search
     assert (best.study, best.trial, best.value) == ("duffing-bank", study.best_trial.number, study.best_value)
     assert best.params == study.best_trial.params and best.space == study.user_attrs["record"]["space"]
-    assert [c["name"] for c in best.objective["cells"]] == ["chirp", "random", "constant-ood", "sinusoid-ood",
-                                                            "square-ood"]
+    assert [c["name"] for c in best.objective["cells"]] == ["chirp", "random"]      # bank fits on the ood ranges
     listed = [line.split("|")[1].strip() for line in log.splitlines() if line.startswith("| ") and
               line.split("|")[1].strip().isdigit()]
     assert str(retries[0].number) in listed and str(killed.number) not in listed      # the retry, not the killed

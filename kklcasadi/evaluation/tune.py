@@ -215,7 +215,7 @@ SPACES: dict[str, tuple] = {
         Filters("u_filters", "u_poles", count=(0, 4), slow=(0.1, 1.0), span=(2.0, 100.0)),
         MaybeRate("clock", "clock", 0.05, 1.0),
         Layers("decoder", "decoder.hidden", width=(32, 384), depth=(1, 4)),
-        Float("noise", ("rollouts.measurement_std", "rollouts.process_std"), 0.05, 0.2, log=True),
+        Float("noise", ("measurement_std", "process_std"), 0.05, 0.2, log=True),
         Float("lr", "decoder.loop.lr", 3e-4, 3e-3, log=True),
         Budget("runs", "rollouts.n_traj"),
         Budget("epochs", "decoder.loop.epochs"),
@@ -433,14 +433,16 @@ class ValidationCell:
 
 def fitted_families(config: Any) -> set[tuple[str, str]]:
     """The ``(kind, regime)`` pairs a configuration fits on: every ``kinds`` field of its dataclass
-    tree, with the ``regime`` beside it (``"train"`` where there is none; ``train`` is ``id``)."""
+    tree, with the ``regime`` beside it (``"train"`` where there is none; ``train`` is ``id``, and
+    ``wide``, the hull of the ``id`` and ``ood`` ranges, both)."""
     found: set[tuple[str, str]] = set()
     if not is_dataclass(config):
         return found
     names = _field_names(config)
     if "kinds" in names:
         regime = getattr(config, "regime", "train")
-        found |= {(kind, "id" if regime == "train" else regime) for kind in config.kinds}
+        regimes = {"train": ("id",), "wide": ("id", "ood")}.get(regime, (regime,))
+        found |= {(kind, r) for kind in config.kinds for r in regimes}
     for name in names:
         found |= fitted_families(getattr(config, name))
     return found

@@ -311,8 +311,9 @@ def config_field(config: Any, name: str) -> Any:
     """The value of the field ``name`` of a training configuration, or None where it has none.
 
     The field is looked up at the top level, else in the one nested configuration that holds it
-    (``BankConfig.rollouts.measurement_std``): so the command line's flags (``--measurement-std``,
-    ``--process-std``) reach a method's setting wherever its configuration keeps it.
+    (``epochs`` is ``BankConfig.decoder.loop.epochs``): so the command line's flags
+    (``--measurement-std``, ``--process-std``) reach a method's setting wherever its configuration
+    keeps it.
     """
     path = _field_path(config, name)
     if path is None:
