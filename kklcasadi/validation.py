@@ -11,8 +11,8 @@ from typing import Any, Collection, Optional
 
 import numpy as np
 
-__all__ = ["state_stds", "error", "Text", "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
-           "nonnegative_number", "finite_number", "one_of", "finite_array", "index_tuple"]
+__all__ = ["error", "Text", "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
+           "nonnegative_number", "finite_number", "one_of", "finite_array", "index_tuple", "state_stds", "covariance"]
 
 
 class Text(str):
@@ -135,6 +135,21 @@ def state_stds(value: Any, nx: int, argument: str = "process_std") -> float | np
     if std.shape != (nx,) or np.any(std < 0):
         raise error(argument, f"a number >= 0 or nx = {nx} of them (one per state)", std.tolist())
     return std
+
+
+def covariance(value: Any, n: int, argument: str, *, definite: bool = False) -> np.ndarray:
+    """Return ``value`` as a finite symmetric (n, n) float64 matrix, positive semi-definite (positive
+    definite with ``definite``), else raise naming ``argument``."""
+    m = finite_array(np.atleast_2d(np.asarray(value, dtype=float)), argument)
+    if m.shape != (n, n):
+        raise error(argument, f"shape {(n, n)}", Text(f"shape {m.shape}"))
+    kind = "definite" if definite else "semi-definite"
+    if not np.allclose(m, m.T):
+        raise error(argument, f"a symmetric positive {kind} matrix", m.tolist())
+    smallest = np.min(np.linalg.eigvalsh(0.5 * (m + m.T)))
+    if smallest < 0 or (definite and smallest <= 0):
+        raise error(argument, f"a symmetric positive {kind} matrix", m.tolist())
+    return m
 
 
 def index_tuple(value: Any, argument: str, n: int) -> tuple[int, ...]:

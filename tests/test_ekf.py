@@ -131,3 +131,20 @@ def test_ekf_c_step_is_the_vm_step(tmp_path, plant, math, form):
         ekf.generate_c(tmp_path, "filt")
     with pytest.raises(ValueError, match="form: expected one of"):
         ekf.step_of("sparse")
+
+
+@pytest.mark.parametrize("value, definite, message", [
+    ([[1.0, 0.5], [0.0, 1.0]], False, "Q: expected a symmetric positive semi-definite matrix"),
+    ([[1.0, 0.0], [0.0, -1e-3]], False, "Q: expected a symmetric positive semi-definite matrix"),
+    ([[1.0, 0.0], [0.0, 0.0]], True, "Q: expected a symmetric positive definite matrix"),
+    ([[1.0, 0.0], [0.0, np.nan]], False, "Q: expected finite values"),
+    (np.eye(3), False, r"Q: expected shape \(2, 2\), received shape \(3, 3\)"),
+])
+def test_the_one_covariance_check_names_the_argument(value, definite, message):
+    from kklcasadi.validation import covariance
+
+    with pytest.raises(ValueError, match=message):
+        covariance(value, 2, "Q", definite=definite)
+    assert np.array_equal(covariance([[1.0, 0.0], [0.0, 0.0]], 2, "Q"), np.diag([1.0, 0.0]))   # semi-definite
+    with pytest.raises(ValueError, match="P0: expected a symmetric positive definite matrix"):
+        kc.MHE(kc.systems.get("duffing"), 0.05, P0=np.zeros((2, 2)))

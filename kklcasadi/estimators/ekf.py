@@ -20,7 +20,7 @@ import numpy as np
 from ..observer.codegen import DEFAULT_FLAGS, casadi_source, check_c_name, check_flags, renamed
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
-from ..validation import Text, error, nonnegative_number, one_of, positive_number, state_stds
+from ..validation import Text, covariance, error, nonnegative_number, one_of, positive_number, state_stds
 
 __all__ = ["EKF", "EKFEstimate", "NOISE_FLOOR", "EKF_FORMS"]
 
@@ -68,10 +68,10 @@ class EKF:
         width = system.x0_box[:, 1] - system.x0_box[:, 0]
         self.system = system
         self.dt = dt
-        self.Q = self._matrix(np.eye(nx) * (0.1 * dt) ** 2 if Q is None else Q, (nx, nx), "Q")
-        self.R = self._matrix(0.01 * np.eye(ny) if R is None else R, (ny, ny), "R")
+        self.Q = covariance(np.eye(nx) * (0.1 * dt) ** 2 if Q is None else Q, nx, "Q")
+        self.R = covariance(0.01 * np.eye(ny) if R is None else R, ny, "R")
         self.x0 = system.x0_box.mean(axis=1) if x0 is None else system.check_state(x0, "x0")
-        self.P0 = self._matrix(np.diag(width ** 2 / 12.0) if P0 is None else P0, (nx, nx), "P0")
+        self.P0 = covariance(np.diag(width ** 2 / 12.0) if P0 is None else P0, nx, "P0")
 
         x = ca.SX.sym("x", nx)
         u = ca.SX.sym("u", system.nu)
@@ -157,15 +157,6 @@ class EKF:
         r = max(nonnegative_number(measurement_std, "measurement_std"), NOISE_FLOOR)
         dt = positive_number(dt, "dt")
         return cls(system, dt, Q=np.diag((q * dt) ** 2), R=r ** 2 * np.eye(system.ny), **options)
-
-    @staticmethod
-    def _matrix(value: object, shape: tuple[int, int], arg: str) -> np.ndarray:
-        m = np.atleast_2d(np.asarray(value, dtype=float))
-        if m.shape != shape:
-            raise error(arg, f"shape {shape}", Text(f"shape {m.shape}"))
-        if not np.allclose(m, m.T) or np.min(np.linalg.eigvalsh(m)) < 0:
-            raise error(arg, "a symmetric positive semi-definite matrix", m.tolist())
-        return m
 
     def generate_c(self, out_dir: Union[str, os.PathLike], name: str = "ekf", *, form: str = "sx",
                    overwrite: bool = False, matvec: str = "axpy", math: str = "vector", dispatch: bool = True,

@@ -48,7 +48,7 @@ import numpy as np
 
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
-from ..validation import nonnegative_number, positive_int
+from ..validation import covariance, nonnegative_number, positive_int
 
 __all__ = ["MHE", "KKLPrimedMHE", "MHEEstimate", "MHEStats", "SolveRecord", "kkl_error_profile",
            "solve_compiled", "ipopt_options"]
@@ -253,8 +253,9 @@ class MHE:
         self._rv = max(self.measurement_std, floor)
         box = system.x0_box
         self.x0 = box.mean(axis=1) if x0 is None else system.check_state(x0, "x0")
-        self.P0 = (np.diag((box[:, 1] - box[:, 0]) ** 2 / 12.0) if P0 is None
-                   else _covariance(P0, self.nx, "P0"))
+        if P0 is not None:
+            P0 = covariance(P0, self.nx, "P0", definite=True)
+        self.P0 = np.diag((box[:, 1] - box[:, 0]) ** 2 / 12.0) if P0 is None else 0.5 * (P0 + P0.T)
         self._ipopt = dict(ipopt or {})
 
         x, w = ca.SX.sym("x", self.nx), ca.SX.sym("w", self.nx)
@@ -539,16 +540,6 @@ def kkl_error_profile(observer: Any, protocol: Any, kinds: Sequence[str] = ("zer
 
 
 # ---------------------------------------------------------------------- checks
-def _covariance(value: Any, n: int, argument: str) -> np.ndarray:
-    P = np.atleast_2d(np.asarray(value, dtype=float))
-    if P.shape != (n, n):
-        raise ValueError(f"{argument}: expected shape ({n}, {n}), received {P.shape}.")
-    if not np.allclose(P, P.T) or np.min(np.linalg.eigvalsh(0.5 * (P + P.T))) <= 0:
-        raise ValueError(f"{argument}: expected a symmetric positive definite matrix, received "
-                         f"{P.tolist()}.")
-    return 0.5 * (P + P.T)
-
-
 def _check_run(t: Any, y: Any, u: Any, mhe: MHE) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool]:
     t = np.asarray(t, dtype=float)
     if t.ndim != 1 or t.size < 1:

@@ -41,8 +41,8 @@ from ..plant.simulate import step_function
 from ..plant.systems import System
 from ..validation import (
     Text,
+    covariance,
     error,
-    finite_array,
     finite_number,
     nonnegative_int,
     nonnegative_number,
@@ -153,7 +153,7 @@ class ParticleFilter:
             self.x0_mean = self.x0_cov = None
         else:
             self.x0_mean = system.check_state(x0_mean, "x0_mean")
-            self.x0_cov = _covariance(x0_cov, system.nx, "x0_cov")
+            self.x0_cov = covariance(x0_cov, system.nx, "x0_cov")
         if not isinstance(jit, (bool, np.bool_)):
             raise error("jit", "a bool", Text(type(jit).__name__), kind=TypeError)
         if compile is not None and not callable(compile):
@@ -366,14 +366,3 @@ def _in_place(f: ca.Function, args: list[np.ndarray], results: list[np.ndarray])
             raise RuntimeError(f"evaluating {f.name()!r} failed (status {buffer.ret()})")
 
     return call
-
-
-def _covariance(value: object, nx: int, arg: str) -> np.ndarray:
-    """``value`` as a symmetric positive semi-definite (nx, nx) float array, else raise naming ``arg``."""
-    m = finite_array(np.atleast_2d(np.asarray(value, dtype=float)), arg)
-    if m.shape != (nx, nx):
-        raise error(arg, f"shape {(nx, nx)}", Text(f"shape {m.shape}"))
-    if not np.allclose(m, m.T) or np.min(np.linalg.eigvalsh(m)) < 0:
-        raise error(arg, "a symmetric positive semi-definite matrix", m.tolist())
-    return m
-
