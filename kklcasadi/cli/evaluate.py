@@ -23,6 +23,7 @@ from ..plant.systems import System
 from .flags import (
     NOISE,
     CommandError,
+    add_cache,
     add_dt,
     add_kinds,
     add_noise,
@@ -55,10 +56,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
     e.add_argument("--seed", type=int, default=2026)
     e.add_argument("--out", help="directory for the JSON scores, table and box plots")
-    e.add_argument("--cache-dir", help="root of the trial and compiled-code caches (default: $KKLCASADI_CACHE, "
-                   "else ~/.cache/kklcasadi)")
-    e.add_argument("--no-cache", action="store_true", help="simulate the trials instead of reading/writing the "
-                   "trial cache")
+    add_cache(e)
     e.add_argument("--vm", action="store_true", help="run the observers in the CasADi VM instead of compiled C "
                    "(the reference path; same values, slower)")
     e.add_argument("--math", default="vector", choices=("vector", "libm"),

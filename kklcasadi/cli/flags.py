@@ -42,8 +42,8 @@ from ..plant import systems
 from ..plant.systems import System
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
-           "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_dt",
-           "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "NOISE", "USER_ERRORS"]
+           "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
+           "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "NOISE", "USER_ERRORS"]
 
 #: ``--noise`` choices -> the benchmark's noise columns (False: noise-free).
 NOISE = {"on": (True,), "off": (False,), "both": (False, True)}
@@ -144,6 +144,14 @@ def add_noise(parser: argparse.ArgumentParser) -> None:
 def add_kinds(parser: argparse.ArgumentParser, help: str = "input regimes of the benchmark") -> None:
     parser.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS,
                         help=help)
+
+
+def add_cache(parser: argparse.ArgumentParser) -> None:
+    """``--cache-dir`` and ``--no-cache``: where the trial and compiled-code caches live, or none for the trials."""
+    parser.add_argument("--cache-dir", help="root of the trial and compiled-code caches (default: $KKLCASADI_CACHE, "
+                        "else ~/.cache/kklcasadi)")
+    parser.add_argument("--no-cache", action="store_true", help="simulate the trials instead of reading/writing the "
+                        "trial cache")
 
 
 def add_dt(parser: argparse.ArgumentParser, help: str) -> None:

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..plant import signals as sig
-from .flags import CommandError, add_plant, load, plant_of, positive_float, positive_int
+from .flags import CommandError, add_cache, add_plant, load, plant_of, positive_float, positive_int
 
 #: ``--regimes`` choices: the protocol's ``id`` and ``ood`` ranges, and the held-out families' ranges.
 REGIMES = ("id", "ood", "held_out")
@@ -36,10 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_plant(g, "for models of a plant that kklcasadi does not ship")
     g.add_argument("--seed", type=int, default=2026, help="seed of the trials (docs/protocol.md: 2026)")
     g.add_argument("--out", help="directory for the JSON report and the markdown tables")
-    g.add_argument("--cache-dir", help="root of the trial and compiled-code caches (default: $KKLCASADI_CACHE, "
-                   "else ~/.cache/kklcasadi)")
-    g.add_argument("--no-cache", action="store_true", help="simulate the trials instead of reading/writing the "
-                   "trial cache")
+    add_cache(g)
     g.add_argument("--vm", action="store_true", help="run the observers and the EKF in the CasADi VM instead of "
                    "compiled C")
     g.add_argument("--threads", type=positive_int, help="worker threads over trials (default: the CPU count)")
