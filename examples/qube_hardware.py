@@ -96,11 +96,11 @@ def filtered_difference(t: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return v
 
 
-def command(case: str, out: Path) -> list[str]:
-    """The one command that trains ``case``'s observer into ``out``, as its argument list."""
+def command(case: str, out: Path, plant: Path = HERE / "qube_plant.py") -> list[str]:
+    """The one command that trains ``case``'s observer into ``out``, as its argument list (``plant``: the
+    plant file as the command names it)."""
     flags = [str(part) for flag, value in CHOSEN[case].items() for part in (flag, value)]
-    return ["train", "--plant", f"{HERE / 'qube_plant.py'}:{CASES[case][1]}", "--dt", str(DT), *flags,
-            "--out", str(out)]
+    return ["train", "--plant", f"{plant}:{CASES[case][1]}", "--dt", str(DT), *flags, "--out", str(out)]
 
 
 def train(case: str, out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
@@ -229,7 +229,8 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
         print(text)
         print(f"plot {plot(traces, out / f'qube_{case}.png')}")
         done[case] = (table, text)
-        record[case] = {"command": "kklcasadi " + " ".join(command(case, Path("DIR"))), "train_s": round(seconds),
+        shown = command(case, Path("DIR"), Path("examples/qube/qube_plant.py"))
+        record[case] = {"command": "kklcasadi " + " ".join(shown), "train_s": round(seconds),
                         "budget": {"epochs": epochs, "runs": runs, "horizon": horizon}, "fit_runs": FIT_RUNS,
                         "scored_runs": SCORED_RUNS, "states": STATES, "settle_s": SETTLE,
                         "runs": {str(k): {name: _json(v) for name, v in row.items()} for k, row in table.items()},
