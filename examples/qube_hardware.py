@@ -180,6 +180,23 @@ def markdown(case: str, table: dict) -> str:
     return head + "\n".join(rows)
 
 
+def summary(records: dict) -> str:
+    """The README's table: per case of ``records`` (``{case: the record main writes}``), the mean RMSE over
+    the scored runs of each estimator and the bank's velocities over the EKF's."""
+    head = "| y | estimator | " + " | ".join(STATES) + " |\n" + "|---|---|" + "---|" * len(STATES) + "\n"
+    rows = []
+    for case, record in records.items():
+        means = record["scored_mean"]
+        for j, name in enumerate(ESTIMATORS):
+            label = CASES[case][0].removeprefix("y = ") if j == 0 else ""
+            shown = f"**{name}**" if j == 0 else name
+            cells = ["-" if v is None else f"{v:.{4 if i < 2 else 3}f}" for i, v in enumerate(means[name])]
+            rows.append("| " + " | ".join([label, shown, *cells]) + " |")
+        ratio = [f"{b / e:.2f}x" for b, e in zip(means["KKL (bank)"][2:], means["EKF"][2:])]
+        rows.append("| " + " | ".join(["", "bank / EKF", "", "", *ratio]) + " |")
+    return head + "\n".join(rows)
+
+
 def plot(traces: dict, path: Path) -> Path:
     import matplotlib
 

@@ -259,3 +259,33 @@ def test_the_per_state_figures_are_the_accuracy_records():
     domain = probe("duffing_bank")["domain"]
     reach = np.maximum(np.abs(domain["x_p0.1"]), np.abs(domain["x_p99.9"]))
     assert f"(Duffing: x1 +-{reach[0]:.1f}, x2 +-{reach[1]:.1f}," in text
+
+
+def test_the_real_rig_table_and_commands_are_the_examples_records():
+    """The Qube table of "A real rig" is examples/qube_hardware.py's summary of its records
+    (results/accuracy/qube/hardware_*.json, scored runs only), and the README's training commands are
+    the records' commands."""
+    example = runpy.run_path(str(ROOT / "examples" / "qube_hardware.py"), run_name="qube_hardware")
+    records = {case: json.loads((ROOT / "results" / "accuracy" / "qube" / f"hardware_{case}.json").read_text())[case]
+               for case in example["CASES"]}
+    assert example["summary"](records) in README
+    text = re.sub(r"\s*\\\n\s*", " ", README)
+    for case, record in records.items():
+        assert record["scored_runs"] == list(example["SCORED_RUNS"]) and record["budget"]["runs"] is None
+        assert record["command"].replace("--out DIR", "--out models/qube/" + case) in text
+
+
+def test_the_damped3_table_is_the_evaluate_scores():
+    """The damped 3-state plant's rows (noise on) are results/accuracy/damped3/'s kklcasadi evaluate scores."""
+    for seed, path in (("0", "damped3_scores.json"), ("1", "damped3_seed1_scores.json")):
+        file = ROOT / "results" / "accuracy" / "damped3" / path
+        if not file.exists():
+            continue
+        cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"] for c in json.loads(file.read_text())}
+        method = next(m for m, _, _ in cells if m != "EKF")
+        bank = [cells[method, k, True] for k in KINDS]
+        ekf = [cells["EKF", k, True] for k in KINDS]
+        assert f"| bank (seed {seed}) | " + " | ".join(f"{v:.1f}" for v in bank) + " |" in README
+        assert f"| bank / EKF (seed {seed}) | " + " | ".join(f"{b / e:.2f}x" for b, e in zip(bank, ekf)) + " |" \
+            in README
+        assert "| EKF | " + " | ".join(f"{v:.1f}" for v in ekf) + " |" in README
