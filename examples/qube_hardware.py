@@ -96,15 +96,16 @@ def filtered_difference(t: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return v
 
 
-def command(case: str, out: Path, plant: Path = HERE / "qube_plant.py") -> list[str]:
+def command(case: str, out: Path, plant: Path = HERE / "qube_plant.py", seed: int = 0) -> list[str]:
     """The one command that trains ``case``'s observer into ``out``, as its argument list (``plant``: the
-    plant file as the command names it)."""
+    plant file as the command names it; ``seed``: the command's ``--seed``, shown where it is not 0)."""
     flags = [str(part) for flag, value in CHOSEN[case].items() for part in (flag, value)]
-    return ["train", "--plant", f"{plant}:{CASES[case][1]}", "--dt", str(DT), *flags, "--out", str(out)]
+    seeded = ["--seed", str(seed)] if seed else []
+    return ["train", "--plant", f"{plant}:{CASES[case][1]}", "--dt", str(DT), *flags, *seeded, "--out", str(out)]
 
 
 def train(case: str, out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
-          horizon: Optional[float] = None) -> Path:
+          horizon: Optional[float] = None, seed: int = 0) -> Path:
     """``kklcasadi train`` of :func:`command` in Python: the command's configuration
     (:func:`kklcasadi.cli.train.training_config`), trained as the command trains it; ``epochs``,
     ``runs`` and ``horizon`` (runs' length in units of the plant's time scale) shrink the budget."""
@@ -113,7 +114,7 @@ def train(case: str, out: Path, *, epochs: Optional[int] = None, runs: Optional[
     from kklcasadi.cli.train import RECOMMENDED, training_config
     from kklcasadi.train import train_observer, with_field
 
-    args = build_parser().parse_args(command(case, out / case))
+    args = build_parser().parse_args(command(case, out / case, seed=seed))
     plant = plant_of(args)
     config = training_config(plant, RECOMMENDED, args)
     for name, value in (("n_traj", runs), ("T", horizon)):      # a smaller budget than the recipe's, when asked
@@ -227,7 +228,7 @@ def _json(values: list) -> list:
 
 
 def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None, horizon: Optional[float] = None,
-         cases: tuple[str, ...] = tuple(CASES), results: Optional[Path] = None) -> dict:
+         cases: tuple[str, ...] = tuple(CASES), results: Optional[Path] = None, seed: int = 0) -> dict:
     """Train, estimate, score and plot every case; writes the scores to ``results`` (default
     ``OUT/qube_hardware.json``) and returns ``{case: (table, markdown)}``."""
     out.mkdir(parents=True, exist_ok=True)
@@ -236,9 +237,9 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
     results = out / "qube_hardware.json" if results is None else results
     record, done = {}, {}
     for case in cases:
-        print("kklcasadi " + " ".join(command(case, out / case)), flush=True)
+        print("kklcasadi " + " ".join(command(case, out / case, seed=seed)), flush=True)
         t0 = time.perf_counter()
-        model = train(case, out, epochs=epochs, runs=runs, horizon=horizon)
+        model = train(case, out, epochs=epochs, runs=runs, horizon=horizon, seed=seed)
         seconds = time.perf_counter() - t0
         print(f"{CASES[case][0]}: trained {model} in {seconds:.0f} s")
         table, traces = score(case, model)
@@ -246,7 +247,7 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
         print(text)
         print(f"plot {plot(traces, out / f'qube_{case}.png')}")
         done[case] = (table, text)
-        shown = command(case, Path("DIR"), Path("examples/qube/qube_plant.py"))
+        shown = command(case, Path("DIR"), Path("examples/qube/qube_plant.py"), seed)
         record[case] = {"command": "kklcasadi " + " ".join(shown), "train_s": round(seconds),
                         "budget": {"epochs": epochs, "runs": runs, "horizon": horizon}, "fit_runs": FIT_RUNS,
                         "scored_runs": SCORED_RUNS, "states": STATES, "settle_s": SETTLE,
@@ -267,6 +268,7 @@ if __name__ == "__main__":
     parser.add_argument("--horizon", type=float, help="length of each training run in units of the plant's time "
                         "scale (default: the recipe's 60)")
     parser.add_argument("--cases", nargs="+", choices=tuple(CASES), default=list(CASES))
+    parser.add_argument("--seed", type=int, default=0, help="the train command's --seed")
     args = parser.parse_args()
     main(args.out, epochs=args.epochs, runs=args.runs, horizon=args.horizon, cases=tuple(args.cases),
-         results=args.results)
+         results=args.results, seed=args.seed)
