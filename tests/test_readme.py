@@ -263,16 +263,25 @@ def test_the_per_state_figures_are_the_accuracy_records():
 
 def test_the_real_rig_table_and_commands_are_the_examples_records():
     """The Qube table of "A real rig" is examples/qube_hardware.py's summary of its records
-    (results/accuracy/qube/hardware_*.json, scored runs only), and the README's training commands are
-    the records' commands."""
+    (results/accuracy/qube/hardware_*.json, scored runs only), the README's training commands are the
+    records' commands, and the second seed's ratios are its records' (hardware_seed1_*.json)."""
     example = runpy.run_path(str(ROOT / "examples" / "qube_hardware.py"), run_name="qube_hardware")
-    records = {case: json.loads((ROOT / "results" / "accuracy" / "qube" / f"hardware_{case}.json").read_text())[case]
-               for case in example["CASES"]}
-    assert example["summary"](records) in README
-    text = re.sub(r"\s*\\\n\s*", " ", README)
-    for case, record in records.items():
+
+    def records(prefix):
+        folder = ROOT / "results" / "accuracy" / "qube"
+        return {case: json.loads((folder / f"{prefix}_{case}.json").read_text())[case] for case in example["CASES"]}
+
+    first = records("hardware")
+    assert example["summary"](first) in README
+    commands = re.sub(r"\s*\\\n\s*", " ", README)
+    for case, record in first.items():
         assert record["scored_runs"] == list(example["SCORED_RUNS"]) and record["budget"]["runs"] is None
-        assert record["command"].replace("--out DIR", "--out models/qube/" + case) in text
+        assert record["command"].replace("--out DIR", "--out models/qube/" + case) in commands
+    ratio = {case: [b / e for b, e in zip(r["scored_mean"]["KKL (bank)"][2:], r["scored_mean"]["EKF"][2:])]
+             for case, r in records("hardware_seed1").items()}
+    assert ("at {:.2f}x / {:.2f}x the EKF with both encoders and {:.2f}x / {:.2f}x with the pendulum's alone"
+            .format(*ratio["theta_alpha"], *ratio["alpha"])) in re.sub(r"\s+", " ", README)
+    assert max(max(ratio["theta_alpha"]), max(ratio["alpha"])) < 2.0                  # issue 17's target
 
 
 def test_the_damped3_table_is_the_evaluate_scores():
