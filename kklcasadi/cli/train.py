@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from ..model import variants
 from ..plant import systems
@@ -19,6 +20,7 @@ from .flags import (
     flagged,
     needs_torch,
     plant_of,
+    positive_float,
     positive_int,
 )
 
@@ -30,6 +32,7 @@ RECOMMENDED = "bank"
 #: (:func:`kklcasadi.train.config.config_field`).
 _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measurement_std),
                  "--process-std": ("process_std", lambda a: a.process_std),
+                 "--box-scale": ("box_scale", lambda a: a.box_scale),
                  "--width": ("width", lambda a: a.width),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
 
@@ -46,6 +49,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--base", help="Phase-1 model (default OUT/../autonomous for Phase-2 methods)")
     add_noise_levels(t, "the noise of the training data the observer is fit for, where the method uses it "
                      "(autonomous: measurement_std of its decoder; bank: its noisy runs); recorded in the card")
+    t.add_argument("--box-scale", type=positive_float, metavar="FACTOR",
+                   help="draw the training runs' initial states from the X0 box scaled by FACTOR about its centre "
+                   "(bank: its runs; autonomous: its Phase-1 data; default 1, the whole box). Below 1 where the "
+                   "box bounds whole trajectories rather than their starts (the Qube: 0.5)")
     t.add_argument("--width", type=positive_int, help="autonomous: hidden width of T and T* (default 150; the "
                    "paper uses 350 for rossler and fhn)")
     t.add_argument("--on-inject", action="store_true",
@@ -68,12 +75,29 @@ def _takers(name: str, plant: str) -> list[str]:
             and has_field(default_config(plant, v.name), name)]
 
 
+def training_config(plant: systems.System, method: str, args: argparse.Namespace) -> Any:
+    """The configuration ``kklcasadi train`` trains ``method`` of ``plant`` with: the method's default for
+    the plant with the fields of :data:`_CONFIG_FLAGS` the flags in ``args`` set (None: a method without
+    a configuration). A flag the method's configuration has no field for is a :class:`CommandError`."""
+    from ..train import default_config, has_field, with_field
+
+    config = None if variants.get(method).config_class() is None else default_config(plant.name, method)
+    for flag, (name, value) in _CONFIG_FLAGS.items():
+        if value(args) is None:
+            continue
+        if config is None or not has_field(config, name):
+            raise CommandError(f"{flag}: only --method {' or '.join(_takers(name, plant.name))} takes it, "
+                               f"received --method {method}")
+        config = flagged(flag, with_field, config, name, value(args))
+    return config
+
+
 def run(args: argparse.Namespace) -> int:
     if (args.plant is None) == (args.system is None):
         raise CommandError("--system/--plant: give exactly one: a shipped system name or your plant FILE.py:NAME")
     plant = plant_of(args) or systems.get(args.system)
     needs_torch("kklcasadi train")
-    from ..train import default_config, has_field, train_observer, with_field
+    from ..train import train_observer
 
     out = Path(args.out)
     if (out / "card.json").exists() and not (args.overwrite or args.resume):
@@ -81,15 +105,7 @@ def run(args: argparse.Namespace) -> int:
     method = args.method or RECOMMENDED
     if args.method is None and not args.quiet:
         print(f"method: {RECOMMENDED} (the observer for a new plant; --method chooses another)", flush=True)
-    variant = variants.get(method)
-    config = None if variant.config_class() is None else default_config(plant.name, method)
-    for flag, (name, value) in _CONFIG_FLAGS.items():
-        if value(args) is None:
-            continue
-        if config is None or not has_field(config, name):
-            raise CommandError(f"{flag}: only --method {' or '.join(_takers(name, plant.name))} takes it, "
-                               f"received --method {method}")
-        config = with_field(config, name, value(args))
+    config = training_config(plant, method, args)
     path = flagged("--" + method, train_observer, plant, method, out, config=config, base=args.base,
                    dt=0.05 if args.dt is None else args.dt, seed=args.seed, device=args.device, resume=args.resume,
                    overwrite=args.overwrite, progress=not args.quiet, threads=args.threads, epochs=args.epochs)
