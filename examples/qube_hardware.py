@@ -261,7 +261,8 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("models/qube"))
+    parser.add_argument("--out", type=Path, default=Path("runs/qube"),
+                        help="where the models go (default: runs/qube, ignored by git)")
     parser.add_argument("--results", type=Path, help="the scores' JSON file (default OUT/qube_hardware.json)")
     parser.add_argument("--epochs", type=int, help="decoder epochs (default: the recipe's)")
     parser.add_argument("--runs", type=int, help="training runs of the bank (default: the recipe's)")

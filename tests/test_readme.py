@@ -276,7 +276,7 @@ def test_the_real_rig_table_and_commands_are_the_examples_records():
     commands = re.sub(r"\s*\\\n\s*", " ", README)
     for case, record in first.items():
         assert record["scored_runs"] == list(example["SCORED_RUNS"]) and record["budget"]["runs"] is None
-        assert record["command"].replace("--out DIR", "--out models/qube/" + case) in commands
+        assert record["command"].replace("--out DIR", "--out runs/qube/" + case) in commands
     ratio = {case: [b / e for b, e in zip(r["scored_mean"]["KKL (bank)"][2:], r["scored_mean"]["EKF"][2:])]
              for case, r in records("hardware_seed1").items()}
     assert ("at {:.2f}x / {:.2f}x the EKF with both encoders and {:.2f}x / {:.2f}x with the pendulum's alone"
