@@ -259,3 +259,25 @@ def test_the_per_state_figures_are_the_accuracy_records():
     domain = probe("duffing_bank")["domain"]
     reach = np.maximum(np.abs(domain["x_p0.1"]), np.abs(domain["x_p99.9"]))
     assert f"(Duffing: x1 +-{reach[0]:.1f}, x2 +-{reach[1]:.1f}," in text
+
+
+def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_banks(capsys):
+    """benchmarks/summarize_generalisation.py on results/generalisation prints the tables of
+    "Generalisation", verbatim; the reports are those of the shipped banks (their cards' fit_families)
+    and of the other recipe's bank on the same trials (the EKF's per-trial scores agree)."""
+    runpy.run_path(str(ROOT / "benchmarks" / "summarize_generalisation.py"), run_name="__main__")
+    blocks = capsys.readouterr().out.strip().split("\n\n")
+    assert len(blocks) == 2 + 2 * len(SYSTEMS)
+    for block in blocks:
+        assert "\n" + block + "\n" in README, block
+    root = ROOT / "results" / "generalisation"
+    for system in SYSTEMS:
+        shipped = json.loads((root / f"{system}_generalisation.json").read_text())
+        card = json.loads((ROOT / "models" / system / "bank" / "card.json").read_text())
+        assert shipped["models"]["bank"]["fit_families"] == card["fit_families"], system
+        assert (shipped["settings"]["seed"], shipped["settings"]["n_trials"]) == (2026, 100)
+        other = [p for p in root.glob(f"{system}_generalisation_*_fit.json")]
+        assert len(other) == 1, other
+        other = json.loads(other[0].read_text())
+        assert other["models"]["bank"]["fit_families"] != card["fit_families"]
+        assert [c["ekf"]["smape"] for c in other["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
