@@ -1,11 +1,12 @@
 """Print the README's generalisation tables from results/generalisation/.
 
 Usage: python benchmarks/summarize_generalisation.py
-(after ``kklcasadi generalise models/<system>/bank --out results/generalisation`` per system). Beside
-each shipped bank's ``<system>_generalisation.json``, the other recipe's bank on the same trials (the
-leave-family-out comparison): ``<system>_generalisation_benchmark_fit.json``, the bank fit on the
-benchmark's four families in the ``train`` ranges only, where the shipped one is the broad recipe;
-``<system>_generalisation_broad_fit.json``, the broad recipe's bank, where that was not shipped.
+(after ``kklcasadi generalise models/<system>/bank --pf 1000 --out results/generalisation`` per
+system). Beside each shipped bank's ``<system>_generalisation.json``, the other recipe's bank on the
+same trials (the leave-family-out comparison): ``<system>_generalisation_benchmark_fit.json``, the
+bank fit on the benchmark's four families in the ``train`` ranges only, where the shipped one is the
+broad recipe; ``<system>_generalisation_broad_fit.json``, the broad recipe's bank, where that was not
+shipped.
 
 Per system, one table: for each case (family and regime) what the shipped bank's card says it was fit
 on, the EKF's mean SMAPE at noise 0.1, the ratio bank / EKF of the mean SMAPE at noise 0.05, 0.1 and

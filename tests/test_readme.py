@@ -281,6 +281,7 @@ def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_bank
         other = json.loads(other[0].read_text())
         assert other["models"]["bank"]["fit_families"] != card["fit_families"]
         assert [c["ekf"]["smape"] for c in other["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
+        assert shipped["pf_particles"] == other["pf_particles"] == 1000             # "also holds the particle filter"
 
 
 def test_the_generalisation_text_follows_from_the_reports():
