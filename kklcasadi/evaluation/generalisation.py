@@ -37,8 +37,8 @@ from .protocol import Protocol
 from .trialcache import TrialCache
 
 __all__ = ["Case", "FamilyCell", "Settings", "ModelResult", "Report", "cases", "fit_families", "category",
-           "output_range", "run", "MonitoredObserver", "NOISE_LEVELS", "FAMILY_STREAMS", "CATEGORIES", "BAD_RATIO",
-           "FLAG_SHARE", "PF_SUBSTEPS"]
+           "output_range", "families_text", "run", "MonitoredObserver", "NOISE_LEVELS", "FAMILY_STREAMS",
+           "CATEGORIES", "BAD_RATIO", "FLAG_SHARE", "PF_SUBSTEPS"]
 
 #: Noise levels of the benchmark: process and measurement noise std (docs/protocol.md: 0.1).
 NOISE_LEVELS = (0.05, 0.1, 0.2)
@@ -319,7 +319,7 @@ class Report:
             head = ["family", "regime", "noise", "vs fit", "trials", model.label, "EKF"] + (["PF"] if pf else []) + \
                 [f"{model.label} / EKF"] + ([f"{model.label} / PF"] if pf else []) + \
                 ["bad trials", "flagged trials", f"flagged samples after {self.settings.t_settle:g} s"]
-            lines = [f"**{self.system}, {model.label}** (fit on: {_families_text(model.fit_families)}; "
+            lines = [f"**{self.system}, {model.label}** (fit on: {families_text(model.fit_families)}; "
                      f"noise std {model.fit_noise:g})", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
             for i, case in enumerate(self.cases):
                 m, e = model.smape[i].mean(), self.ekf[i].mean()
@@ -416,7 +416,8 @@ def _plain(families: Optional[dict]) -> Optional[dict]:
     return None if families is None else {k: {p: list(b) for p, b in v.items()} for k, v in families.items()}
 
 
-def _families_text(families: Optional[dict]) -> str:
+def families_text(families: Optional[Mapping[str, Mapping[str, Sequence[float]]]]) -> str:
+    """``zero, constant (value -1..1), ...``: input families with their ranges (:func:`fit_families`)."""
     if families is None:
         return "not recorded"
     return ", ".join(k + ("" if not v else " (" + ", ".join(f"{p} {lo:g}..{hi:g}" for p, (lo, hi) in v.items()) + ")")
