@@ -411,3 +411,21 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"{g['vdp', 'shipped']:.2f}) and FitzHugh-Nagumo ({g['fhn', 'broad']:.2f} against "
             f"{g['fhn', 'shipped']:.2f}), "
             f"benchmark-fit on Roessler ({g['rossler', 'shipped']:.2f} against {g['rossler', 'broad']:.2f}:" in text)
+
+
+def test_the_protocol_timing_is_the_benchmarks_output():
+    """"The benchmark protocol in minutes": the walls, CPU seconds and per-trial costs quoted are
+    results/bench/protocol_duffing.md's (kklcasadi bench protocol --system duffing), and meet the
+    targets they are quoted against."""
+    out = (ROOT / "results" / "bench" / "protocol_duffing.md").read_text()
+    text = re.sub(r"\s+", " ", README)
+    for run, target in (("warm", 120.0), ("cold", 180.0)):
+        wall, cpu = re.search(rf"- {run} caches \(.*?\): ([\d.]+) s wall, ([\d.]+) s CPU", out).groups()
+        assert float(wall) < target
+        assert f"| **{run} caches** " in README and f"| **{wall} s** (target {target:.0f} s) | {cpu} s |" in README
+    rows = {line.split(" | ")[0].strip("| "): line.split(" | ") for line in out.splitlines() if line.startswith("| ")}
+    for method in ("autonomous", "inject", "obs", "obs-inject", "dyn", "curriculum", "bank", "obs_stream"):
+        cpu, plain = rows[method][3].split(" / ")[1], rows[method][4]
+        assert f"{method} {cpu}" in text and f"({plain})" in text, method
+    methods = ("autonomous", "inject", "obs", "obs-inject", "dyn", "curriculum", "bank", "obs_stream", "EKF")
+    assert max(float(rows[m][8].strip(" |")) for m in methods) <= 1.3e-15         # "within 1.3e-15 of the VM"
