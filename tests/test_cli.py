@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import casadi as ca
+import numpy as np
 import pytest
 
 from kklcasadi.cli import main
@@ -203,6 +204,27 @@ def escaping(tmp_path, model_dir_factory):
     path.write_text(ESCAPING)
     plant = __import__("kklcasadi").systems.load_plant(f"{path}:make_plant")
     return f"{path}:make_plant", model_dir_factory("autonomous", system=plant)
+
+
+def test_demo_runs_with_the_cards_process_noise_per_state(model_dir_factory, tmp_path, capsys):
+    """A card recording one process-noise std per state (a bank trained with ``process_on="forced"``):
+    the demo's run and its EKF use them, and the line prints them."""
+    from kklcasadi import metrics
+    from kklcasadi.estimators.ekf import EKF
+    from kklcasadi.observer.kkl import load_observer
+    from kklcasadi.plant import signals
+    from kklcasadi.plant.simulate import simulate
+
+    model = model_dir_factory("bank", card_extra={"noise": {"measurement_std": 0.05, "process_std": [0.0, 0.3]}})
+    assert main(["demo", "--model", str(model), "--T", "4", "--seed", "2", "--out", str(tmp_path / "d.png")]) == 0
+    out = capsys.readouterr().out
+    assert "noise std process (0, 0.3), measurement 0.05 (the EKF's too)" in out, out
+    obs = load_observer(model)
+    tr = simulate(obs.system, obs.system.sample_box(1, 2)[0], signals.make("square", amplitude=[0.8], omega=1.0),
+                  T=4.0, dt=obs.dt, process_std=[0.0, 0.3], measurement_std=0.05, seed=2)
+    ekf = EKF.for_noise(obs.system, obs.dt, process_std=[0.0, 0.3], measurement_std=0.05)
+    assert np.allclose(np.diag(ekf.Q), (np.maximum([0.0, 0.3], 1e-6) * obs.dt) ** 2)
+    assert f"EKF {metrics.smape(tr.x, ekf.simulate(tr.t, tr.y, tr.u).xhat):6.2f} %" in out, out
 
 
 def test_demo_of_a_plant_that_escapes_is_one_line(escaping, tmp_path):

@@ -17,6 +17,7 @@ from .flags import (
     add_dt,
     add_noise_levels,
     add_plant,
+    levels_text,
     load,
     model_label,
     nonnegative_float,
@@ -98,8 +99,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"model    {model_label(model)}  ({obs.method}, system {plant.name}, nz {obs.nz}, window {obs.window}, "
           f"dt {obs.dt:g} s)")
     print(f"input    {args.input} (amplitude {args.amplitude}, omega {args.omega} rad/s), noise std process "
-          f"{process_std:g}, measurement {measurement_std:g} (the EKF's too), x0 {np.round(x0, 3).tolist()}, "
-          f"T {args.T} s")
+          f"{levels_text(process_std)}, measurement {measurement_std:g} (the EKF's too), "
+          f"x0 {np.round(x0, 3).tolist()}, T {args.T} s")
     print(f"SMAPE    KKL ({obs.method}) {metrics.smape(tr.x, est.xhat):6.2f} %   EKF {metrics.smape(tr.x, ekf):6.2f} %")
     settle = min(5.0, round(tr.t[-1] / 2, 2))
     print(f"RMSE t>{settle:g} KKL ({obs.method}) {metrics.rmse_after(tr.t, tr.x, est.xhat, settle):6.3f}     "

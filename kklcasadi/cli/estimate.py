@@ -18,6 +18,7 @@ from .flags import (
     add_noise_levels,
     add_plant,
     flagged,
+    levels_text,
     load,
     model_label,
     nonnegative_float,
@@ -67,8 +68,6 @@ def _check_count(flag: str, names: tuple, expected: int, what: str, allow_empty:
 
 def run(args: argparse.Namespace) -> int:
     """Estimate the log's states; write EST.csv; print the grid, the domain monitor and the scores."""
-    import numpy as np
-
     from ..evaluation.logged import ekf_for_model, estimate_log, read_plant_log
 
     obs = load(args.model, plant_of(args), "MODEL")
@@ -97,9 +96,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"domain   {int(result.in_domain.sum())} of {log.t.size} estimates in the domain the maps were "
               "trained on")
     if args.ekf:
-        q = levels[0]
-        print(f"EKF      Q = ({q:g} dt)^2 I, R = {levels[1]:g}^2 I" if np.ndim(q) == 0 else
-              f"EKF      Q = diag({', '.join(f'{v:g}' for v in q)})^2 dt^2, R = {levels[1]:g}^2 I")
+        q = levels_text(levels[0])
+        print(f"EKF      Q = ({q} dt)^2 I, R = {levels[1]:g}^2 I" if "(" not in q else
+              f"EKF      Q = diag({q[1:-1]})^2 dt^2, R = {levels[1]:g}^2 I")
     if columns:
         print(result.table(args.state_names))
     path = flagged("--out", result.write, args.out, state_names=args.state_names)

@@ -44,7 +44,8 @@ from ..plant.systems import System
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
            "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
-           "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "NOISE", "USER_ERRORS"]
+           "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "NOISE",
+           "USER_ERRORS"]
 
 #: ``--noise`` choices -> the benchmark's noise columns (False: noise-free).
 NOISE = {"on": (True,), "off": (False,), "both": (False, True)}
@@ -145,6 +146,13 @@ def add_noise(parser: argparse.ArgumentParser) -> None:
 def add_kinds(parser: argparse.ArgumentParser, help: str = "input regimes of the benchmark") -> None:
     parser.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS,
                         help=help)
+
+
+def levels_text(value: Any) -> str:
+    """A noise level for printing: ``0.1`` for one std, ``(0, 0, 16, 16)`` for one per state."""
+    if isinstance(value, (int, float)) or getattr(value, "ndim", 1) == 0:
+        return f"{float(value):g}"
+    return "(" + ", ".join(f"{float(v):g}" for v in value) + ")"
 
 
 def add_cache(parser: argparse.ArgumentParser) -> None:
