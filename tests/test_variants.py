@@ -105,3 +105,17 @@ def test_a_new_variant_is_one_class_and_one_registration(model_dir_factory, monk
                                rtol=0, atol=1e-14)
     with pytest.raises(ValueError, match="gain/K.*missing"):
         save_model(tmp_path / "bad", dict(base.arrays), card)
+
+
+@pytest.mark.parametrize("method", variants.names())
+def test_input_free_variants_are_those_whose_step_never_reads_u(model_dir_factory, method):
+    """``Variant.input_free`` (the benchmark's hand-written dense C step is written for them) holds
+    exactly where the observer's latent and estimate do not depend on the input, structurally:
+    neither on ``u`` nor on the memory it keeps of the inputs."""
+    obs = kc.load_observer(model_dir_factory(method, base=method == "inject"))
+    z, w = ca.MX.sym("z", obs.nz), ca.MX.sym("w", *obs.memory_shape)
+    y, y_next, u = ca.MX.sym("y", obs.ny), ca.MX.sym("y1", obs.ny), ca.MX.sym("u", obs.nu)
+    z_next, _, xhat_next = obs.step(z, w, y, y_next, u)
+    outputs = ca.vertcat(z_next, xhat_next, obs.decode(z, w))
+    reads_u = ca.jacobian(outputs, ca.vertcat(u, ca.vec(w))).nnz() > 0
+    assert obs.variant.input_free == (not reads_u)

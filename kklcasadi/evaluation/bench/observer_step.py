@@ -186,7 +186,7 @@ def _decoder_layers(arrays: Any) -> list[tuple[np.ndarray, np.ndarray]]:
 def _hand_written(observer: KKLObserver, build: Path, math: str) -> Optional[tuple[Path, Path]]:
     """Write the hand-written dense C step of a linear observer with a tanh decoder (None for
     other observers)."""
-    if (observer.method not in ("autonomous", "curriculum") or observer.foh_matrices is None
+    if (not observer.variant.input_free or observer.foh_matrices is None
             or observer.model.spec.architecture.decoder.activation != "tanh"):
         return None
     layers = _decoder_layers(observer.model.arrays)

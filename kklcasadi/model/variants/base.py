@@ -182,6 +182,10 @@ class Variant:
     certified : bool
         Whether Proposition 1 of the paper applies: an encoder T and the input-window convention
         (:func:`kklcasadi.evaluation.certificate.certificate`).
+    input_free : bool
+        Whether the observer never reads ``u``: the latent is ``zdot = A z + B y`` and the estimate
+        ``T*(z)`` (the autonomous observer and the curriculum baseline; the benchmark's
+        hand-written dense C step is written for them).
     """
 
     name: ClassVar[str]
@@ -197,6 +201,7 @@ class Variant:
     torch_parts: ClassVar[Optional[str]] = None
     modulated: ClassVar[bool] = False
     certified: ClassVar[bool] = True
+    input_free: ClassVar[bool] = False
 
     def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> Any:
         """The typed spec of a card whose common fields are valid.
