@@ -65,6 +65,9 @@ _ROUNDS = 5
 #: Length of one timed run when ``n_calls`` is not given: short, so that on a loaded machine some
 #: runs of every implementation fall between interruptions.
 _RUN_SECONDS = 0.002
+#: The timing loop of a CasADi-style ``NAME_step``: ``__DECLS__`` its buffers, ``__INIT__`` their
+#: values and ``arg``/``res``, ``__FEEDBACK__`` the copies of outputs back to inputs after each step,
+#: ``__STATE__`` the buffer summed into the checksum (:func:`loop_source`).
 _LOOP = r"""#define _POSIX_C_SOURCE 199309L
 #include <stdio.h>
 #include <stdlib.h>
@@ -73,11 +76,9 @@ _LOOP = r"""#define _POSIX_C_SOURCE 199309L
 
 #include "__NAME__.h"
 
-static casadi_real z[__MACRO___NZ], z_next[__MACRO___NZ];
-static casadi_real win[__MACRO___NW], win_next[__MACRO___NW];
-static casadi_real y[__MACRO___NY], y_next[__MACRO___NY], u_next[__MACRO___NU], xhat[__MACRO___NX];
-static const casadi_real* arg[__MACRO___SZ_ARG];
-static casadi_real* res[__MACRO___SZ_RES];
+__DECLS__
+static const casadi_real* arg[__MACRO___SZ_ARG + 1];
+static casadi_real* res[__MACRO___SZ_RES + 1];
 static casadi_int iw[__MACRO___SZ_IW + 1];
 static casadi_real work[__MACRO___SZ_W + 1];
 
@@ -86,18 +87,13 @@ int main(int argc, char** argv) {
   long i, r, n = argc > 1 ? atol(argv[1]) : 1000, runs = argc > 2 ? atol(argv[2]) : 1;
   struct timespec t0, t1;
   double checksum = 0, best = -1, seconds;
-  for (i = 0; i < __MACRO___NW; i++) win[i] = 0.3 * ((i % 7) - 3) / 3.0;
-  for (i = 0; i < __MACRO___NY; i++) { y[i] = 0.2; y_next[i] = 0.25; }
-  for (i = 0; i < __MACRO___NU; i++) u_next[i] = -0.4;
-  arg[0] = z; arg[1] = win; arg[2] = y; arg[3] = y_next; arg[4] = u_next;
-  res[0] = z_next; res[1] = win_next; res[2] = xhat;
+__INIT__
   for (r = 0; r < runs; r++) {
     clock_gettime(CLOCK_MONOTONIC, &t0);
     for (i = 0; i < n; i++) {
       if (__NAME___step(arg, res, iw, work, 0)) return 1;
-      memcpy(z, z_next, sizeof z);
-      memcpy(win, win_next, sizeof win);
-      checksum += xhat[0];
+__FEEDBACK__
+      checksum += __STATE__[0];
     }
     clock_gettime(CLOCK_MONOTONIC, &t1);
     seconds = ((t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec)) / n;
@@ -107,6 +103,28 @@ int main(int argc, char** argv) {
   return 0;
 }
 """
+#: The observer step's buffers: ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat)``, the latent and
+#: the window fed back.
+_OBSERVER_DECLS = ("static casadi_real z[__MACRO___NZ], z_next[__MACRO___NZ];",
+                   "static casadi_real win[__MACRO___NW], win_next[__MACRO___NW];",
+                   "static casadi_real y[__MACRO___NY], y_next[__MACRO___NY], u_next[__MACRO___NU],",
+                   "                   xhat[__MACRO___NX];")
+_OBSERVER_INIT = ("  for (i = 0; i < __MACRO___NW; i++) win[i] = 0.3 * ((i % 7) - 3) / 3.0;",
+                  "  for (i = 0; i < __MACRO___NY; i++) { y[i] = 0.2; y_next[i] = 0.25; }",
+                  "  for (i = 0; i < __MACRO___NU; i++) u_next[i] = -0.4;",
+                  "  arg[0] = z; arg[1] = win; arg[2] = y; arg[3] = y_next; arg[4] = u_next;",
+                  "  res[0] = z_next; res[1] = win_next; res[2] = xhat;")
+_OBSERVER_FEEDBACK = ("      memcpy(z, z_next, sizeof z);", "      memcpy(win, win_next, sizeof win);")
+
+
+def loop_source(name: str, decls: Sequence[str] = _OBSERVER_DECLS, init: Sequence[str] = _OBSERVER_INIT,
+                feedback: Sequence[str] = _OBSERVER_FEEDBACK, state: str = "xhat") -> str:
+    """The C timing loop (:data:`_LOOP`) of ``name_step`` with these buffers; the defaults time an
+    observer step (``name.h`` defines ``NAME_NZ``, ``NAME_NW``, ``NAME_NY``, ``NAME_NU``, ``NAME_NX``)."""
+    return (_LOOP.replace("__DECLS__", "\n".join(decls)).replace("__INIT__", "\n".join(init))
+            .replace("__FEEDBACK__", "\n".join(feedback)).replace("__STATE__", state)
+            .replace("__NAME__", name).replace("__MACRO__", name.upper()))
+
 
 # The hand-written limit for the linear observers: z_next = Ad z + Gy y + Gy_next y_next, the
 # window shifted by one, xhat = decoder(z_next); dense layers in column (axpy) order.
@@ -224,7 +242,7 @@ def _hand_written(observer: KKLObserver, build: Path, math: str) -> Optional[tup
     (build / f"{name}.h").write_text(header)
     (build / f"{name}.c").write_text(source_code)
     loop = build / f"{name}_loop.c"
-    loop.write_text(_LOOP.replace("__NAME__", name).replace("__MACRO__", macro))
+    loop.write_text(loop_source(name))
     return build / f"{name}.c", loop
 
 
@@ -443,8 +461,7 @@ def _bench_c(obs: KKLObserver, build: Path, gcc: str, valgrind: Optional[str],
     for key, options in variants.items():
         folder = build / key
         files[key] = generate_c(obs, folder, _NAME, **options)
-        (folder / "loop.c").write_text(_LOOP.replace("__NAME__", _NAME)
-                                       .replace("__MACRO__", _NAME.upper()))
+        (folder / "loop.c").write_text(loop_source(_NAME))
     library = build / f"lib{_NAME}.so"
     timings.append(Timing(f"gcc {flag_text} compile (shared library)",
                           _compile(gcc, files["default"][:1], library, flags, "-fPIC",

@@ -39,7 +39,7 @@ from ...plant import signals as sig
 from ...plant.simulate import simulate_batch
 from ...plant.systems import System
 from ...validation import error, positive_int
-from .observer_step import _callgrind, _compile, _run_loop
+from .observer_step import _callgrind, _compile, _run_loop, loop_source
 
 __all__ = ["oscillator_chain", "ScalingRow", "ScalingResult", "bench_scaling", "EKF_FLAGS"]
 
@@ -49,42 +49,6 @@ __all__ = ["oscillator_chain", "ScalingRow", "ScalingResult", "bench_scaling", "
 EKF_FLAGS = ("-std=c99", "-O1")
 #: Length of one timed C run (short, so that on a loaded machine some runs fall between interruptions).
 _RUN_SECONDS = 0.002
-
-_LOOP = r"""#define _POSIX_C_SOURCE 199309L
-#include <stdio.h>
-#include <stdlib.h>
-#include <string.h>
-#include <time.h>
-
-#include "__NAME__.h"
-
-__DECLS__
-static const casadi_real* arg[__MACRO___SZ_ARG + 1];
-static casadi_real* res[__MACRO___SZ_RES + 1];
-static casadi_int iw[__MACRO___SZ_IW + 1];
-static casadi_real work[__MACRO___SZ_W + 1];
-
-/* Usage: loop STEPS RUNS. Prints the fastest run's seconds per step and a checksum. */
-int main(int argc, char** argv) {
-  long i, r, n = argc > 1 ? atol(argv[1]) : 1000, runs = argc > 2 ? atol(argv[2]) : 1;
-  struct timespec t0, t1;
-  double checksum = 0, best = -1, seconds;
-__INIT__
-  for (r = 0; r < runs; r++) {
-    clock_gettime(CLOCK_MONOTONIC, &t0);
-    for (i = 0; i < n; i++) {
-      if (__NAME___step(arg, res, iw, work, 0)) return 1;
-__FEEDBACK__
-      checksum += __STATE__[0];
-    }
-    clock_gettime(CLOCK_MONOTONIC, &t1);
-    seconds = ((t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec)) / n;
-    if (best < 0 || seconds < best) best = seconds;
-  }
-  printf("%.9e %.17g\n", best, checksum);
-  return 0;
-}
-"""
 
 
 def oscillator_chain(n: int, *, coupling: float = 1.0, damping: float = 0.1, cubic: float = 1.0,
@@ -262,7 +226,6 @@ def _loop_source(name: str, inputs: Sequence[int], outputs: Sequence[int], feedb
                  start: Optional[int]) -> str:
     """A timing loop of ``name_step``: inputs filled with small values (or input 0 from ``name_start``
     of a zero ``y``, of size ``start``), the outputs in ``feedback`` copied back to their inputs."""
-    macro = name.upper()
     decls = [f"static casadi_real a{i}[{n}];" for i, n in enumerate(inputs)]
     decls += [f"static casadi_real r{j}[{n}];" for j, n in enumerate(outputs)]
     init = [f"  for (i = 0; i < {n}; i++) a{k}[i] = 0.1 * ((i % 5) - 2) / 2.0;" for k, n in enumerate(inputs)]
@@ -271,9 +234,7 @@ def _loop_source(name: str, inputs: Sequence[int], outputs: Sequence[int], feedb
         init += ["  arg[0] = y0; res[0] = a0;", f"  if ({name}_start(arg, res, iw, work, 0)) return 1;"]
     init += [f"  arg[{k}] = a{k};" for k in range(len(inputs))] + [f"  res[{j}] = r{j};" for j in range(len(outputs))]
     back = [f"      memcpy(a{k}, r{j}, sizeof a{k});" for j, k in feedback]
-    return (_LOOP.replace("__DECLS__", "\n".join(decls)).replace("__INIT__", "\n".join(init))
-            .replace("__FEEDBACK__", "\n".join(back)).replace("__STATE__", "a0").replace("__NAME__", name)
-            .replace("__MACRO__", macro))
+    return loop_source(name, decls, init, back, "a0")
 
 
 @dataclass(frozen=True)
