@@ -22,7 +22,7 @@ from kklcasadi.train.operational import DecoderConfig, RolloutConfig  # noqa: E4
 
 @pytest.fixture(scope="module")
 def bank_dir(tmp_path_factory):
-    config = replace(default_config("rossler", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,),
+    config = replace(default_config("rossler", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=1,
                      rollouts=RolloutConfig(n_traj=8, T=4.0),
                      decoder=DecoderConfig(hidden=(8, 8), asinh_scale=(0.0, 0.0, 0.01),
                                            loop=LoopConfig(epochs=2, batch_size=64, schedule="cosine")))
@@ -147,3 +147,138 @@ def test_a_single_process_std_acts_where_process_on_says():
         process_stds(arm, BankConfig(process_std=(0.1, 0.2)))
     with pytest.raises(ValueError, match="process_on"):
         BankConfig(process_on="some")
+
+
+# ---------------------------------------------------------------------- decoder ensembles
+@pytest.fixture(scope="module")
+def ensemble_dir(tmp_path_factory):
+    config = replace(default_config("duffing", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=2,
+                     rollouts=RolloutConfig(n_traj=8, T=6.0),
+                     decoder=DecoderConfig(hidden=(8, 8), loop=LoopConfig(epochs=2, batch_size=64)))
+    return train_observer("duffing", "bank", tmp_path_factory.mktemp("ensemble") / "bank", config=config,
+                          seed=5, progress=False)
+
+
+def _arrays(directory):
+    model = load_model(directory)
+    return model, {**model.arrays, "bank/A": model.A, "bank/By": model.B}, model.card["architecture"]["decoder"]
+
+
+def test_an_ensemble_card_records_its_members_and_the_spread_test(ensemble_dir):
+    model, arrays, arch = _arrays(ensemble_dir)
+    assert model.card["architecture"]["bank"]["members"] == 2 and model.spec.architecture.members == 2
+    assert {"decoder_1/W0", "decoder_1/b2", "decoder_1/out_std"} <= set(model.arrays)
+    assert not np.array_equal(model.arrays["decoder/W0"], model.arrays["decoder_1/W0"])    # seeds 5 and 6
+    threshold, quantile = model.spec.monitor.spread
+    assert threshold > 0 and quantile == 0.99
+    assert len(model.card["training"]["member_fits"]) == 1
+    history = (ensemble_dir / "history.json").read_text()
+    assert '"decoder"' in history and '"decoder_1"' in history
+
+
+def test_the_ensemble_decodes_the_mean_of_its_members(ensemble_dir):
+    from kklcasadi.nets.numpy_mlp import mlp_numpy
+    from kklcasadi.nets.specs import MLPSpec
+
+    model, arrays, arch = _arrays(ensemble_dir)
+    rng = np.random.default_rng(0)
+    z, y, u = rng.normal(size=(50, model.spec.nz)), rng.normal(size=(50, 1)), rng.normal(size=(50, 1))
+    spec, f = MLPSpec.from_card(arch), np.concatenate([z, y, u], axis=1)
+    v = [mlp_numpy(spec, arrays, prefix, f) for prefix in ("decoder", "decoder_1")]
+    np.testing.assert_allclose(fb.decode(arrays, arch, z, y, u, members=2), (v[0] + v[1]) / 2, rtol=0, atol=1e-14)
+    single = fb.decode(arrays, arch, z, y, u)
+    np.testing.assert_array_equal(single, v[0])
+    assert np.abs(single - (v[0] + v[1]) / 2).max() > 1e-6
+    # the spread: sqrt(mean_j sum_i ((v_ji - vbar_i) / s_i)^2), s the first member's output std
+    s = arrays["decoder/out_std"]
+    expected = np.sqrt((((v[0] - v[1]) / 2 / s) ** 2).sum(axis=1))
+    np.testing.assert_allclose(fb.spread(arrays, arch, z, y, u, members=2), expected, rtol=1e-13)
+    same = {**arrays, **{k.replace("decoder/", "decoder_1/"): a for k, a in arrays.items() if k.startswith("decoder/")}}
+    np.testing.assert_array_equal(fb.spread(same, arch, z, y, u, members=2), 0.0)
+    # the CasADi paths: decoder and spread at the same points
+    zs, ys, us = ca.MX.sym("z", model.spec.nz), ca.MX.sym("y", 1), ca.MX.sym("u", 1)
+    dec = fb.decoder_function(arrays, arch, members=2).map(50)
+    np.testing.assert_allclose(np.asarray(dec(z.T, y.T, u.T)).T, (v[0] + v[1]) / 2, rtol=0, atol=1e-13)
+    sp = ca.Function("s", [zs, ys, us], [fb.spread_expression(arrays, arch, zs, ys, us, members=2)]).map(50)
+    np.testing.assert_allclose(np.asarray(sp(z.T, y.T, u.T)).ravel(), expected, rtol=1e-12)
+
+
+def test_the_ensemble_observer_equals_the_reference_and_monitors_the_spread(ensemble_dir):
+    obs = kc.load_observer(ensemble_dir)
+    model, arrays, arch = _arrays(ensemble_dir)
+    tr = kc.simulate(obs.system, [1.0, -0.5], kc.signals.make("square", amplitude=0.5, omega=1.0), T=6.0,
+                     dt=obs.dt, process_std=0.1, measurement_std=0.1, seed=3)
+    est = obs.simulate(tr.t, tr.y, tr.u)
+    np.testing.assert_allclose(est.xhat, fb.estimate(arrays, arch, tr.y, tr.u, obs.dt, members=2), rtol=1e-10,
+                               atol=1e-10)
+    z = fb.FilterBank(model.A, model.B, arrays["bank/Bu"], arrays["bank/c"]).run(tr.y, tr.u, obs.dt)
+    w = np.concatenate([tr.y, tr.u], axis=1)[:, :, None]
+    spread = obs.spread_of(z, w)
+    np.testing.assert_allclose(spread, fb.spread(arrays, arch, z, tr.y, tr.u, members=2), rtol=1e-12)
+    # the domain check is the prototype test and the spread test, in numpy and in CasADi alike
+    threshold = obs.monitor.spec.spread[0]
+    prototypes = obs.monitor.inside(np.concatenate([z, w[:, :, 0]], axis=1))
+    inside = obs.in_domain(est.xhat, z, w)
+    assert not inside[~prototypes | (spread > threshold)].any()
+    check = np.asarray(obs.domain_check.map(len(z))(z.T, w[:, :, 0].T, est.xhat.T)).ravel() > 0.5
+    np.testing.assert_array_equal(check, inside)
+
+
+def test_an_ensemble_monitor_flags_what_its_members_disagree_on(ensemble_dir, tmp_path):
+    import json
+
+    from kklcasadi.model.files import save_model
+
+    model = load_model(ensemble_dir)
+    card = json.loads((ensemble_dir / "card.json").read_text())
+    obs = kc.load_observer(ensemble_dir)
+    tr = kc.simulate(obs.system, [1.0, -0.5], kc.signals.make("zero"), T=4.0, dt=obs.dt, measurement_std=0.1, seed=1)
+    est = obs.simulate(tr.t, tr.y, tr.u)
+    w = np.concatenate([tr.y, tr.u], axis=1)[:, :, None]
+    spread = obs.spread_of(est.z, w)
+    # a spread threshold below every sample's spread flags every sample
+    card["monitor"]["spread"]["threshold"] = float(spread.min()) / 2
+    tight = kc.load_observer(save_model(tmp_path / "tight", dict(model.arrays), card))
+    assert not tight.in_domain(est.xhat, est.z, w).any()
+    # the spread test without an ensemble is refused with the fix
+    single = json.loads((ensemble_dir / "card.json").read_text())
+    del single["architecture"]["bank"]["members"]
+    arrays = {k: v for k, v in model.arrays.items() if not k.startswith("decoder_1/")}
+    with pytest.raises(ValueError, match="monitor.spread.*decoder ensemble"):
+        kc.load_observer(save_model(tmp_path / "single", arrays, single))
+    bad = json.loads((ensemble_dir / "card.json").read_text())
+    bad["monitor"]["spread"] = {"threshold": -1.0, "quantile": 0.99}
+    with pytest.raises(ValueError, match="monitor.spread"):
+        save_model(tmp_path / "bad", dict(model.arrays), bad)
+    bad["monitor"]["spread"] = {"threshold": 1.0, "quantile": 0.99}
+    bad["architecture"]["bank"]["members"] = 0
+    with pytest.raises(ValueError, match="architecture.bank.members"):
+        save_model(tmp_path / "zero", dict(model.arrays), bad)
+
+
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
+def test_the_ensemble_compiles_to_c_that_reproduces_simulate(ensemble_dir, tmp_path):
+    obs = kc.load_observer(ensemble_dir)
+    files = generate_c(obs, tmp_path, "ens", math="libm")
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
+                    "-o", str(tmp_path / "ens")], check=True)
+    tr = kc.simulate(obs.system, [0.5, 1.0], kc.signals.make("sinusoid", amplitude=0.4, omega=1.5), T=3.0,
+                     dt=obs.dt, measurement_std=0.1, seed=1)
+    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
+    out = subprocess.run([str(tmp_path / "ens")], input=rows + "\n", capture_output=True, text=True, check=True)
+    np.testing.assert_array_equal(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:],
+                                  obs.simulate(tr.t, tr.y, tr.u).xhat)
+
+
+def test_members_must_be_a_positive_integer():
+    from kklcasadi.train.bank import SHIPPED_MEMBERS, BankConfig
+
+    assert default_config("vdp", "bank").members == SHIPPED_MEMBERS == 2      # the shipped systems' ensembles
+    assert default_config("arm", "bank").members == 1                         # a new plant's first observer
+
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="members"):
+            BankConfig(members=bad)
+    with pytest.raises(ValueError, match="members"):
+        fb.member_prefixes(0)
+    assert fb.member_prefixes(3) == ("decoder", "decoder_1", "decoder_2")

@@ -34,6 +34,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--process-std": ("process_std", lambda a: a.process_std),
                  "--box-scale": ("box_scale", lambda a: a.box_scale),
                  "--width": ("width", lambda a: a.width),
+                 "--members": ("members", lambda a: a.members),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
 
 
@@ -55,6 +56,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "box bounds whole trajectories rather than their starts (the Qube: 0.5)")
     t.add_argument("--width", type=positive_int, help="autonomous: hidden width of T and T* (default 150; the "
                    "paper uses 350 for rossler and fhn)")
+    t.add_argument("--members", type=positive_int, metavar="K",
+                   help="bank: fit K decoder networks from seeds SEED..SEED+K-1 and average them; their spread "
+                   "joins the domain monitor (training time grows K-fold)")
     t.add_argument("--on-inject", action="store_true",
                    help="obs: learn the residual on top of the model-based injection of 'inject'")
     t.add_argument("--epochs", type=positive_int, help="override the number of epochs of every stage")

@@ -12,9 +12,16 @@ of the fitting data are flagged alike. The threshold is a quantile of the distan
 samples (runs of the fitting distribution that gave no prototype) after the settle time, so that
 share of fitting-distribution samples is flagged.
 
+A decoder ensemble (``bank`` with ``members`` > 1) adds a second test: a sample is in the domain
+only where the members' spread (:func:`kklcasadi.model.variants.filterbank.spread`) is at most the
+``spread`` threshold, a quantile of the spreads of the same validation samples: the members agree
+where the fitting runs pinned the map down and part where they did not, also inside the region the
+prototypes cover.
+
 Stored in the model file (``docs/model-format.md``): the card entry ``monitor`` (kind, feature size,
-prototypes, threshold, quantile, settle time, calibration record) and the arrays
-``monitor/metric`` (d, d), ``monitor/prototypes`` (K, d) and ``monitor/radii`` (K,).
+prototypes, threshold, quantile, settle time, calibration record, and optionally ``spread``:
+``{"threshold": t, "quantile": q}``) and the arrays ``monitor/metric`` (d, d), ``monitor/prototypes``
+(K, d) and ``monitor/radii`` (K,).
 """
 
 from __future__ import annotations
@@ -30,8 +37,8 @@ from ..nets.specs import field_error
 from ..validation import Text, error, is_int, is_number, nonnegative_int, positive_int
 
 __all__ = ["FeatureMonitor", "MonitorSpec", "calibrate", "calibrate_runs", "parse_monitor", "check_radii", "KIND",
-           "METRIC",
-           "PROTOTYPES", "RADII", "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE"]
+           "METRIC", "PROTOTYPES", "RADII", "DEFAULT_PROTOTYPES", "DEFAULT_QUANTILE", "DEFAULT_SPREAD_QUANTILE",
+           "with_spread"]
 
 #: The monitor's kind in the card.
 KIND = "nearest_prototype"
@@ -45,8 +52,11 @@ DEFAULT_QUANTILE = 0.98
 MIN_ASSIGNED = 5
 _KEYS = ("kind", "features", "prototypes", "threshold", "quantile", "settle_time", "calibration")
 _FIX = ('Write "monitor" as {"kind": "nearest_prototype", "features": d, "prototypes": K, "threshold": t > 0, '
-        '"quantile": q in (0, 1), "settle_time": s >= 0, "calibration": {...}} with the arrays monitor/metric (d, d), '
+        '"quantile": q in (0, 1), "settle_time": s >= 0, "calibration": {...}} (and optionally "spread": '
+        '{"threshold": t > 0, "quantile": q in (0, 1)} for a decoder ensemble) with the arrays monitor/metric (d, d), '
         'monitor/prototypes (K, d) and monitor/radii (K,), or remove it.')
+#: Calibration default of the ensemble test: the share of validation samples within the spread threshold.
+DEFAULT_SPREAD_QUANTILE = 0.99
 
 
 @dataclass(frozen=True)
@@ -59,6 +69,8 @@ class MonitorSpec:
     quantile: float
     settle_time: float
     calibration: dict = field(default_factory=dict)
+    #: ``(threshold, quantile)`` of the decoder ensemble's spread test, or None.
+    spread: tuple[float, float] | None = None
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
         """The monitor's arrays in ``weights.npz``."""
@@ -66,16 +78,20 @@ class MonitorSpec:
                 RADII: (self.prototypes,)}
 
     def to_card(self) -> dict:
-        return {"kind": KIND, "features": self.features, "prototypes": self.prototypes, "threshold": self.threshold,
+        card = {"kind": KIND, "features": self.features, "prototypes": self.prototypes, "threshold": self.threshold,
                 "quantile": self.quantile, "settle_time": self.settle_time, "calibration": dict(self.calibration)}
+        if self.spread is not None:
+            card["spread"] = {"threshold": self.spread[0], "quantile": self.spread[1]}
+        return card
 
 
 def parse_monitor(entry: Any, where: str) -> MonitorSpec | None:
     """The card's ``monitor`` entry, checked (None where the card has none)."""
     if entry is None:
         return None
-    if not isinstance(entry, Mapping) or set(entry) != set(_KEYS):
-        raise field_error(where, "monitor", f"an object with exactly the keys {list(_KEYS)}", entry, _FIX)
+    if not isinstance(entry, Mapping) or not set(_KEYS) <= set(entry) <= set(_KEYS) | {"spread"}:
+        raise field_error(where, "monitor", f"an object with exactly the keys {list(_KEYS)} (and optionally "
+                          "'spread')", entry, _FIX)
     if entry["kind"] != KIND:
         raise field_error(where, "monitor.kind", repr(KIND), entry["kind"], _FIX)
     for key in ("features", "prototypes"):
@@ -89,8 +105,16 @@ def parse_monitor(entry: Any, where: str) -> MonitorSpec | None:
                                                          "settle_time": "a number >= 0"}[key], value, _FIX)
     if not isinstance(entry["calibration"], Mapping):
         raise field_error(where, "monitor.calibration", "an object", entry["calibration"], _FIX)
+    spread = None
+    if "spread" in entry:
+        value = entry["spread"]
+        if not (isinstance(value, Mapping) and set(value) == {"threshold", "quantile"}
+                and all(is_number(v) and math.isfinite(v) for v in value.values())
+                and value["threshold"] > 0 and 0 < value["quantile"] < 1):
+            raise field_error(where, "monitor.spread", '{"threshold": t > 0, "quantile": q in (0, 1)}', value, _FIX)
+        spread = (float(value["threshold"]), float(value["quantile"]))
     return MonitorSpec(int(entry["features"]), int(entry["prototypes"]), float(entry["threshold"]),
-                       float(entry["quantile"]), float(entry["settle_time"]), dict(entry["calibration"]))
+                       float(entry["quantile"]), float(entry["settle_time"]), dict(entry["calibration"]), spread)
 
 
 def check_radii(arrays: Mapping[str, Any], where: str) -> None:
@@ -180,6 +204,24 @@ class FeatureMonitor:
         g = ca.mtimes(ca.DM(self.metric), f)
         scaled = ca.DM(a) - ca.mtimes(ca.DM(b), g) + ca.DM(c) * ca.sumsqr(g)
         return ca.mmin(scaled) <= self.spec.threshold ** 2
+
+
+def with_spread(monitor: FeatureMonitor, validation_spread: Any, *,
+                quantile: float = DEFAULT_SPREAD_QUANTILE) -> FeatureMonitor:
+    """``monitor`` with the decoder ensemble's spread test, its threshold the ``quantile`` of
+    ``validation_spread``: the spreads (V,) of the validation samples that set the prototype threshold."""
+    spread = np.asarray(validation_spread, dtype=float)
+    if spread.ndim != 1 or not len(spread) or not np.all(np.isfinite(spread)):
+        raise error("validation_spread", "finite spreads (V >= 1,)", Text(f"shape {spread.shape}"))
+    if not 0 < quantile < 1:
+        raise error("quantile", "a number in (0, 1)", quantile)
+    threshold = float(np.quantile(spread, quantile))
+    if not threshold > 0:
+        raise error("validation_spread", "spreads with a positive quantile (members that differ)", threshold)
+    spec = monitor.spec
+    spec = MonitorSpec(spec.features, spec.prototypes, spec.threshold, spec.quantile, spec.settle_time,
+                       dict(spec.calibration), (threshold, float(quantile)))
+    return FeatureMonitor(spec, monitor.metric, monitor.prototypes, monitor.radii)
 
 
 def _nearest(points: np.ndarray, prototypes: np.ndarray, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:

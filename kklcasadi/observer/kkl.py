@@ -152,6 +152,10 @@ class KKLObserver:
         ``model_injection(z, u) -> dz``, the model-based term, when present.
     monitor : kklcasadi.model.monitor.FeatureMonitor or None
         The decoder-input domain monitor of the card's ``monitor`` entry, when present.
+    spread : casadi.Function or None
+        ``spread(z, w) -> s``: how far the members of a decoder ensemble disagree (a ``bank`` with
+        ``members`` >= 2; :meth:`spread_of` over many samples); with the card's ``monitor.spread``
+        the domain check also asks ``s`` <= its threshold. None for a single decoder.
     domain_check : casadi.Function or None
         ``domain_check(z, w, xhat) -> in_domain`` (1 or 0): the domain monitor of one sample (the
         card's boxes and, with :attr:`monitor`, the decoder's input ``[z; vec(w)]``); None when the
@@ -207,6 +211,11 @@ class KKLObserver:
             raise ValueError(f"{model.path / CARD_FILE}: 'monitor.features': expected the decoder's input size nz + "
                              f"memory = {features}, received {self.monitor.features}. Calibrate the monitor on this "
                              "model's decoder features (kklcasadi.model.monitor.calibrate).")
+        self.spread = nets.spread
+        if self.monitor is not None and self.monitor.spec.spread is not None and self.spread is None:
+            raise ValueError(f"{model.path / CARD_FILE}: 'monitor.spread': expected a decoder ensemble (a 'bank' with "
+                             "architecture.bank.members >= 2) for the spread test, received a single decoder. Remove "
+                             "'monitor.spread' or add the members' networks.")
         self.domain_check = self._build_domain_check()
 
     # ------------------------------------------------------------------ construction
@@ -252,6 +261,8 @@ class KKLObserver:
             inside = ca.mmin(ca.vertcat(point - lo, hi - point)) >= 0
         if self.monitor is not None:
             inside = ca.logic_and(inside, self.monitor.expression(ca.vertcat(z, ca.vec(w))))
+            if self.monitor.spec.spread is not None:
+                inside = ca.logic_and(inside, self.spread(z, w) <= self.monitor.spec.spread[0])
         return ca.Function("domain_check", [z, w, xhat], [inside], ["z", "w", "xhat"], ["in_domain"])
 
     def in_domain(self, xhat: Any, z: Any, w: Any = None) -> Optional[np.ndarray]:
@@ -290,7 +301,34 @@ class KKLObserver:
                 raise ValueError(f"w: expected shape {z.shape[:-1] + self.memory_shape}, received {w.shape}.")
             flat = np.swapaxes(w, -1, -2).reshape(z.shape[:-1] + (-1,))          # column-major vec
             inside &= self.monitor.inside(np.concatenate([z, flat], axis=-1))
+            if self.monitor.spec.spread is not None:
+                inside &= self.spread_of(z, w) <= self.monitor.spec.spread[0]
         return inside
+
+    def spread_of(self, z: Any, w: Any) -> np.ndarray:
+        """How far the members of the decoder ensemble disagree at each sample (:attr:`spread`).
+
+        Parameters
+        ----------
+        z : array_like, shape (..., nz)
+        w : array_like, shape (..., *memory_shape)
+
+        Returns
+        -------
+        numpy.ndarray, shape (...)
+        """
+        if self.spread is None:
+            raise ValueError(f"observer: expected a decoder ensemble (architecture.bank.members >= 2) for a spread, "
+                             f"received {self!r} with a single decoder.")
+        z, w = np.asarray(z, dtype=float), np.asarray(w, dtype=float)
+        lead = z.shape[:-1]
+        if z.shape[-1:] != (self.nz,) or w.shape != lead + self.memory_shape:
+            raise ValueError(f"z, w: expected shapes (..., {self.nz}) and (..., {self.memory_shape[0]}, "
+                             f"{self.memory_shape[1]}) with one leading shape, received {z.shape} and {w.shape}.")
+        n = int(np.prod(lead)) if lead else 1
+        zz = z.reshape(n, self.nz).T
+        ww = np.swapaxes(w.reshape((n,) + self.memory_shape), 0, 1).reshape(self.memory_shape[0], -1)
+        return np.asarray(self.spread.map(n)(zz, ww)).reshape(lead)
 
     def __repr__(self) -> str:
         return (f"KKLObserver(method={self.method!r}, system={self.system.name!r}, nz={self.nz}, "

@@ -13,10 +13,16 @@ but a fixed filter of the signals, and the decoder learns the state from it.
 Angles (``System.angle_outputs``, ``angle_states``) are read and written continuously on the circle
 (:class:`kklcasadi.model.variants.filterbank.Angles`).
 
+The decoder may be an ensemble of ``K`` networks of one architecture, fitted from different seeds
+on the same runs: ``xhat`` maps the mean of their outputs, and their disagreement
+(:func:`kklcasadi.model.variants.filterbank.spread`) is the domain monitor's second test.
+
 Card: ``design`` holds ``A`` and ``By`` (as ``B``); ``architecture`` holds ``decoder``
 (``[nz + ny + n_angle_outputs + nu, ..., nx + n_free_angle_states]``) and ``bank`` (the design
-parameters, for the record, and the angle layout ``angles`` where there are angles); the arrays
-``bank/Bu`` (nz, nu), ``bank/c`` (nz,) and ``decoder/asinh_scale`` (nx,) complete it.
+parameters, for the record, the angle layout ``angles`` where there are angles, and ``members``
+K where the decoder is an ensemble); the arrays ``bank/Bu`` (nz, nu), ``bank/c`` (nz,),
+``decoder/asinh_scale`` (nx,) and the MLP arrays of each member (``decoder``, ``decoder_1``, ...)
+complete it.
 """
 
 from __future__ import annotations
@@ -30,15 +36,15 @@ import numpy as np
 
 from ...nets.specs import DECODER, MLPSpec, field_error
 from ...plant.systems import System
-from ...validation import is_number
+from ...validation import is_int, is_number
 from .base import Memory, Networks, Sizes, Variant
-from .filterbank import ASINH_SCALE, Angles, FilterBank, decoder_expression
+from .filterbank import ASINH_SCALE, Angles, FilterBank, decoder_expression, member_prefixes, spread_expression
 
 __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
 _BANK_KEYS = ("y_poles", "u_poles", "y_resonators", "clock")
 #: Keys of ``architecture.bank`` that cards written before them lack.
-_OPTIONAL_KEYS = ("time_scale", "angles")
+_OPTIONAL_KEYS = ("time_scale", "angles", "members")
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,6 +67,11 @@ class BankSpec:
     def nx(self) -> int:
         return self.decoder.n_out - len(self.angles.free)
 
+    @property
+    def members(self) -> int:
+        """Decoder networks averaged (``architecture.bank.members``; 1 where the card has none)."""
+        return int(self.params.get("members", 1))
+
     def to_card(self) -> dict:
         bank = dict(self.params)
         if self.angles:
@@ -68,8 +79,10 @@ class BankSpec:
         return {DECODER: self.decoder.to_card(), "bank": bank}
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
-        return {**self.decoder.array_shapes(DECODER), ASINH_SCALE: (self.nx,),
-                "bank/Bu": (self.nz, self.nu), "bank/c": (self.nz,)}
+        shapes = {ASINH_SCALE: (self.nx,), "bank/Bu": (self.nz, self.nu), "bank/c": (self.nz,)}
+        for prefix in member_prefixes(self.members):
+            shapes.update(self.decoder.array_shapes(prefix))
+        return shapes
 
 
 def _positive_numbers(value: Any) -> bool:
@@ -78,7 +91,8 @@ def _positive_numbers(value: Any) -> bool:
 
 def _params(entry: Any, where: str) -> dict:
     fix = ('Write "bank" as {"y_poles": [p, ...], "u_poles": [p, ...], "y_resonators": [[zeta, omega], ...], '
-           '"clock": rate or null} (optionally "time_scale": rate and "angles": {...}).')
+           '"clock": rate or null} (optionally "time_scale": rate, "angles": {...} and "members": K, the decoder '
+           'networks averaged).')
     if (not isinstance(entry, Mapping) or not set(_BANK_KEYS) <= set(entry)
             or not set(entry) <= set(_BANK_KEYS + _OPTIONAL_KEYS)):
         raise field_error(where, "architecture.bank", f"an object with the keys {list(_BANK_KEYS)} (and optionally "
@@ -95,7 +109,10 @@ def _params(entry: Any, where: str) -> dict:
         raise field_error(where, "architecture.bank.clock", "a rate > 0 or null", clock, fix)
     if "time_scale" in entry and not _positive_numbers([entry["time_scale"]]):
         raise field_error(where, "architecture.bank.time_scale", "a rate > 0 (rad/s)", entry["time_scale"], fix)
-    return {key: entry[key] for key in _BANK_KEYS + ("time_scale",) if key in entry}
+    if "members" in entry and not (is_int(entry["members"]) and entry["members"] >= 1):
+        raise field_error(where, "architecture.bank.members", "a positive integer (decoder networks averaged)",
+                          entry["members"], fix)
+    return {key: entry[key] for key in _BANK_KEYS + ("time_scale", "members") if key in entry}
 
 
 def _angles(entry: Mapping[str, Any], where: str, sizes: Sizes) -> Angles:
@@ -155,12 +172,16 @@ class Bank(Variant):
         bank = FilterBank(spec.A, spec.By, np.asarray(arrays["bank/Bu"]), np.asarray(arrays["bank/c"]))
         memory = feedthrough_memory(system.ny, system.nu)
         z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", *memory.shape)
-        xhat = decoder_expression(full, spec.decoder.to_card(), z, w[:system.ny], w[system.ny:], angles=spec.angles)
+        arch, y, u = spec.decoder.to_card(), w[:system.ny], w[system.ny:]
+        xhat = decoder_expression(full, arch, z, y, u, angles=spec.angles, members=spec.members)
         decoder = ca.Function("decoder", [z, w], [xhat], ["z", "w"], ["xhat"])
+        spread = None if spec.members < 2 else ca.Function(
+            "spread", [z, w], [spread_expression(full, arch, z, y, u, angles=spec.angles, members=spec.members)],
+            ["z", "w"], ["spread"])
         bu, c = ca.DM(bank.Bu), ca.DM(bank.c)
 
         def input_term(zz: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
             return ca.mtimes(bu, u) + c
 
         return Networks(None, decoder, None, input_term, memory=memory,
-                        exact_step=bank.step_function(spec.dt, "latent_step"))
+                        exact_step=bank.step_function(spec.dt, "latent_step"), spread=spread)

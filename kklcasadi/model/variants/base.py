@@ -137,6 +137,9 @@ class Networks:
     exact_step : casadi.Function or None
         ``exact_step(z, y, y_next, u) -> z_next``: the exact step of a linear latent with more
         than ``A z + B y`` (e.g. an input term); None for the first-order-hold step of ``(A, B)``.
+    spread : casadi.Function or None
+        ``spread(z (nz,1), w) -> s (1,1)``: how far the members of a decoder ensemble disagree
+        (the domain monitor's second test); None for a single decoder.
     """
 
     encoder: Optional[ca.Function]
@@ -146,6 +149,7 @@ class Networks:
     model_injection: Optional[ca.Function] = None
     memory: Optional[Memory] = None
     exact_step: Optional[ca.Function] = None
+    spread: Optional[ca.Function] = None
 
 
 class Variant:

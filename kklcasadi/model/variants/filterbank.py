@@ -45,7 +45,7 @@ from ...plant.systems import System
 
 __all__ = ["FilterBank", "Angles", "NO_ANGLES", "dc_gains", "decoder_features", "decoder_targets",
            "decoder_outputs", "decode", "decoder_function", "decoder_expression", "estimate", "bank_arrays",
-           "bank_from_arrays", "observer_step", "ASINH_SCALE"]
+           "bank_from_arrays", "observer_step", "ASINH_SCALE", "member_prefixes", "spread", "spread_expression"]
 
 #: Array name of the per-state output transform scales (0: identity, > 0: asinh scale).
 ASINH_SCALE = "decoder/asinh_scale"
@@ -422,10 +422,21 @@ def decoder_outputs(v: Any, y: Any, scale: np.ndarray, angles: Angles = NO_ANGLE
     return ca.vertcat(*rows)
 
 
-def _check_decoder(arrays: Mapping[str, Any], arch: Mapping[str, Any], angles: Angles) -> tuple[MLPSpec, np.ndarray]:
+def member_prefixes(members: int) -> tuple[str, ...]:
+    """Array prefixes of a decoder ensemble's ``members`` networks: ``decoder``, ``decoder_1``, ..."""
+    if not (isinstance(members, (int, np.integer)) and not isinstance(members, bool) and members >= 1):
+        raise ValueError(f"members: expected a positive integer (decoder networks averaged), received {members!r}.")
+    return (DECODER,) + tuple(f"{DECODER}_{j}" for j in range(1, int(members)))
+
+
+def _check_decoder(arrays: Mapping[str, Any], arch: Mapping[str, Any], angles: Angles,
+                   members: int = 1) -> tuple[MLPSpec, np.ndarray]:
     spec = MLPSpec.from_card(arch, "architecture.decoder", DECODER)
     nx = spec.n_out - len(angles.free)
-    check_arrays(arrays, {**spec.array_shapes(DECODER), ASINH_SCALE: (nx,)}, "bank arrays")
+    shapes = {ASINH_SCALE: (nx,)}
+    for prefix in member_prefixes(members):
+        shapes.update(spec.array_shapes(prefix))
+    check_arrays(arrays, shapes, "bank arrays")
     scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
     if not np.all(np.isfinite(scale)) or np.any(scale < 0):
         raise ValueError(f"{ASINH_SCALE} must be finite and >= 0 (0: no transform), got {scale.tolist()}")
@@ -435,48 +446,88 @@ def _check_decoder(arrays: Mapping[str, Any], arch: Mapping[str, Any], angles: A
     return spec, scale
 
 
+def _spread_scale(arrays: Mapping[str, Any]) -> np.ndarray:
+    """The unit of each network output in the members' spread: the first member's output std."""
+    return np.asarray(arrays[f"{DECODER}/out_std"], dtype=float)
+
+
+def _features(arrays: Mapping[str, Any], spec: MLPSpec, z: Any, y: np.ndarray, u: Any, angles: Angles) -> np.ndarray:
+    gains = dc_gains(bank_from_arrays(arrays)) if angles.outputs else None
+    f = decoder_features(np.asarray(z, dtype=float), y, np.asarray(u, dtype=float), angles=angles, gains=gains)
+    if f.shape[-1] != spec.n_in:
+        raise ValueError(f"features must have {spec.n_in} entries along the last axis, got shape {f.shape}")
+    return f
+
+
 def decode(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: Any, y: Any, u: Any, *,
-           angles: Angles = NO_ANGLES) -> np.ndarray:
+           angles: Angles = NO_ANGLES, members: int = 1) -> np.ndarray:
     """Evaluate the decoder with its input and output maps in numpy (float64).
+
+    With ``members`` > 1 the decoder is an ensemble: the mean of the members' network outputs
+    ``v`` goes through the output map.
 
     Parameters
     ----------
     arrays : Mapping[str, array_like]
-        ``bank/*`` (the gains of angle outputs), ``decoder/*`` MLP arrays and ``decoder/asinh_scale`` (nx,).
+        ``bank/*`` (the gains of angle outputs), the MLP arrays of each member (prefixes
+        :func:`member_prefixes`) and ``decoder/asinh_scale`` (nx,).
     arch : Mapping
-        ``{"sizes": [nz + ny + len(angles.outputs) + nu, ..., nx + len(angles.free)], "activation": ...}``.
+        ``{"sizes": [nz + ny + len(angles.outputs) + nu, ..., nx + len(angles.free)], "activation": ...}``
+        (every member's).
     z : array_like, shape (..., nz)
     y : array_like, shape (..., ny)
     u : array_like, shape (..., nu)
     angles : Angles
+    members : int
+        Networks of the ensemble.
 
     Returns
     -------
     numpy.ndarray, shape (..., nx)
     """
-    spec, scale = _check_decoder(arrays, arch, angles)
+    spec, scale = _check_decoder(arrays, arch, angles, members)
     y = np.asarray(y, dtype=float)
-    gains = dc_gains(bank_from_arrays(arrays)) if angles.outputs else None
-    f = decoder_features(np.asarray(z, dtype=float), y, np.asarray(u, dtype=float), angles=angles, gains=gains)
-    if f.shape[-1] != spec.n_in:
-        raise ValueError(f"features must have {spec.n_in} entries along the last axis, got shape {f.shape}")
-    return decoder_outputs(mlp_numpy(spec, arrays, DECODER, f), y, scale, angles)
+    f = _features(arrays, spec, z, y, u, angles)
+    v = [mlp_numpy(spec, arrays, prefix, f) for prefix in member_prefixes(members)]
+    return decoder_outputs(sum(v[1:], v[0]) / len(v), y, scale, angles)
+
+
+def spread(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: Any, y: Any, u: Any, *,
+           angles: Angles = NO_ANGLES, members: int = 2) -> np.ndarray:
+    """How far a decoder ensemble's members disagree: ``sqrt(mean_j sum_i ((v_ji - vbar_i) / s_i)^2)``.
+
+    ``v_j`` is member j's network output, ``vbar`` their mean and ``s`` the first member's output
+    std (:func:`decode`'s arguments; ``members`` >= 2).
+
+    Returns
+    -------
+    numpy.ndarray, shape (...)
+    """
+    if members < 2:
+        raise ValueError(f"members: expected at least 2 networks for a spread, received {members!r}.")
+    spec, _ = _check_decoder(arrays, arch, angles, members)
+    f = _features(arrays, spec, z, np.asarray(y, dtype=float), u, angles)
+    v = np.stack([mlp_numpy(spec, arrays, prefix, f) for prefix in member_prefixes(members)])
+    d = (v - v.mean(axis=0)) / _spread_scale(arrays)
+    return np.sqrt((d ** 2).sum(axis=-1).mean(axis=0))
 
 
 def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: str = "bank_decoder", *,
-                     angles: Angles = NO_ANGLES) -> ca.Function:
+                     angles: Angles = NO_ANGLES, members: int = 1) -> ca.Function:
     """CasADi ``(z, y, u) -> xhat``: the decoder MLP with its input and output maps (see :func:`decode`).
 
     Parameters
     ----------
     arrays : Mapping[str, array_like]
-        ``bank/*`` arrays (for the sizes nz, ny, nu and the gains), ``decoder/*`` MLP arrays and
+        ``bank/*`` arrays (for the sizes nz, ny, nu and the gains), each member's MLP arrays and
         ``decoder/asinh_scale`` (nx,).
     arch : Mapping
         The decoder's card entry.
     name : str
         Function name.
     angles : Angles
+    members : int
+        Networks of the ensemble (their outputs averaged).
 
     Returns
     -------
@@ -484,7 +535,7 @@ def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: s
         Inputs ``z`` (nz,), ``y`` (ny,), ``u`` (nu,); output ``xhat`` (nx,).
     """
     z, y, u = _symbols(bank_from_arrays(arrays))
-    out = decoder_expression(arrays, arch, z, y, u, angles=angles, mlp_name=f"{name}_mlp")
+    out = decoder_expression(arrays, arch, z, y, u, angles=angles, mlp_name=f"{name}_mlp", members=members)
     return ca.Function(name, [z, y, u], [out], ["z", "y", "u"], ["xhat"])
 
 
@@ -492,16 +543,14 @@ def _symbols(bank: FilterBank) -> tuple[ca.MX, ca.MX, ca.MX]:
     return ca.MX.sym("z", bank.nz), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
 
 
-def decoder_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
-                       angles: Angles = NO_ANGLES, mlp_name: str = "decoder_mlp") -> ca.MX:
-    """The decoder's CasADi expression ``xhat (nx, 1)`` at the symbols ``z`` (nz,), ``y`` (ny,), ``u`` (nu,)
-    (what :func:`decoder_function` wraps; the ``bank`` variant builds its decoder from it)."""
+def _member_expressions(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX,
+                        angles: Angles, members: int, mlp_name: str) -> tuple[list, np.ndarray]:
+    """Each member's network output ``v_j`` at the symbols, and the output scales."""
     bank = bank_from_arrays(arrays)
-    spec, scale = _check_decoder(arrays, arch, angles)
+    spec, scale = _check_decoder(arrays, arch, angles, members)
     if spec.n_in != angles.n_features(bank.nz, bank.ny, bank.nu):
         raise ValueError(f"decoder input size {spec.n_in} != nz + ny + len(angle outputs) + nu = "
                          f"{angles.n_features(bank.nz, bank.ny, bank.nu)}")
-    mlp = casadi_nets.mlp_function(spec, arrays, DECODER, mlp_name)
     if angles.outputs:
         a = list(angles.outputs)
         other = [j for j in range(bank.ny) if j not in angles.outputs]
@@ -510,11 +559,33 @@ def decoder_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca
                            ca.cos(ya), u)
     else:
         feats = ca.vertcat(z, y, u)
-    return decoder_outputs(mlp(feats), y, scale, angles, lib=ca)
+    names = [mlp_name] + [f"{mlp_name}_{j}" for j in range(1, members)]
+    return [casadi_nets.mlp_function(spec, arrays, prefix, label)(feats)
+            for prefix, label in zip(member_prefixes(members), names)], scale
+
+
+def decoder_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
+                       angles: Angles = NO_ANGLES, mlp_name: str = "decoder_mlp", members: int = 1) -> ca.MX:
+    """The decoder's CasADi expression ``xhat (nx, 1)`` at the symbols ``z`` (nz,), ``y`` (ny,), ``u`` (nu,)
+    (what :func:`decoder_function` wraps; the ``bank`` variant builds its decoder from it)."""
+    v, scale = _member_expressions(arrays, arch, z, y, u, angles, members, mlp_name)
+    mean = v[0] if members == 1 else sum(v[1:], v[0]) / members
+    return decoder_outputs(mean, y, scale, angles, lib=ca)
+
+
+def spread_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
+                      angles: Angles = NO_ANGLES, members: int = 2, mlp_name: str = "decoder_mlp") -> ca.MX:
+    """:func:`spread` as a CasADi expression (1, 1) at the symbols ``z``, ``y``, ``u``."""
+    if members < 2:
+        raise ValueError(f"members: expected at least 2 networks for a spread, received {members!r}.")
+    v, _ = _member_expressions(arrays, arch, z, y, u, angles, members, mlp_name)
+    mean = sum(v[1:], v[0]) / members
+    unit = ca.DM(1.0 / _spread_scale(arrays))
+    return ca.sqrt(sum(ca.sumsqr((vj - mean) * unit) for vj in v) / members)
 
 
 def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float, name: str = "step", *,
-                  angles: Angles = NO_ANGLES) -> ca.Function:
+                  angles: Angles = NO_ANGLES, members: int = 1) -> ca.Function:
     """The whole observer step in the signature of :attr:`kklcasadi.observer.kkl.KKLObserver.step` (window 1).
 
     ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` with ``w = u_k`` (1, nu), the input
@@ -523,7 +594,7 @@ def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float,
 
     Parameters
     ----------
-    arrays, arch, angles
+    arrays, arch, angles, members
         As in :func:`decoder_function`.
     dt : float
         Sample period.
@@ -532,7 +603,7 @@ def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float,
     """
     bank = bank_from_arrays(arrays)
     latent = bank.step_function(dt)
-    dec = decoder_function(arrays, arch, angles=angles)
+    dec = decoder_function(arrays, arch, angles=angles, members=members)
     z, w = ca.MX.sym("z", bank.nz), ca.MX.sym("w", 1, bank.nu)
     y, y_next, u_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny), ca.MX.sym("u_next", bank.nu)
     z_next = latent(z, y, y_next, w.T)
@@ -555,7 +626,7 @@ def bank_from_arrays(arrays: Mapping[str, Any]) -> FilterBank:
 
 
 def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any, dt: float, *,
-             angles: Angles = NO_ANGLES) -> np.ndarray:
+             angles: Angles = NO_ANGLES, members: int = 1) -> np.ndarray:
     """Reference implementation of the ``bank`` estimator: ``xhat_k = D(z_k, y_k, u_k)``, ``z_0 = 0``.
 
     Parameters
@@ -572,6 +643,8 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
         Sample period.
     angles : Angles
         The decoder's angle layout (the card's ``architecture.bank.angles``).
+    members : int
+        Networks of the decoder ensemble (the card's ``architecture.bank.members``, default 1).
 
     Returns
     -------
@@ -579,5 +652,5 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
     """
     bank = bank_from_arrays(arrays)
     y, u, single = _trials(y, u, bank.ny, bank.nu)
-    xhat = decode(arrays, arch, bank.run(y, u, dt), y, u, angles=angles)
+    xhat = decode(arrays, arch, bank.run(y, u, dt), y, u, angles=angles, members=members)
     return xhat[0] if single else xhat

@@ -1,0 +1,81 @@
+"""Grow a shipped ``bank`` model into a decoder ensemble: fit more decoders on its own fitting runs.
+
+    OMP_NUM_THREADS=2 python benchmarks/ensemble_members.py MODEL_DIR --members K --out DIR [--cache C]
+
+Re-simulates the model's fitting samples (checked against its card, as
+``benchmarks/calibrate_monitors.py`` does), fits K - 1 more decoders with the card's decoder
+configuration from the seeds ``seed + 1, ..., seed + K - 1`` (the card's training seed; what
+``kklcasadi train --members K`` fits after the first), keeps the model's own decoder as the first
+member, and writes DIR: the ensemble (``architecture.bank.members = K``) with its monitor
+recalibrated on the same runs, the spread test included. ``--cache C`` keeps each member's fitted
+arrays (``C/<system>_m<seed>.npz``) so that several K reuse them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from calibrate_monitors import recalibrate, resimulate
+
+from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.train.bank import ensemble_arrays
+from kklcasadi.train.config import LoopConfig
+from kklcasadi.train.operational import BankFit, DecoderConfig, fit_bank_decoder
+
+
+def decoder_config(record: dict) -> DecoderConfig:
+    """The card's ``training.config.decoder`` as a DecoderConfig."""
+    scale = record["asinh_scale"]
+    return DecoderConfig(**{**record, "hidden": tuple(record["hidden"]), "loop": LoopConfig(**record["loop"]),
+                            "asinh_scale": None if scale is None else tuple(scale)})
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("model", type=Path, help="a bank model directory with one decoder")
+    parser.add_argument("--members", type=int, required=True, help="decoders of the ensemble (>= 2)")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cache", type=Path, help="directory of fitted members to reuse")
+    args = parser.parse_args()
+    if args.members < 2:
+        parser.error(f"--members: expected at least 2, received {args.members}")
+    t0 = time.perf_counter()
+    model, bank, data = resimulate(args.model)
+    if model.spec.architecture.members != 1:
+        parser.error(f"{args.model}: expected a model with one decoder, it has {model.spec.architecture.members}")
+    card, seed = copy.deepcopy(model.card), int(model.card["training"]["seed"])
+    arch, angles = card["architecture"]["decoder"], model.spec.architecture.angles
+    fits = [BankFit(dict(model.arrays), arch, angles, None, len(data), 0.0, {})]
+    config = decoder_config(card["training"]["config"]["decoder"])
+    summaries = []
+    for member_seed in range(seed + 1, seed + args.members):
+        path = None if args.cache is None else args.cache / f"{card['system']['name']}_m{member_seed}.npz"
+        if path is not None and path.exists():
+            arrays = dict(np.load(path))
+            summaries.append({"seed": member_seed, "cached": str(path)})
+        else:
+            fit = fit_bank_decoder(bank, data, config, angles=angles, seed=member_seed, progress=True)
+            arrays = fit.arrays
+            summaries.append({"seed": member_seed, **fit.fit.summary()})
+            if path is not None:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                np.savez(path, **arrays)
+        fits.append(BankFit(arrays, arch, angles, None, len(data), 0.0, {}))
+    arrays = {k: v for k, v in ensemble_arrays(fits).items() if not k.startswith(("bank/A", "bank/By"))}
+    card["architecture"]["bank"]["members"] = args.members
+    card["training"]["member_fits"] = summaries
+    card["training"]["members_added_by"] = "benchmarks/ensemble_members.py"
+    card = recalibrate(args.out, model, bank, data, arrays, card,
+                       "the decoder's fitting runs, re-simulated by benchmarks/ensemble_members.py")
+    print(f"{args.out}: {args.members} members ({json.dumps(summaries)}), monitor threshold "
+          f"{card['monitor']['threshold']:.4g}, spread threshold {card['monitor']['spread']['threshold']:.4g}, "
+          f"{time.perf_counter() - t0:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
