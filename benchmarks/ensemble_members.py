@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 from calibrate_monitors import recalibrate, resimulate
 
-from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.train.bank import ensemble_arrays
 from kklcasadi.train.config import LoopConfig
 from kklcasadi.train.operational import BankFit, DecoderConfig, fit_bank_decoder
