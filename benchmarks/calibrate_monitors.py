@@ -29,26 +29,43 @@ from kklcasadi.train.operational import OperationalData, RolloutConfig, fit_fami
 
 
 def rollouts_of(model: Model) -> RolloutConfig:
-    """The operational runs' configuration recorded in a bank model's card."""
-    record = model.card["training"]["config"]["rollouts"]
+    """The operational runs' configuration recorded in a bank model's card (``training.config.rollouts``, or
+    the older record ``training.rollouts`` of a fixed noise level)."""
+    training = model.card["training"]
+    if "config" not in training:
+        r = training["rollouts"]
+        return RolloutConfig(n_traj=r["n_traj"], T=r["T"], kinds=tuple(r["kinds"]), regime=r["regime"],
+                             noise_range=(1.0, 1.0), method=r["method"], substeps=r["substeps"],
+                             box_scale=r["box_scale"])
+    record = training["config"]["rollouts"]
     box = record["box_scale"]
     return RolloutConfig(**{**record, "kinds": tuple(record["kinds"]), "noise_range": tuple(record["noise_range"]),
                             "box_scale": box if np.isscalar(box) else tuple(box)})
 
 
-def resimulate(directory: Path) -> tuple[Model, FilterBank, OperationalData]:
-    """A bank model, its filter bank and its decoder's fitting samples, re-simulated and checked against the
-    card's domain (SystemExit where they differ)."""
-    model = load_model(directory)
+def noise_of(model: Model) -> tuple[float, np.ndarray, float]:
+    """Measurement std, process std per state and time scale of a bank model's runs (either card record)."""
     training = model.card["training"]
+    if "config" not in training:
+        r = training["rollouts"]
+        return float(r["measurement_std"]), np.full(model.spec.system.nx, float(r["process_std"])), 1.0
+    return (float(training["measurement_std"]), np.asarray(training["process_std"], dtype=float),
+            float(training["time_scale"]))
+
+
+def resimulate(directory: Path, *, fresh: bool = False) -> tuple[Model, FilterBank, OperationalData]:
+    """A bank model, its filter bank and its decoder's fitting samples, re-simulated and checked against the
+    card's domain (SystemExit where they differ). ``fresh``: runs of the card's recipe as the current code
+    simulates them, not checked (a card from before the current runs: its decoder's own runs cannot be
+    remade)."""
+    model = load_model(directory)
     plant = kc.systems.get(model.card["system"]["name"])
     bank = FilterBank(model.spec.A, model.spec.B, np.asarray(model.arrays["bank/Bu"]),
                       np.asarray(model.arrays["bank/c"]))
-    data = operational_data(plant, bank, rollouts_of(model), training["seed"], dt=model.dt,
-                            measurement_std=training["measurement_std"],
-                            process_std=np.asarray(training["process_std"], dtype=float),
-                            time_scale=float(training["time_scale"]))
-    if Domain.of(data.x, data.z).to_card() != model.card["domain"]:
+    measurement, process, rate = noise_of(model)
+    data = operational_data(plant, bank, rollouts_of(model), model.card["training"]["seed"], dt=model.dt,
+                            measurement_std=measurement, process_std=process, time_scale=rate)
+    if not fresh and Domain.of(data.x, data.z).to_card() != model.card["domain"]:
         raise SystemExit(f"{directory}: the re-simulated samples are not the fitting ones (their domain differs)")
     return model, bank, data
 
@@ -63,8 +80,7 @@ def recalibrate(directory: Path, model: Model, bank: FilterBank, data: Operation
     card = {key: value for key, value in card.items() if key not in ("monitor", "fit_families")}
     card["monitor"] = monitor.spec.to_card()
     card["fit_families"] = {kind: {p: list(b) for p, b in ranges.items()}
-                            for kind, ranges in fit_families(rollouts_of(model),
-                                                             float(model.card["training"]["time_scale"])).items()}
+                            for kind, ranges in fit_families(rollouts_of(model), noise_of(model)[2]).items()}
     arrays = {k: v for k, v in arrays.items() if not k.startswith("monitor/")}
     save_model(directory, {**arrays, **monitor.arrays()}, card, overwrite=True)
     return card

@@ -3,7 +3,8 @@
     OMP_NUM_THREADS=2 python benchmarks/ensemble_members.py MODEL_DIR --members K --out DIR [--cache C]
 
 Re-simulates the model's fitting samples (checked against its card, as
-``benchmarks/calibrate_monitors.py`` does), fits K - 1 more decoders with the card's decoder
+``benchmarks/calibrate_monitors.py`` does; with ``--fresh`` runs of the card's recipe as the current
+code simulates them, for a card whose own runs the current code cannot remake), fits K - 1 more decoders with the card's decoder
 configuration from the seeds ``seed + 1, ..., seed + K - 1`` (the card's training seed; what
 ``kklcasadi train --members K`` fits after the first), keeps the model's own decoder as the first
 member, and writes DIR: the ensemble (``architecture.bank.members = K``) with its monitor
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -28,10 +30,12 @@ from kklcasadi.train.operational import BankFit, DecoderConfig, fit_bank_decoder
 
 
 def decoder_config(record: dict) -> DecoderConfig:
-    """The card's ``training.config.decoder`` as a DecoderConfig."""
+    """The card's decoder record (``training.config.decoder``, or the older ``training.decoder``, whose
+    sampling entries the runs' configuration now holds) as a DecoderConfig."""
     scale = record["asinh_scale"]
-    return DecoderConfig(**{**record, "hidden": tuple(record["hidden"]), "loop": LoopConfig(**record["loop"]),
-                            "asinh_scale": None if scale is None else tuple(scale)})
+    known = {f.name for f in dataclasses.fields(DecoderConfig)}
+    return DecoderConfig(**{**{k: v for k, v in record.items() if k in known}, "hidden": tuple(record["hidden"]),
+                            "loop": LoopConfig(**record["loop"]), "asinh_scale": None if scale is None else tuple(scale)})
 
 
 def main() -> None:
@@ -40,17 +44,20 @@ def main() -> None:
     parser.add_argument("--members", type=int, required=True, help="decoders of the ensemble (>= 2)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--cache", type=Path, help="directory of fitted members to reuse")
+    parser.add_argument("--fresh", action="store_true", help="fit the new members (and calibrate the monitor) on "
+                        "runs of the card's recipe from the current code, unchecked against the card's domain")
     args = parser.parse_args()
     if args.members < 2:
         parser.error(f"--members: expected at least 2, received {args.members}")
     t0 = time.perf_counter()
-    model, bank, data = resimulate(args.model)
+    model, bank, data = resimulate(args.model, fresh=args.fresh)
     if model.spec.architecture.members != 1:
         parser.error(f"{args.model}: expected a model with one decoder, it has {model.spec.architecture.members}")
     card, seed = copy.deepcopy(model.card), int(model.card["training"]["seed"])
     arch, angles = card["architecture"]["decoder"], model.spec.architecture.angles
     fits = [BankFit(dict(model.arrays), arch, angles, None, len(data), 0.0, {})]
-    config = decoder_config(card["training"]["config"]["decoder"])
+    training = card["training"]
+    config = decoder_config(training["config"]["decoder"] if "config" in training else training["decoder"])
     summaries = []
     for member_seed in range(seed + 1, seed + args.members):
         path = None if args.cache is None else args.cache / f"{card['system']['name']}_m{member_seed}.npz"
@@ -68,9 +75,10 @@ def main() -> None:
     arrays = {k: v for k, v in ensemble_arrays(fits).items() if not k.startswith(("bank/A", "bank/By"))}
     card["architecture"]["bank"]["members"] = args.members
     card["training"]["member_fits"] = summaries
-    card["training"]["members_added_by"] = "benchmarks/ensemble_members.py"
-    card = recalibrate(args.out, model, bank, data, arrays, card,
-                       "the decoder's fitting runs, re-simulated by benchmarks/ensemble_members.py")
+    card["training"]["members_added_by"] = "benchmarks/ensemble_members.py" + (" --fresh" if args.fresh else "")
+    source = ("runs of the card's recipe simulated by benchmarks/ensemble_members.py --fresh" if args.fresh
+              else "the decoder's fitting runs, re-simulated by benchmarks/ensemble_members.py")
+    card = recalibrate(args.out, model, bank, data, arrays, card, source)
     print(f"{args.out}: {args.members} members ({json.dumps(summaries)}), monitor threshold "
           f"{card['monitor']['threshold']:.4g}, spread threshold {card['monitor']['spread']['threshold']:.4g}, "
           f"{time.perf_counter() - t0:.0f} s")

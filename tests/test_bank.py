@@ -65,12 +65,14 @@ def test_bank_observer_equals_the_reference_estimator(bank_dir):
 
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
-def test_bank_compiles_to_c_that_reproduces_simulate(bank_dir, tmp_path):
-    obs = kc.load_observer(bank_dir)
+@pytest.mark.parametrize("fixture, x0", [("bank_dir", [0.0, 1.0, 0.2]), ("ensemble_dir", [0.5, 1.0])])
+def test_bank_compiles_to_c_that_reproduces_simulate(fixture, x0, request, tmp_path):
+    """One decoder (Roessler) and a two-decoder ensemble (Duffing): the C program's estimates are simulate's."""
+    obs = kc.load_observer(request.getfixturevalue(fixture))
     files = generate_c(obs, tmp_path, "bank", math="libm")
     subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
                     "-o", str(tmp_path / "bank")], check=True)
-    tr = kc.simulate(obs.system, [0.0, 1.0, 0.2], kc.signals.make("sinusoid", amplitude=0.4, omega=1.5), T=3.0,
+    tr = kc.simulate(obs.system, x0, kc.signals.make("sinusoid", amplitude=0.4, omega=1.5), T=3.0,
                      dt=obs.dt, measurement_std=0.1, seed=1)
     rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
     out = subprocess.run([str(tmp_path / "bank")], input=rows + "\n", capture_output=True, text=True, check=True)
@@ -256,20 +258,6 @@ def test_an_ensemble_monitor_flags_what_its_members_disagree_on(ensemble_dir, tm
         save_model(tmp_path / "zero", dict(model.arrays), bad)
 
 
-@pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
-def test_the_ensemble_compiles_to_c_that_reproduces_simulate(ensemble_dir, tmp_path):
-    obs = kc.load_observer(ensemble_dir)
-    files = generate_c(obs, tmp_path, "ens", math="libm")
-    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
-                    "-o", str(tmp_path / "ens")], check=True)
-    tr = kc.simulate(obs.system, [0.5, 1.0], kc.signals.make("sinusoid", amplitude=0.4, omega=1.5), T=3.0,
-                     dt=obs.dt, measurement_std=0.1, seed=1)
-    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
-    out = subprocess.run([str(tmp_path / "ens")], input=rows + "\n", capture_output=True, text=True, check=True)
-    np.testing.assert_array_equal(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:],
-                                  obs.simulate(tr.t, tr.y, tr.u).xhat)
-
-
 def test_members_must_be_a_positive_integer():
     from kklcasadi.train.bank import SHIPPED_MEMBERS, BankConfig
 
@@ -282,3 +270,28 @@ def test_members_must_be_a_positive_integer():
     with pytest.raises(ValueError, match="members"):
         fb.member_prefixes(0)
     assert fb.member_prefixes(3) == ("decoder", "decoder_1", "decoder_2")
+
+
+@pytest.mark.parametrize("system", ["duffing", "vdp", "fhn", "rossler"])
+def test_the_shipped_banks_are_two_decoder_ensembles_with_the_spread_test(system):
+    """The shipped banks grew their second decoder with benchmarks/ensemble_members.py: the card says
+    so, the monitor holds the spread test, and on a protocol trial the ensemble is neither member."""
+    from kklcasadi.evaluation.protocol import Protocol
+
+    from kklcasadi.model.shipped import shipped_model
+    from kklcasadi.train.bank import SHIPPED_MEMBERS
+
+    path = shipped_model(system, "bank")
+    model = load_model(path)
+    assert model.spec.architecture.members == SHIPPED_MEMBERS
+    assert model.card["training"]["members_added_by"].startswith("benchmarks/ensemble_members.py")
+    assert model.spec.monitor.spread[1] == 0.99 and model.spec.monitor.spread[0] > 0
+    obs = kc.load_observer(path)
+    batch = Protocol(n_trials=1, T=10.0).cell("square").simulate(obs.system)
+    est = obs.simulate(batch.t, batch.y[0], batch.u[0])
+    arrays, arch = {**model.arrays, "bank/A": model.A, "bank/By": model.B}, model.card["architecture"]["decoder"]
+    angles = model.spec.architecture.angles
+    np.testing.assert_allclose(est.xhat, fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles,
+                                                     members=2), rtol=1e-9, atol=1e-9)
+    first = fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles)
+    assert np.abs(first - est.xhat).max() > 1e-6

@@ -42,8 +42,8 @@ __all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_monito
 #: (it sits near 0.007 and spikes to 20-37; per-state SMAPE weighs relative errors).
 SHIPPED = {"duffing": {}, "vdp": {}, "fhn": {}, "rossler": {"asinh_scale": (0.0, 0.0, 0.01)}}
 #: Decoder networks of the shipped systems' ensembles (each member one more decoder fit on the same
-#: runs; on validation trials 2 members lowered bank / EKF by 1-7 % in every case, 3 by a further
-#: 0-2 %, at one more decoder per step each).
+#: runs, one more decoder evaluation per step; on validation trials two lowered the geometric mean of
+#: bank / EKF on all four systems, three by little more: docs/design.md, "Ensembles").
 SHIPPED_MEMBERS = 2
 #: The budget of a plant kklcasadi does not ship (a first observer in minutes on 2 cores at any dt):
 #: runs, horizon in units of 1 / time_scale (the Qube's 60 / 13.3 = 4.5 s) and decoder epochs, one
