@@ -277,7 +277,6 @@ def test_the_shipped_banks_are_two_decoder_ensembles_with_the_spread_test(system
     """The shipped banks grew their second decoder with benchmarks/ensemble_members.py: the card says
     so, the monitor holds the spread test, and on a protocol trial the ensemble is neither member."""
     from kklcasadi.evaluation.protocol import Protocol
-
     from kklcasadi.model.shipped import shipped_model
     from kklcasadi.train.bank import SHIPPED_MEMBERS
 
