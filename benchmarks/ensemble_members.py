@@ -7,8 +7,9 @@ Re-simulates the model's fitting samples (checked against its card, as
 code simulates them, for a card whose own runs the current code cannot remake), fits K - 1 more
 decoders with the card's decoder configuration from the seeds ``seed + 1, ..., seed + K - 1``
 (the card's training seed; what ``kklcasadi train --members K`` fits after the first), keeps the
-model's own decoder as the first member, and writes DIR: the ensemble (``architecture.bank.members = K``) with its monitor
-recalibrated on the same runs, the spread test included. ``--cache C`` keeps each member's fitted
+model's own decoder as the first member, and writes DIR: the ensemble
+(``architecture.bank.members = K``) with its monitor recalibrated on the same runs, the spread test
+included. ``--cache C`` keeps each member's fitted
 arrays (``C/<system>_m<seed>.npz``) so that several K reuse them.
 """
 
