@@ -305,8 +305,9 @@ def test_the_damped3_table_is_the_evaluate_scores():
 
 def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_banks(capsys):
     """benchmarks/summarize_generalisation.py on results/generalisation prints the tables of
-    "Generalisation", verbatim; the reports are those of the shipped banks (their cards' fit_families)
-    and of the other recipe's bank on the same trials (the EKF's per-trial scores agree)."""
+    "Generalisation", verbatim; the reports are those of the shipped banks (their cards' fit_families),
+    of their one-decoder predecessors and of the other recipe's bank on the same trials (the EKF's
+    per-trial scores agree)."""
     runpy.run_path(str(ROOT / "benchmarks" / "summarize_generalisation.py"), run_name="__main__")
     blocks = capsys.readouterr().out.strip().split("\n\n")
     assert len(blocks) == 2 + 2 * len(SYSTEMS)
@@ -324,6 +325,9 @@ def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_bank
         assert other["models"]["bank"]["fit_families"] != card["fit_families"]
         assert [c["ekf"]["smape"] for c in other["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
         assert shipped["pf_particles"] == other["pf_particles"] == 1000             # "also holds the particle filter"
+        one = json.loads((root / f"{system}_generalisation_one_decoder.json").read_text())    # the bank before
+        assert one["models"]["bank"]["fit_families"] == card["fit_families"]
+        assert [c["ekf"]["smape"] for c in one["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
 
 
 def test_the_generalisation_text_follows_from_the_reports():
