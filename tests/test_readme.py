@@ -57,8 +57,9 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     cell = scores("duffing")[("bank", "square", True)]
     assert cell.min() <= smape <= cell.max()
 
-    # the domain monitor: the card's domain widened by DOMAIN_MARGIN of its ranges, and the
-    # decoder-input monitor on the decoder's input [z_k; y_k; u_k] (bank's memory is [y_k; u_k])
+    # the domain monitor: the card's domain widened by DOMAIN_MARGIN of its ranges, the
+    # decoder-input monitor on the decoder's input [z_k; y_k; u_k] (bank's memory is [y_k; u_k]), and
+    # the spread of the two decoders within the card's spread threshold
     from kklcasadi.observer.kkl import DOMAIN_MARGIN
 
     domain = json.loads((ROOT / "models" / "duffing" / "bank" / "card.json").read_text())["domain"]
@@ -67,9 +68,10 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     points = np.concatenate([est.xhat, est.z], axis=1)
     in_box = np.all((points >= lo) & (points <= hi), axis=1)
     features = np.concatenate([est.z, tr.y, tr.u], axis=1)
-    inside = in_box & obs.monitor.inside(features)
-    np.testing.assert_array_equal(est.in_domain, inside)
     memory = np.concatenate([tr.y, tr.u], axis=1)
+    spread = obs.spread_of(est.z, memory[:, :, None])
+    inside = in_box & obs.monitor.inside(features) & (spread <= obs.monitor.spec.spread[0])
+    np.testing.assert_array_equal(est.in_domain, inside)
     np.testing.assert_array_equal(est.in_domain, [bool(obs.domain_check(zk, wk, xk))
                                                   for zk, wk, xk in zip(est.z, memory, est.xhat)])
     assert float(out[1]) == inside.mean()
