@@ -282,7 +282,9 @@ class KKLObserver:
             True where ``xhat`` and ``z`` are within the card's state and latent boxes, widened by
             :data:`DOMAIN_MARGIN` of their ranges, and (with a decoder-input monitor) where
             ``[z; vec(w)]`` is within the monitor's threshold of its nearest prototype (``vec``
-            column-major, as ``ca.vec``); None when the model records neither.
+            column-major, as ``ca.vec``) and, with the monitor's ``spread`` test, where the
+            decoder ensemble's members agree within its threshold (:meth:`spread_of`); None when
+            the model records neither.
         """
         if self._domain_bounds is None and self.monitor is None:
             return None

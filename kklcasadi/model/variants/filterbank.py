@@ -24,6 +24,10 @@ feature vector ``[z; y_k; u_k]`` followed by a per-state output transform: where
 ``xhat_i = asinh_scale[i] * sinh(v_i)`` (a log-like scale for a state whose magnitude spans
 decades, such as Roessler's x3; odd, so it allows either sign), elsewhere ``xhat_i = v_i``.
 
+The decoder may be an ensemble of ``members`` MLPs of one architecture (prefixes ``decoder``,
+``decoder_1``, ...: :func:`member_prefixes`): the mean of their outputs ``v`` goes through the
+output transform, and :func:`spread` measures how far they disagree.
+
 :func:`estimate` is the reference implementation of the whole estimator over many trials at once
 (numpy); :func:`decoder_function` and :meth:`FilterBank.step_function` build the same maps as
 CasADi Functions.
