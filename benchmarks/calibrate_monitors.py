@@ -76,7 +76,7 @@ def recalibrate(directory: Path, model: Model, bank: FilterBank, data: Operation
     ``data`` and the card's ``fit_families``; returns the card written."""
     spec = parse_card(card, str(directory), require_sha=False).architecture
     monitor = bank_monitor(data, model.card["training"]["seed"], source=source,
-                           spread=member_spread(arrays, bank, spec, data))
+                           spread=member_spread(arrays, bank, spec))
     card = {key: value for key, value in card.items() if key not in ("monitor", "fit_families")}
     card["monitor"] = monitor.spec.to_card()
     card["fit_families"] = {kind: {p: list(b) for p, b in ranges.items()}

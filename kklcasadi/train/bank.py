@@ -8,7 +8,7 @@ import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -206,14 +206,15 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
 
 def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder's fitting runs",
                  validation_share: float = 0.2, settle_time: float = 5.0,
-                 spread: Optional[np.ndarray] = None) -> FeatureMonitor:
+                 spread: Optional[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = None
+                 ) -> FeatureMonitor:
     """The decoder-input domain monitor calibrated on the decoder's samples (:func:`kklcasadi.model.monitor.calibrate`).
 
     The features are the decoder's input ``[z_k; y_k; u_k]`` (the observer's ``[z; vec(w)]``); the
     first runs give the prototypes and the metric, the samples after ``settle_time`` of the last
     ``validation_share`` of the runs the threshold (all their samples where the runs are shorter).
-    ``spread`` (one per sample of ``data``), the members' spread of a decoder ensemble, adds the
-    spread test with its threshold from the same validation samples
+    ``spread`` (:func:`member_spread`: samples ``(z, y, u)`` to the members' spread of a decoder
+    ensemble) adds the spread test, evaluated on and with its threshold from the same validation samples
     (:func:`kklcasadi.model.monitor.with_spread`). ``source`` is recorded in the card's
     ``monitor.calibration``.
     """
@@ -222,8 +223,6 @@ def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder
     if n_runs < 2:
         raise error("data", "samples of at least 2 runs (the monitor's threshold comes from runs it was not fit on)",
                     Text(f"{n_runs} runs"))
-    if spread is not None and np.shape(spread) != (len(data),):
-        raise error("spread", f"one spread per sample of data ({len(data)},)", Text(f"shape {np.shape(spread)}"))
     first_val = n_runs - max(1, int(round(validation_share * n_runs)))
     if data.t.max() < settle_time:                    # runs shorter than the settle time: all their samples
         settle_time = 0.0
@@ -231,7 +230,7 @@ def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder
     held = (data.run >= first_val) & (data.t >= settle_time)
     monitor = calibrate(fit, features[held], settle_time=settle_time, seed=seed,
                         calibration={"source": source, "fit_runs": first_val, "validation_runs": n_runs - first_val})
-    return monitor if spread is None else with_spread(monitor, np.asarray(spread)[held])
+    return monitor if spread is None else with_spread(monitor, spread(data.z[held], data.y[held], data.u[held]))
 
 
 def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, angles: fb.Angles, seed: int, *,
@@ -241,14 +240,20 @@ def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, 
             for j in range(config.members)]
 
 
-def member_spread(arrays: dict, bank: fb.FilterBank, spec: BankSpec, data: OperationalData, *,
-                  chunk: int = 65536) -> Optional[np.ndarray]:
-    """The ensemble's spread at every sample of ``data`` (None for a single decoder), ``chunk`` samples at a time."""
+def member_spread(arrays: dict, bank: fb.FilterBank, spec: BankSpec, *,
+                  chunk: int = 65536) -> Optional[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]]:
+    """The ensemble's spread as a function of samples ``(z (S, nz), y (S, ny), u (S, nu)) -> (S,)``,
+    evaluated ``chunk`` samples at a time (None for a single decoder)."""
     if spec.members < 2:
         return None
     full, arch = {**arrays, **fb.bank_arrays(bank)}, spec.decoder.to_card()
-    return np.concatenate([fb.spread(full, arch, data.z[i:i + chunk], data.y[i:i + chunk], data.u[i:i + chunk],
-                                     angles=spec.angles, members=spec.members) for i in range(0, len(data), chunk)])
+
+    def spread(z: np.ndarray, y: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return np.concatenate([fb.spread(full, arch, z[i:i + chunk], y[i:i + chunk], u[i:i + chunk],
+                                         angles=spec.angles, members=spec.members)
+                               for i in range(0, len(z), chunk)] or [np.empty(0)])
+
+    return spread
 
 
 def train_bank(system: System, design: Design, base: Model | None, config: BankConfig, *, dt: float, seed: int,
@@ -277,7 +282,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
                 "machine": {"cpus": os.cpu_count(), "load_average_start": [round(v, 2) for v in load_start],
                             "load_average_end": [round(v, 2) for v in os.getloadavg()]}}
     # read by kklcasadi.evaluation.generalisation, with the families
-    monitor = bank_monitor(data, seed, spread=member_spread(arrays, bank, spec, data))
+    monitor = bank_monitor(data, seed, spread=member_spread(arrays, bank, spec))
     arrays.update(monitor.arrays())
     history = {prefix: fit.fit.history for prefix, fit in zip(fb.member_prefixes(len(fits)), fits)}
     return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, history, 1,
