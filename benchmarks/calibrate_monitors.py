@@ -23,6 +23,7 @@ import numpy as np
 
 import kklcasadi as kc
 from kklcasadi.model.files import Domain, Model, load_model, parse_card, save_model
+from kklcasadi.model.monitor import DEFAULT_QUANTILE, DEFAULT_SPREAD_QUANTILE
 from kklcasadi.model.variants.filterbank import FilterBank
 from kklcasadi.train.bank import bank_monitor, member_spread
 from kklcasadi.train.operational import OperationalData, RolloutConfig, fit_families, operational_data
@@ -71,12 +72,15 @@ def resimulate(directory: Path, *, fresh: bool = False) -> tuple[Model, FilterBa
 
 
 def recalibrate(directory: Path, model: Model, bank: FilterBank, data: OperationalData, arrays: dict, card: dict,
-                source: str) -> dict:
+                source: str, *, quantile: float = DEFAULT_QUANTILE,
+                spread_quantile: float = DEFAULT_SPREAD_QUANTILE) -> dict:
     """Save ``arrays`` and ``card`` (a bank model of ``data``) to ``directory`` with the monitor calibrated on
-    ``data`` and the card's ``fit_families``; returns the card written."""
+    ``data`` (``quantile``, ``spread_quantile``: :func:`kklcasadi.train.bank.bank_monitor`) and the card's
+    ``fit_families``; returns the card written."""
     spec = parse_card(card, str(directory), require_sha=False).architecture
     monitor = bank_monitor(data, model.card["training"]["seed"], source=source,
-                           spread=member_spread(arrays, bank, spec))
+                           spread=member_spread(arrays, bank, spec), quantile=quantile,
+                           spread_quantile=spread_quantile)
     card = {key: value for key, value in card.items() if key not in ("monitor", "fit_families")}
     card["monitor"] = monitor.spec.to_card()
     card["fit_families"] = {kind: {p: list(b) for p, b in ranges.items()}
@@ -89,12 +93,22 @@ def recalibrate(directory: Path, model: Model, bank: FilterBank, data: Operation
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("models", nargs="+", type=Path, help="bank model directories of a shipped system")
+    parser.add_argument("--quantile", type=float, default=DEFAULT_QUANTILE,
+                        help=f"share of validation samples inside the prototype threshold (default {DEFAULT_QUANTILE})")
+    parser.add_argument("--spread-quantile", type=float, default=DEFAULT_SPREAD_QUANTILE,
+                        help="share of validation samples inside the ensemble's spread threshold "
+                             f"(default {DEFAULT_SPREAD_QUANTILE})")
+    parser.add_argument("--fresh", action="store_true",
+                        help="calibrate on fresh runs of the card's recipe (a card that predates the current "
+                             "simulator)")
     args = parser.parse_args()
     for directory in args.models:
         t0 = time.perf_counter()
-        model, bank, data = resimulate(directory)
-        card = recalibrate(directory, model, bank, data, dict(model.arrays), model.card,
-                           "the decoder's fitting runs, re-simulated by benchmarks/calibrate_monitors.py")
+        model, bank, data = resimulate(directory, fresh=args.fresh)
+        source = ("fresh runs of the decoder's recipe" if args.fresh else "the decoder's fitting runs") + \
+            ", re-simulated by benchmarks/calibrate_monitors.py"
+        card = recalibrate(directory, model, bank, data, dict(model.arrays), model.card, source,
+                           quantile=args.quantile, spread_quantile=args.spread_quantile)
         print(f"{directory}: {data.record['runs']} runs re-simulated and checked, monitor threshold "
               f"{card['monitor']['threshold']:.4g} ({card['monitor']['prototypes']} prototypes), "
               f"{time.perf_counter() - t0:.0f} s; {json.dumps(card['fit_families'])}")

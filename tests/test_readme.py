@@ -415,6 +415,27 @@ def test_the_generalisation_text_follows_from_the_reports():
             + f", {members('rossler')} and {members('fhn')} of the 30 cases on Duffing, Van der Pol, Roessler and "
             "FitzHugh-Nagumo") in text
 
+    # 4000 runs against 2000 (Duffing, Van der Pol): the validation trials that chose them and the scored trials
+    def runs_choice(system):
+        acc = ROOT / "results" / "accuracy" / "generalisation"
+        new, old = (json.loads((acc / f"{system}_3030_{name}.json").read_text()) for name in ("runs", "members"))
+        assert new["settings"]["seed"] == old["settings"]["seed"] == 3030
+        r_new = [c["models"]["runs4000"]["ratio_ekf"] for c in new["cases"]]
+        r_old = [c["models"]["k2"]["ratio_ekf"] for c in old["cases"]]
+        gm = lambda values: float(np.exp(np.mean(np.log(values))))  # noqa: E731
+        return gm(r_old), gm(r_new), sum(a < b for a, b in zip(r_new, r_old))
+
+    (d_old, d_new, d_lower), (v_old, v_new, v_lower) = runs_choice("duffing"), runs_choice("vdp")
+    assert (f"geometric mean {d_old:.3f} to {d_new:.3f} and {v_old:.3f} to {v_new:.3f}, lower in {d_lower} and "
+            f"{v_lower} of the 30 cases; on the scored trials their 2000-run ensembles" in text)
+    before = {s: report(s, "_2000_runs") for s in ("duffing", "vdp")}
+    assert all(c["ekf"]["smape"] == n["ekf"]["smape"] for s in before
+               for c, n in zip(before[s]["cases"], shipped[s]["cases"]))
+    square = [ratios(before[s], 0.1, True)["square", "id"] for s in ("duffing", "vdp")]
+    assert f"with 2000 runs they were {square[0]:.3f}x and {square[1]:.2f}x" in text
+    assert (f"give {geomean(before['duffing']):.3f} and {geomean(before['vdp']):.3f}, the 4000-run ones "
+            f"{geomean(shipped['duffing']):.3f} and {geomean(shipped['vdp']):.3f}" in text)
+
     # the choice, on the validation trials (seed 3030), by the geometric mean of bank / EKF over the cases
     def validation(system):
         data = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{system}_3030_broad.json").read_text())

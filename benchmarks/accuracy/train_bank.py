@@ -43,14 +43,16 @@ def main() -> None:
     p.add_argument("--T", type=float)
     p.add_argument("--epochs", type=int)
     p.add_argument("--hidden")
+    p.add_argument("--members", type=int, help="decoder networks averaged (default: the system's)")
     p.add_argument("--measurement-std", type=float)
     p.add_argument("--process-std", help="one std or one per state")
     p.add_argument("--box-scale", help="a factor or lo,hi")
     p.add_argument("--sample-period", type=float)
     p.add_argument("--dt", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: a shared machine)")
     args = p.parse_args()
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
     plant = kc.systems.load_plant(args.system) if ":" in args.system else kc.systems.get(args.system)
     config = default_config(plant.name, "bank", epochs=args.epochs)
     top = {}
@@ -74,6 +76,8 @@ def main() -> None:
     for name in ("regime", "n_traj", "T", "sample_period"):
         if getattr(args, name) is not None:
             runs[name] = getattr(args, name)
+    if args.members is not None:
+        top["members"] = args.members
     config = replace(config, **top, rollouts=replace(config.rollouts, **runs))
     if args.hidden:
         config = replace(config, decoder=replace(config.decoder, hidden=tuple(int(h) for h in args.hidden.split(","))))

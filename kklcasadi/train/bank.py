@@ -13,7 +13,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from ..model.files import Domain, Model
-from ..model.monitor import FeatureMonitor, calibrate, with_spread
+from ..model.monitor import DEFAULT_QUANTILE, DEFAULT_SPREAD_QUANTILE, FeatureMonitor, calibrate, with_spread
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER, MLPSpec
@@ -40,14 +40,16 @@ __all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_monito
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
 #: given (``time_scale = 1``), RK4 with 4 substeps, and Roessler's x3 decoded as ``0.01 sinh(v)``
 #: (it sits near 0.007 and spikes to 20-37; per-state SMAPE weighs relative errors).
-SHIPPED = {"duffing": {}, "vdp": {}, "fhn": {}, "rossler": {"asinh_scale": (0.0, 0.0, 0.01)}}
+SHIPPED = {"duffing": {"n_traj": 4000}, "vdp": {"n_traj": 4000}, "fhn": {},
+           "rossler": {"asinh_scale": (0.0, 0.0, 0.01)}}
 #: Decoder networks of the shipped systems' ensembles (each member one more decoder fit on the same
 #: runs, one more decoder evaluation per step; on validation trials two lowered the geometric mean of
 #: bank / EKF on all four systems, three by little more: docs/design.md, "Ensembles").
 SHIPPED_MEMBERS = 2
 #: The budget of a plant kklcasadi does not ship (a first observer in minutes on 2 cores at any dt):
 #: runs, horizon in units of 1 / time_scale (the Qube's 60 / 13.3 = 4.5 s) and decoder epochs, one
-#: decoder (``--members K`` fits more). The shipped systems keep 2000 runs x 50 s, 40 epochs.
+#: decoder (``--members K`` fits more). The shipped systems keep runs of 50 s and 40 epochs, 2000 runs
+#: (4000 for Duffing and Van der Pol, :data:`SHIPPED`: chosen on validation trials, docs/design.md, "Ensembles").
 NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 15}
 #: Where a single process-noise std acts (:attr:`BankConfig.process_on`).
 PROCESS_ON = ("all", "forced")
@@ -128,8 +130,9 @@ class BankConfig:
         else the plant's own time scale and the budget :data:`NEW_PLANT_BANK`."""
         config = cls()
         if system in SHIPPED:
-            config = replace(config, time_scale=1.0, rollouts=replace(config.rollouts, substeps=4),
-                             members=SHIPPED_MEMBERS)
+            config = replace(config, time_scale=1.0, members=SHIPPED_MEMBERS,
+                             rollouts=replace(config.rollouts, substeps=4,
+                                              n_traj=SHIPPED[system].get("n_traj", config.rollouts.n_traj)))
             if "asinh_scale" in SHIPPED[system]:
                 config = replace(config, decoder=replace(config.decoder, asinh_scale=SHIPPED[system]["asinh_scale"]))
             return config
@@ -206,7 +209,8 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
 
 def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder's fitting runs",
                  validation_share: float = 0.2, settle_time: float = 5.0,
-                 spread: Optional[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = None
+                 spread: Optional[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = None,
+                 quantile: float = DEFAULT_QUANTILE, spread_quantile: float = DEFAULT_SPREAD_QUANTILE
                  ) -> FeatureMonitor:
     """The decoder-input domain monitor calibrated on the decoder's samples (:func:`kklcasadi.model.monitor.calibrate`).
 
@@ -215,7 +219,8 @@ def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder
     ``validation_share`` of the runs the threshold (all their samples where the runs are shorter).
     ``spread`` (:func:`member_spread`: samples ``(z, y, u)`` to the members' spread of a decoder
     ensemble) adds the spread test, evaluated on and with its threshold from the same validation samples
-    (:func:`kklcasadi.model.monitor.with_spread`). ``source`` is recorded in the card's
+    (:func:`kklcasadi.model.monitor.with_spread`). ``quantile`` and ``spread_quantile`` are the shares of
+    those validation samples inside the two thresholds. ``source`` is recorded in the card's
     ``monitor.calibration``.
     """
     features = fb.decoder_features(data.z, data.y, data.u)
@@ -228,9 +233,11 @@ def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder
         settle_time = 0.0
     fit = features[data.run < first_val]
     held = (data.run >= first_val) & (data.t >= settle_time)
-    monitor = calibrate(fit, features[held], settle_time=settle_time, seed=seed,
+    monitor = calibrate(fit, features[held], quantile=quantile, settle_time=settle_time, seed=seed,
                         calibration={"source": source, "fit_runs": first_val, "validation_runs": n_runs - first_val})
-    return monitor if spread is None else with_spread(monitor, spread(data.z[held], data.y[held], data.u[held]))
+    if spread is None:
+        return monitor
+    return with_spread(monitor, spread(data.z[held], data.y[held], data.u[held]), quantile=spread_quantile)
 
 
 def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, angles: fb.Angles, seed: int, *,
