@@ -299,3 +299,32 @@ def test_the_shipped_banks_are_two_decoder_ensembles_with_the_spread_test(system
                                                      members=2), rtol=1e-9, atol=1e-9)
     first = fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles)
     assert np.abs(first - est.xhat).max() > 1e-6
+
+
+@pytest.mark.parametrize("quantile, spread_quantile", [(0.98, 0.99), (0.9, 0.95)])
+def test_bank_monitor_sets_both_thresholds_at_their_quantiles_of_the_validation_samples(quantile, spread_quantile):
+    """bank_monitor: the prototype threshold and the spread threshold are the requested quantiles over the
+    validation samples (the last fifth of the runs, after the settle time), and only those reach the spread."""
+    from kklcasadi.train.bank import bank_monitor
+    from kklcasadi.train.operational import OperationalData
+
+    rng = np.random.default_rng(3)
+    runs, per_run = 10, 40
+    t = np.tile(np.arange(per_run) * 0.25, runs)                     # 0 .. 9.75 s per run
+    run = np.repeat(np.arange(runs), per_run)
+    z, y, u = rng.normal(size=(len(t), 3)), rng.normal(size=(len(t), 1)), rng.normal(size=(len(t), 1))
+    data = OperationalData(z, y, u, np.zeros((len(t), 2)), t, run, {})
+    seen = []
+
+    def spread(zs, ys, us):
+        seen.append(len(zs))
+        return np.abs(zs[:, 0]) + 1e-3
+
+    monitor = bank_monitor(data, 0, spread=spread, quantile=quantile, spread_quantile=spread_quantile)
+    held = (run >= 8) & (t >= 5.0)
+    assert seen == [int(held.sum())]
+    assert monitor.spec.spread == (pytest.approx(np.quantile(np.abs(z[held, 0]) + 1e-3, spread_quantile)),
+                                   spread_quantile)
+    features = np.concatenate([z, y, u], axis=1)[held]
+    assert monitor.spec.quantile == quantile
+    assert np.mean(monitor.distance(features) <= monitor.spec.threshold) == pytest.approx(quantile, abs=0.03)
