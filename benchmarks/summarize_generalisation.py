@@ -4,8 +4,8 @@ Usage: python benchmarks/summarize_generalisation.py
 (after ``kklcasadi generalise models/<system>/bank --pf 1000 --out results/generalisation`` per
 system). Beside each shipped bank's ``<system>_generalisation.json`` (a decoder ensemble), on the same
 trials: ``<system>_generalisation_one_decoder.json``, the one-decoder bank shipped until commit
-``aadd302`` (Roessler's and FitzHugh-Nagumo's: the first member of today's; Duffing's and Van der
-Pol's ensembles are fit on 4000 runs, that decoder on 2000); and the other recipe's bank (the
+``aadd302`` (Roessler's: the first member of today's; Duffing's, Van der Pol's and
+FitzHugh-Nagumo's ensembles are fit on 4000 runs, that decoder on 2000); and the other recipe's bank (the
 leave-family-out comparison):
 ``<system>_generalisation_benchmark_fit.json``, the bank fit on the benchmark's four families in the
 ``train`` ranges only, where the shipped one is the broad recipe; ``<system>_generalisation_broad_fit.json``,
