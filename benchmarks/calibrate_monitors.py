@@ -71,6 +71,12 @@ def resimulate(directory: Path, *, fresh: bool = False) -> tuple[Model, FilterBa
     return model, bank, data
 
 
+def calibration_source(script: str, fresh: bool) -> str:
+    """The card's ``monitor.calibration.source`` of a monitor that ``script`` calibrated on re-simulated runs."""
+    return (f"runs of the card's recipe simulated by {script} --fresh" if fresh
+            else f"the decoder's fitting runs, re-simulated by {script}")
+
+
 def recalibrate(directory: Path, model: Model, bank: FilterBank, data: OperationalData, arrays: dict, card: dict,
                 source: str, *, quantile: float = DEFAULT_QUANTILE,
                 spread_quantile: float = DEFAULT_SPREAD_QUANTILE) -> dict:
@@ -105,8 +111,7 @@ def main() -> None:
     for directory in args.models:
         t0 = time.perf_counter()
         model, bank, data = resimulate(directory, fresh=args.fresh)
-        source = ("fresh runs of the decoder's recipe" if args.fresh else "the decoder's fitting runs") + \
-            ", re-simulated by benchmarks/calibrate_monitors.py"
+        source = calibration_source("benchmarks/calibrate_monitors.py", args.fresh)
         card = recalibrate(directory, model, bank, data, dict(model.arrays), model.card, source,
                            quantile=args.quantile, spread_quantile=args.spread_quantile)
         print(f"{directory}: {data.record['runs']} runs re-simulated and checked, monitor threshold "

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from calibrate_monitors import recalibrate, resimulate
+from calibrate_monitors import calibration_source, recalibrate, resimulate
 
 from kklcasadi.train.bank import ensemble_arrays
 from kklcasadi.train.config import LoopConfig
@@ -78,8 +78,7 @@ def main() -> None:
     card["architecture"]["bank"]["members"] = args.members
     card["training"]["member_fits"] = summaries
     card["training"]["members_added_by"] = "benchmarks/ensemble_members.py" + (" --fresh" if args.fresh else "")
-    source = ("runs of the card's recipe simulated by benchmarks/ensemble_members.py --fresh" if args.fresh
-              else "the decoder's fitting runs, re-simulated by benchmarks/ensemble_members.py")
+    source = calibration_source("benchmarks/ensemble_members.py", args.fresh)
     card = recalibrate(args.out, model, bank, data, arrays, card, source)
     print(f"{args.out}: {args.members} members ({json.dumps(summaries)}), monitor threshold "
           f"{card['monitor']['threshold']:.4g}, spread threshold {card['monitor']['spread']['threshold']:.4g}, "
