@@ -34,8 +34,7 @@ from .operational import (
 from .result import Trained
 
 __all__ = ["BankConfig", "MonitorConfig", "train_bank", "design_bank", "bank_model", "bank_monitor", "bank_time_scale",
-           "process_stds",
-           "ensemble_arrays", "fit_members", "member_spread", "nominal_runs",
+           "process_stds", "ensemble_arrays", "fit_members", "member_spread", "nominal_runs", "SPREAD_SEED_OFFSET",
            "SHIPPED", "SHIPPED_MEMBERS", "NEW_PLANT_BANK", "PROCESS_ON"]
 
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
