@@ -6,10 +6,12 @@ For each model directory: re-simulate the decoder's fitting samples from the car
 (``training.config`` and ``training.seed``, through :func:`kklcasadi.train.operational.operational_data`,
 the function that made them), check that they are those samples (the card's ``domain`` is their
 componentwise state and latent range, bit for bit), calibrate the monitor on them with the training
-hook's own function (:func:`kklcasadi.train.bank.bank_monitor`; with the members' spread test for a
-decoder ensemble), and save the model again with the monitor's arrays and card entry and the input
-families of the fit. The decoder's weights are unchanged (the archive gains the ``monitor/*`` arrays,
-so its SHA-256 changes). A model trained now gets both from ``kklcasadi train`` itself.
+hook's own function (:func:`kklcasadi.train.bank.bank_monitor`; with the members' spread test for
+a decoder ensemble, its threshold from runs of the card's recipe at its nominal noise,
+:func:`kklcasadi.train.bank.nominal_runs`, as training sets it), and save the model again with the
+monitor's arrays and card entry and the input families of the fit. The decoder's weights are
+unchanged (the archive gains the ``monitor/*`` arrays, so its SHA-256 changes). A model trained now
+gets both from ``kklcasadi train`` itself.
 """
 
 from __future__ import annotations
@@ -23,9 +25,8 @@ import numpy as np
 
 import kklcasadi as kc
 from kklcasadi.model.files import Domain, Model, load_model, parse_card, save_model
-from kklcasadi.model.monitor import DEFAULT_QUANTILE, DEFAULT_SPREAD_QUANTILE
 from kklcasadi.model.variants.filterbank import FilterBank
-from kklcasadi.train.bank import bank_monitor, member_spread
+from kklcasadi.train.bank import MonitorConfig, bank_monitor, member_spread, nominal_runs
 from kklcasadi.train.operational import OperationalData, RolloutConfig, fit_families, operational_data
 
 
@@ -54,13 +55,18 @@ def noise_of(model: Model) -> tuple[float, np.ndarray, float]:
             float(training["time_scale"]))
 
 
+def model_plant(model: Model) -> kc.System:
+    """The shipped plant a model's card names."""
+    return kc.systems.get(model.card["system"]["name"])
+
+
 def resimulate(directory: Path, *, fresh: bool = False) -> tuple[Model, FilterBank, OperationalData]:
     """A bank model, its filter bank and its decoder's fitting samples, re-simulated and checked against the
     card's domain (SystemExit where they differ). ``fresh``: runs of the card's recipe as the current code
     simulates them, not checked (a card from before the current runs: its decoder's own runs cannot be
     remade)."""
     model = load_model(directory)
-    plant = kc.systems.get(model.card["system"]["name"])
+    plant = model_plant(model)
     bank = FilterBank(model.spec.A, model.spec.B, np.asarray(model.arrays["bank/Bu"]),
                       np.asarray(model.arrays["bank/c"]))
     measurement, process, rate = noise_of(model)
@@ -78,32 +84,45 @@ def calibration_source(script: str, fresh: bool) -> str:
 
 
 def recalibrate(directory: Path, model: Model, bank: FilterBank, data: OperationalData, arrays: dict, card: dict,
-                source: str, *, quantile: float = DEFAULT_QUANTILE,
-                spread_quantile: float = DEFAULT_SPREAD_QUANTILE) -> dict:
+                source: str, *, monitor: MonitorConfig | None = None) -> dict:
     """Save ``arrays`` and ``card`` (a bank model of ``data``) to ``directory`` with the monitor calibrated on
-    ``data`` (``quantile``, ``spread_quantile``: :func:`kklcasadi.train.bank.bank_monitor`) and the card's
-    ``fit_families``; returns the card written."""
+    ``data`` as ``monitor`` says (:func:`kklcasadi.train.bank.bank_monitor`; the spread threshold of an ensemble
+    from ``monitor.spread_runs`` runs at the card's nominal noise) and the card's ``fit_families``; returns the
+    card written."""
+    monitor = MonitorConfig() if monitor is None else monitor
     spec = parse_card(card, str(directory), require_sha=False).architecture
-    monitor = bank_monitor(data, model.card["training"]["seed"], source=source,
-                           spread=member_spread(arrays, bank, spec), quantile=quantile,
-                           spread_quantile=spread_quantile)
+    spread = member_spread(arrays, bank, spec)
+    seed = model.card["training"]["seed"]
+    spread_data, spread_source = None, ""
+    if spread is not None and monitor.spread_runs:
+        measurement, process, rate = noise_of(model)
+        spread_data, spread_source = nominal_runs(model_plant(model), bank, rollouts_of(model), monitor.spread_runs,
+                                                  seed, dt=model.dt, measurement_std=measurement, process_std=process,
+                                                  time_scale=rate)
+    calibrated = bank_monitor(data, seed, source=source, spread=spread, spread_data=spread_data,
+                              spread_source=spread_source, quantile=monitor.quantile,
+                              spread_quantile=monitor.spread_quantile)
     card = {key: value for key, value in card.items() if key not in ("monitor", "fit_families")}
-    card["monitor"] = monitor.spec.to_card()
+    card["monitor"] = calibrated.spec.to_card()
     card["fit_families"] = {kind: {p: list(b) for p, b in ranges.items()}
                             for kind, ranges in fit_families(rollouts_of(model), noise_of(model)[2]).items()}
     arrays = {k: v for k, v in arrays.items() if not k.startswith("monitor/")}
-    save_model(directory, {**arrays, **monitor.arrays()}, card, overwrite=True)
+    save_model(directory, {**arrays, **calibrated.arrays()}, card, overwrite=True)
     return card
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("models", nargs="+", type=Path, help="bank model directories of a shipped system")
-    parser.add_argument("--quantile", type=float, default=DEFAULT_QUANTILE,
-                        help=f"share of validation samples inside the prototype threshold (default {DEFAULT_QUANTILE})")
-    parser.add_argument("--spread-quantile", type=float, default=DEFAULT_SPREAD_QUANTILE,
-                        help="share of validation samples inside the ensemble's spread threshold "
-                             f"(default {DEFAULT_SPREAD_QUANTILE})")
+    default = MonitorConfig()
+    parser.add_argument("--quantile", type=float, default=default.quantile,
+                        help=f"share of validation samples inside the prototype threshold (default {default.quantile})")
+    parser.add_argument("--spread-quantile", type=float, default=default.spread_quantile,
+                        help="share of the spread-calibration samples inside the ensemble's spread threshold "
+                             f"(default {default.spread_quantile})")
+    parser.add_argument("--spread-runs", type=int, default=default.spread_runs,
+                        help="runs of the card's recipe at its nominal noise that set the spread threshold (0: the "
+                             f"validation samples of the fitting runs; default {default.spread_runs})")
     parser.add_argument("--fresh", action="store_true",
                         help="calibrate on fresh runs of the card's recipe (a card that predates the current "
                              "simulator)")
@@ -112,8 +131,8 @@ def main() -> None:
         t0 = time.perf_counter()
         model, bank, data = resimulate(directory, fresh=args.fresh)
         source = calibration_source("benchmarks/calibrate_monitors.py", args.fresh)
-        card = recalibrate(directory, model, bank, data, dict(model.arrays), model.card, source,
-                           quantile=args.quantile, spread_quantile=args.spread_quantile)
+        monitor = MonitorConfig(args.quantile, args.spread_quantile, args.spread_runs)
+        card = recalibrate(directory, model, bank, data, dict(model.arrays), model.card, source, monitor=monitor)
         print(f"{directory}: {data.record['runs']} runs re-simulated and checked, monitor threshold "
               f"{card['monitor']['threshold']:.4g} ({card['monitor']['prototypes']} prototypes), "
               f"{time.perf_counter() - t0:.0f} s; {json.dumps(card['fit_families'])}")

@@ -207,9 +207,11 @@ class FeatureMonitor:
 
 
 def with_spread(monitor: FeatureMonitor, validation_spread: Any, *,
-                quantile: float = DEFAULT_SPREAD_QUANTILE) -> FeatureMonitor:
+                quantile: float = DEFAULT_SPREAD_QUANTILE, source: str = "") -> FeatureMonitor:
     """``monitor`` with the decoder ensemble's spread test, its threshold the ``quantile`` of
-    ``validation_spread``: the spreads (V,) of the validation samples that set the prototype threshold."""
+    ``validation_spread``: the spreads (V,) of calibration samples (the validation samples that set the
+    prototype threshold, or runs at the model's nominal noise), described by ``source`` in the card's
+    ``monitor.calibration`` (``spread_source``, with ``spread_samples``)."""
     spread = np.asarray(validation_spread, dtype=float)
     if spread.ndim != 1 or not len(spread) or not np.all(np.isfinite(spread)):
         raise error("validation_spread", "finite spreads (V >= 1,)", Text(f"shape {spread.shape}"))
@@ -219,8 +221,10 @@ def with_spread(monitor: FeatureMonitor, validation_spread: Any, *,
     if not threshold > 0:
         raise error("validation_spread", "spreads with a positive quantile (members that differ)", threshold)
     spec = monitor.spec
+    calibration = {**spec.calibration, "spread_samples": int(len(spread)),
+                   **({"spread_source": source} if source else {})}
     spec = MonitorSpec(spec.features, spec.prototypes, spec.threshold, spec.quantile, spec.settle_time,
-                       dict(spec.calibration), (threshold, float(quantile)))
+                       calibration, (threshold, float(quantile)))
     return FeatureMonitor(spec, monitor.metric, monitor.prototypes, monitor.radii)
 
 
