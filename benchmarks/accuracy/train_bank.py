@@ -28,6 +28,10 @@ def floats(text: str) -> tuple[float, ...]:
     return tuple(float(v) for v in text.split(",") if v.strip())
 
 
+def pairs(text: str) -> list[tuple[float, float]]:
+    return [tuple(float(v) for v in pair.split(":")) for pair in text.split(",") if pair.strip()]
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("system", help="a shipped system name or FILE.py:NAME")
@@ -37,12 +41,15 @@ def main() -> None:
     p.add_argument("--noise-range", help="lo,hi factors on the noise levels")
     p.add_argument("--y-poles")
     p.add_argument("--u-poles")
+    p.add_argument("--y-resonators", help="zeta:omega,... second-order filters of each output")
     p.add_argument("--clock", type=float)
     p.add_argument("--time-scale", type=float)
     p.add_argument("--n-traj", type=int)
     p.add_argument("--T", type=float)
     p.add_argument("--epochs", type=int)
     p.add_argument("--hidden")
+    p.add_argument("--lr", type=float, help="the decoder fit's learning rate")
+    p.add_argument("--batch-size", type=int, help="the decoder fit's batch size")
     p.add_argument("--members", type=int, help="decoder networks averaged (default: the system's)")
     p.add_argument("--measurement-std", type=float)
     p.add_argument("--process-std", help="one std or one per state")
@@ -59,6 +66,8 @@ def main() -> None:
     for name in ("y_poles", "u_poles"):
         if getattr(args, name) is not None:
             top[name] = floats(getattr(args, name))
+    if args.y_resonators is not None:
+        top["y_resonators"] = tuple(pairs(args.y_resonators))
     for name in ("clock", "time_scale", "measurement_std"):
         if getattr(args, name) is not None:
             top[name] = getattr(args, name)
@@ -81,6 +90,9 @@ def main() -> None:
     config = replace(config, **top, rollouts=replace(config.rollouts, **runs))
     if args.hidden:
         config = replace(config, decoder=replace(config.decoder, hidden=tuple(int(h) for h in args.hidden.split(","))))
+    loop = {name: getattr(args, name) for name in ("lr", "batch_size") if getattr(args, name) is not None}
+    if loop:
+        config = replace(config, decoder=replace(config.decoder, loop=replace(config.decoder.loop, **loop)))
     t0 = time.perf_counter()
     train_observer(plant, "bank", args.out, config=config, dt=args.dt, seed=args.seed, overwrite=True, progress=False)
     print(f"wrote {args.out} in {time.perf_counter() - t0:.0f} s")
