@@ -164,3 +164,35 @@ def test_a_model_without_a_monitor_or_a_record(model_dir_factory):
     assert "| zero | id | 0.1 | unknown | 3 |" in report.markdown() and report.markdown().endswith("| - | - |")
     with pytest.raises(ValueError, match=r"^observer: expected an observer with a domain monitor"):
         gen.MonitoredObserver(obs)
+
+
+def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other_trials(tmp_path, capsys):
+    """benchmarks/compare_generalisation.py: the lever tables under results/accuracy/generalisation are what it
+    prints of their reports (ratios recomputed from the mean SMAPEs); reports of other trials are refused."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    script = str(root / "benchmarks" / "compare_generalisation.py")
+    records = root / "results" / "accuracy" / "generalisation"
+    for name in ("duffing_3030_cheap_levers", "duffing_3030_lr", "vdp_3030_lr"):
+        argv, sys.argv = sys.argv, ["compare_generalisation.py", str(records / f"{name}.json")]
+        try:
+            with pytest.raises(SystemExit, match="0"):
+                runpy.run_path(script, run_name="__main__")
+        finally:
+            sys.argv = argv
+        printed = capsys.readouterr().out
+        assert printed.strip() and printed in (records / f"{name}.md").read_text() + "\n", name
+        report = json.loads((records / f"{name}.json").read_text())
+        case = report["cases"][0]
+        label, model = next(iter(case["models"].items()))
+        assert f"| {model['smape_mean'] / case['ekf']['smape_mean']:.3f}x |" in printed.splitlines()[2]
+    other = json.loads((records / "duffing_3030_lr.json").read_text())
+    other["cases"][0]["ekf"]["smape"][0] += 1.0
+    path = tmp_path / "other.json"
+    path.write_text(json.dumps(other))
+    module = runpy.run_path(script)
+    with pytest.raises(SystemExit, match="differ.*other trials"):
+        module["load"]([records / "duffing_3030_lr.json", path])
