@@ -1,16 +1,18 @@
 """Grow a shipped ``bank`` model into a decoder ensemble: fit more decoders on its own fitting runs.
 
     OMP_NUM_THREADS=2 python benchmarks/ensemble_members.py MODEL_DIR --members K --out DIR [--cache C]
+        [--member-seeds S1,...]
 
 Re-simulates the model's fitting samples (checked against its card, as
 ``benchmarks/calibrate_monitors.py`` does; with ``--fresh`` runs of the card's recipe as the current
 code simulates them, for a card whose own runs the current code cannot remake), fits K - 1 more
 decoders with the card's decoder configuration from the seeds ``seed + 1, ..., seed + K - 1``
-(the card's training seed; what ``kklcasadi train --members K`` fits after the first), keeps the
+(the card's training seed; what ``kklcasadi train --members K`` fits after the first; ``--member-seeds``
+names other seeds, e.g. to leave out a member that validation trials found worse than the first), keeps the
 model's own decoder as the first member, and writes DIR: the ensemble
 (``architecture.bank.members = K``) with its monitor recalibrated on the same runs, the spread test
 included. ``--cache C`` keeps each member's fitted
-arrays (``C/<system>_m<seed>.npz``) so that several K reuse them.
+arrays and its fit's summary (``C/<system>_m<seed>.npz``, ``.json``) so that several K reuse them.
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ def main() -> None:
     parser.add_argument("--members", type=int, required=True, help="decoders of the ensemble (>= 2)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--cache", type=Path, help="directory of fitted members to reuse")
+    parser.add_argument("--member-seeds", help="comma-separated seeds of the K - 1 added decoders (default: the "
+                        "card's training seed + 1, ..., + K - 1)")
     parser.add_argument("--fresh", action="store_true", help="fit the new members (and calibrate the monitor) on "
                         "runs of the card's recipe from the current code, unchecked against the card's domain")
     args = parser.parse_args()
@@ -61,11 +65,22 @@ def main() -> None:
     training = card["training"]
     config = decoder_config(training["config"]["decoder"] if "config" in training else training["decoder"])
     summaries = []
-    for member_seed in range(seed + 1, seed + args.members):
+    seeds = list(range(seed + 1, seed + args.members))
+    if args.member_seeds is not None:
+        try:
+            seeds = [int(v) for v in args.member_seeds.split(",")]
+        except ValueError:
+            parser.error(f"--member-seeds: expected comma-separated integers, received {args.member_seeds!r}")
+        if len(seeds) != args.members - 1 or len(set(seeds)) != len(seeds) or seed in seeds:
+            parser.error(f"--member-seeds: expected {args.members - 1} distinct seeds other than the card's training "
+                         f"seed {seed}, received {args.member_seeds!r}")
+    for member_seed in seeds:
         path = None if args.cache is None else args.cache / f"{card['system']['name']}_m{member_seed}.npz"
         if path is not None and path.exists():
             arrays = dict(np.load(path))
-            summaries.append({"seed": member_seed, "cached": str(path)})
+            record = path.with_suffix(".json")          # the fit's summary, written beside its arrays
+            summaries.append(json.loads(record.read_text()) if record.exists()
+                             else {"seed": member_seed, "cached": path.name})
         else:
             fit = fit_bank_decoder(bank, data, config, angles=angles, seed=member_seed, progress=True)
             arrays = fit.arrays
@@ -73,6 +88,7 @@ def main() -> None:
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 np.savez(path, **arrays)
+                path.with_suffix(".json").write_text(json.dumps(summaries[-1]))
         fits.append(BankFit(arrays, arch, angles, None, len(data), 0.0, {}))
     arrays = {k: v for k, v in ensemble_arrays(fits).items() if not k.startswith(("bank/A", "bank/By"))}
     card["architecture"]["bank"]["members"] = args.members

@@ -291,8 +291,8 @@ def test_members_must_be_a_positive_integer():
 def test_the_shipped_banks_are_two_decoder_ensembles_with_the_spread_test(system):
     """The shipped banks are ensembles, trained as one (``training.config.members``) or grown from one
     decoder by benchmarks/ensemble_members.py (the card says which), on the runs the system's default
-    configuration makes (their count); the monitor holds the spread test, and on a protocol trial the
-    ensemble is neither member."""
+    configuration makes (their count, families, ranges and noise range, and the input filters); the
+    monitor holds the spread test, and on a protocol trial the ensemble is neither member."""
     from kklcasadi.evaluation.protocol import Protocol
     from kklcasadi.model.shipped import shipped_model
     from kklcasadi.train.bank import SHIPPED_MEMBERS
@@ -303,7 +303,11 @@ def test_the_shipped_banks_are_two_decoder_ensembles_with_the_spread_test(system
     training = model.card["training"]
     assert (training.get("config", {}).get("members") == SHIPPED_MEMBERS
             or training["members_added_by"].startswith("benchmarks/ensemble_members.py"))
-    assert training["rollouts"]["n_traj"] == default_config(system, "bank").rollouts.n_traj
+    config = default_config(system, "bank")          # `kklcasadi train --method bank` remakes the shipped recipe
+    runs = training["rollouts"]
+    assert (runs["n_traj"], runs["kinds"], runs["regime"], tuple(runs["noise_range"])) == (
+        config.rollouts.n_traj, list(config.rollouts.kinds), config.rollouts.regime, config.rollouts.noise_range)
+    assert tuple(model.card["architecture"]["bank"]["u_poles"]) == config.u_poles
     # the spread quantile chosen on validation trials (benchmarks/monitor_quantiles.py), on runs at the nominal
     # noise; where no quantile met the budget the card keeps the fitting runs' validation samples at 0.99
     choice = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{system}_3030_monitor.json").read_text())
