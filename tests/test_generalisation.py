@@ -176,8 +176,10 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
     root = Path(__file__).resolve().parent.parent
     script = str(root / "benchmarks" / "compare_generalisation.py")
     records = root / "results" / "accuracy" / "generalisation"
-    for name in ("duffing_3030_cheap_levers", "duffing_3030_lr", "vdp_3030_lr"):
-        argv, sys.argv = sys.argv, ["compare_generalisation.py", str(records / f"{name}.json")]
+    tables = {name: [name] for name in ("duffing_3030_cheap_levers", "duffing_3030_lr", "vdp_3030_lr")}
+    tables["duffing_3030_cheap_filters"] = ["duffing_3030_cheap_levers", "duffing_3030_cheap_filters"]
+    for name, inputs in tables.items():
+        argv, sys.argv = sys.argv, ["compare_generalisation.py", *(str(records / f"{n}.json") for n in inputs)]
         try:
             with pytest.raises(SystemExit, match="0"):
                 runpy.run_path(script, run_name="__main__")
