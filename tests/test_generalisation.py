@@ -178,6 +178,7 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
     records = root / "results" / "accuracy" / "generalisation"
     tables = {name: [name] for name in ("duffing_3030_cheap_levers", "duffing_3030_lr", "vdp_3030_lr")}
     tables["duffing_3030_cheap_filters"] = ["duffing_3030_cheap_levers", "duffing_3030_cheap_filters"]
+    tables["rossler_3030_runs"] = ["rossler_3030_recipe", "rossler_3030_runs"]
     for name, inputs in tables.items():
         argv, sys.argv = sys.argv, ["compare_generalisation.py", *(str(records / f"{n}.json") for n in inputs)]
         try:
