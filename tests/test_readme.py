@@ -27,6 +27,11 @@ def scores(system):
     return {(c["method"], c["kind"], c["noisy"]): np.array(c["smape"]) for c in cells}
 
 
+def gmean(report, label="bank"):
+    """The geometric mean over a ``kklcasadi generalise`` report's cases of model ``label``'s SMAPE / the EKF's."""
+    return float(np.exp(np.mean([np.log(c["models"][label]["ratio_ekf"]) for c in report["cases"]])))
+
+
 def smape_by_the_formula(x, xhat):
     """docs/protocol.md: 100 / (N nx) sum_k sum_i 2 |x - xhat| / (|x| + |xhat| + 1e-8)."""
     return 100 * np.mean(2 * np.abs(x - xhat) / (np.abs(x) + np.abs(xhat) + 1e-8))
@@ -347,11 +352,6 @@ def test_the_generalisation_text_follows_from_the_reports():
     def span(values):
         return f"{min(values):.2f}-{max(values):.2f}x"
 
-    def geomean(data):
-        return float(np.exp(np.mean([np.log(c["models"]["bank"]["ratio_ekf"]) for c in data["cases"]])))
-
-    geomean_of = geomean
-
     shipped = {s: report(s) for s in SYSTEMS}
     one = {s: report(s, "_one_decoder") for s in SYSTEMS}
     other = {s: report(s, "_benchmark_fit") for s in SYSTEMS}
@@ -365,8 +365,8 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"{span(ratios(other['rossler'], 0.1, False).values())} (its two-decoder ensemble) and FitzHugh-Nagumo "
             f"{span(ratios(other['fhn'], 0.1, False).values())}" in text)
     # what the second decoder bought: the geometric mean over the 30 cases, one decoder and two
-    assert ", ".join(f"{names[s]} {geomean(one[s]):.3f} to {geomean(shipped[s]):.3f}" for s in SYSTEMS) in text
-    assert all(geomean(shipped[s]) < geomean(one[s]) for s in SYSTEMS)
+    assert ", ".join(f"{names[s]} {gmean(one[s]):.3f} to {gmean(shipped[s]):.3f}" for s in SYSTEMS) in text
+    assert all(gmean(shipped[s]) < gmean(one[s]) for s in SYSTEMS)
     grown = {s: report(s, "_4000_runs") for s in ("duffing", "vdp")}       # the ensembles on 4000 runs, before 8000
     runs2000 = {s: report(s, "_2000_runs") for s in ("duffing", "vdp", "fhn")}
     # the misses at noise 0.1 are exactly the cells the text names, with the ratios of the banks before
@@ -451,8 +451,7 @@ def test_the_generalisation_text_follows_from_the_reports():
         assert new["settings"]["seed"] == old["settings"]["seed"] == 3030
         r_new = [c["models"]["runs4000"]["ratio_ekf"] for c in new["cases"]]
         r_old = [c["models"]["k2"]["ratio_ekf"] for c in old["cases"]]
-        gm = lambda values: float(np.exp(np.mean(np.log(values))))  # noqa: E731
-        return gm(r_old), gm(r_new), sum(a < b for a, b in zip(r_new, r_old))
+        return gmean(old, "k2"), gmean(new, "runs4000"), sum(a < b for a, b in zip(r_new, r_old))
 
     grown = ("duffing", "vdp", "fhn")
     (d_old, d_new, d_lower), (v_old, v_new, v_lower), (f_old, f_new, f_lower) = (runs_choice(s) for s in grown)
@@ -463,9 +462,9 @@ def test_the_generalisation_text_follows_from_the_reports():
     at_4000 = {"duffing": report("duffing", "_4000_runs"), "vdp": report("vdp", "_4000_runs"), "fhn": shipped["fhn"]}
     assert all(c["ekf"]["smape"] == n["ekf"]["smape"] for d in (before, at_4000) for s in d
                for c, n in zip(d[s]["cases"], shipped[s]["cases"]))
-    assert (", ".join(f"{geomean(before[s]):.3f}" for s in grown[:2]) + f" and {geomean(before['fhn']):.3f}, the "
-            f"4000-run ones {geomean(at_4000['duffing']):.3f}, {geomean(at_4000['vdp']):.3f} and "
-            f"{geomean(at_4000['fhn']):.3f}" in text)
+    assert (", ".join(f"{gmean(before[s]):.3f}" for s in grown[:2]) + f" and {gmean(before['fhn']):.3f}, the "
+            f"4000-run ones {gmean(at_4000['duffing']):.3f}, {gmean(at_4000['vdp']):.3f} and "
+            f"{gmean(at_4000['fhn']):.3f}" in text)
 
     # 8000 runs against 4000 (Duffing, Van der Pol): the validation trials that chose them and the scored trials
     def lower(new, old):
@@ -476,16 +475,15 @@ def test_the_generalisation_text_follows_from_the_reports():
     for s in ("duffing", "vdp"):
         data = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{s}_3030_runs8000.json").read_text())
         assert data["settings"]["seed"] == 3030
-        gm = [float(np.exp(np.mean([np.log(c["models"][m]["ratio_ekf"]) for c in data["cases"]])))
-              for m in ("shipped", "runs8000")]
+        gm = [gmean(data, m) for m in ("shipped", "runs8000")]
         assert gm[1] < gm[0]
         chosen.append((gm, sum(c["models"]["runs8000"]["smape_mean"] < c["models"]["shipped"]["smape_mean"]
                                for c in data["cases"])))
     (dg, dl), (vg, vl) = chosen
     assert (f"geometric mean {dg[0]:.3f} to {dg[1]:.3f} and {vg[0]:.3f} to {vg[1]:.3f}, lower in {dl} and {vl} of the "
-            f"30 cases; on the scored trials {geomean(at_4000['duffing']):.3f} to "
-            f"{geomean(shipped['duffing']):.3f} and {geomean(at_4000['vdp']):.3f} to "
-            f"{geomean(shipped['vdp']):.3f}, lower in "
+            f"30 cases; on the scored trials {gmean(at_4000['duffing']):.3f} to "
+            f"{gmean(shipped['duffing']):.3f} and {gmean(at_4000['vdp']):.3f} to "
+            f"{gmean(shipped['vdp']):.3f}, lower in "
             f"{lower(shipped['duffing'], at_4000['duffing'])} and {lower(shipped['vdp'], at_4000['vdp'])} of the 30 "
             "cases" in text)
 
@@ -495,17 +493,14 @@ def test_the_generalisation_text_follows_from_the_reports():
         assert data["settings"]["seed"] == 3030
         return data
 
-    def geomean(system, label):
-        values = [c["models"][label]["ratio_ekf"] for c in validation(system)["cases"]]
-        return float(np.exp(np.mean(np.log(values))))
 
     # "the broad one is worse in every `id` cell" (Roessler)
     assert all(c["models"]["broad"]["ratio_ekf"] > c["models"]["shipped"]["ratio_ekf"]
                for c in validation("rossler")["cases"] if c["regime"] == "id")
 
-    g = {(s, m): geomean(s, m) for s, m in [("duffing", "shipped"), ("duffing", "broad40"), ("duffing", "broad60"),
-                                            ("vdp", "shipped"), ("vdp", "broad"), ("rossler", "shipped"),
-                                            ("rossler", "broad"), ("fhn", "shipped"), ("fhn", "broad")]}
+    g = {(s, m): gmean(validation(s), m) for s, m in [
+        ("duffing", "shipped"), ("duffing", "broad40"), ("duffing", "broad60"), ("vdp", "shipped"), ("vdp", "broad"),
+        ("rossler", "shipped"), ("rossler", "broad"), ("fhn", "shipped"), ("fhn", "broad")]}
     assert g["duffing", "broad40"] < min(g["duffing", "broad60"], g["duffing", "shipped"])
     assert g["vdp", "broad"] < g["vdp", "shipped"] and g["fhn", "broad"] < g["fhn", "shipped"]
     assert g["rossler", "shipped"] < g["rossler", "broad"]
@@ -521,11 +516,8 @@ def test_the_generalisation_text_follows_from_the_reports():
     assert recipe["settings"]["seed"] == before["settings"]["seed"] == 3030
     assert [c["ekf"]["smape"] for c in recipe["cases"]] == [c["ekf"]["smape"] for c in before["cases"]]
 
-    def gm_of(data, label):
-        return float(np.exp(np.mean([np.log(c["models"][label]["ratio_ekf"]) for c in data["cases"]])))
-
-    r = {m: gm_of(recipe, m) for m in recipe["models"]}
-    ship, k2 = "wide6 seeds 11,13", gm_of(before, "k2")
+    r = {m: gmean(recipe, m) for m in recipe["models"]}
+    ship, k2 = "wide6 seeds 11,13", gmean(before, "k2")
     won = sum(a["models"][ship]["smape_mean"] < b["models"]["k2"]["smape_mean"]
               for a, b in zip(recipe["cases"], before["cases"]))
     assert r["wide6 seeds 11,12"] > r["wide6"] > r[ship] < k2
@@ -535,7 +527,7 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"{r['wide4']:.3f}), and the shipped ensemble of its seeds 11 and 13 {r[ship]:.3f} against {k2:.3f} for "
             f"the benchmark-fit ensemble, lower in {won} of the 30 cases (with the seed-12 decoder instead: "
             f"{r['wide6 seeds 11,12']:.3f}, worse than one decoder); on the scored trials "
-            f"{geomean_of(shipped['rossler']):.3f} against {geomean_of(other['rossler']):.3f}, lower in {scored_won} "
+            f"{gmean(shipped['rossler']):.3f} against {gmean(other['rossler']):.3f}, lower in {scored_won} "
             "of the 30 cases" in text)
     higher = [(a["family"], a["models"]["bank"]["ratio_ekf"] - b["models"]["bank"]["ratio_ekf"])
               for a, b in zip(shipped["rossler"]["cases"], other["rossler"]["cases"])
