@@ -9,7 +9,9 @@ code simulates them, for a card whose own runs the current code cannot remake), 
 decoders with the card's decoder configuration from the seeds ``seed + 1, ..., seed + K - 1``
 (the card's training seed; what ``kklcasadi train --members K`` fits after the first; ``--member-seeds``
 names other seeds, e.g. to leave out a member that validation trials found worse than the first), keeps the
-model's own decoder as the first member, and writes DIR: the ensemble
+model's own decoder as the first member, and writes DIR: the ensemble. A model that is already an ensemble
+of K0 < K decoders keeps its K0 members and gains K - K0 (seeds ``seed + K0, ..., seed + K - 1`` by
+default); DIR holds the ensemble
 (``architecture.bank.members = K``) with its monitor recalibrated on the same runs, the spread test
 included. ``--cache C`` keeps each member's fitted
 arrays and its fit's summary (``C/<system>_m<seed>.npz``, ``.json``) so that several K reuse them.
@@ -27,6 +29,8 @@ from pathlib import Path
 import numpy as np
 from calibrate_monitors import calibration_source, recalibrate, resimulate
 
+from kklcasadi.model.variants.filterbank import ASINH_SCALE, member_prefixes
+from kklcasadi.nets.specs import DECODER
 from kklcasadi.train.bank import ensemble_arrays
 from kklcasadi.train.config import LoopConfig
 from kklcasadi.train.operational import BankFit, DecoderConfig, fit_bank_decoder
@@ -40,6 +44,16 @@ def decoder_config(record: dict) -> DecoderConfig:
     fields = {k: v for k, v in record.items() if k in known}
     return DecoderConfig(**{**fields, "hidden": tuple(record["hidden"]), "loop": LoopConfig(**record["loop"]),
                             "asinh_scale": None if scale is None else tuple(scale)})
+
+
+def member_arrays(arrays: dict, prefix: str) -> dict:
+    """One ensemble member's arrays as a single decoder's: the filter bank's and the output scale's, and
+    the member's MLP arrays (``prefix/*``) under ``decoder/``."""
+    own = {name: value for name, value in arrays.items() if not name.startswith(DECODER)}
+    own[ASINH_SCALE] = arrays[ASINH_SCALE]
+    own.update({DECODER + name[len(prefix):]: value for name, value in arrays.items()
+                if name.startswith(prefix + "/") and name != ASINH_SCALE})
+    return own
 
 
 def main() -> None:
@@ -57,23 +71,26 @@ def main() -> None:
         parser.error(f"--members: expected at least 2, received {args.members}")
     t0 = time.perf_counter()
     model, bank, data = resimulate(args.model, fresh=args.fresh)
-    if model.spec.architecture.members != 1:
-        parser.error(f"{args.model}: expected a model with one decoder, it has {model.spec.architecture.members}")
+    have = model.spec.architecture.members
+    if have >= args.members:
+        parser.error(f"--members: expected more than the {have} decoders of {args.model}, received {args.members}")
     card, seed = copy.deepcopy(model.card), int(model.card["training"]["seed"])
     arch, angles = card["architecture"]["decoder"], model.spec.architecture.angles
-    fits = [BankFit(dict(model.arrays), arch, angles, None, len(data), 0.0, {})]
+    fits = [BankFit(member_arrays(model.arrays, prefix), arch, angles, None, len(data), 0.0, {})
+            for prefix in member_prefixes(have)]
     training = card["training"]
     config = decoder_config(training["config"]["decoder"] if "config" in training else training["decoder"])
-    summaries = []
-    seeds = list(range(seed + 1, seed + args.members))
+    summaries = list(training.get("member_fits", []))
+    kept = len(summaries)
+    seeds = list(range(seed + have, seed + args.members))
     if args.member_seeds is not None:
         try:
             seeds = [int(v) for v in args.member_seeds.split(",")]
         except ValueError:
             parser.error(f"--member-seeds: expected comma-separated integers, received {args.member_seeds!r}")
-        if len(seeds) != args.members - 1 or len(set(seeds)) != len(seeds) or seed in seeds:
-            parser.error(f"--member-seeds: expected {args.members - 1} distinct seeds other than the card's training "
-                         f"seed {seed}, received {args.member_seeds!r}")
+        if len(seeds) != args.members - have or len(set(seeds)) != len(seeds) or seed in seeds:
+            parser.error(f"--member-seeds: expected {args.members - have} distinct seeds other than the card's "
+                         f"training seed {seed}, received {args.member_seeds!r}")
     for member_seed in seeds:
         path = None if args.cache is None else args.cache / f"{card['system']['name']}_m{member_seed}.npz"
         if path is not None and path.exists():
@@ -96,7 +113,7 @@ def main() -> None:
     card["training"]["members_added_by"] = "benchmarks/ensemble_members.py" + (" --fresh" if args.fresh else "")
     source = calibration_source("benchmarks/ensemble_members.py", args.fresh)
     card = recalibrate(args.out, model, bank, data, arrays, card, source)
-    print(f"{args.out}: {args.members} members ({json.dumps(summaries)}), monitor threshold "
+    print(f"{args.out}: {args.members} members ({json.dumps(summaries[kept:])} added), monitor threshold "
           f"{card['monitor']['threshold']:.4g}, spread threshold {card['monitor']['spread']['threshold']:.4g}, "
           f"{time.perf_counter() - t0:.0f} s")
 

@@ -46,6 +46,7 @@ KINDS = ("shipped", "one decoder", "other")
 #: What the "one decoder" and benchmark-fit reports of a system hold, where not the defaults below.
 ONE_DECODER = {"rossler": "of its first decoder alone"}
 BENCHMARK_FIT = {"rossler": "of the benchmark-fit ensemble shipped before it (two decoders, 2000 runs)"}
+NUMBERS = {1: "one", 2: "two", 3: "three", 4: "four"}
 
 
 def reports(system: str) -> dict:
@@ -56,8 +57,18 @@ def reports(system: str) -> dict:
 
 def runs(system: str) -> int:
     """The operational runs the shipped bank of ``system`` was fit on (its card)."""
-    card = json.loads((ROOT.parent.parent / "models" / system / "bank" / "card.json").read_text())
-    return int(card["training"]["rollouts"]["n_traj"])
+    return int(card(system)["training"]["rollouts"]["n_traj"])
+
+
+def card(system: str) -> dict:
+    """The shipped bank's card of ``system``."""
+    return json.loads((ROOT.parent.parent / "models" / system / "bank" / "card.json").read_text())
+
+
+def decoders(system: str) -> str:
+    """The shipped bank's ensemble in words ("two decoders"; its card's ``architecture.bank.members``)."""
+    k = int(card(system)["architecture"]["bank"].get("members", 1))
+    return f"{NUMBERS.get(k, str(k))} decoder{'s' if k > 1 else ''}"
 
 
 def ratio(case: dict, regime: str) -> str:
@@ -72,8 +83,8 @@ def table(system: str) -> str:
     names = ("shipped", "one decoder", "benchmark-fit")
     head = ["case", "shipped bank fit on it", "EKF, 0.1"] + [f"{k} {n:g}" for k in names for n in NOISES]
     lines = [f"**{system}**, {'-'.join(map(str, sorted({min(trials), max(trials)})))} trials per case: bank / EKF "
-             f"(mean SMAPE) at noise {', '.join(map(str, NOISES))} of the shipped bank (broad-fit, two "
-             f"decoders, {runs(system)} runs), "
+             f"(mean SMAPE) at noise {', '.join(map(str, NOISES))} of the shipped bank (broad-fit, "
+             f"{decoders(system)}, {runs(system)} runs), "
              f"{ONE_DECODER.get(system, 'of the one-decoder bank before it (commit `aadd302`)')} and "
              f"{BENCHMARK_FIT.get(system, 'of the benchmark-fit bank')}; the EKF's SMAPE at 0.1",
              "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -105,7 +116,8 @@ def monitor() -> str:
             data["4000 runs"] = json.loads(grown.read_text())
         ensemble = "broad-fit, two decoders"
         before_runs = 4000 if "4000 runs" in data else runs(system)
-        labels = {"shipped": f"{ensemble}, {runs(system)} runs (shipped)", "4000 runs": f"{ensemble}, 4000 runs",
+        labels = {"shipped": f"broad-fit, {decoders(system)}, {runs(system)} runs (shipped)",
+                  "4000 runs": f"{ensemble}, 4000 runs",
                   "before": f"{ensemble}, {before_runs} runs, spread threshold from the fitting runs",
                   "one decoder": "broad-fit, one decoder",
                   "other": "benchmark-fit, two decoders" if system in BENCHMARK_FIT else "benchmark-fit"}

@@ -222,6 +222,27 @@ def test_the_ensemble_decodes_the_mean_of_its_members(ensemble_dir):
     np.testing.assert_allclose(np.asarray(sp(z.T, y.T, u.T)).ravel(), expected, rtol=1e-12)
 
 
+def test_growing_an_ensemble_keeps_its_members_arrays(ensemble_dir, monkeypatch):
+    """benchmarks/ensemble_members.py grows a K0-decoder ensemble: each kept member, read back as a single
+    decoder and joined again with ensemble_arrays, gives the model's own arrays."""
+    import runpy
+
+    from kklcasadi.train.bank import ensemble_arrays
+    from kklcasadi.train.operational import BankFit
+
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    script = runpy.run_path(str(ROOT / "benchmarks" / "ensemble_members.py"), run_name="ensemble_members")
+    model, arrays, arch = _arrays(ensemble_dir)
+    members = [script["member_arrays"](model.arrays, prefix) for prefix in fb.member_prefixes(2)]
+    assert not any(name.startswith("decoder_1") for part in members for name in part)
+    np.testing.assert_array_equal(members[1]["decoder/W0"], model.arrays["decoder_1/W0"])
+    np.testing.assert_array_equal(members[1][fb.ASINH_SCALE], model.arrays[fb.ASINH_SCALE])
+    again = ensemble_arrays([BankFit(part, arch, model.spec.architecture.angles, None, 0, 0.0, {}) for part in members])
+    assert set(again) == set(model.arrays)
+    for name, value in model.arrays.items():
+        np.testing.assert_array_equal(again[name], value)
+
+
 def test_the_ensemble_observer_equals_the_reference_and_monitors_the_spread(ensemble_dir):
     obs = kc.load_observer(ensemble_dir)
     model, arrays, arch = _arrays(ensemble_dir)
