@@ -297,7 +297,8 @@ def test_an_ensemble_monitor_flags_what_its_members_disagree_on(ensemble_dir, tm
 def test_members_must_be_a_positive_integer():
     from kklcasadi.train.bank import SHIPPED_MEMBERS, BankConfig
 
-    assert default_config("vdp", "bank").members == SHIPPED_MEMBERS == 2      # the shipped systems' ensembles
+    assert default_config("duffing", "bank").members == SHIPPED_MEMBERS == 2  # the shipped systems' ensembles
+    assert default_config("vdp", "bank").members == 3
     assert default_config("arm", "bank").members == 1                         # a new plant's first observer
 
     for bad in (0, 1.5, True):
@@ -309,22 +310,22 @@ def test_members_must_be_a_positive_integer():
 
 
 @pytest.mark.parametrize("system", ["duffing", "vdp", "fhn", "rossler"])
-def test_the_shipped_banks_are_two_decoder_ensembles_with_the_spread_test(system):
-    """The shipped banks are ensembles, trained as one (``training.config.members``) or grown from one
-    decoder by benchmarks/ensemble_members.py (the card says which), on the runs the system's default
+def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
+    """The shipped banks are ensembles of the default configuration's members (two; Van der Pol's three),
+    trained as one (``training.config.members``) or grown by benchmarks/ensemble_members.py (the card
+    says which), on the runs the system's default
     configuration makes (their count, families, ranges and noise range, and the input filters); the
     monitor holds the spread test, and on a protocol trial the ensemble is neither member."""
     from kklcasadi.evaluation.protocol import Protocol
     from kklcasadi.model.shipped import shipped_model
-    from kklcasadi.train.bank import SHIPPED_MEMBERS
-
     path = shipped_model(system, "bank")
     model = load_model(path)
-    assert model.spec.architecture.members == SHIPPED_MEMBERS
-    training = model.card["training"]
-    assert (training.get("config", {}).get("members") == SHIPPED_MEMBERS
-            or training["members_added_by"].startswith("benchmarks/ensemble_members.py"))
     config = default_config(system, "bank")          # `kklcasadi train --method bank` remakes the shipped recipe
+    assert model.spec.architecture.members == config.members == (3 if system == "vdp" else 2)
+    training = model.card["training"]
+    assert (training.get("config", {}).get("members") == config.members
+            or training["members_added_by"].startswith("benchmarks/ensemble_members.py"))
+    assert len(training["member_fits"]) == config.members - 1
     runs = training["rollouts"]
     assert (runs["n_traj"], runs["kinds"], runs["regime"], tuple(runs["noise_range"])) == (
         config.rollouts.n_traj, list(config.rollouts.kinds), config.rollouts.regime, config.rollouts.noise_range)
@@ -346,9 +347,10 @@ def test_the_shipped_banks_are_two_decoder_ensembles_with_the_spread_test(system
     arrays, arch = {**model.arrays, "bank/A": model.A, "bank/By": model.B}, model.card["architecture"]["decoder"]
     angles = model.spec.architecture.angles
     np.testing.assert_allclose(est.xhat, fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles,
-                                                     members=2), rtol=1e-9, atol=1e-9)
-    first = fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles)
-    assert np.abs(first - est.xhat).max() > 1e-6
+                                                     members=config.members), rtol=1e-9, atol=1e-9)
+    for fewer in range(1, config.members):            # the ensemble is none of its leading sub-ensembles
+        part = fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles, members=fewer)
+        assert np.abs(part - est.xhat).max() > 1e-6
 
 
 @pytest.mark.parametrize("quantile, spread_quantile", [(0.98, 0.99), (0.9, 0.95)])

@@ -371,11 +371,15 @@ def test_the_generalisation_text_follows_from_the_reports():
     runs2000 = {s: report(s, "_2000_runs") for s in ("duffing", "vdp", "fhn")}
     # the misses at noise 0.1 are exactly the cells the text names, with the ratios of the banks before
     missed = [(s, k) for s, d in shipped.items() for k, r in ratios(d, 0.1, True).items() if r > 1.1]
-    assert missed == [("vdp", ("square", "id"))]
-    vdp_square = [ratios(d, 0.1, True)["square", "id"] for d in (shipped["vdp"], one["vdp"], runs2000["vdp"],
+    assert missed == [] and "In distribution (1.1x): none at noise 0.1." in text
+    two = report("vdp", "_two_decoders")             # Van der Pol's first two decoders, the ensemble before
+    vdp_square = [ratios(d, 0.1, True)["square", "id"] for d in (shipped["vdp"], two, one["vdp"], runs2000["vdp"],
                                                                   grown["vdp"])]
-    assert (f"Van der Pol's square input ({vdp_square[0]:.2f}x; one decoder {vdp_square[1]:.2f}x); with 2000 and "
-            f"4000 runs it was {vdp_square[2]:.2f}x and {vdp_square[3]:.2f}x" in text)
+    assert vdp_square[1] > 1.1 >= vdp_square[0]
+    assert (f"Van der Pol's square input, the last cell over it, is {vdp_square[0]:.2f}x ({vdp_square[0]:.3f}) with "
+            f"the third decoder (two decoders {vdp_square[1]:.2f}x ({vdp_square[1]:.3f}), one decoder "
+            f"{vdp_square[2]:.2f}x; with 2000 and 4000 runs it was {vdp_square[3]:.2f}x and {vdp_square[4]:.2f}x)"
+            in text)
     duf_square = [ratios(d, 0.1, True)["square", "id"] for d in (grown["duffing"], shipped["duffing"])]
     assert duf_square[0] > 1.1 >= duf_square[1]
     assert (f"Duffing's square input, {duf_square[0]:.2f}x with 4000 runs, is {duf_square[1]:.2f}x "
@@ -416,10 +420,12 @@ def test_the_generalisation_text_follows_from_the_reports():
     noisy = {s: group(shipped[s], "other") for s in ("duffing", "vdp")}
     noisy_before = {s: group(grown[s], "other") for s in ("duffing", "vdp")}
     assert max(g["share_bad"] for g in noisy.values()) < 0.5
+    two_noisy = group(two, "other")
     assert (f"{noisy['duffing']['share_bad']:.3f} and {noisy['vdp']['share_bad']:.3f} of the samples of the "
             f"{noisy['duffing']['bad']} and {noisy['vdp']['bad']} bad trials there (4000 runs: "
             f"{noisy_before['duffing']['share_bad']:.3f} and {noisy_before['vdp']['share_bad']:.3f} of "
-            f"{noisy_before['duffing']['bad']} and {noisy_before['vdp']['bad']})" in text)
+            f"{noisy_before['duffing']['bad']} and {noisy_before['vdp']['bad']}; Van der Pol's two decoders on 8000 "
+            f"runs: {two_noisy['share_bad']:.3f} of {two_noisy['bad']})" in text)
     # the recalibration moved no estimate: the reports before it hold the scores of the ensembles it recalibrated
     for s in ("duffing", "vdp", "fhn"):       # Roessler's runs are all at the nominal noise: one spread threshold
         before, after = report(s, "_monitor_before"), grown.get(s, shipped[s])
@@ -480,12 +486,28 @@ def test_the_generalisation_text_follows_from_the_reports():
         chosen.append((gm, sum(c["models"]["runs8000"]["smape_mean"] < c["models"]["shipped"]["smape_mean"]
                                for c in data["cases"])))
     (dg, dl), (vg, vl) = chosen
+    two = report("vdp", "_two_decoders")             # Van der Pol's 8000-run ensemble before its third decoder
     assert (f"geometric mean {dg[0]:.3f} to {dg[1]:.3f} and {vg[0]:.3f} to {vg[1]:.3f}, lower in {dl} and {vl} of the "
             f"30 cases; on the scored trials {gmean(at_4000['duffing']):.3f} to "
             f"{gmean(shipped['duffing']):.3f} and {gmean(at_4000['vdp']):.3f} to "
-            f"{gmean(shipped['vdp']):.3f}, lower in "
-            f"{lower(shipped['duffing'], at_4000['duffing'])} and {lower(shipped['vdp'], at_4000['vdp'])} of the 30 "
+            f"{gmean(two):.3f}, lower in "
+            f"{lower(shipped['duffing'], at_4000['duffing'])} and {lower(two, at_4000['vdp'])} of the 30 "
             "cases" in text)
+
+    # Van der Pol's third decoder: the validation trials that chose it and the scored trials
+    third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_members3.json").read_text())
+    assert third["settings"]["seed"] == 3030
+    gm = [gmean(third, m) for m in ("shipped", "members3")]
+    won = sum(c["models"]["members3"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in third["cases"])
+    assert gm[1] < gm[0] and gmean(shipped["vdp"]) < gmean(two)
+    assert all(a["ekf"]["smape"] == b["ekf"]["smape"] for a, b in zip(two["cases"], shipped["vdp"]["cases"]))
+    square = [ratios(d, 0.1, True)["square", "id"] for d in (two, shipped["vdp"])]
+    assert (f"geometric mean {gm[0]:.3f} to {gm[1]:.3f}, lower in {won} of the 30 cases; on the scored trials "
+            f"{gmean(two):.3f} to {gmean(shipped['vdp']):.3f}, lower in {lower(shipped['vdp'], two)} of the 30 cases "
+            f"(the two-decoder ensemble: `vdp_generalisation_two_decoders.*`), its square input in distribution "
+            f"{square[0]:.3f}x to {square[1]:.3f}x" in text)
+    card = json.loads((ROOT / "models" / "vdp" / "bank" / "card.json").read_text())
+    assert card["architecture"]["bank"]["members"] == 3 and card["training"]["member_fits"][-1]["seed"] == 13
 
     # the choice, on the validation trials (seed 3030), by the geometric mean of bank / EKF over the cases
     def validation(system):
