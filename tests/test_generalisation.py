@@ -179,6 +179,7 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
     tables = {name: [name] for name in ("duffing_3030_cheap_levers", "duffing_3030_lr", "vdp_3030_lr")}
     tables["duffing_3030_cheap_filters"] = ["duffing_3030_cheap_levers", "duffing_3030_cheap_filters"]
     tables["rossler_3030_runs"] = ["rossler_3030_recipe", "rossler_3030_runs"]
+    tables.update({f"{s}_3030_members3_compare": [f"{s}_3030_members3"] for s in ("duffing", "vdp")})
     for name, inputs in tables.items():
         argv, sys.argv = sys.argv, ["compare_generalisation.py", *(str(records / f"{n}.json") for n in inputs)]
         try:
@@ -188,7 +189,7 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
             sys.argv = argv
         printed = capsys.readouterr().out
         assert printed.strip() and printed in (records / f"{name}.md").read_text() + "\n", name
-        report = json.loads((records / f"{name}.json").read_text())
+        report = json.loads((records / f"{inputs[0]}.json").read_text())
         case = report["cases"][0]
         label, model = next(iter(case["models"].items()))
         assert f"| {model['smape_mean'] / case['ekf']['smape_mean']:.3f}x |" in printed.splitlines()[2]

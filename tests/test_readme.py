@@ -508,6 +508,14 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"{square[0]:.3f}x to {square[1]:.3f}x" in text)
     card = json.loads((ROOT / "models" / "vdp" / "bank" / "card.json").read_text())
     assert card["architecture"]["bank"]["members"] == 3 and card["training"]["member_fits"][-1]["seed"] == 13
+    third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "duffing_3030_members3.json").read_text())
+    worse = [c for c in third["cases"] if c["family"] in ("chirp", "feedback")
+             and c["models"]["members3"]["smape_mean"] >= c["models"]["shipped"]["smape_mean"]]
+    assert third["settings"]["seed"] == 3030 and len(worse) == 6
+    assert (f"On Duffing a third decoder gave {gmean(third, 'shipped'):.3f} to {gmean(third, 'members3'):.3f} on the "
+            f"validation trials, higher in all {len(worse)} held-out chirp and feedback cells" in text)
+    assert json.loads((ROOT / "models" / "duffing" / "bank" / "card.json").read_text())["architecture"]["bank"][
+        "members"] == 2
 
     # the choice, on the validation trials (seed 3030), by the geometric mean of bank / EKF over the cases
     def validation(system):
