@@ -9,11 +9,12 @@ code simulates them, for a card whose own runs the current code cannot remake), 
 decoders with the card's decoder configuration from the seeds ``seed + 1, ..., seed + K - 1``
 (the card's training seed; what ``kklcasadi train --members K`` fits after the first; ``--member-seeds``
 names other seeds, e.g. to leave out a member that validation trials found worse than the first), keeps the
-model's own decoder as the first member, and writes DIR: the ensemble. A model that is already an ensemble
-of K0 < K decoders keeps its K0 members and gains K - K0 (seeds ``seed + K0, ..., seed + K - 1`` by
-default); DIR holds the ensemble
-(``architecture.bank.members = K``) with its monitor recalibrated on the same runs, the spread test
-included. ``--cache C`` keeps each member's fitted
+model's own decoder as the first member, and writes DIR: the ensemble (``architecture.bank.members = K``)
+with its monitor recalibrated on the same runs, the spread test included, at
+:class:`kklcasadi.train.bank.MonitorConfig`'s quantiles (choose the spread quantile again with
+``benchmarks/monitor_quantiles.py DIR``, apply it with ``benchmarks/calibrate_monitors.py DIR
+--spread-quantile Q``). A model that is already an ensemble of K0 < K decoders keeps its K0 members and
+gains K - K0 (seeds ``seed + K0, ..., seed + K - 1`` by default). ``--cache C`` keeps each member's fitted
 arrays and its fit's summary (``C/<system>_m<seed>.npz``, ``.json``) so that several K reuse them.
 """
 
