@@ -59,12 +59,12 @@ def member_arrays(arrays: dict, prefix: str) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("model", type=Path, help="a bank model directory with one decoder")
+    parser.add_argument("model", type=Path, help="a bank model directory (one decoder or an ensemble of fewer than K)")
     parser.add_argument("--members", type=int, required=True, help="decoders of the ensemble (>= 2)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--cache", type=Path, help="directory of fitted members to reuse")
-    parser.add_argument("--member-seeds", help="comma-separated seeds of the K - 1 added decoders (default: the "
-                        "card's training seed + 1, ..., + K - 1)")
+    parser.add_argument("--member-seeds", help="comma-separated seeds of the K - K0 added decoders (default: the "
+                        "card's training seed + K0, ..., + K - 1; K0 the model's decoders)")
     parser.add_argument("--fresh", action="store_true", help="fit the new members (and calibrate the monitor) on "
                         "runs of the card's recipe from the current code, unchecked against the card's domain")
     args = parser.parse_args()
