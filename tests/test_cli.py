@@ -160,6 +160,8 @@ def _cli(*args, env=None):
      "argument --box-scale: expected a positive number, received '0'"),
     (["train", "--system", "duffing", "--method", "inject", "--box-scale", "0.5", "--out", "x"],
      "--box-scale: only --method autonomous or bank takes it, received --method inject"),
+    (["train", "--system", "duffing", "--method", "autonomous", "--kinds", "pd", "--out", "x"],
+     "--kinds: only --method obs or dyn or obs_stream or dyn_stream or bank takes it, received --method autonomous"),
 ])
 def test_every_cli_error_is_one_line_with_exit_status_2(args, expected):
     result = _cli(*args)
@@ -339,3 +341,21 @@ def test_train_flags_set_the_fields_the_method_keeps_them_in(method, box_scale):
     back = replace(config, measurement_std=default.measurement_std)
     back = replace(back, rollouts=default.rollouts) if method == "bank" else replace(back, box_scale=1.0)
     assert back == default
+
+
+def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
+    pytest.importorskip("torch")
+    from kklcasadi.cli import build_parser
+    from kklcasadi.cli.flags import CommandError, plant_of
+    from kklcasadi.cli.train import training_config
+    from kklcasadi.train.operational import FAMILIES
+
+    def config(*kinds):
+        args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant",
+                                          "--kinds", *kinds, "--out", "x"])
+        return training_config(plant_of(args), "bank", args)
+
+    assert config("square", "pd").rollouts.kinds == ("square", "pd")
+    assert "pd" in FAMILIES
+    with pytest.raises(CommandError, match=r"^--kinds: expected a non-empty subset of .*'pd'.*received \('chirp',\)"):
+        config("chirp")

@@ -191,7 +191,7 @@ def test_process_noise_per_state_and_a_range_of_noise_levels() -> None:
 
 
 def test_the_broad_families_and_the_wide_regime() -> None:
-    """multisine stays within its amplitude, feedback is u = clip(g (r - y) / s, -2, 2) of the noisy y,
+    """multisine stays within its amplitude, feedback and pd are laws of the noisy y within -2..2,
     and the wide regime reaches the ood amplitudes."""
     from kklcasadi.train.operational import FAMILIES
 
@@ -203,12 +203,13 @@ def test_the_broad_families_and_the_wide_regime() -> None:
     amp = np.abs(runs.u).max(axis=(1, 2))
     assert np.all(amp[kinds == "multisine"] <= 2.0) and np.ptp(runs.u[kinds == "multisine"], axis=1).min() > 0
     assert amp[kinds == "constant"].max() > 1.0                        # beyond the train range [-1, 1]
-    loop = np.flatnonzero(kinds == "feedback")
+    loop = np.flatnonzero(np.isin(kinds, ["feedback", "pd"]))
     assert np.all(amp[loop] <= 2.0 + 1e-12) and np.all(amp[loop] > 0)
     # u_k depends on y_k through the law: its held value changes only where y_k moves it (not a fixed signal)
     assert all(np.unique(runs.u[i, :, 0]).size > 50 for i in loop)
     with pytest.raises(ValueError, match="kinds"):
         RolloutConfig(kinds=("chirp",))
+    assert "pd" not in RolloutConfig().kinds                           # a family to ask for, not a default
     with pytest.raises(ValueError, match="regime"):
         RolloutConfig(regime="huge")
 
@@ -224,3 +225,60 @@ def test_a_range_of_box_scales_spreads_the_initial_states() -> None:
     assert 1.0 <= ratio.min() and ratio.max() <= 3.0
     with pytest.raises(ValueError, match="box_scale"):
         RolloutConfig(box_scale=(2.0, 1.0))
+    share = rollouts(plant, RolloutConfig(n_traj=400, T=0.1, kinds=("zero",), box_scale=(2.0, 3.0), box_share=0.25), 3,
+                     measurement_std=0.0, process_std=0.0)
+    base = rollouts(plant, RolloutConfig(n_traj=400, T=0.1, kinds=("zero",)), 3, measurement_std=0.0, process_std=0.0)
+    factor = share.x[:, 0] / base.x[:, 0]                 # 1 (the box itself) or one factor in [2, 3] per run
+    spread = factor[:, 0] != 1.0
+    assert 0.18 < spread.mean() < 0.32                    # a quarter of 400 runs, within 3 binomial stds
+    np.testing.assert_array_equal(factor[~spread], 1.0)
+    np.testing.assert_allclose(factor[spread, 0], factor[spread, 1], rtol=1e-9)
+    assert 2.0 <= factor[spread].min() and factor[spread].max() <= 3.0
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="box_share"):
+            RolloutConfig(box_share=bad)
+
+
+@pytest.mark.parametrize("xdot, y, sign", [
+    (lambda x, u: [x[1], -x[0] - x[0] ** 3 + u], lambda x: x[0], 1.0),     # relative degree 2: H F G
+    (lambda x, u: [x[1], -x[0] - 2.0 * u], lambda x: x[0], -1.0),
+    (lambda x, u: [-x[0] - 0.5 * u, x[0]], lambda x: x[0], -1.0),          # relative degree 1: H G
+    (lambda x, u: [-x[0], -x[1]], lambda x: x[0], 1.0),                    # u acts nowhere: +1
+])
+def test_loop_signs_are_the_first_nonzero_markov_parameter(xdot, y, sign) -> None:
+    from kklcasadi.train.operational import loop_signs
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u")
+    plant = kc.System("p", x, u, xdot(x, u), y(x), x0_box=[[-1.0, 1.0], [-1.0, 1.0]])
+    assert loop_signs(plant).tolist() == [sign]
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.2])
+def test_pd_law_is_derivative_feedback_on_the_lagged_noisy_output(lag) -> None:
+    """The pd family's closed loop: u_k recomputed from the recorded noisy y_k with an independent lag
+    filter (yf_0 = y_0) and difference quotient; the derivative action damps Van der Pol's limit cycle
+    onto the set point's equilibrium (x1 = g r / (1 + g)), which the proportional law alone does not."""
+    from kklcasadi.train.operational import _closed_loop, _Feedback
+
+    plant = kc.systems.get("vdp")
+    dt, n, g, gd, r = 0.05, 800, 2.0, 3.0, 1.0
+    t = np.arange(n) * dt
+    law = _Feedback(np.array([g]), np.array([0]), np.array([1.0]), 2.0, np.array([0.0]), np.array([[r]]),
+                    np.array([gd]), lag)
+    proportional = _Feedback(np.array([g]), np.array([0]), np.array([1.0]), 2.0, np.array([0.0]), np.array([[r]]))
+    v = np.random.default_rng(0).normal(0.0, 0.05, (2, n, 1))
+    x0 = np.array([[1.5, 0.0], [1.5, 0.0]])
+    noisy = _closed_loop(plant, x0, [law, proportional], t, np.zeros(2), [1, 2], v, "rk", 4)
+    y, u = noisy.y[0, :, 0], noisy.u[0, :, 0]
+    a = 1.0 - np.exp(-dt / lag) if lag > 0 else 1.0
+    yf = np.empty(n)
+    yf[0] = y[0]
+    for k in range(1, n):
+        yf[k] = yf[k - 1] + a * (y[k] - yf[k - 1])
+    rate = np.concatenate([[0.0], np.diff(yf) / dt])
+    np.testing.assert_allclose(u, np.clip(g * (r - y) - gd * rate, -2.0, 2.0), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(noisy.u[1, :, 0], np.clip(g * (r - noisy.y[1, :, 0]), -2.0, 2.0), rtol=0, atol=1e-12)
+    clean = _closed_loop(plant, x0, [law, proportional], t, np.zeros(2), [1, 2], np.zeros((2, n, 1)), "rk", 4)
+    tail = clean.x[:, n // 2:, 0]
+    assert abs(tail[0].mean() - g * r / (1 + g)) < 1e-3 and np.ptp(tail[0]) < 1e-3
+    assert np.ptp(tail[1]) > 1.0                                       # the limit cycle survives the P law

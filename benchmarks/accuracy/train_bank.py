@@ -48,12 +48,15 @@ def main() -> None:
     p.add_argument("--T", type=float)
     p.add_argument("--epochs", type=int)
     p.add_argument("--hidden")
+    p.add_argument("--asinh-scale", help="per-state scales s of the decoder's s sinh(v) outputs (0: none)")
+    p.add_argument("--activation", help="the decoder's activation (kklcasadi.nets.specs.ACTIVATIONS)")
     p.add_argument("--lr", type=float, help="the decoder fit's learning rate")
     p.add_argument("--batch-size", type=int, help="the decoder fit's batch size")
     p.add_argument("--members", type=int, help="decoder networks averaged (default: the system's)")
     p.add_argument("--measurement-std", type=float)
     p.add_argument("--process-std", help="one std or one per state")
     p.add_argument("--box-scale", help="a factor or lo,hi")
+    p.add_argument("--box-share", type=float, help="share of the runs started in the --box-scale range")
     p.add_argument("--sample-period", type=float)
     p.add_argument("--dt", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=11)
@@ -82,7 +85,7 @@ def main() -> None:
     if args.box_scale:
         scale = floats(args.box_scale)
         runs["box_scale"] = scale[0] if len(scale) == 1 else scale
-    for name in ("regime", "n_traj", "T", "sample_period"):
+    for name in ("regime", "n_traj", "T", "sample_period", "box_share"):
         if getattr(args, name) is not None:
             runs[name] = getattr(args, name)
     if args.members is not None:
@@ -90,6 +93,10 @@ def main() -> None:
     config = replace(config, **top, rollouts=replace(config.rollouts, **runs))
     if args.hidden:
         config = replace(config, decoder=replace(config.decoder, hidden=tuple(int(h) for h in args.hidden.split(","))))
+    if args.asinh_scale:
+        config = replace(config, decoder=replace(config.decoder, asinh_scale=floats(args.asinh_scale)))
+    if args.activation:
+        config = replace(config, decoder=replace(config.decoder, activation=args.activation))
     loop = {name: getattr(args, name) for name in ("lr", "batch_size") if getattr(args, name) is not None}
     if loop:
         config = replace(config, decoder=replace(config.decoder, loop=replace(config.decoder.loop, **loop)))

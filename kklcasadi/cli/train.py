@@ -33,6 +33,7 @@ RECOMMENDED = "bank"
 _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measurement_std),
                  "--process-std": ("process_std", lambda a: a.process_std),
                  "--box-scale": ("box_scale", lambda a: a.box_scale),
+                 "--kinds": ("kinds", lambda a: None if a.kinds is None else tuple(a.kinds)),
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
@@ -54,6 +55,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="draw the training runs' initial states from the X0 box scaled by FACTOR about its centre "
                    "(bank: its runs; autonomous: its Phase-1 data; default 1, the whole box). Below 1 where the "
                    "box bounds whole trajectories rather than their starts (the Qube: 0.5)")
+    t.add_argument("--kinds", nargs="+", metavar="FAMILY",
+                   help="the input families of the training data. bank: kklcasadi.train.operational.FAMILIES "
+                   "(default: the benchmark's four, multisine and a proportional feedback loop; add pd for a plant "
+                   "that a controller with derivative action will drive); obs, dyn: the benchmark's kinds")
     t.add_argument("--width", type=positive_int, help="autonomous: hidden width of T and T* (default 150; the "
                    "paper uses 350 for rossler and fhn)")
     t.add_argument("--members", type=positive_int, metavar="K",

@@ -44,7 +44,7 @@ from .nets import MLP
 
 __all__ = ["RolloutConfig", "DecoderConfig", "OperationalData", "operational_data", "rollouts", "fit_bank_decoder",
            "BankFit", "LOSSES", "config_record", "fold_whitening", "torch_decoder", "RK_STEP", "FAMILIES",
-           "ROLLOUT_REGIMES", "fit_families"]
+           "DEFAULT_KINDS", "PD_RANGES", "ROLLOUT_REGIMES", "fit_families", "loop_signs"]
 
 Tensor = torch.Tensor
 
@@ -54,8 +54,18 @@ LOSSES = ("mse", "smape", "mse+smape")
 #: random spectrum (2-6 tones with log-uniform frequencies over the sinusoid's range and Dirichlet
 #: weights of a sinusoid's amplitude); ``feedback``, a closed loop ``u_k = clip(g (r - y_k) / s, -l, l)``
 #: around a set point ``r`` redrawn every 2-10 s within the outputs' range over the box (gain
-#: ``|g|`` in [0.5, 3] of either sign, limit ``l`` the regime's largest constant input).
-FAMILIES = (*sig.BENCHMARK_KINDS, "multisine", "feedback")
+#: ``|g|`` in [0.5, 3] of either sign, limit ``l`` the regime's largest constant input); ``pd``, what a
+#: controller with derivative action sends,
+#: ``u_k = clip((g (r - y_k) - g T_d (yf_k - yf_k-1) / dt) / s, -l, l)`` with ``yf`` the output through a
+#: first-order lag of time constant ``tau`` (:data:`PD_RANGES`; the sign of ``g`` the one that feeds
+#: back negatively, :func:`loop_signs`; set points and limit as ``feedback``'s). ``pd`` is not a default
+#: family (:data:`DEFAULT_KINDS`): ask for it (``kklcasadi train --kinds``).
+FAMILIES = (*sig.BENCHMARK_KINDS, "multisine", "feedback", "pd")
+#: The families of :attr:`RolloutConfig.kinds` by default.
+DEFAULT_KINDS = (*sig.BENCHMARK_KINDS, "multisine", "feedback")
+#: Ranges of the ``pd`` family's gain ``|g|``, derivative time ``T_d`` and lag ``tau`` (the times in units of
+#: ``1 / time_scale``).
+PD_RANGES = {"gain": (0.5, 5.0), "derivative_time": (0.1, 1.5), "lag": (0.05, 0.5)}
 #: Parameter ranges of the runs: those of :data:`kklcasadi.plant.signals.REGIMES`, or ``wide``, the hull
 #: of the ``id`` and ``ood`` ranges of docs/protocol.md.
 ROLLOUT_REGIMES = (*sig.REGIMES, "wide")
@@ -94,6 +104,10 @@ class RolloutConfig:
         Scale of the X0 box (about its centre) the initial states are drawn from, or a range: each
         run's initial state scaled about the centre by a factor drawn uniformly from it (a wider
         spread of energies, e.g. the upper branch of a hardening resonance).
+    box_share : float
+        With a ``box_scale`` range: the share of the runs (drawn at random) whose initial state is
+        scaled so; the others start in the X0 box itself (a few runs reach far states without
+        spending the fit on them).
     escape_scale : float
         A run is cut where its state leaves the X0 box scaled by this about its centre.
     sample_period, dense_period, dense_time : float
@@ -106,12 +120,13 @@ class RolloutConfig:
 
     n_traj: int = 2000
     T: float = 50.0
-    kinds: tuple[str, ...] = FAMILIES
+    kinds: tuple[str, ...] = DEFAULT_KINDS
     regime: str = "wide"
     noise_range: tuple[float, float] = (0.5, 2.0)
     method: str = "rk"
     substeps: int | None = None
     box_scale: float | tuple[float, float] = 1.0
+    box_share: float = 1.0
     escape_scale: float = 10.0
     sample_period: float = 0.1
     dense_period: float = 0.05
@@ -132,6 +147,8 @@ class RolloutConfig:
         scales = np.atleast_1d(np.asarray(self.box_scale, dtype=float))
         if scales.size not in (1, 2) or not np.all(np.isfinite(scales)) or not (0 < scales[0] <= scales[-1]):
             raise ValueError(f"box_scale: expected a factor > 0 or a range 0 < lo <= hi, received {self.box_scale!r}.")
+        if not (isinstance(self.box_share, (int, float)) and 0 < self.box_share <= 1):
+            raise ValueError(f"box_share: expected a share in (0, 1], received {self.box_share!r}.")
         for name in ("T", "escape_scale", "sample_period", "dense_period"):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"{name}: expected a finite number > 0, received {getattr(self, name)!r}.")
@@ -277,7 +294,10 @@ def _initial_states(system: System, config: RolloutConfig, seed: int) -> np.ndar
         return system.sample_box(config.n_traj, seed, scale=float(config.box_scale))
     lo, hi = config.box_scale
     centre = system.x0_box.mean(axis=1)
-    factor = np.random.default_rng([seed, 4]).uniform(lo, hi, (config.n_traj, 1))
+    draws = np.random.default_rng([seed, 4])
+    factor = draws.uniform(lo, hi, (config.n_traj, 1))
+    if config.box_share < 1:
+        factor[draws.uniform(size=config.n_traj) >= config.box_share] = 1.0
     return centre + (system.sample_box(config.n_traj, seed) - centre) * factor
 
 
@@ -299,7 +319,8 @@ def fit_families(config: RolloutConfig, rate: float = 1.0) -> dict[str, dict[str
 
     The benchmark's families carry :func:`kklcasadi.plant.signals.family_ranges`' parameters;
     ``multisine`` its tones' amplitude and frequency ranges and their number; ``feedback`` (a
-    proportional law, not the PD law of the held-out family of that name) its gain, hold and limit.
+    proportional law, not the PD law of the held-out family of that name) its gain, hold and limit;
+    ``pd`` (:data:`PD_RANGES`) also its derivative time and lag.
     """
     out: dict[str, dict[str, tuple[float, float]]] = {}
     sine = _ranges("sinusoid", config.regime)
@@ -315,12 +336,18 @@ def fit_families(config: RolloutConfig, rate: float = 1.0) -> dict[str, dict[str
         else:
             limit = float(_ranges("constant", config.regime)["value"][1])
             out[kind] = {"gain": (0.5, 3.0), "hold": (2.0 / rate, 10.0 / rate), "limit": (limit, limit)}
+            if kind == "pd":
+                out[kind].update(gain=PD_RANGES["gain"],
+                                 **{name: (lo / rate, hi / rate) for name, (lo, hi) in PD_RANGES.items()
+                                    if name != "gain"})
     return out
 
 
 @dataclass(frozen=True)
 class _Feedback:
-    """``u_k = clip(gain (r(t_k) - y_k[j]) / y_scale, -limit, limit)`` per input, ``r`` piecewise constant."""
+    """``u_k = clip((gain (r(t_k) - y_k[j]) - dgain dyf_k[j]) / y_scale, -limit, limit)`` per input, ``r``
+    piecewise constant, ``dyf_k`` the rate of the output through a first-order lag of time constant
+    ``lag`` (``dgain = 0``: a proportional law)."""
 
     gain: np.ndarray          # (nu,)
     output: np.ndarray        # (nu,) output index per input
@@ -328,10 +355,15 @@ class _Feedback:
     limit: float
     times: np.ndarray         # (L,) switching times, first 0
     levels: np.ndarray        # (L, nu) set points
+    dgain: np.ndarray | None = None   # (nu,) derivative gains (gain times the derivative time)
+    lag: float = 0.0
 
-    def __call__(self, t: float, y: np.ndarray) -> np.ndarray:
+    def __call__(self, t: float, y: np.ndarray, dyf: np.ndarray) -> np.ndarray:
         r = self.levels[np.searchsorted(self.times, t, side="right") - 1]
-        return np.clip(self.gain * (r - y[self.output]) / self.y_scale, -self.limit, self.limit)
+        v = self.gain * (r - y[self.output])
+        if self.dgain is not None:
+            v = v - self.dgain * dyf[self.output]
+        return np.clip(v / self.y_scale, -self.limit, self.limit)
 
 
 def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System, t: np.ndarray,
@@ -365,8 +397,30 @@ def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System
     lo, hi = y_range
     output = np.arange(nu) % system.ny
     levels = rng.uniform(lo[output], hi[output], size=(times.size, nu))
-    return _Feedback(rng.uniform(0.5, 3.0, size=nu) * rng.choice([-1.0, 1.0], size=nu), output,
-                     np.maximum(0.5 * (hi - lo)[output], 1e-9), limit, times, levels)
+    y_scale = np.maximum(0.5 * (hi - lo)[output], 1e-9)
+    if kind == "feedback":
+        return _Feedback(rng.uniform(0.5, 3.0, size=nu) * rng.choice([-1.0, 1.0], size=nu), output, y_scale, limit,
+                         times, levels)
+    gain = rng.uniform(*PD_RANGES["gain"], size=nu) * loop_signs(system)
+    dgain = gain * rng.uniform(*PD_RANGES["derivative_time"], size=nu) / rate
+    return _Feedback(gain, output, y_scale, limit, times, levels, dgain, rng.uniform(*PD_RANGES["lag"]) / rate)
+
+
+def loop_signs(system: System) -> np.ndarray:
+    """The sign of each input's gain on the output its feedback law reads (nu,): of the first Markov
+    parameter ``H F^k G`` (``k < nx``) of the plant linearised at its X0 box centre and ``u = 0`` that
+    is not zero, +1 where none is. A law ``u = g (r - y)`` with ``g`` of this sign feeds back
+    negatively (the ``pd`` family damps the plant as a controller would, rather than drive it off)."""
+    centre = system.x0_box.mean(axis=1)
+    f_x, f_u = (np.asarray(m, dtype=float) for m in system.f_jac(centre, np.zeros(system.nu)))
+    h_x = np.asarray(system.h_jac(centre), dtype=float)
+    markov = [h_x @ np.linalg.matrix_power(f_x, k) @ f_u for k in range(system.nx)]
+    scale = max(float(np.abs(m).max()) for m in markov)
+    signs = np.ones(system.nu)
+    for j, out in enumerate(np.arange(system.nu) % system.ny):
+        first = next((m[out, j] for m in markov if abs(m[out, j]) > 1e-9 * scale), 1.0)
+        signs[j] = np.sign(first)
+    return signs
 
 
 def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: np.ndarray, process: np.ndarray,
@@ -380,10 +434,15 @@ def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: n
     x = np.full((m, n, system.nx), np.nan)
     u, y = np.zeros((m, n, system.nu)), np.zeros((m, n, system.ny))
     x[:, 0] = x0
+    pull = np.array([1.0 - np.exp(-dt / law.lag) if law.lag > 0 else 1.0 for law in laws])[:, None]
+    yf = np.zeros((m, system.ny))
     for k in range(n):
         y[:, k] = np.asarray(h(x[:, k].T)).T + v[:, k]
+        yf_next = y[:, k] if k == 0 else yf + pull * (y[:, k] - yf)       # the lagged output, from y_0
+        dyf = (yf_next - yf) / dt if k else np.zeros_like(yf)
+        yf = yf_next
         for i in np.flatnonzero(np.all(np.isfinite(y[:, k]), axis=1)):       # runs that have not blown up
-            u[i, k] = laws[i](t[k], y[i, k])
+            u[i, k] = laws[i](t[k], y[i, k], dyf[i])
         if k < n - 1:
             with np.errstate(invalid="ignore", over="ignore"):
                 x[:, k + 1] = np.asarray(step(x[:, k].T, np.concatenate([u[:, k], w[:, k]], axis=1).T)).T
