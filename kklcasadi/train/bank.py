@@ -182,6 +182,7 @@ class BankConfig:
                              u_poles=shipped.get("u_poles", config.u_poles),
                              rollouts=replace(config.rollouts, substeps=4,
                                               n_traj=shipped.get("n_traj", config.rollouts.n_traj),
+                                              kinds=shipped.get("kinds", config.rollouts.kinds),
                                               noise_range=shipped.get("noise_range", config.rollouts.noise_range)))
             if "asinh_scale" in shipped:
                 config = replace(config, decoder=replace(config.decoder, asinh_scale=shipped["asinh_scale"]))
