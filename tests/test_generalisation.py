@@ -181,6 +181,7 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
     tables["rossler_3030_runs"] = ["rossler_3030_recipe", "rossler_3030_runs"]
     tables["duffing_3030_cheap_pd"] = ["duffing_3030_cheap_levers", "duffing_3030_cheap_pd"]
     tables["vdp_3030_cheap_pd"] = ["vdp_3030_cheap_pd"]
+    tables["vdp_3030_pd_compare"] = ["vdp_3030_members3", "vdp_3030_pd"]
     tables.update({f"{s}_3030_members3_compare": [f"{s}_3030_members3"] for s in ("duffing", "vdp")})
     for name, inputs in tables.items():
         argv, sys.argv = sys.argv, ["compare_generalisation.py", *(str(records / f"{n}.json") for n in inputs)]
