@@ -1,12 +1,13 @@
 """Set the models of several ``kklcasadi generalise`` reports side by side: bank / EKF per case, and the
 geometric mean over the cases.
 
-    python benchmarks/compare_generalisation.py REPORT.json [REPORT.json ...] [--out TABLE.md]
+    python benchmarks/compare_generalisation.py REPORT.json [REPORT.json ...] [--labels A,B,...] [--out TABLE.md]
 
 The reports must hold the same cases on the same trials (the EKF's per-trial SMAPE agrees: one
 ``--seed``, ``--trials``, families, regimes and noise levels); each model's column is the ratio of its
 mean SMAPE to the EKF's in a case, as ``kklcasadi generalise`` reports it. A model label that occurs in
-two reports is an error (pass ``--labels`` to ``kklcasadi generalise``).
+two reports is an error: pass ``--labels`` to ``kklcasadi generalise``, or here one label per report
+(each of them holding one model; for instance two reports of ``models/<system>/bank`` at two commits).
 """
 
 from __future__ import annotations
@@ -18,13 +19,22 @@ import sys
 from pathlib import Path
 
 
-def load(paths: list[Path]) -> tuple[list[tuple], dict[str, dict[tuple, float]]]:
-    """The cases (family, regime, noise) in the first report's order and each model's ratios per case."""
+def load(paths: list[Path], names: list[str] | None = None) -> tuple[list[tuple], dict[str, dict[tuple, float]]]:
+    """The cases (family, regime, noise) in the first report's order and each model's ratios per case;
+    ``names``: one label per report, each report of one model, in place of the reports' labels."""
+    if names is not None and len(names) != len(paths):
+        raise SystemExit(f"--labels: expected one label per report ({len(paths)}), received {len(names)}")
     cases: list[tuple] = []
     ekf: dict[tuple, list] = {}
     ratios: dict[str, dict[tuple, float]] = {}
-    for path in paths:
+    for i, path in enumerate(paths):
         report = json.loads(path.read_text())
+        if names is not None:
+            models = {label for case in report["cases"] for label in case["models"]}
+            if len(models) != 1:
+                raise SystemExit(f"--labels: expected one model in {path}, received {sorted(models)}")
+            for case in report["cases"]:
+                case["models"] = {names[i]: next(iter(case["models"].values()))}
         keys = [(c["family"], c["regime"], c["noise"]) for c in report["cases"]]
         if not cases:
             cases = keys
@@ -54,9 +64,10 @@ def table(cases: list[tuple], ratios: dict[str, dict[tuple, float]]) -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("reports", nargs="+", type=Path)
+    parser.add_argument("--labels", help="comma-separated column labels, one per report of one model")
     parser.add_argument("--out", type=Path, help="write the table there too")
     args = parser.parse_args()
-    text = table(*load(args.reports))
+    text = table(*load(args.reports, args.labels.split(",") if args.labels else None))
     print(text)
     if args.out:
         args.out.write_text(text + "\n")

@@ -14,8 +14,9 @@ nominal noise, ``<system>_generalisation_monitor_before.json`` is the same ensem
 threshold from the fitting runs' validation samples (the monitor rows only); for Duffing and Van der
 Pol, whose ensembles are now fit on 8000 runs, that is the 4000-run ensemble of
 ``<system>_generalisation_4000_runs.json`` (the monitor rows of both). Van der Pol's shipped ensemble has
-three decoders; ``vdp_generalisation_two_decoders.json`` is its first two (the ensemble shipped before,
-monitor rows).
+three decoders and its runs add the ``pd`` family; ``vdp_generalisation_two_decoders.json`` is the first
+two decoders of the three-decoder ensemble without it, ``vdp_generalisation_no_pd.json`` that ensemble
+(shipped before the pd one; monitor rows).
 
 Per system, one table: for each case (family and regime) what the shipped bank's card says it was fit
 on, the EKF's mean SMAPE at noise 0.1, and the ratio bank / EKF of the mean SMAPE at noise 0.05, 0.1
@@ -67,6 +68,11 @@ def card(system: str) -> dict:
     return json.loads((ROOT.parent.parent / "models" / system / "bank" / "card.json").read_text())
 
 
+def recipe(system: str) -> str:
+    """The shipped bank's recipe in words: "broad-fit", "+ pd" where its runs hold the ``pd`` family."""
+    return "broad-fit + pd" if "pd" in card(system)["training"]["rollouts"]["kinds"] else "broad-fit"
+
+
 def decoders(system: str) -> str:
     """The shipped bank's ensemble in words ("two decoders"; its card's ``architecture.bank.members``)."""
     k = int(card(system)["architecture"]["bank"].get("members", 1))
@@ -85,7 +91,7 @@ def table(system: str) -> str:
     names = ("shipped", "one decoder", "benchmark-fit")
     head = ["case", "shipped bank fit on it", "EKF, 0.1"] + [f"{k} {n:g}" for k in names for n in NOISES]
     lines = [f"**{system}**, {'-'.join(map(str, sorted({min(trials), max(trials)})))} trials per case: bank / EKF "
-             f"(mean SMAPE) at noise {', '.join(map(str, NOISES))} of the shipped bank (broad-fit, "
+             f"(mean SMAPE) at noise {', '.join(map(str, NOISES))} of the shipped bank ({recipe(system)}, "
              f"{decoders(system)}, {runs(system)} runs), "
              f"{ONE_DECODER.get(system, 'of the one-decoder bank before it (commit `aadd302`)')} and "
              f"{BENCHMARK_FIT.get(system, 'of the benchmark-fit bank')}; the EKF's SMAPE at 0.1",
@@ -113,13 +119,14 @@ def monitor() -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for system in SYSTEMS:
         data = reports(system)
-        for key, suffix in (("two decoders", "_two_decoders"), ("4000 runs", "_4000_runs")):
+        for key, suffix in (("no pd", "_no_pd"), ("two decoders", "_two_decoders"), ("4000 runs", "_4000_runs")):
             path = ROOT / f"{system}_generalisation{suffix}.json"
             if path.exists():
                 data[key] = json.loads(path.read_text())
         ensemble = "broad-fit, two decoders"
         before_runs = 4000 if "4000 runs" in data else runs(system)
-        labels = {"shipped": f"broad-fit, {decoders(system)}, {runs(system)} runs (shipped)",
+        labels = {"shipped": f"{recipe(system)}, {decoders(system)}, {runs(system)} runs (shipped)",
+                  "no pd": f"broad-fit, {decoders(system)}, {runs(system)} runs",
                   "two decoders": f"{ensemble}, {runs(system)} runs", "4000 runs": f"{ensemble}, 4000 runs",
                   "before": f"{ensemble}, {before_runs} runs, spread threshold from the fitting runs",
                   "one decoder": "broad-fit, one decoder",
@@ -127,7 +134,7 @@ def monitor() -> str:
         before = ROOT / f"{system}_generalisation_monitor_before.json"
         if before.exists():
             data["before"] = json.loads(before.read_text())
-        for k in [k for k in ("shipped", "two decoders", "4000 runs", "before", *KINDS[1:]) if k in data]:
+        for k in [k for k in ("shipped", "no pd", "two decoders", "4000 runs", "before", *KINDS[1:]) if k in data]:
             for g in data[k]["models"][MODEL]["monitor"]:
                 cells = [system, labels[k], g["group"], str(g["trials"]), str(g["bad"]), str(g["flagged"])]
                 cells += ["-" if g[c] is None else f"{g[c]:.2f}" for c in ("precision", "recall")]

@@ -183,23 +183,35 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
     tables["vdp_3030_cheap_pd"] = ["vdp_3030_cheap_pd"]
     tables["vdp_3030_pd_compare"] = ["vdp_3030_members3", "vdp_3030_pd"]
     tables.update({f"{s}_3030_members3_compare": [f"{s}_3030_members3"] for s in ("duffing", "vdp")})
-    for name, inputs in tables.items():
-        argv, sys.argv = sys.argv, ["compare_generalisation.py", *(str(records / f"{n}.json") for n in inputs)]
+
+    def printed_by(*args):
+        argv, sys.argv = sys.argv, ["compare_generalisation.py", *map(str, args)]
         try:
             with pytest.raises(SystemExit, match="0"):
                 runpy.run_path(script, run_name="__main__")
         finally:
             sys.argv = argv
-        printed = capsys.readouterr().out
+        return capsys.readouterr().out
+
+    for name, inputs in tables.items():
+        printed = printed_by(*(records / f"{n}.json" for n in inputs))
         assert printed.strip() and printed in (records / f"{name}.md").read_text() + "\n", name
         report = json.loads((records / f"{inputs[0]}.json").read_text())
         case = report["cases"][0]
         label, model = next(iter(case["models"].items()))
         assert f"| {model['smape_mean'] / case['ekf']['smape_mean']:.3f}x |" in printed.splitlines()[2]
+    # two reports of one label (models/vdp/bank before and with the pd family), relabelled per report
+    scored = root / "results" / "generalisation"
+    printed = printed_by(scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation.json", "--labels",
+                         "without pd,with pd")
+    assert printed.startswith("| case | without pd | with pd |")
+    assert printed in (scored / "vdp_generalisation_pd_compare.md").read_text() + "\n"
+    module = runpy.run_path(script)
+    with pytest.raises(SystemExit, match=r"--labels: expected one label per report \(2\), received 1"):
+        module["load"]([scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation.json"], ["a"])
     other = json.loads((records / "duffing_3030_lr.json").read_text())
     other["cases"][0]["ekf"]["smape"][0] += 1.0
     path = tmp_path / "other.json"
     path.write_text(json.dumps(other))
-    module = runpy.run_path(script)
     with pytest.raises(SystemExit, match="differ.*other trials"):
         module["load"]([records / "duffing_3030_lr.json", path])
