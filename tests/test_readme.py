@@ -519,6 +519,11 @@ def test_the_generalisation_text_follows_from_the_reports():
     assert (f"geometric mean {gm_pd[0]:.3f} to {gm_pd[1]:.3f}, lower in {won_pd} of the 30 cases; on the scored "
             f"trials {gmean(three):.3f} to {gmean(shipped['vdp']):.3f}, lower in {lower(shipped['vdp'], three)} of "
             "the 30 cases" in text)
+    cell = {n: {(c["family"], c["regime"], c["noise"]): c["models"]["bank"]["ratio_ekf"] for c in d["cases"]}
+            for n, d in (("before", three), ("after", shipped["vdp"]))}
+    feedback, square = (("feedback", "held_out", 0.05), ("square", "ood", 0.05))
+    assert (f"its feedback cells most (noise 0.05: {cell['before'][feedback]:.2f}x to {cell['after'][feedback]:.2f}x), "
+            f"square ood at noise 0.05 level ({cell['before'][square]:.3f}x to {cell['after'][square]:.3f}x)" in text)
     card = json.loads((ROOT / "models" / "vdp" / "bank" / "card.json").read_text())
     assert card["architecture"]["bank"]["members"] == 3 and "pd" in card["training"]["rollouts"]["kinds"]
     third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "duffing_3030_members3.json").read_text())

@@ -45,7 +45,7 @@ __all__ = ["BankConfig", "MonitorConfig", "train_bank", "design_bank", "bank_mod
 #: range and filters cost it more than they bought: docs/design.md, "Broad excitation").
 #: Van der Pol's ensemble has three decoders (:data:`SHIPPED_MEMBERS` otherwise) and its runs add the
 #: ``pd`` family (a saturated PD loop on the lagged noisy output; on validation trials it lowered the
-#: geometric mean of bank / EKF from 1.093 to 1.081: docs/design.md, "Broad excitation").
+#: geometric mean of bank / EKF from 1.093 to 1.081: docs/design.md, "Controllers with derivative action").
 SHIPPED = {"duffing": {"n_traj": 8000}, "vdp": {"n_traj": 8000, "members": 3, "kinds": (*DEFAULT_KINDS, "pd")},
            "fhn": {"n_traj": 4000},
            "rossler": {"asinh_scale": (0.0, 0.0, 0.01), "u_poles": (0.3, 1.0, 3.0), "noise_range": (1.0, 1.0)}}
