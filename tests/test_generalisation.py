@@ -182,6 +182,7 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
     tables["duffing_3030_cheap_pd"] = ["duffing_3030_cheap_levers", "duffing_3030_cheap_pd"]
     tables["vdp_3030_cheap_pd"] = ["vdp_3030_cheap_pd"]
     tables["vdp_3030_pd_compare"] = ["vdp_3030_members3", "vdp_3030_pd"]
+    tables["duffing_3030_pd_compare"] = ["duffing_3030_runs8000", "duffing_3030_pd"]
     tables.update({f"{s}_3030_members3_compare": [f"{s}_3030_members3"] for s in ("duffing", "vdp")})
 
     def printed_by(*args):
