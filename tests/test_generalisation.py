@@ -8,7 +8,7 @@ import pytest
 import kklcasadi as kc
 from kklcasadi.cli import main
 from kklcasadi.estimators.ekf import EKF
-from kklcasadi.estimators.pf import ParticleFilter
+from kklcasadi.estimators.pf import ROUGHENING, ParticleFilter
 from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.protocol import Protocol
 from kklcasadi.evaluation.trialcache import TrialCache
@@ -116,7 +116,7 @@ def test_run_scores_every_estimator_on_the_same_trials(monitored_bank):
         xhat_ekf = ekf.simulate(batch.t, batch.y, batch.u).xhat
         np.testing.assert_allclose(report.ekf[i], kc.metrics.smape(batch.x, xhat_ekf), rtol=1e-12)
         pf = ParticleFilter(obs.system, 0.05, n_particles=40, process_std=case.noise, measurement_std=case.noise,
-                            seed=2026)
+                            roughening=ROUGHENING, seed=2026)
         np.testing.assert_array_equal(report.pf[i], kc.metrics.smape(batch.x, pf(batch.t, batch.y, batch.u)))
         np.testing.assert_array_equal(report.bad(model, i), model.smape[i] > 1.5 * report.ekf[i])
     assert [model.category(c) for c in cases] == ["ood", "held out", "fit"]
@@ -128,6 +128,7 @@ def test_run_scores_every_estimator_on_the_same_trials(monitored_bank):
     g = summary["ood and held out, noise 0.1"]
     assert g["bad"] == int(bad.sum()) and (g["recall"] is None or math.isclose(g["recall"], hits / bad.sum()))
     data = json.loads(json.dumps(report.to_json()))
+    assert (data["pf_particles"], data["pf_roughening"]) == (40, ROUGHENING)
     assert data["cases"][1]["models"]["bank"]["category"] == "held out"
     assert math.isclose(data["cases"][0]["models"]["bank"]["ratio_ekf"], model.smape[0].mean() / report.ekf[0].mean())
     table = report.markdown()

@@ -29,6 +29,7 @@ from .flags import (
     add_noise,
     add_noise_levels,
     add_plant,
+    add_roughening,
     check_dt,
     load,
     plant_of,
@@ -52,6 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="add the bootstrap particle filter with N particles (row 'PF N=...'; the protocol's noise "
                    "levels, 4 RK4 steps per sample on fhn and rossler). Noisy cells only: the noise-free cells are "
                    "skipped (its likelihood needs measurement noise)")
+    add_roughening(e)
     e.add_argument("--mhe", nargs="+", type=positive_int, metavar="N",
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
     e.add_argument("--seed", type=int, default=2026)
@@ -127,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
         pf = pf_estimator(plant, protocol.dt, compiler=compiler, n_threads=args.threads, profile=profile,
                           n_particles=args.pf, process_std=protocol.process_std,
                           measurement_std=protocol.measurement_std, substeps=SUBSTEPS.get(plant.name, 1),
-                          seed=protocol.seed)
+                          roughening=args.pf_roughening, seed=protocol.seed)
         scores.append(score(f"PF N={args.pf}", pf, plant, protocol, noise=(True,), kinds=kinds, trials=trials,
                             progress=True, profile=profile))
         print(f"PF N={args.pf}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)

@@ -176,6 +176,15 @@ def add_noise_levels(parser: argparse.ArgumentParser, what: str, default: Option
                         help=f"process noise std on xdot: {what}{shown}")
 
 
+def add_roughening(parser: argparse.ArgumentParser) -> None:
+    """``--pf-roughening K``: the particle filter's roughening (default the benchmarks')."""
+    from ..estimators.pf import ROUGHENING
+
+    parser.add_argument("--pf-roughening", type=nonnegative_float, default=ROUGHENING, metavar="K",
+                        help=f"with --pf: jitter the resampled particles by K times their range times N^(-1/nx) "
+                        f"(default {ROUGHENING:g}; 0: the plain bootstrap filter)")
+
+
 def check_dt(dt: float, T: float, models: dict[str, float]) -> None:
     """The protocol's ``dt`` (``--dt``) fits its horizon ``T`` and every model's sample time."""
     n = round(T / dt)

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from ..plant import signals as sig
-from .flags import CommandError, add_cache, add_plant, load, plant_of, positive_float, positive_int
+from .flags import CommandError, add_cache, add_plant, add_roughening, load, plant_of, positive_float, positive_int
 
 #: ``--regimes`` choices: the protocol's ``id`` and ``ood`` ranges, and the held-out families' ranges.
 REGIMES = ("id", "ood", "held_out")
@@ -33,6 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="process and measurement noise std of the cases (default: 0.05 0.1 0.2)")
     g.add_argument("--trials", type=positive_int, default=100, help="trials per case (default 100)")
     g.add_argument("--pf", type=positive_int, metavar="N", help="add the particle filter with N particles")
+    add_roughening(g)
     add_plant(g, "for models of a plant that kklcasadi does not ship")
     g.add_argument("--seed", type=int, default=2026, help="seed of the trials (docs/protocol.md: 2026)")
     g.add_argument("--out", help="directory for the JSON report and the markdown tables")
@@ -69,8 +70,8 @@ def run(args: argparse.Namespace) -> int:
         observers.append((args.labels[i] if args.labels else Path(model).resolve().name, obs))
     settings = gen.Settings(n_trials=args.trials, seed=args.seed)
     t0 = time.perf_counter()
-    report = gen.run(observers, case_list, settings, trials=trials, pf_particles=args.pf, compiler=compiler,
-                     n_threads=args.threads, progress=True)
+    report = gen.run(observers, case_list, settings, trials=trials, pf_particles=args.pf,
+                     pf_roughening=args.pf_roughening, compiler=compiler, n_threads=args.threads, progress=True)
     print(f"{len(case_list)} cases x {args.trials} trials in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     tables = report.markdown() + "\n\nDomain monitor:\n\n" + report.monitor_markdown()
     print(tables)

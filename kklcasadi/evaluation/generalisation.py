@@ -26,19 +26,19 @@ from tqdm.auto import tqdm
 
 from .. import metrics
 from ..estimators.ekf import EKF
-from ..estimators.pf import ParticleFilter
+from ..estimators.pf import ROUGHENING, SUBSTEPS, ParticleFilter
 from ..observer.kkl import KKLObserver
 from ..plant import signals as sig
 from ..plant.simulate import TrajectoryBatch, simulate_batch
 from ..plant.systems import System
-from ..validation import Text, error, one_of, positive_int
+from ..validation import Text, error, nonnegative_number, one_of, positive_int
 from .compiled import CompiledEstimator, Compiler, ekf_estimator, observer_estimator
 from .protocol import Protocol
 from .trialcache import TrialCache
 
 __all__ = ["Case", "FamilyCell", "Settings", "ModelResult", "Report", "cases", "fit_families", "category",
            "output_range", "families_text", "run", "MonitoredObserver", "NOISE_LEVELS", "FAMILY_STREAMS",
-           "CATEGORIES", "BAD_RATIO", "FLAG_SHARE", "PF_SUBSTEPS"]
+           "CATEGORIES", "BAD_RATIO", "FLAG_SHARE"]
 
 #: Noise levels of the benchmark: process and measurement noise std (docs/protocol.md: 0.1).
 NOISE_LEVELS = (0.05, 0.1, 0.2)
@@ -53,7 +53,6 @@ FLAG_SHARE = 0.5
 #: How observers and the EKF are compiled unless told otherwise (portable flags, cached libraries).
 DEFAULT_COMPILER = Compiler()
 #: RK4 steps per interval of the particle filter (one step diverges on FitzHugh-Nagumo's stiff corners).
-PF_SUBSTEPS = {"fhn": 4, "rossler": 4}
 
 
 @dataclass(frozen=True)
@@ -297,6 +296,8 @@ class Report:
     pf : list of numpy.ndarray or None
         The particle filter's, when run.
     pf_particles : int or None
+    pf_roughening : float or None
+        The particle filter's roughening (None: no filter, or a report written before it was recorded: 0).
     """
 
     system: str
@@ -306,6 +307,7 @@ class Report:
     ekf: list
     pf: Optional[list] = None
     pf_particles: Optional[int] = None
+    pf_roughening: Optional[float] = None
 
     def bad(self, model: ModelResult, i: int) -> np.ndarray:
         """Per trial of case ``i``: the model's SMAPE above :data:`BAD_RATIO` times the EKF's on that trial."""
@@ -406,6 +408,7 @@ class Report:
                 entry["models"][model.label] = record
             out.append(entry)
         return {"system": self.system, "settings": vars(self.settings), "pf_particles": self.pf_particles,
+                "pf_roughening": self.pf_roughening,
                 "bad_ratio": BAD_RATIO, "flag_share": FLAG_SHARE,
                 "models": {m.label: {"fit_families": _plain(m.fit_families), "fit_noise": m.fit_noise,
                                      "monitor": self.monitor_summary(m)} for m in self.models},
@@ -425,7 +428,7 @@ def families_text(families: Optional[Mapping[str, Mapping[str, Sequence[float]]]
 
 
 def run(observers: Sequence[tuple[str, KKLObserver]], case_list: Sequence[Case], settings: Settings = Settings(), *,
-        trials: Optional[TrialCache] = None, pf_particles: Optional[int] = None,
+        trials: Optional[TrialCache] = None, pf_particles: Optional[int] = None, pf_roughening: float = ROUGHENING,
         compiler: Optional[Compiler] = DEFAULT_COMPILER, n_threads: Optional[int] = None,
         progress: bool = False) -> Report:
     """Score observers of one plant, the EKF and optionally the particle filter on every case.
@@ -441,7 +444,9 @@ def run(observers: Sequence[tuple[str, KKLObserver]], case_list: Sequence[Case],
         Where the cases' trials come from (default: simulated for this call).
     pf_particles : int, optional
         Run the particle filter with this many particles (its noise levels the case's, seed
-        ``settings.seed``, :data:`PF_SUBSTEPS`).
+        ``settings.seed``, :data:`kklcasadi.estimators.pf.SUBSTEPS`).
+    pf_roughening : float
+        Its roughening (default :data:`kklcasadi.estimators.pf.ROUGHENING`).
     compiler : Compiler or None
         How the observers and the EKF are compiled (None: the CasADi VM).
     n_threads : int, optional
@@ -463,6 +468,7 @@ def run(observers: Sequence[tuple[str, KKLObserver]], case_list: Sequence[Case],
                         Text(f"{label!r} for {obs.system.name!r}"))
     if pf_particles is not None:
         positive_int(pf_particles, "pf_particles")
+        nonnegative_number(pf_roughening, "pf_roughening")
     trials = TrialCache(None) if trials is None else trials
     runners = [(label, obs, MonitoredObserver(obs, compiler=compiler, n_threads=n_threads)
                 if obs.domain_check is not None else None) for label, obs in observers]
@@ -489,8 +495,10 @@ def run(observers: Sequence[tuple[str, KKLObserver]], case_list: Sequence[Case],
         ekf_scores.append(metrics.smape(x, ekf_estimator(ekf, compiler=compiler, n_threads=n_threads)(batch.t, y, u)))
         if pf_scores is not None:
             pf = ParticleFilter(plant, settings.dt, n_particles=pf_particles, process_std=case.noise,
-                                measurement_std=case.noise, substeps=PF_SUBSTEPS.get(plant.name, 1), seed=settings.seed)
+                                measurement_std=case.noise, substeps=SUBSTEPS.get(plant.name, 1),
+                                roughening=pf_roughening, seed=settings.seed)
             pf_scores.append(metrics.smape(x, pf(batch.t, y, u)))
     models = [ModelResult(label, fit_families(obs), obs.model.spec.measurement_std, *results[label])
               for label, obs in observers]
-    return Report(plant.name, settings, list(case_list), models, ekf_scores, pf_scores, pf_particles)
+    return Report(plant.name, settings, list(case_list), models, ekf_scores, pf_scores, pf_particles,
+                  None if pf_particles is None else pf_roughening)
