@@ -330,6 +330,7 @@ def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_bank
         assert other["models"]["bank"]["fit_families"] != card["fit_families"]
         assert [c["ekf"]["smape"] for c in other["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
         assert shipped["pf_particles"] == other["pf_particles"] == 1000             # "also holds the particle filter"
+        assert shipped["pf_roughening"] == 0.6 and "pf_roughening" not in other      # roughened in the shipped's only
         one = json.loads((root / f"{system}_generalisation_one_decoder.json").read_text())    # the bank before
         fitted = {k: v for k, v in card["fit_families"].items() if k != "pd"}       # Van der Pol's pd since
         assert one["models"]["bank"]["fit_families"] == fitted
@@ -507,6 +508,24 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"(the two-decoder ensemble: `vdp_generalisation_two_decoders.*`), its square input in distribution "
             f"{square[0]:.3f}x to {square[1]:.3f}x" in text)
 
+    # the particle filter at noise 0.05: plain (the one-decoder reports) and roughened (the shipped banks')
+    def pf_span(data):
+        r = np.array([c["pf"]["smape_mean"] / c["ekf"]["smape_mean"] for c in data["cases"] if c["noise"] == 0.05])
+        lost = int(np.isnan(r).sum())
+        return f"{np.nanmin(r):.2f}-{np.nanmax(r):.2f}x" + (f" and NaN in {lost}" if lost else "")
+
+    assert (f"(PF / EKF over the 10 cases: Roessler {pf_span(report('rossler', '_one_decoder'))}, Van der Pol "
+            f"{pf_span(report('vdp', '_one_decoder'))}; roughened: Roessler {pf_span(report('rossler'))}, Van der Pol "
+            f"{pf_span(report('vdp'))};" in text)
+    # the roughened filter's mean on Roessler: level on the median trial, lifted by the few trials that lost the state
+    per_case = [np.array(c["pf"]["smape"]) / np.array(c["ekf"]["smape"])
+                for c in report("rossler")["cases"] if c["noise"] == 0.05]
+    medians = [float(np.median(r)) for r in per_case]
+    lost = [int((r > 2).sum()) for r in per_case]
+    worst = np.concatenate([r[r > 2] for r in per_case])
+    assert (f"per trial, median per case {min(medians):.2f}-{max(medians):.2f}x); its mean is lifted by "
+            f"{min(lost)}-{max(lost)} of each case's trials on which the particles lost the state "
+            f"({worst.min():.1f}-{worst.max():.1f}x the EKF's SMAPE)" in text)
     # Van der Pol's pd family (three decoders, 8000 runs): the validation trials that chose it and the scored trials
     pd = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_pd.json").read_text())
     assert pd["settings"]["seed"] == 3030
