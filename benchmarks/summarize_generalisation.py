@@ -1,9 +1,10 @@
 """Print the README's generalisation tables from results/generalisation/.
 
 Usage: python benchmarks/summarize_generalisation.py
-(after ``kklcasadi generalise models/<system>/bank --pf 1000 --out results/generalisation`` per
-system, Roessler's with ``--pf 4000``). Beside each shipped bank's ``<system>_generalisation.json``
-(a decoder ensemble of the broad recipe; Roessler's at the nominal noise with 3 input filters), on the same trials:
+(after ``kklcasadi generalise models/<system>/bank --pf 4000 --out results/generalisation`` per
+system; the 1000-particle runs are ``<system>_generalisation_pf1000.json``). Beside each shipped
+bank's ``<system>_generalisation.json`` (a decoder ensemble of the broad recipe; Roessler's at the
+nominal noise with 3 input filters), on the same trials:
 ``<system>_generalisation_one_decoder.json``, the one-decoder bank shipped until commit ``aadd302``
 (Duffing's, Van der Pol's and FitzHugh-Nagumo's ensembles are fit on 8000, 8000 and 4000 runs, that
 decoder on 2000; Roessler's: the first member of today's), and

@@ -330,7 +330,10 @@ def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_bank
         assert other["models"]["bank"]["fit_families"] != card["fit_families"]
         assert [c["ekf"]["smape"] for c in other["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
         assert other["pf_particles"] == 1000                                        # "also holds the particle filter"
-        assert shipped["pf_particles"] == (4000 if system == "rossler" else 1000)  # "4000 in Roessler's shipped report"
+        assert shipped["pf_particles"] == 4000                          # "4000 in the shipped banks' reports"
+        pf1000 = json.loads((root / f"{system}_generalisation_pf1000.json").read_text())
+        assert pf1000["pf_particles"] == 1000 and [c["models"]["bank"]["smape"] for c in pf1000["cases"]] == \
+            [c["models"]["bank"]["smape"] for c in shipped["cases"]]
         assert shipped["pf_roughening"] == 0.6 and "pf_roughening" not in other      # roughened in the shipped's only
         one = json.loads((root / f"{system}_generalisation_one_decoder.json").read_text())    # the bank before
         fitted = {k: v for k, v in card["fit_families"].items() if k != "pd"}       # Van der Pol's pd since
@@ -521,7 +524,7 @@ def test_the_generalisation_text_follows_from_the_reports():
         [c["models"]["bank"]["smape"] for c in report("rossler")["cases"]]
     assert (f"(PF / EKF over the 10 cases: Roessler {pf_span(report('rossler', '_one_decoder'))}, Van der Pol "
             f"{pf_span(report('vdp', '_one_decoder'))}; roughened, 1000 particles: Roessler {pf_span(pf1000)}, "
-            f"Van der Pol {pf_span(report('vdp'))};" in text)
+            f"Van der Pol {pf_span(report('vdp', '_pf1000'))};" in text)
     # with 1000 particles Roessler's mean is lifted by the few trials that lost the state; with 4000 none is lost
     def per_trial(data, noises=(0.05,)):
         return [np.array(c["pf"]["smape"]) / np.array(c["ekf"]["smape"]) for c in data["cases"] if c["noise"] in noises]
@@ -538,6 +541,10 @@ def test_the_generalisation_text_follows_from_the_reports():
     assert not any((r > 2).any() for r in per_trial(pf4000, (0.05, 0.1, 0.2)))
     means = [c["pf"]["smape_mean"] / c["ekf"]["smape_mean"] for c in pf4000["cases"]]
     assert len(means) == 30 and f"none is lost (PF / EKF {min(means):.2f}-{max(means):.2f}x in all 30 cases)" in text
+    moved = max(abs(a["pf"]["smape_mean"] / a["ekf"]["smape_mean"] - b["pf"]["smape_mean"] / b["ekf"]["smape_mean"])
+                for system in ("duffing", "vdp", "fhn")
+                for a, b in zip(report(system)["cases"], report(system, "_pf1000")["cases"]))
+    assert f"4000 particles moved PF / EKF by at most {moved:.3f} in any of their 90 cases" in text
     # Van der Pol's pd family (three decoders, 8000 runs): the validation trials that chose it and the scored trials
     pd = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_pd.json").read_text())
     assert pd["settings"]["seed"] == 3030
