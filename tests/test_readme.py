@@ -512,16 +512,14 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"(the two-decoder ensemble: `vdp_generalisation_two_decoders.*`), its square input in distribution "
             f"{square[0]:.3f}x to {square[1]:.3f}x" in text)
 
-    # the particle filter at noise 0.05: plain (the one-decoder reports) and roughened (the shipped banks')
+    # the particle filter at noise 0.05: plain (one-decoder reports), roughened (shipped banks' 1000-particle runs)
     def pf_span(data):
         r = np.array([c["pf"]["smape_mean"] / c["ekf"]["smape_mean"] for c in data["cases"] if c["noise"] == 0.05])
         lost = int(np.isnan(r).sum())
         return f"{np.nanmin(r):.2f}-{np.nanmax(r):.2f}x" + (f" and NaN in {lost}" if lost else "")
 
     pf1000 = report("rossler", "_pf1000")               # Roessler's shipped bank, the filter with 1000 particles
-    assert (pf1000["pf_particles"], pf1000["pf_roughening"]) == (1000, 0.6)
-    assert [c["models"]["bank"]["smape"] for c in pf1000["cases"]] == \
-        [c["models"]["bank"]["smape"] for c in report("rossler")["cases"]]
+    assert (pf1000["pf_particles"], pf1000["pf_roughening"]) == (1000, 0.6)   # its bank: the shipped (tables test)
     assert (f"(PF / EKF over the 10 cases: Roessler {pf_span(report('rossler', '_one_decoder'))}, Van der Pol "
             f"{pf_span(report('vdp', '_one_decoder'))}; roughened, 1000 particles: Roessler {pf_span(pf1000)}, "
             f"Van der Pol {pf_span(report('vdp', '_pf1000'))};" in text)
