@@ -54,7 +54,8 @@ def model_dir_factory(tmp_path_factory):
     ``[nz + 3, 6, nz*nu]``; dyn, dyn_stream: hypernetwork GRU 4, embeddings 3, backbone ``[5, 5]``,
     rank 2, scale 1.
     With ``base=True`` an autonomous model with the same encoder/decoder is written first and
-    named as ``card["base"]``. ``card_extra`` adds top-level card fields.
+    named as ``card["base"]``. ``card_extra`` adds top-level card fields; ``skip`` gives the decoder a
+    linear skip path.
     """
     import kklcasadi
     from kklcasadi.model.files import make_card, save_model
@@ -64,12 +65,12 @@ def model_dir_factory(tmp_path_factory):
     counter = iter(range(10**6))
 
     def make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
-             card_extra=None, dt=0.05):
+             card_extra=None, dt=0.05, skip=False):
         plant = kklcasadi.plant.systems.get(system) if isinstance(system, str) else system
         nx, nu = plant.nx, plant.nu
         design = kklcasadi.Design.paper(plant)
         nz = design.nz
-        maps = MapsSpec(MLPSpec((nx, *hidden, nz)), MLPSpec((nz, *hidden, nx)))
+        maps = MapsSpec(MLPSpec((nx, *hidden, nz)), MLPSpec((nz, *hidden, nx), skip=skip))
         obs = lambda: ObsModelSpec(maps.encoder, maps.decoder,  # noqa: E731
                                    ObsSpec(4, 3, MLPSpec((nz + 3, 6, nz * nu))))
         dyn = lambda: DynModelSpec(maps.encoder, maps.decoder, HyperSpec(4, 3, (5, 5), 2), nu)  # noqa: E731

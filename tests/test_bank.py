@@ -72,7 +72,8 @@ def test_bank_observer_equals_the_reference_estimator(bank_dir):
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
 @pytest.mark.parametrize("fixture, x0", [("bank_dir", [0.0, 1.0, 0.2]), ("ensemble_dir", [0.5, 1.0])])
 def test_bank_compiles_to_c_that_reproduces_simulate(fixture, x0, request, tmp_path):
-    """One decoder (Roessler) and a two-decoder ensemble (Duffing): the C program's estimates are simulate's."""
+    """One decoder (Roessler) and a two-decoder ensemble with skip paths (Duffing): the C program's estimates are
+    simulate's."""
     obs = kc.load_observer(request.getfixturevalue(fixture))
     files = generate_c(obs, tmp_path, "bank", math="libm")
     subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
@@ -162,7 +163,7 @@ def ensemble_dir(tmp_path_factory):
     config = replace(default_config("duffing", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=2,
                      rollouts=RolloutConfig(n_traj=8, T=6.0),
                      monitor=MonitorConfig(spread_quantile=0.97, spread_runs=4),
-                     decoder=DecoderConfig(hidden=(8, 8), loop=LoopConfig(epochs=2, batch_size=64)))
+                     decoder=DecoderConfig(hidden=(8, 8), skip=True, loop=LoopConfig(epochs=2, batch_size=64)))
     return train_observer("duffing", "bank", tmp_path_factory.mktemp("ensemble") / "bank", config=config,
                           seed=5, progress=False)
 
@@ -175,8 +176,10 @@ def _arrays(directory):
 def test_an_ensemble_card_records_its_members_and_the_spread_test(ensemble_dir):
     model, arrays, arch = _arrays(ensemble_dir)
     assert model.card["architecture"]["bank"]["members"] == 2 and model.spec.architecture.members == 2
-    assert {"decoder_1/W0", "decoder_1/b2", "decoder_1/out_std"} <= set(model.arrays)
+    assert {"decoder_1/W0", "decoder_1/b2", "decoder_1/out_std", "decoder_1/Wskip"} <= set(model.arrays)
     assert not np.array_equal(model.arrays["decoder/W0"], model.arrays["decoder_1/W0"])    # seeds 5 and 6
+    assert arch["skip"] is True and model.spec.architecture.decoder.skip          # each member's linear path
+    assert not np.array_equal(model.arrays["decoder/Wskip"], model.arrays["decoder_1/Wskip"])
     threshold, quantile = model.spec.monitor.spread
     assert threshold > 0 and quantile == 0.97
     # the threshold is that quantile of the spreads of 4 runs of the recipe at the nominal noise, after 5 s

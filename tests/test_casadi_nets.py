@@ -32,9 +32,13 @@ def seed_of(*params) -> int:
 
 
 def randomise_normalisation(mlp: MLP, rng: np.random.Generator) -> None:
+    """Random normalisation (and a random skip path, which starts at zero)."""
     d_in, d_out = mlp.spec.n_in, mlp.spec.n_out
     mlp.set_normalisation(rng.normal(size=d_in), rng.uniform(0.5, 2.0, d_in),
                           rng.normal(size=d_out), rng.uniform(0.5, 2.0, d_out))
+    if mlp.skip is not None:
+        with torch.no_grad():
+            mlp.skip.copy_(torch.as_tensor(rng.normal(size=(d_out, d_in))))
 
 
 def colmajor(jac, out_shape, in_shape) -> np.ndarray:
@@ -82,11 +86,12 @@ def check_sx_mx(f: ca.Function, args) -> None:
 MLP_SIZES = [(2, 5), (3, 7, 2), (5, 16, 16, 2), (1, 4, 6, 3, 1)]
 
 
-@pytest.mark.parametrize("sizes,activation", list(itertools.product(MLP_SIZES, ACTIVATIONS)))
-def test_mlp_matches_torch(sizes, activation):
-    torch.manual_seed(seed_of(sizes, activation))
-    rng = np.random.default_rng(seed_of(sizes, activation))
-    mlp = MLP(sizes, activation)
+@pytest.mark.parametrize("sizes,activation,skip", [(*case, False) for case in itertools.product(MLP_SIZES, ACTIVATIONS)]
+                         + [(sizes, "tanh", True) for sizes in MLP_SIZES])
+def test_mlp_matches_torch(sizes, activation, skip):
+    torch.manual_seed(seed_of(sizes, activation, skip))
+    rng = np.random.default_rng(seed_of(sizes, activation, skip))
+    mlp = MLP(sizes, activation, skip=skip)
     randomise_normalisation(mlp, rng)
     f = casadi_nets.mlp_function(mlp.spec, mlp.to_arrays("net"), "net")
     assert (f.name(), f.name_in(), f.name_out()) == ("net", ["x"], ["y"])
@@ -156,12 +161,12 @@ def test_obs_injection_matches_torch(nu, window, activation):
 
 # ----------------------------------------------------------------------------- dyn
 
-def make_dyn(nu, activation, rank, seed):
+def make_dyn(nu, activation, rank, seed, skip=False):
     """Encoder, decoder and a hypernetwork whose modulation is large enough to be tested."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     nx, nz = 2, 5
-    encoder, decoder = MLP((nx, 9, 9, nz), activation), MLP((nz, 9, 9, nx), activation)
+    encoder, decoder = MLP((nx, 9, 9, nz), activation), MLP((nz, 9, 9, nx), activation, skip=skip)
     randomise_normalisation(encoder, rng)
     randomise_normalisation(decoder, rng)
     hyper = LoRAHyperNet(encoder.spec.layer_shapes + decoder.spec.layer_shapes, nu, hidden=6,
@@ -176,11 +181,13 @@ def make_dyn(nu, activation, rank, seed):
     return encoder, decoder, hyper, arch, arrays
 
 
-@pytest.mark.parametrize("nu,window,activation", list(itertools.product(NUS, WINDOWS, ACTIVATIONS)))
-def test_dyn_decoder_matches_torch(nu, window, activation):
+@pytest.mark.parametrize("nu,window,activation,skip", [(*case, False) for case in itertools.product(NUS, WINDOWS,
+                                                                                                    ACTIVATIONS)]
+                         + [(2, 5, "tanh", True)])
+def test_dyn_decoder_matches_torch(nu, window, activation, skip):
     rank = 1 + seed_of(nu, window, activation) % 4
     encoder, decoder, hyper, arch, arrays = make_dyn(nu, activation, rank,
-                                                     seed_of(nu, window, activation))
+                                                     seed_of(nu, window, activation), skip)
     f = casadi_nets.lora_mlp_function(*arch, arrays, nu, window)
     assert (f.name_in(), f.name_out()) == (["z", "w"], ["xhat"])
     rng = np.random.default_rng(seed_of(nu, window, activation))

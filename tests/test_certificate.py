@@ -88,6 +88,22 @@ def test_decoder_lipschitz_upper_folds_the_normalisation(model_dir_factory):
     assert decoder_lipschitz_upper(obs) == pytest.approx(expected, rel=1e-12)
 
 
+def test_decoder_lipschitz_upper_adds_the_skip_path_and_bounds_the_slopes(model_dir_factory):
+    obs = kc.load_observer(model_dir_factory("autonomous", "duffing", seed=2, skip=True))
+    a = obs.model.arrays
+    layers = (np.linalg.norm(a["decoder/out_std"][:, None] * a["decoder/W2"], 2)
+              * np.linalg.norm(a["decoder/W1"], 2)
+              * np.linalg.norm(a["decoder/W0"] / a["decoder/in_std"][None, :], 2))
+    skip = np.linalg.norm(a["decoder/out_std"][:, None] * a["decoder/Wskip"] / a["decoder/in_std"][None, :], 2)
+    bound = decoder_lipschitz_upper(obs)
+    assert skip > 0 and bound == pytest.approx(layers + skip, rel=1e-12)
+    rng = np.random.default_rng(0)
+    decode = lambda z: np.asarray(obs.decode(z, np.zeros((obs.window, obs.nu)))).ravel()  # noqa: E731
+    for _ in range(50):
+        z1, z2 = rng.normal(size=(2, obs.nz)) * 3
+        assert np.linalg.norm(decode(z1) - decode(z2)) <= bound * np.linalg.norm(z1 - z2) * (1 + 1e-12)
+
+
 def test_dyn_collapses_to_its_base_at_zero_input_and_differs_under_input(model_dir_factory):
     dyn_dir = model_dir_factory("dyn", "duffing", seed=7, base=True)
     dyn = kc.load_observer(dyn_dir)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -48,10 +50,14 @@ def test_rollouts_cycle_kinds_and_carry_noise() -> None:
     assert not np.array_equal(rollouts(plant, cfg, seed=4, **noise).y, batch.y)
 
 
-def test_fold_whitening_gives_the_same_map() -> None:
+@pytest.mark.parametrize("skip", [False, True])
+def test_fold_whitening_gives_the_same_map(skip: bool) -> None:
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
-    mlp = MLP((4, 9, 2)).to(torch.float64)
+    mlp = MLP((4, 9, 2), skip=skip).to(torch.float64)
+    if skip:
+        with torch.no_grad():
+            mlp.skip.copy_(torch.as_tensor(rng.normal(size=(2, 4))))
     arrays = mlp.to_arrays(DECODER)
     mean, white = rng.normal(size=4), rng.normal(size=(4, 4))
     folded = fold_whitening(arrays, mean, white)
@@ -64,18 +70,25 @@ def test_fold_whitening_gives_the_same_map() -> None:
         fold_whitening(arrays, mean, white)
 
 
-@pytest.mark.parametrize("scale", [(0.0, 0.0), (0.0, 0.02)])
-def test_torch_and_casadi_decoders_agree(scale: tuple[float, float]) -> None:
+@pytest.mark.parametrize("scale, skip", [((0.0, 0.0), False), ((0.0, 0.02), False), ((0.0, 0.02), True)])
+def test_torch_and_casadi_decoders_agree(scale: tuple[float, float], skip: bool) -> None:
     bank = _bank()
     rng = np.random.default_rng(1)
     torch.manual_seed(1)
     d = bank.nz + 2
-    mlp = MLP((d, 16, 16, 2)).to(torch.float64)
+    mlp = MLP((d, 16, 16, 2), skip=skip).to(torch.float64)
     mlp.set_normalisation(rng.normal(size=d), rng.uniform(0.5, 2, d), rng.normal(size=2), rng.uniform(0.5, 2, 2))
+    if skip:
+        with torch.no_grad():
+            mlp.skip.copy_(torch.as_tensor(rng.normal(size=(2, d))))
     arrays = {**mlp.to_arrays(DECODER), fb.ASINH_SCALE: np.array(scale), **fb.bank_arrays(bank)}
     arch = mlp.spec.to_card()
     dec_t = torch_decoder(arrays, arch)
     dec_c = fb.decoder_function(arrays, arch)
+    feats = rng.normal(size=(7, d))
+    parts = (feats[:, :bank.nz], feats[:, bank.nz:bank.nz + 1], feats[:, -1:])
+    np.testing.assert_allclose(fb.decode(arrays, arch, *parts),
+                               dec_t(*(torch.as_tensor(a) for a in parts)).detach().numpy(), rtol=1e-12, atol=1e-12)
     for _ in range(5):
         f = rng.normal(size=d)
         ft = torch.tensor(f, requires_grad=True)
@@ -87,6 +100,28 @@ def test_torch_and_casadi_decoders_agree(scale: tuple[float, float]) -> None:
         jac = ca.Function("j", [zs, ys, us], [ca.jacobian(dec_c(zs, ys, us), ca.vertcat(zs, ys, us))])
         np.testing.assert_allclose(xc, xt.detach().numpy(), rtol=1e-10, atol=1e-10)
         np.testing.assert_allclose(np.asarray(jac(z, y, u)), jt, rtol=1e-10, atol=1e-10)
+
+
+def test_a_skip_decoder_starts_as_the_plain_one_and_fits_its_linear_path() -> None:
+    """With ``skip`` the layers start from the same draw as without it and the linear path from zero (a
+    vanishing learning rate leaves both there); a real fit moves the path, and the card records it."""
+    torch.set_num_threads(1)
+    plant = kc.systems.get("linear")
+    bank = _bank()
+    data = OperationalData.from_runs(bank, rollouts(plant, RolloutConfig(n_traj=6, T=4.0), seed=2), RolloutConfig())
+    loop = LoopConfig(epochs=1, batch_size=64, lr=1e-12, val_fraction=0.1)
+    fits = {skip: fit_bank_decoder(bank, data, DecoderConfig(hidden=(8,), skip=skip, dtype="float64", loop=loop),
+                                   seed=3) for skip in (False, True)}
+    assert fits[True].arch == {"sizes": [bank.nz + 2, 8, 2], "activation": "tanh", "skip": True}
+    assert "skip" not in fits[False].arch and f"{DECODER}/Wskip" not in fits[False].arrays
+    np.testing.assert_allclose(fits[True].arrays[f"{DECODER}/W0"], fits[False].arrays[f"{DECODER}/W0"], atol=1e-9)
+    assert np.abs(fits[True].arrays[f"{DECODER}/Wskip"]).max() < 1e-9
+    trained = fit_bank_decoder(bank, data, DecoderConfig(hidden=(8,), skip=True, dtype="float64",
+                                                         loop=replace(loop, epochs=3, lr=1e-2)), seed=3)
+    assert np.abs(trained.arrays[f"{DECODER}/Wskip"]).max() > 1e-3
+    assert np.isfinite(fb.decode(trained.arrays, trained.arch, data.z, data.y, data.u)).all()
+    with pytest.raises(TypeError, match="skip"):
+        DecoderConfig(skip=1)
 
 
 def test_operational_decoder_beats_noise_free_one_on_noisy_runs() -> None:

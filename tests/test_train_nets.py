@@ -26,6 +26,8 @@ def numpy_mlp(arrays, prefix, spec, x):
     for i in range(n_layers):
         v = arrays[f"{prefix}/W{i}"] @ v + arrays[f"{prefix}/b{i}"]
         v = v if i == n_layers - 1 else act(v)
+    if spec.skip:
+        v = v + arrays[f"{prefix}/Wskip"] @ ((x - arrays[f"{prefix}/in_mean"]) / arrays[f"{prefix}/in_std"])
     return v * arrays[f"{prefix}/out_std"] + arrays[f"{prefix}/out_mean"]
 
 
@@ -38,18 +40,45 @@ def make_dyn(nu=2, rank=3):
 
 # ----------------------------------------------------------------------------- MLP
 
-@pytest.mark.parametrize("activation", ACTIVATIONS)
-def test_mlp_forward_is_the_specified_formula(activation):
-    mlp = MLP((3, 6, 6, 2), activation)
+@pytest.mark.parametrize("activation,skip", [(a, False) for a in ACTIVATIONS] + [("tanh", True), ("relu", True)])
+def test_mlp_forward_is_the_specified_formula(activation, skip):
+    mlp = MLP((3, 6, 6, 2), activation, skip=skip)
     rng = np.random.default_rng(0)
     mlp.set_normalisation(rng.normal(size=3), [0.5, 1.0, 2.0], [1.0, -1.0], [3.0, 0.2])
+    if skip:
+        assert torch.equal(mlp.skip, torch.zeros(2, 3))      # starts as the network without it
+        with torch.no_grad():
+            mlp.skip.copy_(torch.as_tensor(rng.normal(size=(2, 3))))
     arrays = mlp.to_arrays("net")
     x = rng.normal(size=(4, 3))
     out = mlp(torch.tensor(x)).detach().numpy()
     for row, x_row in zip(out, x):
         np.testing.assert_allclose(row, numpy_mlp(arrays, "net", mlp.spec, x_row), rtol=1e-13)
     assert mlp(torch.zeros(7, 4, 3)).shape == (7, 4, 2)
-    assert mlp.spec.to_card() == {"sizes": [3, 6, 6, 2], "activation": activation}
+    assert mlp.spec.to_card() == {"sizes": [3, 6, 6, 2], "activation": activation, **({"skip": True} if skip else {})}
+
+
+def test_the_skip_path_keeps_growing_where_the_layers_saturate():
+    mlp = MLP((1, 8, 1), "tanh", skip=True)
+    with torch.no_grad():
+        mlp.skip.fill_(0.5)
+    far = mlp(torch.tensor([[1e3], [2e3]])).detach().numpy().ravel()
+    plain = MLP.from_arrays({k: v for k, v in mlp.to_arrays("net").items() if k != "net/Wskip"}, "net",
+                            MLPSpec((1, 8, 1), "tanh"))
+    flat = plain(torch.tensor([[1e3], [2e3]])).detach().numpy().ravel()
+    assert far[1] - far[0] == pytest.approx(500.0, rel=1e-9)     # slope 0.5 off the data
+    assert flat[1] - flat[0] == pytest.approx(0.0, abs=1e-9)     # tanh levelled off
+
+
+@pytest.mark.parametrize("entry, field", [({"sizes": [2, 3], "activation": "tanh", "skip": 1}, "skip"),
+                                          ({"sizes": [2, 3], "activation": "tanh", "skip": "yes"}, "skip"),
+                                          ({"sizes": [2, 3], "activation": "tanh", "bias": True}, "mlp")])
+def test_an_mlp_card_with_a_bad_skip_entry_is_refused(entry, field):
+    with pytest.raises(ValueError, match=f"'mlp{'.skip' if field == 'skip' else ''}'"):
+        MLPSpec.from_card(entry)
+    assert MLPSpec.from_card({"sizes": [2, 3], "activation": "tanh"}).skip is False
+    with_skip = MLPSpec.from_card({"sizes": [2, 3], "activation": "tanh", "skip": True})
+    assert with_skip.array_shapes("p")["p/Wskip"] == (3, 2)
 
 
 def test_softplus_is_stable_for_large_inputs():
@@ -225,8 +254,12 @@ def test_mlp_forward_lora_rejects_factors_that_do_not_fit():
 
 # ----------------------------------------------------------------------------- arrays
 
-def test_mlp_roundtrip_is_bitwise():
-    mlp = MLP((3, 7, 2), "relu")
+@pytest.mark.parametrize("skip", [False, True])
+def test_mlp_roundtrip_is_bitwise(skip):
+    mlp = MLP((3, 7, 2), "relu", skip=skip)
+    if skip:
+        with torch.no_grad():
+            mlp.skip.normal_()
     mlp.set_normalisation([1.0, 2.0, 3.0], [0.5, 0.25, 4.0], [0.0, 1.0], [2.0, 3.0])
     arrays = mlp.to_arrays("net")
     spec = MLPSpec.from_card(mlp.spec.to_card())

@@ -81,6 +81,8 @@ def train(args: argparse.Namespace, plant: kc.System, out: Path) -> tuple[Path, 
                                       dense_period=args.dense_period))
     if args.hidden:
         config = replace(config, decoder=replace(config.decoder, hidden=tuple(int(h) for h in args.hidden.split(","))))
+    if args.skip is not None:
+        config = replace(config, decoder=replace(config.decoder, skip=args.skip == "on"))
     t0 = time.perf_counter()
     path = train_observer(plant, "bank", out, config=config, dt=DT, seed=args.seed, overwrite=True, progress=False)
     return path, time.perf_counter() - t0
@@ -106,6 +108,7 @@ def main() -> None:
     p.add_argument("--dense-period", type=float, default=0.05, help="in units of 1 / time scale")
     p.add_argument("--hidden", default="")
     p.add_argument("--no-angles", action="store_true")
+    p.add_argument("--skip", choices=("on", "off"), help="the decoder's linear skip path (default: the recipe's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=Path("/tmp/qube"))
     args = p.parse_args()

@@ -250,8 +250,9 @@ def _spectral(matrices: np.ndarray) -> np.ndarray:
 def decoder_lipschitz_upper(observer: KKLObserver) -> float:
     """Product of the spectral norms of the decoder's layers, normalisation folded in.
 
-    ``|diag(out_std) W_L| * ... * |W_0 diag(1 / in_std)|`` with 1-Lipschitz activations: an upper
-    bound of the decoder's Lipschitz constant on all of R^nz (for dyn, of the unmodulated decoder).
+    ``|diag(out_std) W_L| * ... * |W_0 diag(1 / in_std)|`` with 1-Lipschitz activations, plus
+    ``|diag(out_std) Wskip diag(1 / in_std)|`` for a skip path: an upper bound of the decoder's Lipschitz
+    constant on all of R^nz (for dyn, of the unmodulated decoder).
     """
     arrays = observer.model.arrays
     arch = observer.model.spec.architecture.decoder
@@ -264,6 +265,9 @@ def decoder_lipschitz_upper(observer: KKLObserver) -> float:
         if i == n_layers - 1:
             W = np.asarray(arrays[f"{DECODER}/out_std"], dtype=float)[:, None] * W
         lip *= np.linalg.norm(W, 2)
+    if arch.skip:
+        W = np.asarray(arrays[f"{DECODER}/Wskip"], dtype=float) / np.asarray(arrays[f"{DECODER}/in_std"], dtype=float)
+        lip += np.linalg.norm(np.asarray(arrays[f"{DECODER}/out_std"], dtype=float)[:, None] * W, 2)
     return float(lip)
 
 

@@ -106,7 +106,7 @@ def mlp_function(spec: MLPSpec, arrays: Arrays, prefix: str,
         Its layer sizes and activation.
     arrays : Mapping[str, array_like]
         Holds ``spec.array_shapes(prefix)``: ``P/in_mean, P/in_std, P/out_mean, P/out_std,
-        P/W{i}, P/b{i}`` for ``P = prefix``.
+        P/W{i}, P/b{i}`` (and ``P/Wskip`` with the skip path) for ``P = prefix``.
     prefix : str
         E.g. ``"decoder"``.
     name : str, optional
@@ -119,8 +119,17 @@ def mlp_function(spec: MLPSpec, arrays: Arrays, prefix: str,
     """
     name = check_name(prefix.replace("/", "_") if name is None else name)
     x = ca.MX.sym("x", spec.n_in)
-    y = _mlp_expr(_folded_layers(arrays, prefix, spec), spec.activation, x)
+    y = _with_skip(_mlp_expr(_folded_layers(arrays, prefix, spec), spec.activation, x), arrays, prefix, spec, x)
     return ca.Function(name, [x], [y], ["x"], ["y"])
+
+
+def _with_skip(y: ca.MX, arrays: Arrays, prefix: str, spec: MLPSpec, x: ca.MX) -> ca.MX:
+    """``y`` plus the skip path ``out_std * Wskip (x - in_mean) / in_std`` of a network that has one."""
+    if not spec.skip:
+        return y
+    in_mean, in_std = _array(arrays, f"{prefix}/in_mean"), _array(arrays, f"{prefix}/in_std")
+    weight = _array(arrays, f"{prefix}/out_std")[:, None] * _array(arrays, f"{prefix}/Wskip") / in_std[None, :]
+    return y + ca.mtimes(ca.DM(weight), x) + ca.DM(-weight @ in_mean)
 
 
 def gru_cell_function(arrays: Arrays, prefix: str, nu: int, hidden: int, name: str) -> ca.Function:
@@ -352,5 +361,6 @@ def lora_mlp_of_hidden(encoder: MLPSpec, decoder: MLPSpec, hyper: HyperSpec, arr
         term = scale * ca.mtimes(a_t.T, ca.mtimes(b_t, v))
         return term * out_std if i == n_layers - 1 else term
 
-    y = _mlp_expr(_folded_layers(arrays, target, spec), spec.activation, x, delta)
+    y = _with_skip(_mlp_expr(_folded_layers(arrays, target, spec), spec.activation, x, delta), arrays, target,
+                   spec, x)
     return ca.Function(name, [x, h], [y], [in_name, "h"], [out_name])

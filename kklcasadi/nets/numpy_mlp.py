@@ -22,7 +22,8 @@ def mlp_numpy(spec: MLPSpec, arrays: Mapping[str, Any], prefix: str, v: np.ndarr
     ----------
     spec : MLPSpec
     arrays : Mapping[str, array_like]
-        ``prefix/in_mean``, ``in_std``, ``W0``, ``b0``, ..., ``out_std``, ``out_mean``.
+        ``prefix/in_mean``, ``in_std``, ``W0``, ``b0``, ..., ``out_std``, ``out_mean`` (and ``Wskip``
+        with the skip path).
     prefix : str
     v : numpy.ndarray, shape (..., n_in)
 
@@ -31,10 +32,13 @@ def mlp_numpy(spec: MLPSpec, arrays: Mapping[str, Any], prefix: str, v: np.ndarr
     numpy.ndarray, shape (..., n_out)
     """
     f = _ACTIVATIONS[spec.activation]
-    h = (v - np.asarray(arrays[f"{prefix}/in_mean"])) / np.asarray(arrays[f"{prefix}/in_std"])
+    v = (v - np.asarray(arrays[f"{prefix}/in_mean"])) / np.asarray(arrays[f"{prefix}/in_std"])
+    h = v
     n = len(spec.layer_shapes)
     for i in range(n):
         h = h @ np.asarray(arrays[f"{prefix}/W{i}"]).T + np.asarray(arrays[f"{prefix}/b{i}"])
         if i < n - 1:
             h = f(h)
+    if spec.skip:
+        h = h + v @ np.asarray(arrays[f"{prefix}/Wskip"]).T
     return h * np.asarray(arrays[f"{prefix}/out_std"]) + np.asarray(arrays[f"{prefix}/out_mean"])

@@ -77,16 +77,20 @@ def check_activation(name: Any) -> str:
 
 @dataclass(frozen=True)
 class MLPSpec:
-    """Architecture of one MLP: layer sizes ``[d0, ..., dL]`` and the hidden activation.
+    """Architecture of one MLP: layer sizes ``[d0, ..., dL]``, the hidden activation and an optional
+    linear skip path.
 
-    The card entry is ``{"sizes": [d0, ..., dL], "activation": "tanh"}``. The arrays under a
-    prefix ``P`` are ``P/in_mean`` (d0,), ``P/in_std`` (d0,), ``P/out_mean`` (dL,),
-    ``P/out_std`` (dL,), and for ``i = 0..L-1``: ``P/W{i}`` (d_{i+1}, d_i), ``P/b{i}``
-    (d_{i+1},).
+    The card entry is ``{"sizes": [d0, ..., dL], "activation": "tanh"}``, with ``"skip": true`` for a
+    network with the skip path. The arrays under a prefix ``P`` are ``P/in_mean`` (d0,), ``P/in_std``
+    (d0,), ``P/out_mean`` (dL,), ``P/out_std`` (dL,), for ``i = 0..L-1``: ``P/W{i}`` (d_{i+1}, d_i),
+    ``P/b{i}`` (d_{i+1},), and with the skip path ``P/Wskip`` (dL, d0). The network is
+    ``(layers(v) + Wskip v) * out_std + out_mean`` with ``v = (x - in_mean) / in_std``: off the data it
+    was fit on, the skip path keeps growing where the saturating layers level off.
     """
 
     sizes: tuple[int, ...]
     activation: str = "tanh"
+    skip: bool = False
 
     def __post_init__(self) -> None:
         sizes = tuple(self.sizes)
@@ -97,11 +101,14 @@ class MLPSpec:
             )
         object.__setattr__(self, "sizes", tuple(int(d) for d in sizes))
         check_activation(self.activation)
+        if not isinstance(self.skip, bool):
+            raise field_error("MLP architecture", "skip", "true or false", self.skip,
+                              "Say whether the network has the linear skip path.")
 
     @classmethod
     def from_card(cls, entry: Any, where: str = "architecture",
                   field_name: str = "mlp") -> MLPSpec:
-        """Parse a card entry ``{"sizes": [...], "activation": ...}``.
+        """Parse a card entry ``{"sizes": [...], "activation": ...}`` (and ``"skip": true`` for the skip path).
 
         Parameters
         ----------
@@ -113,9 +120,9 @@ class MLPSpec:
         fix = 'Write the entry as {"sizes": [d_in, ..., d_out], "activation": "tanh"}.'
         if not isinstance(entry, Mapping):
             raise field_error(where, field_name, "an object with 'sizes' and 'activation'", entry, fix)
-        if set(entry) != {"sizes", "activation"}:
-            raise field_error(where, field_name, "exactly the keys ['activation', 'sizes']",
-                         sorted(entry), fix)
+        if set(entry) not in ({"sizes", "activation"}, {"sizes", "activation", "skip"}):
+            raise field_error(where, field_name, "the keys ['activation', 'sizes'] and optionally 'skip'",
+                              sorted(entry), fix)
         sizes = entry["sizes"]
         if (not isinstance(sizes, (list, tuple)) or len(sizes) < 2
                 or not all(is_int(d) and d >= 1 for d in sizes)):
@@ -124,11 +131,14 @@ class MLPSpec:
         if entry["activation"] not in ACTIVATIONS:
             raise field_error(where, f"{field_name}.activation", f"one of {list(ACTIVATIONS)}",
                          entry["activation"], fix)
-        return cls(tuple(sizes), entry["activation"])
+        skip = entry.get("skip", False)
+        if not isinstance(skip, bool):
+            raise field_error(where, f"{field_name}.skip", "true or false", skip, fix)
+        return cls(tuple(sizes), entry["activation"], skip)
 
     def to_card(self) -> dict:
-        """The card entry of this architecture."""
-        return {"sizes": list(self.sizes), "activation": self.activation}
+        """The card entry of this architecture (``skip`` only where the network has the skip path)."""
+        return {"sizes": list(self.sizes), "activation": self.activation, **({"skip": True} if self.skip else {})}
 
     @property
     def n_in(self) -> int:
@@ -156,6 +166,8 @@ class MLPSpec:
         for i, (d_out, d_in) in enumerate(self.layer_shapes):
             shapes[f"{prefix}/W{i}"] = (d_out, d_in)
             shapes[f"{prefix}/b{i}"] = (d_out,)
+        if self.skip:
+            shapes[f"{prefix}/Wskip"] = (self.n_out, self.n_in)
         return shapes
 
 

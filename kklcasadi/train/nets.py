@@ -75,14 +75,18 @@ class MLP(nn.Module):
         Layer widths ``[d0, ..., dL]`` (at least two).
     activation : str
         Hidden activation, one of ``tanh``, ``relu``, ``softplus``, ``identity``.
+    skip : bool
+        Add a linear skip path ``Wskip v`` (no bias, zero at the start) to the last layer's output
+        (:class:`kklcasadi.nets.specs.MLPSpec`).
     """
 
-    def __init__(self, sizes: Sequence[int], activation: str = "tanh") -> None:
+    def __init__(self, sizes: Sequence[int], activation: str = "tanh", *, skip: bool = False) -> None:
         super().__init__()
-        self.spec = MLPSpec(tuple(sizes), activation)
+        self.spec = MLPSpec(tuple(sizes), activation, skip)
         self.act = _TORCH_ACTIVATIONS[check_activation(activation)]
         self.layers = nn.ModuleList(nn.Linear(d_in, d_out)
                                     for d_out, d_in in self.spec.layer_shapes)
+        self.skip = nn.Parameter(torch.zeros(self.spec.n_out, self.spec.n_in)) if skip else None
         self.register_buffer("in_mean", torch.zeros(self.spec.n_in))
         self.register_buffer("in_std", torch.ones(self.spec.n_in))
         self.register_buffer("out_mean", torch.zeros(self.spec.n_out))
@@ -120,12 +124,14 @@ class MLP(nn.Module):
         return _mlp_apply(self, x, None, None)
 
     def to_arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        """Float64 arrays ``P/in_mean, P/in_std, P/out_mean, P/out_std, P/W{i}, P/b{i}``."""
+        """Float64 arrays ``P/in_mean, P/in_std, P/out_mean, P/out_std, P/W{i}, P/b{i}`` (and ``P/Wskip``)."""
         arrays = {f"{prefix}/{name}": _to_numpy(getattr(self, name))
                   for name in ("in_mean", "in_std", "out_mean", "out_std")}
         for i, layer in enumerate(self.layers):
             arrays[f"{prefix}/W{i}"] = _to_numpy(layer.weight)
             arrays[f"{prefix}/b{i}"] = _to_numpy(layer.bias)
+        if self.skip is not None:
+            arrays[f"{prefix}/Wskip"] = _to_numpy(self.skip)
         return arrays
 
     @classmethod
@@ -144,7 +150,7 @@ class MLP(nn.Module):
         dtype : torch.dtype
             Parameter dtype of the new module.
         """
-        mlp = cls(spec.sizes, spec.activation).to(dtype)
+        mlp = cls(spec.sizes, spec.activation, skip=spec.skip).to(dtype)
         mlp._load_arrays(arrays, prefix)
         return mlp
 
@@ -155,11 +161,13 @@ class MLP(nn.Module):
         for i, layer in enumerate(self.layers):
             _load_into(layer.weight, arrays[f"{prefix}/W{i}"])
             _load_into(layer.bias, arrays[f"{prefix}/b{i}"])
+        if self.skip is not None:
+            _load_into(self.skip, arrays[f"{prefix}/Wskip"])
 
 
 def _mlp_apply(mlp: MLP, x: Tensor, factors: Sequence[tuple[Tensor, Tensor]] | None,
                scale: Tensor | float | None) -> Tensor:
-    v = (x - mlp.in_mean) / mlp.in_std
+    v = x0 = (x - mlp.in_mean) / mlp.in_std
     last = len(mlp.layers) - 1
     for i, layer in enumerate(mlp.layers):
         y = nn.functional.linear(v, layer.weight, layer.bias)
@@ -168,6 +176,8 @@ def _mlp_apply(mlp: MLP, x: Tensor, factors: Sequence[tuple[Tensor, Tensor]] | N
             bv = torch.einsum("...ir,...i->...r", b, v)
             y = y + scale * torch.einsum("...or,...r->...o", a, bv)
         v = y if i == last else mlp.act(y)
+    if mlp.skip is not None:
+        v = v + nn.functional.linear(x0, mlp.skip)
     return v * mlp.out_std + mlp.out_mean
 
 

@@ -38,6 +38,7 @@ from ..plant import signals as sig
 from ..plant.design import time_scales
 from ..plant.simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
 from ..plant.systems import System
+from ..validation import error
 from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
@@ -178,6 +179,10 @@ class DecoderConfig:
         Per-state output transform scale (0: none); ``None`` for none at all.
     whiten : bool
         Train on whitened features (the whitening is folded into the first layer afterwards).
+    skip : bool
+        Give the network a linear skip path (:class:`kklcasadi.nets.specs.MLPSpec`; zero at the start):
+        off the fitted states the estimate keeps the slope of that path where the tanh layers level
+        off (docs/design.md, "Runs").
     loop : LoopConfig
     dtype : {"float32", "float64"}
         Training precision; the returned arrays are float64 either way.
@@ -190,6 +195,7 @@ class DecoderConfig:
     smape_weight: float = 0.01
     asinh_scale: tuple[float, ...] | None = None
     whiten: bool = True
+    skip: bool = False
     loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=1024, lr=1e-3,
                                                                   schedule="cosine", val_fraction=0.05))
     dtype: str = "float32"
@@ -200,6 +206,8 @@ class DecoderConfig:
         if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
             raise ValueError(f"hidden: expected a non-empty tuple of positive widths, received {self.hidden!r}.")
         torch_dtype(self.dtype)
+        if not isinstance(self.skip, bool):
+            raise error("skip", "True or False (a linear skip path in the decoder)", self.skip, kind=TypeError)
 
 
 @dataclass(frozen=True, eq=False)
@@ -595,8 +603,9 @@ def _whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarr
 def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np.ndarray) -> dict[str, np.ndarray]:
     """Fold an input whitening into an MLP trained on ``(f - mean) W^T`` (with unit input normalisation).
 
-    ``W0 ((f - mean) W^T)^T = (W0 W) (f - mean)``, so the returned arrays have ``W0 <- W0 W``,
-    ``in_mean <- mean``, ``in_std <- 1`` and evaluate the same map on the raw features ``f``.
+    ``W0 ((f - mean) W^T)^T = (W0 W) (f - mean)``, so the returned arrays have ``W0 <- W0 W``
+    (and ``Wskip <- Wskip W`` with the skip path), ``in_mean <- mean``, ``in_std <- 1`` and evaluate the
+    same map on the raw features ``f``.
 
     Parameters
     ----------
@@ -609,7 +618,9 @@ def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np
     if not (np.allclose(arrays[f"{DECODER}/in_mean"], 0.0) and np.allclose(arrays[f"{DECODER}/in_std"], 1.0)):
         raise ValueError("fold_whitening expects an MLP with in_mean = 0 and in_std = 1")
     out = dict(arrays)
-    out[f"{DECODER}/W0"] = np.asarray(arrays[f"{DECODER}/W0"]) @ white
+    for name in (f"{DECODER}/W0", f"{DECODER}/Wskip"):
+        if name in arrays:
+            out[name] = np.asarray(arrays[name]) @ white
     out[f"{DECODER}/in_mean"] = np.asarray(mean, dtype=float).copy()
     out[f"{DECODER}/in_std"] = np.ones(d)
     return out
@@ -712,7 +723,7 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     sizes = (feats.shape[1], *config.hidden, v.shape[1])
     dtype = torch_dtype(config.dtype)
     torch.manual_seed(seed)
-    mlp = MLP(sizes, config.activation).to(torch.float64)
+    mlp = MLP(sizes, config.activation, skip=config.skip).to(torch.float64)
     if config.whiten:
         f_mean, white = _whitening(feats)
     else:

@@ -202,10 +202,11 @@ def _decoder_layers(arrays: Any) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 def _hand_written(observer: KKLObserver, build: Path, math: str) -> Optional[tuple[Path, Path]]:
-    """Write the hand-written dense C step of a linear observer with a tanh decoder (None for
-    other observers)."""
-    if (not observer.variant.input_free or observer.foh_matrices is None
-            or observer.model.spec.architecture.decoder.activation != "tanh"):
+    """Write the hand-written dense C step of a linear observer with a tanh decoder without a skip path
+    (None for other observers)."""
+    decoder = observer.model.spec.architecture.decoder
+    if (not observer.variant.input_free or observer.foh_matrices is None or decoder.activation != "tanh"
+            or decoder.skip):
         return None
     layers = _decoder_layers(observer.model.arrays)
     m = observer.foh_matrices

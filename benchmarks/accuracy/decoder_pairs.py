@@ -1,0 +1,131 @@
+"""Paired decoder comparison: fit one ``bank`` decoder per variant and seed on the same runs, score each
+on the same validation trials.
+
+    PYTHONPATH=. python benchmarks/accuracy/decoder_pairs.py duffing --variants plain skip --seeds 11 12 13 14 \\
+        --n-traj 1000 --epochs 10 --out results/accuracy/generalisation/duffing_3030_cheap_skip
+
+The runs are the system's recipe (:meth:`kklcasadi.train.bank.BankConfig.for_system`) with ``--n-traj`` runs,
+simulated once (training seed ``--run-seed``); each variant's decoder is fitted on them from every seed of
+``--seeds`` (:func:`kklcasadi.train.operational.fit_bank_decoder`, one decoder, the recipe's configuration
+with the variant's change), so that a variant and the plain decoder of one seed start from the same draw of
+the layers. The trials are those of ``kklcasadi generalise`` (seed ``--trial-seed``, ``--trials`` per case,
+from the trial cache), decoded through the bank's latent in numpy
+(:func:`kklcasadi.model.variants.filterbank.estimate`); the EKF is scored on the same trials. Writes
+``OUT.json`` (every SMAPE) and ``OUT.md`` (mean SMAPE per case and variant over the seeds, its ratio to the
+EKF, and per seed the geometric mean over the cases of each variant / plain).
+
+Variants: ``plain`` (the recipe), ``skip`` (a linear skip path,
+:attr:`kklcasadi.train.operational.DecoderConfig.skip`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import kklcasadi as kc
+from kklcasadi import metrics
+from kklcasadi.estimators import EKF
+from kklcasadi.evaluation.compiled import ekf_estimator
+from kklcasadi.evaluation.generalisation import Case, Settings
+from kklcasadi.evaluation.trialcache import TrialCache, cache_root
+from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, process_stds
+from kklcasadi.train.operational import DecoderConfig, fit_bank_decoder, operational_data
+
+VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True)}
+FAMILIES = (("square", "id"), ("sinusoid", "id"), ("square", "ood"), ("chirp", "held_out"),
+            ("feedback", "held_out"), ("random", "held_out"))
+
+
+def geometric_mean(values: list[float]) -> float:
+    return float(np.exp(np.mean(np.log(values))))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("system")
+    p.add_argument("--variants", nargs="+", default=["plain", "skip"], choices=sorted(VARIANTS))
+    p.add_argument("--seeds", nargs="+", type=int, default=[11, 12, 13])
+    p.add_argument("--n-traj", type=int, default=1000)
+    p.add_argument("--epochs", type=int, default=10)
+    p.add_argument("--run-seed", type=int, default=11)
+    p.add_argument("--trial-seed", type=int, default=3030)
+    p.add_argument("--trials", type=int, default=40)
+    p.add_argument("--noise-levels", nargs="+", type=float, default=[0.05, 0.1])
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", type=Path, required=True, help="OUT.json and OUT.md are written")
+    args = p.parse_args()
+    if args.variants[0] != "plain":
+        p.error("--variants: the first must be plain (the ratios are to it)")
+    torch.set_num_threads(args.threads)
+    system = kc.systems.get(args.system)
+    config = BankConfig.for_system(args.system)
+    config = replace(config, rollouts=replace(config.rollouts, n_traj=args.n_traj),
+                     decoder=replace(config.decoder, loop=replace(config.decoder.loop, epochs=args.epochs)))
+    rate = bank_time_scale(system, config)
+    bank = design_bank(system, config, rate)
+    angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
+    data = operational_data(system, bank, config.rollouts, args.run_seed, dt=0.05,
+                            measurement_std=config.measurement_std, process_std=process_stds(system, config),
+                            time_scale=rate)
+    settings = Settings(n_trials=args.trials, seed=args.trial_seed)
+    cache = TrialCache(cache_root() / "trials")
+    cases = [Case(f, r, n) for n in args.noise_levels for f, r in FAMILIES]
+    trials = {}
+    for case in cases:
+        batch = cache.trials(system, case.cell(settings))
+        x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
+        ekf = EKF(system, settings.dt, Q=np.eye(system.nx) * (case.noise * settings.dt) ** 2,
+                  R=np.eye(system.ny) * case.noise ** 2)
+        trials[case.label] = (x, y, u, float(np.mean(metrics.smape(x, ekf_estimator(ekf)(batch.t, y, u)))))
+    smape: dict[str, dict[str, dict[str, float]]] = {}
+    seconds = {}
+    for variant in args.variants:
+        for seed in args.seeds:
+            t0 = time.perf_counter()
+            decoder: DecoderConfig = VARIANTS[variant](config.decoder)
+            fit = fit_bank_decoder(bank, data, decoder, angles=angles, seed=seed)
+            seconds[f"{variant}@{seed}"] = round(time.perf_counter() - t0, 1)
+            arrays = fit.arrays
+            smape.setdefault(variant, {})[str(seed)] = {
+                label: float(np.nanmean(metrics.smape(x, fb.estimate(arrays, fit.arch, y, u, settings.dt,
+                                                                     angles=angles))))
+                for label, (x, y, u, _) in trials.items()}
+            print(variant, seed, seconds[f"{variant}@{seed}"], "s", flush=True)
+    ekf = {label: t[3] for label, t in trials.items()}
+    record = {"system": args.system, "samples": len(data), "ekf": ekf, "smape": smape, "fit_seconds": seconds,
+              "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
+    labels = list(trials)
+    seeds = [str(s) for s in args.seeds]
+    lines = [f"**{args.system}, paired decoders** ({args.n_traj} runs, {args.epochs} epochs, one decoder per variant "
+             f"and seed {', '.join(seeds)}; validation trials seed {args.trial_seed}, {args.trials} per case): mean "
+             f"SMAPE over the seeds and its ratio to the EKF on the same trials. By `PYTHONPATH=. python "
+             f"benchmarks/accuracy/decoder_pairs.py {args.system} --variants {' '.join(args.variants)} --seeds "
+             f"{' '.join(seeds)} --n-traj {args.n_traj} --epochs {args.epochs} --trial-seed {args.trial_seed} --trials "
+             f"{args.trials} --noise-levels {' '.join(f'{n:g}' for n in args.noise_levels)} --out {args.out}`.", "",
+             "| case | EKF | " + " | ".join(args.variants) + " |", "|---|---|" + "---|" * len(args.variants)]
+    for label in labels:
+        means = [np.mean([smape[v][s][label] for s in seeds]) for v in args.variants]
+        lines.append(f"| {label} | {ekf[label]:.3f} | "
+                     + " | ".join(f"{m:.3f} ({m / ekf[label]:.3f}x)" for m in means) + " |")
+    lines += ["", "Geometric mean over the cases of variant / plain, per seed:", "",
+              "| variant | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|" + "---|" * len(seeds)]
+    for variant in args.variants[1:]:
+        lines.append(f"| {variant} | " + " | ".join(
+            f"{geometric_mean([smape[variant][s][lab] / smape['plain'][s][lab] for lab in labels]):.4f}"
+            for s in seeds) + " |")
+    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
