@@ -17,7 +17,8 @@ Pol, whose ensembles are now fit on 8000 runs, that is the 4000-run ensemble of
 ``<system>_generalisation_4000_runs.json`` (the monitor rows of both). Van der Pol's shipped ensemble has
 three decoders and its runs add the ``pd`` family; ``vdp_generalisation_two_decoders.json`` is the first
 two decoders of the three-decoder ensemble without it, ``vdp_generalisation_no_pd.json`` that ensemble
-(shipped before the pd one; monitor rows).
+(shipped before the pd one; monitor rows). Duffing's shipped decoders have a linear skip path;
+``duffing_generalisation_no_skip.json`` is the ensemble shipped before, without it (monitor rows).
 
 Per system, one table: for each case (family and regime) what the shipped bank's card says it was fit
 on, the EKF's mean SMAPE at noise 0.1, and the ratio bank / EKF of the mean SMAPE at noise 0.05, 0.1
@@ -70,8 +71,10 @@ def card(system: str) -> dict:
 
 
 def recipe(system: str) -> str:
-    """The shipped bank's recipe in words: "broad-fit", "+ pd" where its runs hold the ``pd`` family."""
-    return "broad-fit + pd" if "pd" in card(system)["training"]["rollouts"]["kinds"] else "broad-fit"
+    """The shipped bank's recipe in words: "broad-fit", "+ pd" where its runs hold the ``pd`` family, "with skip
+    paths" where its decoders have the linear skip path."""
+    text = "broad-fit + pd" if "pd" in card(system)["training"]["rollouts"]["kinds"] else "broad-fit"
+    return text + (" with skip paths" if card(system)["architecture"]["decoder"].get("skip") else "")
 
 
 def decoders(system: str) -> str:
@@ -120,7 +123,8 @@ def monitor() -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for system in SYSTEMS:
         data = reports(system)
-        for key, suffix in (("no pd", "_no_pd"), ("two decoders", "_two_decoders"), ("4000 runs", "_4000_runs")):
+        for key, suffix in (("no pd", "_no_pd"), ("no skip", "_no_skip"), ("two decoders", "_two_decoders"),
+                            ("4000 runs", "_4000_runs")):
             path = ROOT / f"{system}_generalisation{suffix}.json"
             if path.exists():
                 data[key] = json.loads(path.read_text())
@@ -128,6 +132,7 @@ def monitor() -> str:
         before_runs = 4000 if "4000 runs" in data else runs(system)
         labels = {"shipped": f"{recipe(system)}, {decoders(system)}, {runs(system)} runs (shipped)",
                   "no pd": f"broad-fit, {decoders(system)}, {runs(system)} runs",
+                  "no skip": f"broad-fit, {decoders(system)}, {runs(system)} runs, no skip path",
                   "two decoders": f"{ensemble}, {runs(system)} runs", "4000 runs": f"{ensemble}, 4000 runs",
                   "before": f"{ensemble}, {before_runs} runs, spread threshold from the fitting runs",
                   "one decoder": "broad-fit, one decoder",
@@ -135,7 +140,8 @@ def monitor() -> str:
         before = ROOT / f"{system}_generalisation_monitor_before.json"
         if before.exists():
             data["before"] = json.loads(before.read_text())
-        for k in [k for k in ("shipped", "no pd", "two decoders", "4000 runs", "before", *KINDS[1:]) if k in data]:
+        for k in [k for k in ("shipped", "no pd", "no skip", "two decoders", "4000 runs", "before", *KINDS[1:])
+                  if k in data]:
             for g in data[k]["models"][MODEL]["monitor"]:
                 cells = [system, labels[k], g["group"], str(g["trials"]), str(g["bad"]), str(g["flagged"])]
                 cells += ["-" if g[c] is None else f"{g[c]:.2f}" for c in ("precision", "recall")]

@@ -333,6 +333,7 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
     assert (runs["n_traj"], runs["kinds"], runs["regime"], tuple(runs["noise_range"])) == (
         config.rollouts.n_traj, list(config.rollouts.kinds), config.rollouts.regime, config.rollouts.noise_range)
     assert tuple(model.card["architecture"]["bank"]["u_poles"]) == config.u_poles
+    assert model.spec.architecture.decoder.skip == config.decoder.skip == (system == "duffing")  # skip paths
     # the spread quantile chosen on validation trials (benchmarks/monitor_quantiles.py), on runs at the nominal
     # noise; where no quantile met the budget the card keeps the fitting runs' validation samples at 0.99
     choice = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{system}_3030_monitor.json").read_text())

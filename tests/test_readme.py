@@ -410,16 +410,18 @@ def test_the_generalisation_text_follows_from_the_reports():
 
     inside = [group(shipped[s], "in distribution")["share_other"] for s in SYSTEMS]
     assert max(inside) <= 0.05 and f"({100 * min(inside):.1f}-{100 * max(inside):.1f} %, target met)" in text
+    no_skip = report("duffing", "_no_skip")           # Duffing's ensemble before its skip paths
     bad_ood = {k: group(d, "ood") for k, d in (("shipped", shipped["duffing"]), ("one", one["duffing"]),
                                                 ("before", report("duffing", "_monitor_before")),
-                                                ("grown", grown["duffing"]))}
+                                                ("grown", grown["duffing"]), ("no skip", no_skip))}
     assert bad_ood["shipped"]["share_bad"] >= 0.5 > bad_ood["before"]["share_bad"]
-    sh, o, b, g4 = (bad_ood[k] for k in ("shipped", "one", "before", "grown"))
+    sh, o, b, g4, ns = (bad_ood[k] for k in ("shipped", "one", "before", "grown", "no skip"))
     assert (f"met on Duffing's {sh['bad']} bad ood and held-out trials at noise 0.1, {sh['share_bad']:.3f} of their "
-            f"samples (one decoder: {o['share_bad']:.3f} of {o['bad']}; the 4000-run ensemble with the spread "
+            f"samples (without the skip paths: {ns['share_bad']:.3f} of {ns['bad']}; one decoder: {o['share_bad']:.3f} "
+            f"of {o['bad']}; the 4000-run ensemble with the spread "
             f"threshold from its fitting runs: {b['share_bad']:.3f} of {b['bad']}, and from runs at the nominal noise: "
             f"{g4['share_bad']:.3f}; recall {o['recall']:.2f}, {b['recall']:.2f}, {g4['recall']:.2f}, "
-            f"{sh['recall']:.2f})" in text)
+            f"{ns['recall']:.2f}, {sh['recall']:.2f})" in text)
     assert group(shipped["vdp"], "in distribution")["bad"] == group(shipped["vdp"], "ood")["bad"] == 0
     assert "Van der Pol's shipped bank has no bad trial at noise 0.1" in text
     noisy = {s: group(shipped[s], "other") for s in ("duffing", "vdp")}
@@ -429,7 +431,9 @@ def test_the_generalisation_text_follows_from_the_reports():
     assert (f"{noisy['duffing']['share_bad']:.3f} and {noisy['vdp']['share_bad']:.3f} of the samples of the "
             f"{noisy['duffing']['bad']} and {noisy['vdp']['bad']} bad trials there (4000 runs: "
             f"{noisy_before['duffing']['share_bad']:.3f} and {noisy_before['vdp']['share_bad']:.3f} of "
-            f"{noisy_before['duffing']['bad']} and {noisy_before['vdp']['bad']}; Van der Pol's two and three decoders "
+            f"{noisy_before['duffing']['bad']} and {noisy_before['vdp']['bad']}; Duffing's without the skip paths: "
+            f"{group(no_skip, 'other')['share_bad']:.3f} of {group(no_skip, 'other')['bad']}; Van der Pol's two and "
+            "three decoders "
             f"on 8000 runs without the pd family: {two_noisy['share_bad']:.3f} of {two_noisy['bad']} and "
             f"{three_noisy['share_bad']:.3f} of {three_noisy['bad']})" in text)
     # the recalibration moved no estimate: the reports before it hold the scores of the ensembles it recalibrated
@@ -494,10 +498,29 @@ def test_the_generalisation_text_follows_from_the_reports():
     (dg, dl), (vg, vl) = chosen
     assert (f"geometric mean {dg[0]:.3f} to {dg[1]:.3f} and {vg[0]:.3f} to {vg[1]:.3f}, lower in {dl} and {vl} of the "
             f"30 cases; on the scored trials {gmean(at_4000['duffing']):.3f} to "
-            f"{gmean(shipped['duffing']):.3f} and {gmean(at_4000['vdp']):.3f} to "
+            f"{gmean(no_skip):.3f} and {gmean(at_4000['vdp']):.3f} to "
             f"{gmean(two):.3f}, lower in "
-            f"{lower(shipped['duffing'], at_4000['duffing'])} and {lower(two, at_4000['vdp'])} of the 30 "
+            f"{lower(no_skip, at_4000['duffing'])} and {lower(two, at_4000['vdp'])} of the 30 "
             "cases" in text)
+
+    # Duffing's skip paths: the validation trials that chose them and the scored trials
+    skip = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "duffing_3030_skip.json").read_text())
+    assert skip["settings"]["seed"] == 3030
+    gm = [gmean(skip, m) for m in ("shipped", "skip")]
+    better = [c["models"]["skip"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in skip["cases"]]
+    chirp = [next(c for c in data["cases"] if (c["family"], c["noise"]) == ("chirp", 0.05)) for data in
+             (skip, no_skip, shipped["duffing"])]
+    assert gm[1] < gm[0]
+    rises = [b["models"]["bank"]["ratio_ekf"] - a["models"]["bank"]["ratio_ekf"]
+             for a, b in zip(no_skip["cases"], shipped["duffing"]["cases"])
+             if b["models"]["bank"]["smape_mean"] >= a["models"]["bank"]["smape_mean"]]
+    assert (f"geometric mean {gm[0]:.3f} to {gm[1]:.3f}, lower in {sum(better)} of the 30 cases and in "
+            f"{sum(b for b, c in zip(better, skip['cases']) if c['noise'] == 0.05)} of the 10 at noise 0.05 (chirp "
+            f"{chirp[0]['models']['shipped']['ratio_ekf']:.3f}x to {chirp[0]['models']['skip']['ratio_ekf']:.3f}x); "
+            f"on the scored trials {gmean(no_skip):.3f} to {gmean(shipped['duffing']):.3f}, lower in "
+            f"{lower(shipped['duffing'], no_skip)} of the 30 cases (higher in the other {len(rises)}, by at most "
+            f"{max(rises):.3f}x), chirp at noise 0.05 {chirp[1]['models']['bank']['ratio_ekf']:.3f}x to "
+            f"{chirp[2]['models']['bank']['ratio_ekf']:.3f}x" in text)
 
     # Van der Pol's third decoder: the validation trials that chose it and the scored trials
     third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_members3.json").read_text())

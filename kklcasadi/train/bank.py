@@ -46,7 +46,10 @@ __all__ = ["BankConfig", "MonitorConfig", "train_bank", "design_bank", "bank_mod
 #: Van der Pol's ensemble has three decoders (:data:`SHIPPED_MEMBERS` otherwise) and its runs add the
 #: ``pd`` family (a saturated PD loop on the lagged noisy output; on validation trials it lowered the
 #: geometric mean of bank / EKF from 1.093 to 1.081: docs/design.md, "Controllers with derivative action").
-SHIPPED = {"duffing": {"n_traj": 8000}, "vdp": {"n_traj": 8000, "members": 3, "kinds": (*DEFAULT_KINDS, "pd")},
+#: Duffing's decoders have a linear skip path (on validation trials 1.095 to 1.091, the swept sine most:
+#: docs/design.md, "A linear skip path").
+SHIPPED = {"duffing": {"n_traj": 8000, "skip": True},
+           "vdp": {"n_traj": 8000, "members": 3, "kinds": (*DEFAULT_KINDS, "pd")},
            "fhn": {"n_traj": 4000},
            "rossler": {"asinh_scale": (0.0, 0.0, 0.01), "u_poles": (0.3, 1.0, 3.0), "noise_range": (1.0, 1.0)}}
 #: Decoder networks of the shipped systems' ensembles where :data:`SHIPPED` names none (each member one
@@ -190,6 +193,8 @@ class BankConfig:
                                               noise_range=shipped.get("noise_range", config.rollouts.noise_range)))
             if "asinh_scale" in shipped:
                 config = replace(config, decoder=replace(config.decoder, asinh_scale=shipped["asinh_scale"]))
+            if "skip" in shipped:
+                config = replace(config, decoder=replace(config.decoder, skip=shipped["skip"]))
             return config
         budget = dict(NEW_PLANT_BANK)
         config = replace(config, process_on="forced",
