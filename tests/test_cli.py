@@ -357,5 +357,9 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
 
     assert config("square", "pd").rollouts.kinds == ("square", "pd")
     assert "pd" in FAMILIES
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--skip-path",
+                                      "--out", "x"])
+    assert training_config(plant_of(args), "bank", args).decoder.skip   # the linear path: asked for, else none
+    assert not config("square").decoder.skip
     with pytest.raises(CommandError, match=r"^--kinds: expected a non-empty subset of .*'pd'.*received \('chirp',\)"):
         config("chirp")

@@ -36,6 +36,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--kinds": ("kinds", lambda a: None if a.kinds is None else tuple(a.kinds)),
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
+                 "--skip-path": ("skip", lambda a: True if a.skip_path else None),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
 
 
@@ -64,6 +65,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--members", type=positive_int, metavar="K",
                    help="bank: fit K decoder networks from seeds SEED..SEED+K-1 and average them; their spread "
                    "joins the domain monitor (training time grows K-fold)")
+    t.add_argument("--skip-path", action="store_true",
+                   help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
+                   "slope where they level off past the fitted states (Duffing's shipped bank has it)")
     t.add_argument("--on-inject", action="store_true",
                    help="obs: learn the residual on top of the model-based injection of 'inject'")
     t.add_argument("--epochs", type=positive_int, help="override the number of epochs of every stage")
