@@ -56,7 +56,7 @@ import casadi as ca
 import numpy as np
 
 from ..model import variants
-from ..nets.builders import lora_mlp_function
+from ..nets.builders import folded_skip, lora_mlp_function
 from ..nets.specs import DECODER, ENCODER
 from ..observer.kkl import KKLObserver
 from ..plant import signals as sig
@@ -266,8 +266,7 @@ def decoder_lipschitz_upper(observer: KKLObserver) -> float:
             W = np.asarray(arrays[f"{DECODER}/out_std"], dtype=float)[:, None] * W
         lip *= np.linalg.norm(W, 2)
     if arch.skip:
-        W = np.asarray(arrays[f"{DECODER}/Wskip"], dtype=float) / np.asarray(arrays[f"{DECODER}/in_std"], dtype=float)
-        lip += np.linalg.norm(np.asarray(arrays[f"{DECODER}/out_std"], dtype=float)[:, None] * W, 2)
+        lip += np.linalg.norm(folded_skip(arrays, DECODER)[0], 2)
     return float(lip)
 
 

@@ -4,7 +4,8 @@ Every builder takes a typed spec (:mod:`kklcasadi.nets.specs`) and the arrays it
 validated by :func:`kklcasadi.model.files.load_model`; nothing is re-parsed or re-checked here.
 
 * :func:`mlp_function` -- an MLP, ``x -> y``, layers as MX ``mtimes`` with DM constants, the
-  input/output normalisation folded into the first and last layers.
+  input/output normalisation folded into the first and last layers (and into the linear skip path,
+  :func:`folded_skip`, of a network that has one).
 * :func:`gru_function` -- the bias-free GRU, ``w (window, nu) -> h (H, 1)``: one cell Function
   folded over the window (``Function.fold``), never unrolled.
 * :func:`obs_gain_function`, :func:`obs_injection_function` -- HyperKKL_obs
@@ -39,7 +40,7 @@ from .specs import (
     ObsSpec,
 )
 
-__all__ = ["mlp_function", "gru_cell_function", "gru_function", "obs_context_function",
+__all__ = ["mlp_function", "folded_skip", "gru_cell_function", "gru_function", "obs_context_function",
            "obs_context_gain_function", "obs_gain_function", "obs_injection_function", "lora_mlp_function",
            "lora_mlp_of_hidden", "check_name"]
 
@@ -123,13 +124,27 @@ def mlp_function(spec: MLPSpec, arrays: Arrays, prefix: str,
     return ca.Function(name, [x], [y], ["x"], ["y"])
 
 
-def _with_skip(y: ca.MX, arrays: Arrays, prefix: str, spec: MLPSpec, x: ca.MX) -> ca.MX:
-    """``y`` plus the skip path ``out_std * Wskip (x - in_mean) / in_std`` of a network that has one."""
-    if not spec.skip:
-        return y
+def folded_skip(arrays: Arrays, prefix: str) -> tuple[np.ndarray, np.ndarray]:
+    """A network's skip path on its raw input, ``W x + b`` (the normalisation folded in).
+
+    Returns
+    -------
+    W : numpy.ndarray, shape (dL, d0)
+        ``diag(out_std) Wskip diag(1 / in_std)``.
+    b : numpy.ndarray, shape (dL,)
+        ``-W in_mean``.
+    """
     in_mean, in_std = _array(arrays, f"{prefix}/in_mean"), _array(arrays, f"{prefix}/in_std")
     weight = _array(arrays, f"{prefix}/out_std")[:, None] * _array(arrays, f"{prefix}/Wskip") / in_std[None, :]
-    return y + ca.mtimes(ca.DM(weight), x) + ca.DM(-weight @ in_mean)
+    return weight, -weight @ in_mean
+
+
+def _with_skip(y: ca.MX, arrays: Arrays, prefix: str, spec: MLPSpec, x: ca.MX) -> ca.MX:
+    """``y`` plus the skip path (:func:`folded_skip`) of a network that has one."""
+    if not spec.skip:
+        return y
+    weight, bias = folded_skip(arrays, prefix)
+    return y + ca.mtimes(ca.DM(weight), x) + ca.DM(bias)
 
 
 def gru_cell_function(arrays: Arrays, prefix: str, nu: int, hidden: int, name: str) -> ca.Function:
