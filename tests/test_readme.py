@@ -522,6 +522,19 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"{max(rises):.3f}x), chirp at noise 0.05 {chirp[1]['models']['bank']['ratio_ekf']:.3f}x to "
             f"{chirp[2]['models']['bank']['ratio_ekf']:.3f}x" in text)
 
+    # Van der Pol's skip paths, not adopted: the validation trials that turned them down
+    vskip = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_skip.json").read_text())
+    assert vskip["settings"]["seed"] == 3030
+    gm = [gmean(vskip, m) for m in ("shipped", "skip")]
+    won = sum(c["models"]["skip"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in vskip["cases"])
+    sq = next(c for c in vskip["cases"] if (c["family"], c["regime"], c["noise"]) == ("square", "ood", 0.05))
+    assert all(np.allclose(a["models"]["shipped"]["smape"], b["models"]["pd"]["smape"], rtol=1e-9, atol=0)
+               for a, b in zip(vskip["cases"], json.loads((ROOT / "results" / "accuracy" / "generalisation"
+                                                           / "vdp_3030_pd.json").read_text())["cases"]))
+    # (the shipped bank's decoders, the chosen pd bank: the same SMAPE up to the compiled code's rounding)
+    assert (f"geometric mean {gm[0]:.4f} to {gm[1]:.4f}, lower in {won} of the 30 cases, square ood at noise 0.05 "
+            f"{sq['models']['shipped']['ratio_ekf']:.3f}x to {sq['models']['skip']['ratio_ekf']:.3f}x" in text)
+
     # Van der Pol's third decoder: the validation trials that chose it and the scored trials
     third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_members3.json").read_text())
     assert third["settings"]["seed"] == 3030
