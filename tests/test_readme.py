@@ -535,6 +535,12 @@ def test_the_generalisation_text_follows_from_the_reports():
     assert (f"geometric mean {gm[0]:.4f} to {gm[1]:.4f}, lower in {won} of the 30 cases, square ood at noise 0.05 "
             f"{sq['models']['shipped']['ratio_ekf']:.3f}x to {sq['models']['skip']['ratio_ekf']:.3f}x" in text)
 
+    rskip = [json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"rossler_3030_{n}.json").read_text())
+             for n in ("noise_range", "skip")]
+    assert all(a["ekf"]["smape"] == b["ekf"]["smape"] for a, b in zip(rskip[0]["cases"], rskip[1]["cases"]))
+    assert (f"gave {gmean(rskip[1], 'skip'):.3f} against {gmean(rskip[0], 'nominal'):.3f} on the same validation "
+            "trials" in text) and gmean(rskip[1], "skip") > gmean(rskip[0], "nominal")
+
     # Van der Pol's third decoder: the validation trials that chose it and the scored trials
     third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_members3.json").read_text())
     assert third["settings"]["seed"] == 3030
