@@ -541,6 +541,20 @@ def test_the_generalisation_text_follows_from_the_reports():
     assert (f"gave {gmean(rskip[1], 'skip'):.3f} against {gmean(rskip[0], 'nominal'):.3f} on the same validation "
             "trials" in text) and gmean(rskip[1], "skip") > gmean(rskip[0], "nominal")
 
+    # Roessler's SMAPE-loss ensemble against the shipped one on the same validation trials
+    recipe = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "rossler_3030_recipe.json").read_text())
+    lossy = json.loads((ROOT / "results" / "accuracy" / "generalisation" /
+                        "rossler_3030_smape05_ensemble.json").read_text())
+    assert all(a["ekf"]["smape"] == b["ekf"]["smape"] for a, b in zip(recipe["cases"], lossy["cases"]))
+    new, old = gmean(lossy, "smape05_seeds_11_13"), gmean(recipe, "wide6 seeds 11,13")
+    won = sum(b["models"]["smape05_seeds_11_13"]["smape_mean"] < a["models"]["wide6 seeds 11,13"]["smape_mean"]
+              for a, b in zip(recipe["cases"], lossy["cases"]))
+    low = [c["models"]["smape05_seeds_11_13"]["ratio_ekf"] for c in lossy["cases"]
+           if c["regime"] == "id" and c["noise"] == 0.05]
+    assert (f"a geometric mean of {new:.3f} against the shipped ensemble's {old:.3f} on the same validation trials, "
+            f"lower in all {won} cases, in distribution at noise 0.05 {min(low):.3f}-{max(low):.3f}x" in text)
+    assert won == 30 and max(low) < 1.1
+
     # Van der Pol's third decoder: the validation trials that chose it and the scored trials
     third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_members3.json").read_text())
     assert third["settings"]["seed"] == 3030

@@ -15,7 +15,8 @@ from the trial cache), decoded through the bank's latent in numpy
 EKF, and per seed the geometric mean over the cases of each variant / plain).
 
 Variants: ``plain`` (the recipe), ``skip`` (a linear skip path,
-:attr:`kklcasadi.train.operational.DecoderConfig.skip`).
+:attr:`kklcasadi.train.operational.DecoderConfig.skip`), ``smape`` (the loss ``mse+smape`` with weight 0.5
+on the SMAPE term, :attr:`kklcasadi.train.operational.DecoderConfig.loss`).
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, process_stds
 from kklcasadi.train.operational import DecoderConfig, fit_bank_decoder, operational_data
 
-VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True)}
+VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True),
+            "smape": lambda d: replace(d, loss="mse+smape", smape_weight=0.5)}
 FAMILIES = (("square", "id"), ("sinusoid", "id"), ("square", "ood"), ("chirp", "held_out"),
             ("feedback", "held_out"), ("random", "held_out"))
 

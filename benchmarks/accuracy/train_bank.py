@@ -51,6 +51,8 @@ def main() -> None:
     p.add_argument("--asinh-scale", help="per-state scales s of the decoder's s sinh(v) outputs (0: none)")
     p.add_argument("--activation", help="the decoder's activation (kklcasadi.nets.specs.ACTIVATIONS)")
     p.add_argument("--skip", action="store_true", help="give the decoder a linear skip path (DecoderConfig.skip)")
+    p.add_argument("--loss", help="the decoder's loss (kklcasadi.train.operational.LOSSES)")
+    p.add_argument("--smape-weight", type=float, help="with --loss mse+smape: the weight of the SMAPE term")
     p.add_argument("--lr", type=float, help="the decoder fit's learning rate")
     p.add_argument("--batch-size", type=int, help="the decoder fit's batch size")
     p.add_argument("--members", type=int, help="decoder networks averaged (default: the system's)")
@@ -100,6 +102,10 @@ def main() -> None:
         config = replace(config, decoder=replace(config.decoder, activation=args.activation))
     if args.skip:
         config = replace(config, decoder=replace(config.decoder, skip=True))
+    if args.loss:
+        config = replace(config, decoder=replace(config.decoder, loss=args.loss))
+    if args.smape_weight is not None:
+        config = replace(config, decoder=replace(config.decoder, smape_weight=args.smape_weight))
     loop = {name: getattr(args, name) for name in ("lr", "batch_size") if getattr(args, name) is not None}
     if loop:
         config = replace(config, decoder=replace(config.decoder, loop=replace(config.decoder.loop, **loop)))
