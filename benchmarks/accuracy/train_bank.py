@@ -21,7 +21,7 @@ import torch
 
 import kklcasadi as kc
 from kklcasadi.train import default_config, train_observer
-from kklcasadi.train.operational import FAMILIES
+from kklcasadi.train.operational import FAMILIES, LOSSES
 
 
 def floats(text: str) -> tuple[float, ...]:
@@ -51,7 +51,7 @@ def main() -> None:
     p.add_argument("--asinh-scale", help="per-state scales s of the decoder's s sinh(v) outputs (0: none)")
     p.add_argument("--activation", help="the decoder's activation (kklcasadi.nets.specs.ACTIVATIONS)")
     p.add_argument("--skip", action="store_true", help="give the decoder a linear skip path (DecoderConfig.skip)")
-    p.add_argument("--loss", help="the decoder's loss (kklcasadi.train.operational.LOSSES)")
+    p.add_argument("--loss", choices=LOSSES, help="the decoder's loss (DecoderConfig.loss)")
     p.add_argument("--smape-weight", type=float, help="with --loss mse+smape: the weight of the SMAPE term")
     p.add_argument("--lr", type=float, help="the decoder fit's learning rate")
     p.add_argument("--batch-size", type=int, help="the decoder fit's batch size")
