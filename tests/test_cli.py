@@ -348,7 +348,7 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
     from kklcasadi.cli import build_parser
     from kklcasadi.cli.flags import CommandError, plant_of
     from kklcasadi.cli.train import training_config
-    from kklcasadi.train.operational import FAMILIES
+    from kklcasadi.train.operational import FAMILIES, LOSSES
 
     def config(*kinds):
         args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant",
@@ -361,5 +361,22 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
                                       "--out", "x"])
     assert training_config(plant_of(args), "bank", args).decoder.skip   # the linear path: asked for, else none
     assert not config("square").decoder.skip
+    # the decoders' loss (DecoderConfig.loss): the CLI's choices are the trainer's, the weight only with mse+smape
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--loss", "mse+smape",
+                                      "--smape-weight", "0.5", "--out", "x"])
+    decoder = training_config(plant_of(args), "bank", args).decoder
+    assert (decoder.loss, decoder.smape_weight) == ("mse+smape", 0.5) and config("square").decoder.loss == "mse"
+    loss = next(a for a in build_parser()._subparsers._group_actions[0].choices["train"]._actions
+                if a.dest == "loss")
+    assert tuple(loss.choices) == LOSSES
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--smape-weight",
+                                      "0.5", "--out", "x"])
+    with pytest.raises(CommandError, match=r"^--smape-weight: weighs the SMAPE term of --loss mse\+smape, "
+                                           r"received --loss None; add --loss mse\+smape$"):
+        training_config(plant_of(args), "bank", args)
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--method",
+                                      "autonomous", "--loss", "smape", "--out", "x"])
+    with pytest.raises(CommandError, match=r"^--loss: only --method bank takes it, received --method autonomous$"):
+        training_config(plant_of(args), "autonomous", args)
     with pytest.raises(CommandError, match=r"^--kinds: expected a non-empty subset of .*'pd'.*received \('chirp',\)"):
         config("chirp")

@@ -37,6 +37,8 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
                  "--skip-path": ("skip", lambda a: True if a.skip_path else None),
+                 "--loss": ("loss", lambda a: a.loss),
+                 "--smape-weight": ("smape_weight", lambda a: a.smape_weight),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
 
 
@@ -68,6 +70,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--skip-path", action="store_true",
                    help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
                    "slope where they level off past the fitted states (Duffing's shipped bank has it)")
+    t.add_argument("--loss", choices=("mse", "smape", "mse+smape"),
+                   help="bank: the decoders' loss: mse (default) of the normalised states, smape (the protocol's "
+                   "metric) or mse+smape (their sum, --smape-weight on the SMAPE term). mse+smape with weight 0.5 "
+                   "helped Roessler, whose third state sits near zero, and hurt Duffing and Van der Pol "
+                   "(docs/design.md, 'The loss against the metric')")
+    t.add_argument("--smape-weight", type=positive_float, metavar="W",
+                   help="bank, with --loss mse+smape: the weight of the SMAPE term (default 0.01)")
     t.add_argument("--on-inject", action="store_true",
                    help="obs: learn the residual on top of the model-based injection of 'inject'")
     t.add_argument("--epochs", type=positive_int, help="override the number of epochs of every stage")
@@ -94,6 +103,9 @@ def training_config(plant: systems.System, method: str, args: argparse.Namespace
     a configuration). A flag the method's configuration has no field for is a :class:`CommandError`."""
     from ..train import default_config, has_field, with_field
 
+    if args.smape_weight is not None and args.loss != "mse+smape":
+        raise CommandError(f"--smape-weight: weighs the SMAPE term of --loss mse+smape, received --loss {args.loss}; "
+                           "add --loss mse+smape")
     config = None if variants.get(method).config_class() is None else default_config(plant.name, method)
     for flag, (name, value) in _CONFIG_FLAGS.items():
         if value(args) is None:
