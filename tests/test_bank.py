@@ -334,6 +334,9 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
         config.rollouts.n_traj, list(config.rollouts.kinds), config.rollouts.regime, config.rollouts.noise_range)
     assert tuple(model.card["architecture"]["bank"]["u_poles"]) == config.u_poles
     assert model.spec.architecture.decoder.skip == config.decoder.skip == (system == "duffing")  # skip paths
+    decoder = training["decoder"]                    # the loss: Roessler's mse + 0.5 SMAPE, else mse
+    assert decoder["loss"] == config.decoder.loss == ("mse+smape" if system == "rossler" else "mse")
+    assert decoder["loss"] == "mse" or decoder["smape_weight"] == config.decoder.smape_weight == 0.5
     # the spread quantile chosen on validation trials (benchmarks/monitor_quantiles.py), on runs at the nominal
     # noise; where no quantile met the budget the card keeps the fitting runs' validation samples at 0.99
     choice = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{system}_3030_monitor.json").read_text())

@@ -345,6 +345,7 @@ def test_train_flags_set_the_fields_the_method_keeps_them_in(method, box_scale):
 
 def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
     pytest.importorskip("torch")
+    from kklcasadi import systems
     from kklcasadi.cli import build_parser
     from kklcasadi.cli.flags import CommandError, plant_of
     from kklcasadi.cli.train import training_config
@@ -372,8 +373,16 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
     args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--smape-weight",
                                       "0.5", "--out", "x"])
     with pytest.raises(CommandError, match=r"^--smape-weight: weighs the SMAPE term of --loss mse\+smape, "
-                                           r"received --loss None; add --loss mse\+smape$"):
+                                           r"received --loss mse \(the default\); add --loss mse\+smape$"):
         training_config(plant_of(args), "bank", args)
+    # Roessler's shipped recipe already fits mse+smape (SHIPPED): a weight alone retunes it
+    args = build_parser().parse_args(["train", "--system", "rossler", "--smape-weight", "1.5", "--out", "x"])
+    decoder = training_config(systems.get("rossler"), "bank", args).decoder
+    assert (decoder.loss, decoder.smape_weight) == ("mse+smape", 1.5)
+    args = build_parser().parse_args(["train", "--system", "rossler", "--loss", "mse", "--smape-weight", "1.5",
+                                      "--out", "x"])
+    with pytest.raises(CommandError, match=r"received --loss mse; add --loss mse\+smape$"):
+        training_config(systems.get("rossler"), "bank", args)
     args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--method",
                                       "autonomous", "--loss", "smape", "--out", "x"])
     with pytest.raises(CommandError, match=r"^--loss: only --method bank takes it, received --method autonomous$"):
