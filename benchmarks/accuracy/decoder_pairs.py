@@ -16,7 +16,7 @@ EKF, and per seed the geometric mean over the cases of each variant / plain).
 
 Variants: ``plain`` (the recipe), ``skip`` (a linear skip path,
 :attr:`kklcasadi.train.operational.DecoderConfig.skip`), ``smape`` (the loss ``mse+smape`` with weight 0.5
-on the SMAPE term, :attr:`kklcasadi.train.operational.DecoderConfig.loss`).
+on the SMAPE term, :attr:`kklcasadi.train.operational.DecoderConfig.loss`), ``smape01`` (weight 0.1).
 """
 
 from __future__ import annotations
@@ -41,7 +41,8 @@ from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, proce
 from kklcasadi.train.operational import DecoderConfig, fit_bank_decoder, operational_data
 
 VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True),
-            "smape": lambda d: replace(d, loss="mse+smape", smape_weight=0.5)}
+            "smape": lambda d: replace(d, loss="mse+smape", smape_weight=0.5),
+            "smape01": lambda d: replace(d, loss="mse+smape", smape_weight=0.1)}
 FAMILIES = (("square", "id"), ("sinusoid", "id"), ("square", "ood"), ("chirp", "held_out"),
             ("feedback", "held_out"), ("random", "held_out"))
 
