@@ -71,10 +71,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
                    "slope where they level off past the fitted states (Duffing's shipped bank has it)")
     t.add_argument("--loss", choices=("mse", "smape", "mse+smape"),
-                   help="bank: the decoders' loss: mse (default) of the normalised states, smape (the protocol's "
-                   "metric) or mse+smape (their sum, --smape-weight on the SMAPE term). mse+smape with weight 0.5 "
-                   "helped Roessler, whose third state sits near zero, and hurt Duffing and Van der Pol "
-                   "(docs/design.md, 'The loss against the metric')")
+                   help="bank: the decoders' loss: mse (the default) of the normalised states, smape (the "
+                   "protocol's metric) or mse+smape (their sum, --smape-weight on the SMAPE term). mse+smape with "
+                   "weight 0.5 helped Roessler, whose third state sits near zero, and is its shipped recipe; it hurt "
+                   "Duffing and Van der Pol (docs/design.md, 'The loss against the metric')")
     t.add_argument("--smape-weight", type=positive_float, metavar="W",
                    help="bank, with --loss mse+smape: the weight of the SMAPE term (default 0.01; Roessler's "
                    "shipped recipe: mse+smape, 0.5)")
@@ -112,8 +112,7 @@ def training_config(plant: systems.System, method: str, args: argparse.Namespace
             raise CommandError(f"{flag}: only --method {' or '.join(_takers(name, plant.name))} takes it, "
                                f"received --method {method}")
         config = flagged(flag, with_field, config, name, value(args))
-    loss = config_field(config, "loss") if args.smape_weight is not None else "mse+smape"
-    if loss != "mse+smape":
+    if args.smape_weight is not None and (loss := config_field(config, "loss")) != "mse+smape":
         raise CommandError(f"--smape-weight: weighs the SMAPE term of --loss mse+smape, received --loss {loss}"
                            f"{'' if args.loss else ' (the default)'}; add --loss mse+smape")
     return config
