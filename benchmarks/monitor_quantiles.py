@@ -31,7 +31,6 @@ import numpy as np
 from calibrate_monitors import noise_of, rollouts_of
 
 from kklcasadi import metrics
-from kklcasadi.estimators.ekf import EKF
 from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.compiled import Compiler, ekf_estimator
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
@@ -97,8 +96,7 @@ def main() -> None:
         after = batch.t >= settings.t_settle
         inside = plain.in_domain(xhat[:, after], z[:, after], w[:, after])
         spread = obs.spread_of(z[:, after], w[:, after])
-        ekf = EKF(plant, model.dt, Q=np.eye(plant.nx) * (case.noise * model.dt) ** 2,
-                  R=np.eye(plant.ny) * case.noise ** 2)
+        ekf = gen.case_ekf(plant, case.noise, model.dt)
         e = metrics.smape(x, ekf_estimator(ekf, compiler=compiler)(batch.t, y, u))
         b = metrics.smape(x, xhat)
         group = group_of(case, obs, fitted)

@@ -23,7 +23,6 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from kklcasadi import metrics
-from kklcasadi.estimators.ekf import EKF
 from kklcasadi.estimators.pf import SUBSTEPS
 from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.compiled import Compiler, ekf_estimator, pf_estimator
@@ -56,7 +55,7 @@ def main() -> None:
         case = gen.Case(family, regime, noise)
         batch = cache.trials(plant, case.cell(settings))
         x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
-        ekf = EKF(plant, settings.dt, Q=np.eye(plant.nx) * (noise * settings.dt) ** 2, R=np.eye(plant.ny) * noise ** 2)
+        ekf = gen.case_ekf(plant, noise, settings.dt)
         ekf_smape = float(metrics.smape(x, ekf_estimator(ekf, compiler=compiler)(batch.t, y, u)).mean())
         ratios = []
         for roughening in GRID:

@@ -136,6 +136,17 @@ def test_run_scores_every_estimator_on_the_same_trials(monitored_bank):
     assert "bank: in distribution" in report.monitor_markdown()
 
 
+@pytest.mark.parametrize("noise", [0.05, 0.2])
+def test_the_case_ekf_is_tuned_to_the_cases_noise(noise):
+    """case_ekf: the EKF every generalisation table scores, Q = (noise dt)^2 I and R = noise^2 I."""
+    plant = kc.systems.get("vdp")
+    ekf = gen.case_ekf(plant, noise, 0.05)
+    np.testing.assert_array_equal(ekf.Q, np.eye(plant.nx) * (noise * 0.05) ** 2)
+    np.testing.assert_array_equal(ekf.R, np.eye(plant.ny) * noise ** 2)
+    with pytest.raises(ValueError, match=r"^noise: expected a finite number > 0, received 0.0"):
+        gen.case_ekf(plant, 0.0, 0.05)
+
+
 def test_run_refuses_observers_of_two_plants(model_dir_factory):
     a, b = load_observer(model_dir_factory("bank")), load_observer(model_dir_factory("bank", system="vdp"))
     with pytest.raises(ValueError, match=r"^observers: expected observers of one plant \('duffing'\)"):

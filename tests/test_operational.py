@@ -122,6 +122,9 @@ def test_a_skip_decoder_starts_as_the_plain_one_and_fits_its_linear_path() -> No
     assert np.isfinite(fb.decode(trained.arrays, trained.arch, data.z, data.y, data.u)).all()
     with pytest.raises(TypeError, match="skip"):
         DecoderConfig(skip=1)
+    for weight in (0.0, -0.5, float("nan")):          # the SMAPE term's weight: a number > 0
+        with pytest.raises(ValueError, match=r"^smape_weight: expected a finite number > 0, received "):
+            DecoderConfig(loss="mse+smape", smape_weight=weight)
 
 
 def test_operational_decoder_beats_noise_free_one_on_noisy_runs() -> None:

@@ -170,6 +170,10 @@ def test_the_results_text_follows_from_the_scores():
     counts = {system: f"{min(w)}-{max(w)}" for system, w in ekf_wins.items()}
     assert (f"(the EKF is better in {counts['duffing']} of 100 Duffing trials, {counts['vdp']} on Van der Pol, "
             f"{counts['rossler']} on Roessler)" in text)
+    margin = [scores(system)[("bank", k, False)].mean() / scores(system)[("EKF", k, False)].mean()
+              for system in ("duffing", "vdp", "rossler") for k in KINDS]       # the EKF noise-free
+    assert (f"is still {min(margin):.1f}-{max(margin):.1f}x better noise-free on Duffing, Van der Pol and "
+            "Roessler" in text)
 
 
 @pytest.mark.parametrize("method", ["obs_stream", "dyn_stream"])

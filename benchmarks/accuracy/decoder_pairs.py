@@ -32,9 +32,8 @@ import torch
 
 import kklcasadi as kc
 from kklcasadi import metrics
-from kklcasadi.estimators import EKF
 from kklcasadi.evaluation.compiled import ekf_estimator
-from kklcasadi.evaluation.generalisation import Case, Settings
+from kklcasadi.evaluation.generalisation import Case, Settings, case_ekf
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, process_stds
@@ -85,8 +84,7 @@ def main() -> None:
     for case in cases:
         batch = cache.trials(system, case.cell(settings))
         x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
-        ekf = EKF(system, settings.dt, Q=np.eye(system.nx) * (case.noise * settings.dt) ** 2,
-                  R=np.eye(system.ny) * case.noise ** 2)
+        ekf = case_ekf(system, case.noise, settings.dt)
         trials[case.label] = (x, y, u, float(np.mean(metrics.smape(x, ekf_estimator(ekf)(batch.t, y, u)))))
     smape: dict[str, dict[str, dict[str, float]]] = {}
     seconds = {}

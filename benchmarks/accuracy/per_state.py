@@ -4,7 +4,8 @@
         --seed 3030 --trials 20
 
 The trials are the case's (:class:`kklcasadi.evaluation.generalisation.Case`, seed ``--seed``, from the trial
-cache), the EKF the one ``kklcasadi generalise`` runs beside the models (Q = (sigma dt)^2 I, R = sigma^2 I).
+cache), the EKF the one ``kklcasadi generalise`` runs beside the models
+(:func:`kklcasadi.evaluation.generalisation.case_ekf`).
 Prints the mean over the trials of :func:`kklcasadi.metrics.smape` with ``per_state=True`` (their mean over the
 states is the protocol's number) for the EKF and each model.
 """
@@ -17,9 +18,8 @@ import numpy as np
 
 import kklcasadi as kc
 from kklcasadi import metrics
-from kklcasadi.estimators import EKF
 from kklcasadi.evaluation.compiled import ekf_estimator, observer_estimator
-from kklcasadi.evaluation.generalisation import Case, Settings
+from kklcasadi.evaluation.generalisation import Case, Settings, case_ekf
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
 
 
@@ -39,8 +39,7 @@ def main() -> None:
     case = Case(args.family, args.regime, args.noise)
     batch = TrialCache(cache_root() / "trials").trials(plant, case.cell(settings))
     x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
-    ekf = EKF(plant, settings.dt, Q=np.eye(plant.nx) * (args.noise * settings.dt) ** 2,
-              R=np.eye(plant.ny) * args.noise ** 2)
+    ekf = case_ekf(plant, args.noise, settings.dt)
     rows = [("EKF", ekf_estimator(ekf)(batch.t, y, u))]
     rows += [(m, observer_estimator(obs)(batch.t, y, u)) for m, obs in zip(args.models, observers)]
     print(f"{args.system}, {case.label}, seed {args.seed}, {len(x)} trials: SMAPE % per state (mean)")

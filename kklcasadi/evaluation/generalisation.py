@@ -31,12 +31,12 @@ from ..observer.kkl import KKLObserver
 from ..plant import signals as sig
 from ..plant.simulate import TrajectoryBatch, simulate_batch
 from ..plant.systems import System
-from ..validation import Text, error, nonnegative_number, one_of, positive_int
+from ..validation import Text, error, nonnegative_number, one_of, positive_int, positive_number
 from .compiled import CompiledEstimator, Compiler, ekf_estimator, observer_estimator
 from .protocol import Protocol
 from .trialcache import TrialCache
 
-__all__ = ["Case", "FamilyCell", "Settings", "ModelResult", "Report", "cases", "fit_families", "category",
+__all__ = ["Case", "FamilyCell", "Settings", "ModelResult", "Report", "cases", "fit_families", "category", "case_ekf",
            "output_range", "families_text", "run", "MonitoredObserver", "NOISE_LEVELS", "FAMILY_STREAMS",
            "CATEGORIES", "BAD_RATIO", "FLAG_SHARE"]
 
@@ -163,6 +163,26 @@ class FamilyCell:
         seeds = np.random.SeedSequence([s.seed, FAMILY_STREAMS[self.family]]).spawn(s.n_trials)
         return simulate_batch(system, x0, self.inputs(system), s.T, s.dt, process_std=self.noise,
                               measurement_std=self.noise, seed=seeds, method=s.method)
+
+
+def case_ekf(plant: System, noise: float, dt: float) -> EKF:
+    """The EKF scored beside the models on a case of noise std ``noise``: tuned to the case's noise,
+    ``Q = (noise dt)^2 I`` (the process noise over one sample) and ``R = noise^2 I``.
+
+    Parameters
+    ----------
+    plant : System
+    noise : float
+        The case's process and measurement noise std (> 0).
+    dt : float
+        Sample period.
+
+    Returns
+    -------
+    EKF
+    """
+    noise = positive_number(noise, "noise")
+    return EKF(plant, dt, Q=np.eye(plant.nx) * (noise * dt) ** 2, R=np.eye(plant.ny) * noise ** 2)
 
 
 def output_range(system: System) -> tuple[np.ndarray, np.ndarray]:
@@ -490,8 +510,7 @@ def run(observers: Sequence[tuple[str, KKLObserver]], case_list: Sequence[Case],
                 share = (~inside[:, after]).mean(axis=1)
             results[label][0].append(metrics.smape(x, xhat))
             results[label][1].append(share)
-        ekf = EKF(plant, settings.dt, Q=np.eye(plant.nx) * (case.noise * settings.dt) ** 2,
-                  R=np.eye(plant.ny) * case.noise ** 2)
+        ekf = case_ekf(plant, case.noise, settings.dt)
         ekf_scores.append(metrics.smape(x, ekf_estimator(ekf, compiler=compiler, n_threads=n_threads)(batch.t, y, u)))
         if pf_scores is not None:
             pf = ParticleFilter(plant, settings.dt, n_particles=pf_particles, process_std=case.noise,

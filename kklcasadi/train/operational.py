@@ -38,7 +38,7 @@ from ..plant import signals as sig
 from ..plant.design import time_scales
 from ..plant.simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
 from ..plant.systems import System
-from ..validation import error
+from ..validation import error, positive_number
 from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
@@ -203,6 +203,7 @@ class DecoderConfig:
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise ValueError(f"loss: expected one of {LOSSES}, received {self.loss!r}.")
+        positive_number(self.smape_weight, "smape_weight", "the weight of the SMAPE term of loss 'mse+smape'")
         if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
             raise ValueError(f"hidden: expected a non-empty tuple of positive widths, received {self.hidden!r}.")
         torch_dtype(self.dtype)
