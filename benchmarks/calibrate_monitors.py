@@ -25,6 +25,7 @@ import numpy as np
 
 import kklcasadi as kc
 from kklcasadi.model.files import Domain, Model, load_model, parse_card, save_model
+from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.model.variants.filterbank import FilterBank
 from kklcasadi.train.bank import MonitorConfig, bank_monitor, member_spread, nominal_runs
 from kklcasadi.train.operational import OperationalData, RolloutConfig, fit_families, operational_data
@@ -67,11 +68,12 @@ def resimulate(directory: Path, *, fresh: bool = False) -> tuple[Model, FilterBa
     remade)."""
     model = load_model(directory)
     plant = model_plant(model)
-    bank = FilterBank(model.spec.A, model.spec.B, np.asarray(model.arrays["bank/Bu"]),
-                      np.asarray(model.arrays["bank/c"]))
+    spec = model.spec.architecture
+    bank = fb.bank_from_arrays(spec.filter_arrays(model.arrays))
     measurement, process, rate = noise_of(model)
     data = operational_data(plant, bank, rollouts_of(model), model.card["training"]["seed"], dt=model.dt,
-                            measurement_std=measurement, process_std=process, time_scale=rate)
+                            measurement_std=measurement, process_std=process, time_scale=rate,
+                            copies=spec.model_copies(model.arrays, plant))
     if not fresh and Domain.of(data.x, data.z).to_card() != model.card["domain"]:
         raise SystemExit(f"{directory}: the re-simulated samples are not the fitting ones (their domain differs)")
     return model, bank, data
@@ -98,7 +100,7 @@ def recalibrate(directory: Path, model: Model, bank: FilterBank, data: Operation
         measurement, process, rate = noise_of(model)
         spread_data, spread_source = nominal_runs(model_plant(model), bank, rollouts_of(model), monitor.spread_runs,
                                                   seed, dt=model.dt, measurement_std=measurement, process_std=process,
-                                                  time_scale=rate)
+                                                  time_scale=rate, copies=spec.model_copies(arrays, model_plant(model)))
     calibrated = bank_monitor(data, seed, source=source, spread=spread, spread_data=spread_data,
                               spread_source=spread_source, quantile=monitor.quantile,
                               spread_quantile=monitor.spread_quantile)

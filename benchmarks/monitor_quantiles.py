@@ -70,12 +70,12 @@ def main() -> None:
         raise SystemExit(f"{args.model}: expected a decoder ensemble with a domain monitor")
     plain = KKLObserver(replace(model, spec=replace(model.spec, monitor=replace(model.spec.monitor, spread=None))),
                         plant)                                  # the boxes and the prototypes, no spread test
-    arrays = {**model.arrays, "bank/A": spec.A, "bank/By": spec.By}
-    bank, arch = fb.bank_from_arrays(arrays), spec.decoder.to_card()
+    arrays = spec.filter_arrays(model.arrays)
+    bank, arch, copies = fb.bank_from_arrays(arrays), spec.decoder.to_card(), spec.model_copies(model.arrays, plant)
     measurement, process, rate = noise_of(model)
     cal, source = nominal_runs(plant, bank, rollouts_of(model), args.spread_runs, model.card["training"]["seed"],
-                               dt=model.dt,
-                               measurement_std=measurement, process_std=process, time_scale=rate)
+                               dt=model.dt, measurement_std=measurement, process_std=process, time_scale=rate,
+                               copies=copies)
     after_cal = cal.t >= model.spec.monitor.settle_time
     w_cal = np.concatenate([cal.y, cal.u], axis=-1)[..., None]
     spreads = obs.spread_of(cal.z[after_cal], w_cal[after_cal])
@@ -90,7 +90,7 @@ def main() -> None:
     for case in gen.cases():
         batch = cache.trials(plant, case.cell(settings))
         x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
-        z = bank.run(y, u, model.dt)
+        z = fb.latent_run(arrays, y, u, model.dt, copies=copies)
         xhat = fb.decode(arrays, arch, z, y, u, angles=spec.angles, members=spec.members)
         w = np.concatenate([y, u], axis=-1)[..., None]
         after = batch.t >= settings.t_settle

@@ -389,3 +389,13 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
         training_config(plant_of(args), "autonomous", args)
     with pytest.raises(CommandError, match=r"^--kinds: expected a non-empty subset of .*'pd'.*received \('chirp',\)"):
         config("chirp")
+    # the latent's model copies (BankConfig.copies): one per weight, bank only
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--copies", "1",
+                                      "100", "--out", "x"])
+    assert training_config(plant_of(args), "bank", args).copies == (1.0, 100.0) and config("square").copies == ()
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--method",
+                                      "autonomous", "--copies", "1", "--out", "x"])
+    with pytest.raises(CommandError, match=r"^--copies: only --method bank takes it, received --method autonomous$"):
+        training_config(plant_of(args), "autonomous", args)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["train", "--system", "duffing", "--copies", "-1", "--out", "x"])

@@ -16,7 +16,10 @@ EKF, and per seed the geometric mean over the cases of each variant / plain).
 
 Variants: ``plain`` (the recipe), ``skip`` (a linear skip path,
 :attr:`kklcasadi.train.operational.DecoderConfig.skip`), ``smape`` (the loss ``mse+smape`` with weight 0.5
-on the SMAPE term, :attr:`kklcasadi.train.operational.DecoderConfig.loss`), ``smape01`` (weight 0.1).
+on the SMAPE term, :attr:`kklcasadi.train.operational.DecoderConfig.loss`), ``smape01`` (weight 0.1), and
+``copies``, which changes the latent rather than the decoder: model copies of the plant with the weights
+``--copies`` (:attr:`kklcasadi.train.bank.BankConfig.copies`) after the filters, the decoder of the recipe
+fit on the same runs through that latent.
 """
 
 from __future__ import annotations
@@ -36,12 +39,14 @@ from kklcasadi.evaluation.compiled import ekf_estimator
 from kklcasadi.evaluation.generalisation import Case, Settings, case_ekf
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
 from kklcasadi.model.variants import filterbank as fb
-from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, process_stds
+from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, design_copies, process_stds
 from kklcasadi.train.operational import DecoderConfig, fit_bank_decoder, operational_data
 
 VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True),
             "smape": lambda d: replace(d, loss="mse+smape", smape_weight=0.5),
-            "smape01": lambda d: replace(d, loss="mse+smape", smape_weight=0.1)}
+            "smape01": lambda d: replace(d, loss="mse+smape", smape_weight=0.1), "copies": lambda d: d}
+#: The variants that change the latent: the model copies of ``--copies``.
+LATENT_VARIANTS = ("copies",)
 FAMILIES = (("square", "id"), ("sinusoid", "id"), ("square", "ood"), ("chirp", "held_out"),
             ("feedback", "held_out"), ("random", "held_out"))
 
@@ -61,6 +66,8 @@ def main() -> None:
     p.add_argument("--trial-seed", type=int, default=3030)
     p.add_argument("--trials", type=int, default=40)
     p.add_argument("--noise-levels", nargs="+", type=float, default=[0.05, 0.1])
+    p.add_argument("--copies", type=float, nargs="+", default=[1.0, 100.0, 1e4],
+                   help="the weights of the model copies of variant copies")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", type=Path, required=True, help="OUT.json and OUT.md are written")
     args = p.parse_args()
@@ -74,9 +81,11 @@ def main() -> None:
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
     angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
-    data = operational_data(system, bank, config.rollouts, args.run_seed, dt=0.05,
-                            measurement_std=config.measurement_std, process_std=process_stds(system, config),
-                            time_scale=rate)
+    copies = design_copies(system, replace(config, copies=tuple(args.copies)), 0.05)
+    runs = {latent: operational_data(system, bank, config.rollouts, args.run_seed, dt=0.05,
+                                     measurement_std=config.measurement_std, process_std=process_stds(system, config),
+                                     time_scale=rate, copies=latent)
+            for latent in ([None] + ([copies] if set(args.variants) & set(LATENT_VARIANTS) else []))}
     settings = Settings(n_trials=args.trials, seed=args.trial_seed)
     cache = TrialCache(cache_root() / "trials")
     cases = [Case(f, r, n) for n in args.noise_levels for f, r in FAMILIES]
@@ -92,16 +101,17 @@ def main() -> None:
         for seed in args.seeds:
             t0 = time.perf_counter()
             decoder: DecoderConfig = VARIANTS[variant](config.decoder)
-            fit = fit_bank_decoder(bank, data, decoder, angles=angles, seed=seed)
+            latent = copies if variant in LATENT_VARIANTS else None
+            fit = fit_bank_decoder(bank, runs[latent], decoder, angles=angles, seed=seed)
             seconds[f"{variant}@{seed}"] = round(time.perf_counter() - t0, 1)
-            arrays = fit.arrays
+            arrays = {**fit.arrays, **({} if latent is None else latent.arrays())}
             smape.setdefault(variant, {})[str(seed)] = {
                 label: float(np.nanmean(metrics.smape(x, fb.estimate(arrays, fit.arch, y, u, settings.dt,
-                                                                     angles=angles))))
+                                                                     angles=angles, copies=latent))))
                 for label, (x, y, u, _) in trials.items()}
             print(variant, seed, seconds[f"{variant}@{seed}"], "s", flush=True)
     ekf = {label: t[3] for label, t in trials.items()}
-    record = {"system": args.system, "samples": len(data), "ekf": ekf, "smape": smape, "fit_seconds": seconds,
+    record = {"system": args.system, "samples": len(runs[None]), "ekf": ekf, "smape": smape, "fit_seconds": seconds,
               "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
@@ -112,7 +122,9 @@ def main() -> None:
              f"SMAPE over the seeds and its ratio to the EKF on the same trials. By `PYTHONPATH=. python "
              f"benchmarks/accuracy/decoder_pairs.py {args.system} --variants {' '.join(args.variants)} --seeds "
              f"{' '.join(seeds)} --n-traj {args.n_traj} --epochs {args.epochs} --trial-seed {args.trial_seed} --trials "
-             f"{args.trials} --noise-levels {' '.join(f'{n:g}' for n in args.noise_levels)} --out {args.out}`.", "",
+             f"{args.trials} --noise-levels {' '.join(f'{n:g}' for n in args.noise_levels)}"
+             + (f" --copies {' '.join(f'{w:g}' for w in args.copies)}" if "copies" in args.variants else "")
+             + f" --out {args.out}`.", "",
              "| case | EKF | " + " | ".join(args.variants) + " |", "|---|---|" + "---|" * len(args.variants)]
     for label in labels:
         means = [np.mean([smape[v][s][label] for s in seeds]) for v in args.variants]

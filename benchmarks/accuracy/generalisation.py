@@ -109,12 +109,13 @@ def simulate(system: kc.System, cell: str, n: int, seed: int) -> dict[str, np.nd
 
 def estimator(path: str):
     model = load_model(path)
-    arrays = {**model.arrays, "bank/A": model.A, "bank/By": model.B}
+    spec = model.spec.architecture
+    arrays = spec.filter_arrays(model.arrays)
     arch = model.card["architecture"]["decoder"]
-    angles = model.spec.architecture.angles
+    copies = spec.model_copies(model.arrays, kc.systems.get(model.card["system"]["name"]))
 
     def est(y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return fb.estimate(arrays, arch, y, u, model.dt, angles=angles)
+        return fb.estimate(arrays, arch, y, u, model.dt, angles=spec.angles, copies=copies)
 
     return est
 

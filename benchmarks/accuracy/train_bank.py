@@ -56,6 +56,7 @@ def main() -> None:
     p.add_argument("--lr", type=float, help="the decoder fit's learning rate")
     p.add_argument("--batch-size", type=int, help="the decoder fit's batch size")
     p.add_argument("--members", type=int, help="decoder networks averaged (default: the system's)")
+    p.add_argument("--copies", help="comma-separated weights of the latent's model copies (BankConfig.copies)")
     p.add_argument("--measurement-std", type=float)
     p.add_argument("--process-std", help="one std or one per state")
     p.add_argument("--box-scale", help="a factor or lo,hi")
@@ -93,6 +94,8 @@ def main() -> None:
             runs[name] = getattr(args, name)
     if args.members is not None:
         top["members"] = args.members
+    if args.copies:
+        top["copies"] = floats(args.copies)
     config = replace(config, **top, rollouts=replace(config.rollouts, **runs))
     if args.hidden:
         config = replace(config, decoder=replace(config.decoder, hidden=tuple(int(h) for h in args.hidden.split(","))))

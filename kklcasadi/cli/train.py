@@ -36,6 +36,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--kinds": ("kinds", lambda a: None if a.kinds is None else tuple(a.kinds)),
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
+                 "--copies": ("copies", lambda a: None if a.copies is None else tuple(a.copies)),
                  "--skip-path": ("skip", lambda a: True if a.skip_path else None),
                  "--loss": ("loss", lambda a: a.loss),
                  "--smape-weight": ("smape_weight", lambda a: a.smape_weight),
@@ -67,6 +68,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--members", type=positive_int, metavar="K",
                    help="bank: fit K decoder networks from seeds SEED..SEED+K-1 and average them; their spread "
                    "joins the domain monitor (training time grows K-fold)")
+    t.add_argument("--copies", nargs="+", type=positive_float, metavar="W",
+                   help="bank: add one model copy of the plant per weight W to the latent, a constant-gain observer "
+                   "xhat' = f(xhat, u) + L (y - h(xhat)) with the Kalman-Bucy gain of the plant linearised at its "
+                   "box centre for process intensity W (1: the protocol EKF's noise ratio); the decoders read their "
+                   "states beside the filters (docs/design.md, 'Model copies'). Not for plants with angle states")
     t.add_argument("--skip-path", action="store_true",
                    help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
                    "slope where they level off past the fitted states (Duffing's shipped bank has it)")

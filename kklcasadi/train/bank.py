@@ -11,11 +11,13 @@ from types import SimpleNamespace
 from typing import Callable, Optional, Sequence
 
 import numpy as np
+import scipy.linalg
 
 from ..model.files import Domain, Model
 from ..model.monitor import DEFAULT_QUANTILE, DEFAULT_SPREAD_QUANTILE, FeatureMonitor, calibrate, with_spread
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
+from ..model.variants.copies import ModelCopies
 from ..nets.specs import DECODER, MLPSpec
 from ..plant.design import Design, time_scales
 from ..plant.systems import System
@@ -35,7 +37,8 @@ from .operational import (
 from .result import Trained
 
 __all__ = ["BankConfig", "MonitorConfig", "train_bank", "design_bank", "bank_model", "bank_monitor", "bank_time_scale",
-           "process_stds", "ensemble_arrays", "fit_members", "member_spread", "nominal_runs", "SPREAD_SEED_OFFSET",
+           "process_stds", "design_copies", "latent_design", "ensemble_arrays", "fit_members", "member_spread",
+           "nominal_runs", "SPREAD_SEED_OFFSET",
            "SHIPPED", "SHIPPED_MEMBERS", "NEW_PLANT_BANK", "PROCESS_ON"]
 
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
@@ -141,6 +144,14 @@ class BankConfig:
         The runs: how many and how long (the budget), inputs, noise range, sample times, escapes.
     decoder : DecoderConfig
         Architecture, loss and optimisation of the decoder.
+    copies : tuple of float
+        Process intensities of the latent's model copies of the plant, one copy each
+        (:class:`kklcasadi.model.variants.copies.ModelCopies`: constant-gain observers whose states the
+        decoder reads beside the filters; ``1.0`` is the protocol EKF's ratio of process to measurement
+        noise); empty: none. Not for plants with angle states.
+    copy_substeps : int or None
+        RK4 steps per sample interval of the copies; None: the fewest with ``h rho <= 1`` (``rho``
+        the largest spectral radius of the copies' linearised error dynamics ``F - L_i H``).
     members : int
         Decoder networks fitted on the same runs from seeds ``seed, seed + 1, ...``: the estimate maps
         the mean of their outputs, and their spread is the domain monitor's second test
@@ -161,10 +172,20 @@ class BankConfig:
     rollouts: RolloutConfig = field(default_factory=RolloutConfig)
     decoder: DecoderConfig = field(default_factory=lambda: DecoderConfig(
         loop=LoopConfig(epochs=40, batch_size=1024, lr=1e-3, schedule="cosine", val_fraction=0.05)))
+    copies: tuple = ()
+    copy_substeps: Optional[int] = None
     members: int = 1
     monitor: MonitorConfig = field(default_factory=MonitorConfig)
 
     def __post_init__(self) -> None:
+        w = np.asarray(self.copies, dtype=float) if isinstance(self.copies, (tuple, list)) else None
+        if w is None or w.ndim != 1 or not np.all(np.isfinite(w)) or np.any(w <= 0):
+            raise error("copies", "a tuple of process intensities > 0 (one model copy each; () for none)", self.copies)
+        if self.copy_substeps is not None and not (isinstance(self.copy_substeps, int)
+                                                    and not isinstance(self.copy_substeps, bool)
+                                                    and self.copy_substeps >= 1):
+            raise error("copy_substeps", "a positive integer (RK4 steps per sample) or None (from the gains)",
+                        self.copy_substeps)
         if not isinstance(self.monitor, MonitorConfig):
             raise error("monitor", "a kklcasadi.train.bank.MonitorConfig", Text(type(self.monitor).__name__),
                         kind=TypeError)
@@ -231,6 +252,27 @@ def design_bank(system: System, config: BankConfig, rate: float | None = None) -
                                 clock=None if config.clock is None else config.clock * rate)
 
 
+def design_copies(system: System, config: BankConfig, dt: float) -> Optional[ModelCopies]:
+    """The latent's model copies of ``config`` for ``system`` at the sample time ``dt`` (None where
+    ``config.copies`` is empty)."""
+    if not config.copies:
+        return None
+    copies = ModelCopies.design(system, config.copies)
+    if config.copy_substeps is not None:
+        return replace(copies, substeps=config.copy_substeps)
+    A, _ = copies.linear_part()
+    return replace(copies, substeps=max(1, int(math.ceil(dt * np.max(np.abs(np.linalg.eigvals(A))) - 1e-9))))
+
+
+def latent_design(bank: fb.FilterBank, copies: Optional[ModelCopies]) -> tuple[np.ndarray, np.ndarray]:
+    """The card's ``design`` ``(A, B)`` of the latent: the filter bank's, and the model copies' linear part
+    after it (block diagonal)."""
+    if copies is None:
+        return bank.A, bank.By
+    A, B = copies.linear_part()
+    return scipy.linalg.block_diag(bank.A, A), np.vstack([bank.By, B])
+
+
 def ensemble_arrays(fits: Sequence[BankFit]) -> dict:
     """The arrays of decoders fitted on the same runs as one ensemble: the first fit's arrays, and each
     other's MLP arrays under its member prefix (:func:`kklcasadi.model.variants.filterbank.member_prefixes`)."""
@@ -246,13 +288,14 @@ def ensemble_arrays(fits: Sequence[BankFit]) -> dict:
 
 
 def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: float, fits: Sequence[BankFit],
-               data: OperationalData, dt: float) -> tuple[dict, BankSpec, Domain]:
+               data: OperationalData, dt: float, *, copies: Optional[ModelCopies] = None
+               ) -> tuple[dict, BankSpec, Domain]:
     """The model file's arrays, spec and domain of the decoders ``fits`` (one per ensemble member) fitted
-    through ``bank`` on ``data``.
+    through ``bank`` (and the model ``copies``, if any) on ``data``.
 
     The card's ``architecture.bank`` records the speeds in rad/s (``config``'s times ``rate``),
-    ``rate`` as ``time_scale`` and, for an ensemble, ``members``; the domain is the range of the
-    data's states and latents.
+    ``rate`` as ``time_scale``, for an ensemble ``members`` and for model copies their weights and
+    substeps; the domain is the range of the data's states and latents.
     """
     arrays = {name: value for name, value in ensemble_arrays(fits).items() if not name.startswith("bank/")}
     arrays.update({"bank/Bu": np.array(bank.Bu), "bank/c": np.array(bank.c)})
@@ -261,7 +304,11 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
               "clock": None if config.clock is None else config.clock * rate, "time_scale": rate}
     if len(fits) > 1:
         params["members"] = len(fits)
-    spec = BankSpec(MLPSpec.from_card(fits[0].arch, "architecture", DECODER), bank.A, bank.By, dt, system.nu, params,
+    if copies is not None:
+        arrays.update(copies.arrays())
+        params["copies"] = {"weights": [float(w) for w in config.copies], "substeps": copies.substeps}
+    A, B = latent_design(bank, copies)
+    spec = BankSpec(MLPSpec.from_card(fits[0].arch, "architecture", DECODER), A, B, dt, system.nu, params,
                     fits[0].angles)
     return arrays, spec, Domain.of(data.x, data.z)
 
@@ -317,7 +364,7 @@ def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder
 
 def nominal_runs(system: System, bank: fb.FilterBank, rollouts: RolloutConfig, n_runs: int, seed: int, *, dt: float,
                  measurement_std: float, process_std: np.ndarray, time_scale: float,
-                 progress: bool = False) -> tuple[OperationalData, str]:
+                 copies: Optional[ModelCopies] = None, progress: bool = False) -> tuple[OperationalData, str]:
     """The runs that set a ``bank``'s spread threshold: ``n_runs`` runs of the recipe ``rollouts`` at the
     nominal noise levels (factors 1), seeded ``seed + SPREAD_SEED_OFFSET``, and their description for the card.
 
@@ -326,7 +373,7 @@ def nominal_runs(system: System, bank: fb.FilterBank, rollouts: RolloutConfig, n
     """
     nominal = replace(rollouts, n_traj=positive_int(n_runs, "n_runs"), noise_range=(1.0, 1.0))
     data = operational_data(system, bank, nominal, seed + SPREAD_SEED_OFFSET, dt=dt, measurement_std=measurement_std,
-                            process_std=process_std, time_scale=time_scale, progress=progress)
+                            process_std=process_std, time_scale=time_scale, copies=copies, progress=progress)
     return data, (f"{n_runs} runs of the fitting recipe at the nominal noise (factor 1), seed "
                   f"{seed + SPREAD_SEED_OFFSET}")
 
@@ -363,15 +410,16 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     process = process_stds(system, config)
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
+    copies = design_copies(system, config, dt)
     angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
     data = operational_data(system, bank, config.rollouts, seed, dt=dt, measurement_std=config.measurement_std,
-                            process_std=process, time_scale=rate, progress=progress)
+                            process_std=process, time_scale=rate, copies=copies, progress=progress)
     if len(data) == 0:
         raise ValueError(f"rollouts: every one of the {config.rollouts.n_traj} runs escaped at once (no samples); "
                          "lower the inputs or box_scale, or raise escape_scale.")
     fits = fit_members(bank, data, config, angles, seed, progress=progress)
     fitted = fits[0]
-    arrays, spec, domain = bank_model(system, bank, config, rate, fits, data, dt)
+    arrays, spec, domain = bank_model(system, bank, config, rate, fits, data, dt, copies=copies)
     training = {"config": config, **config_record(config.rollouts, config.decoder), "time_scale": rate,
                 "measurement_std": config.measurement_std, "process_std": process.tolist(),
                 "runs": data.record, "decoder_fit": fitted.fit.summary(), "samples": fitted.n_samples,
@@ -383,12 +431,12 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     spread = member_spread(arrays, bank, spec)
     spread_data, spread_source = (None, "") if spread is None or not config.monitor.spread_runs else nominal_runs(
         system, bank, config.rollouts, config.monitor.spread_runs, seed, dt=dt,
-        measurement_std=config.measurement_std, process_std=process, time_scale=rate, progress=progress)
+        measurement_std=config.measurement_std, process_std=process, time_scale=rate, copies=copies, progress=progress)
     monitor = bank_monitor(data, seed, spread=spread, spread_data=spread_data, spread_source=spread_source,
                            quantile=config.monitor.quantile, spread_quantile=config.monitor.spread_quantile)
     arrays.update(monitor.arrays())
     history = {prefix: fit.fit.history for prefix, fit in zip(fb.member_prefixes(len(fits)), fits)}
-    return Trained(arrays, spec, SimpleNamespace(A=bank.A, B=bank.By), training, history, 1,
+    return Trained(arrays, spec, SimpleNamespace(A=spec.A, B=spec.By), training, history, 1,
                    config.measurement_std, domain, coverage=None, monitor=monitor.spec,
                    fit_families=fit_families(config.rollouts, rate),
                    process_std=tuple(float(v) for v in process))

@@ -33,6 +33,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..model.variants import filterbank as fb
+from ..model.variants.copies import ModelCopies
 from ..nets.specs import DECODER, MLPSpec
 from ..plant import signals as sig
 from ..plant.design import time_scales
@@ -245,11 +246,13 @@ class OperationalData:
         return len(self.x)
 
     @classmethod
-    def from_runs(cls, bank: fb.FilterBank, runs: TrajectoryBatch, config: RolloutConfig) -> OperationalData:
-        """The samples of given runs (all of each run valid), kept at ``config``'s sample times."""
+    def from_runs(cls, bank: fb.FilterBank, runs: TrajectoryBatch, config: RolloutConfig, *,
+                  copies: ModelCopies | None = None) -> OperationalData:
+        """The samples of given runs (all of each run valid), kept at ``config``'s sample times; ``copies``
+        (the latent's model copies, if any) follow the filters in ``z``."""
         dt = float(runs.t[1] - runs.t[0])
         keep = _keep(runs.t.size, dt, config)
-        z = bank.run(runs.y, runs.u, dt)[:, keep]
+        z = _latent(bank, copies, runs.y, runs.u, dt)[:, keep]
         nz, ny, nu, nx = z.shape[2], runs.y.shape[2], runs.u.shape[2], runs.x.shape[2]
         record = {"runs": len(runs), "cut": 0, "failed": 0, "samples": int(keep.sum() * len(runs)),
                   "simulated_s": float(len(runs) * runs.t.size * dt)}
@@ -257,6 +260,12 @@ class OperationalData:
         return cls(z.reshape(-1, nz), runs.y[:, keep].reshape(-1, ny), runs.u[:, keep].reshape(-1, nu),
                    runs.x[:, keep].reshape(-1, nx), np.broadcast_to(runs.t[keep], shape).ravel(),
                    np.broadcast_to(np.arange(len(runs))[:, None], shape).ravel(), record)
+
+
+def _latent(bank: fb.FilterBank, copies: ModelCopies | None, y: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    """The bank's latent and the model copies' after it (M, N, nz)."""
+    z = bank.run(y, u, dt)
+    return z if copies is None else np.concatenate([z, copies.run(y, u, dt)], axis=-1)
 
 
 def _keep(n: int, dt: float, config: RolloutConfig, rate: float = 1.0) -> np.ndarray:
@@ -508,7 +517,7 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
 
 def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig, seed: int, *, dt: float,
                      measurement_std: float, process_std: float | Sequence[float] = 0.0, time_scale: float = 1.0,
-                     progress: bool = False) -> OperationalData:
+                     copies: ModelCopies | None = None, progress: bool = False) -> OperationalData:
     """Simulate the operational runs and keep the decoder's samples of them.
 
     Parameters
@@ -528,6 +537,9 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
     time_scale : float
         The rate (rad/s) ``config``'s times are in units of (``T`` seconds at 1): its horizon and
         sample times are divided by it, the inputs' frequencies multiplied.
+    copies : ModelCopies or None
+        The latent's model copies of the plant (:mod:`kklcasadi.model.variants.copies`), run over each run
+        after the filters (their latents follow the bank's in ``z``).
     progress : bool
         A progress bar over the runs.
 
@@ -553,7 +565,7 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         valid = np.arange(n)[None, :] < escape[:, None]
         y = np.where(valid[..., None], batch.y, 0.0)          # after an escape: ignored, kept finite
         u = np.where(valid[..., None], batch.u, 0.0)
-        z = bank.run(y, u, dt)
+        z = _latent(bank, copies, y, u, dt)
         mask = valid & keep[None, :]
         runs = np.broadcast_to(np.arange(first, first + len(escape))[:, None], mask.shape)
         first += len(escape)

@@ -13,6 +13,11 @@ but a fixed filter of the signals, and the decoder learns the state from it.
 Angles (``System.angle_outputs``, ``angle_states``) are read and written continuously on the circle
 (:class:`kklcasadi.model.variants.filterbank.Angles`).
 
+The latent may end in model copies of the plant (:mod:`kklcasadi.model.variants.copies`): constant-gain
+observers ``xhat_i' = f(xhat_i, u) + L_i (y - h(xhat_i))`` whose states the decoder reads beside the
+filters; their linear part is in ``(A, By)`` and the rest in the input term, and the step takes RK4 for
+them (the filters' stays exact).
+
 The decoder may be an ensemble of ``K`` networks of one architecture, fitted from different seeds
 on the same runs: ``xhat`` maps the mean of their outputs, and their disagreement
 (:func:`kklcasadi.model.variants.filterbank.spread`) is the domain monitor's second test.
@@ -20,7 +25,8 @@ on the same runs: ``xhat`` maps the mean of their outputs, and their disagreemen
 Card: ``design`` holds ``A`` and ``By`` (as ``B``); ``architecture`` holds ``decoder``
 (``[nz + ny + n_angle_outputs + nu, ..., nx + n_free_angle_states]``) and ``bank`` (the design
 parameters, for the record, the angle layout ``angles`` where there are angles, and ``members``
-K where the decoder is an ensemble); the arrays ``bank/Bu`` (nz, nu), ``bank/c`` (nz,),
+K where the decoder is an ensemble, ``copies`` where the latent has model copies); the arrays ``bank/Bu``
+(nf, nu) and ``bank/c`` (nf,) of the ``nf`` filter latents, ``copies/*`` where there are copies,
 ``decoder/asinh_scale`` (nx,) and the MLP arrays of each member (``decoder``, ``decoder_1``, ...)
 complete it.
 """
@@ -38,13 +44,23 @@ from ...nets.specs import DECODER, MLPSpec, field_error
 from ...plant.systems import System
 from ...validation import is_int, is_number
 from .base import Memory, Networks, Sizes, Variant
-from .filterbank import ASINH_SCALE, Angles, FilterBank, decoder_expression, member_prefixes, spread_expression
+from .copies import ModelCopies
+from .filterbank import (
+    ASINH_SCALE,
+    Angles,
+    bank_from_arrays,
+    decoder_expression,
+    latent_step,
+    member_prefixes,
+    spread_expression,
+)
 
 __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
 _BANK_KEYS = ("y_poles", "u_poles", "y_resonators", "clock")
-#: Keys of ``architecture.bank`` that cards written before them lack.
-_OPTIONAL_KEYS = ("time_scale", "angles", "members")
+#: Keys of ``architecture.bank`` that cards written before them lack (``copies`` only where the latent has model
+#: copies).
+_OPTIONAL_KEYS = ("time_scale", "angles", "members", "copies")
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,6 +88,38 @@ class BankSpec:
         """Decoder networks averaged (``architecture.bank.members``; 1 where the card has none)."""
         return int(self.params.get("members", 1))
 
+    @property
+    def n_copies(self) -> int:
+        """Model copies of the plant in the latent (``architecture.bank.copies``; 0 where the card has none)."""
+        return len(self.params["copies"]["weights"]) if "copies" in self.params else 0
+
+    @property
+    def n_filters(self) -> int:
+        """The filter bank's latents (the first ones; the model copies' follow)."""
+        return self.nz - self.n_copies * self.nx
+
+    def filter_arrays(self, arrays: Mapping[str, Any]) -> dict:
+        """The model's arrays with the filter bank's ``bank/A`` and ``bank/By`` (the card's ``design`` rows of
+        the filters), as :mod:`kklcasadi.model.variants.filterbank`'s functions take them."""
+        n = self.n_filters
+        return {**arrays, "bank/A": self.A[:n, :n], "bank/By": self.By[:n]}
+
+    def model_copies(self, arrays: Mapping[str, Any], system: System) -> Optional[ModelCopies]:
+        """The latent's model copies of ``system`` from the arrays (None where the card has none), checked
+        against the card's ``design``: its rows of the copies must be their linear part."""
+        if not self.n_copies:
+            return None
+        copies = ModelCopies.from_arrays(arrays, system, int(self.params["copies"]["substeps"]))
+        A, B = copies.linear_part()
+        n = self.n_filters
+        if not (np.allclose(self.A[n:, n:], A, rtol=1e-9, atol=1e-12) and np.allclose(self.By[n:], B, rtol=1e-9,
+                                                                                         atol=1e-12)
+                and not np.any(self.A[:n, n:]) and not np.any(self.A[n:, :n])):
+            raise ValueError(f"design: expected the model copies' rows of A and B to be their linear part at "
+                             f"{system.name}'s box centre (F - L H, L; docs/model-format.md), received others. The "
+                             "card was written for another plant or edited; retrain it.")
+        return copies
+
     def to_card(self) -> dict:
         bank = dict(self.params)
         if self.angles:
@@ -79,7 +127,12 @@ class BankSpec:
         return {DECODER: self.decoder.to_card(), "bank": bank}
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
-        shapes = {ASINH_SCALE: (self.nx,), "bank/Bu": (self.nz, self.nu), "bank/c": (self.nz,)}
+        n = self.n_filters
+        shapes = {ASINH_SCALE: (self.nx,), "bank/Bu": (n, self.nu), "bank/c": (n,)}
+        if self.n_copies:
+            ny = self.By.shape[1]
+            shapes.update({"copies/gains": (self.n_copies, self.nx, ny), "copies/reference": (self.nx,),
+                           "copies/bound": (self.nx,)})
         for prefix in member_prefixes(self.members):
             shapes.update(self.decoder.array_shapes(prefix))
         return shapes
@@ -112,7 +165,14 @@ def _params(entry: Any, where: str) -> dict:
     if "members" in entry and not (is_int(entry["members"]) and entry["members"] >= 1):
         raise field_error(where, "architecture.bank.members", "a positive integer (decoder networks averaged)",
                           entry["members"], fix)
-    return {key: entry[key] for key in _BANK_KEYS + ("time_scale", "members") if key in entry}
+    if "copies" in entry:
+        copies = entry["copies"]
+        if not (isinstance(copies, Mapping) and set(copies) == {"weights", "substeps"}
+                and isinstance(copies["weights"], list) and copies["weights"] and _positive_numbers(copies["weights"])
+                and is_int(copies["substeps"]) and copies["substeps"] >= 1):
+            raise field_error(where, "architecture.bank.copies", '{"weights": [w > 0, ...], "substeps": n >= 1} '
+                              "(the model copies' process intensities and RK4 steps per sample)", copies, fix)
+    return {key: entry[key] for key in _BANK_KEYS + ("time_scale", "members", "copies") if key in entry}
 
 
 def _angles(entry: Mapping[str, Any], where: str, sizes: Sizes) -> Angles:
@@ -165,11 +225,18 @@ class Bank(Variant):
         if np.max(np.linalg.eigvals(A).real) >= 0:
             raise field_error(where, "design.A", "a Hurwitz matrix (the filter bank is stable)",
                               float(np.max(np.linalg.eigvals(A).real)), "Use the bank's A.")
-        return BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where), angles)
+        spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where), angles)
+        if spec.n_copies and (spec.n_filters < 1 or angles):
+            raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x nx = "
+                              f"{spec.n_copies * spec.nx} latents after at least one filter, on a plant without "
+                              "angles", entry["copies"], f"The latent has nz = {spec.nz}.")
+        return spec
 
     def networks(self, spec: BankSpec, arrays: Mapping[str, Any], system: System, window: int) -> Networks:
-        full = {**arrays, "bank/A": spec.A, "bank/By": spec.By}
-        bank = FilterBank(spec.A, spec.By, np.asarray(arrays["bank/Bu"]), np.asarray(arrays["bank/c"]))
+        n = spec.n_filters
+        full = spec.filter_arrays(arrays)
+        bank = bank_from_arrays(full)
+        copies = spec.model_copies(arrays, system)
         memory = feedthrough_memory(system.ny, system.nu)
         z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", *memory.shape)
         arch, y, u = spec.decoder.to_card(), w[:system.ny], w[system.ny:]
@@ -181,7 +248,8 @@ class Bank(Variant):
         bu, c = ca.DM(bank.Bu), ca.DM(bank.c)
 
         def input_term(zz: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
-            return ca.mtimes(bu, u) + c
+            filters = ca.mtimes(bu, u) + c
+            return filters if copies is None else ca.vertcat(filters, copies.remainder(zz[n:], u))
 
         return Networks(None, decoder, None, input_term, memory=memory,
-                        exact_step=bank.step_function(spec.dt, "latent_step"), spread=spread)
+                        exact_step=latent_step(full, spec.dt, copies=copies), spread=spread)

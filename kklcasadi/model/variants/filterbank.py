@@ -28,6 +28,10 @@ The decoder may be an ensemble of ``members`` MLPs of one architecture (prefixes
 ``decoder_1``, ...: :func:`member_prefixes`): the mean of their outputs ``v`` goes through the
 output transform, and :func:`spread` measures how far they disagree.
 
+The latent may end in model copies of the plant (:class:`kklcasadi.model.variants.copies.ModelCopies`,
+arrays ``copies/*``): their latents follow the filters' in ``z`` and the decoder reads them as it reads
+the filters (:func:`latent_size`, :func:`latent_run`).
+
 :func:`estimate` is the reference implementation of the whole estimator over many trials at once
 (numpy); :func:`decoder_function` and :meth:`FilterBank.step_function` build the same maps as
 CasADi Functions.
@@ -46,10 +50,12 @@ from ...nets.hold import FOHMatrices, foh_matrices
 from ...nets.numpy_mlp import mlp_numpy
 from ...nets.specs import DECODER, MLPSpec, check_arrays
 from ...plant.systems import System
+from .copies import ModelCopies, copy_count
 
 __all__ = ["FilterBank", "Angles", "NO_ANGLES", "dc_gains", "decoder_features", "decoder_targets",
            "decoder_outputs", "decode", "decoder_function", "decoder_expression", "estimate", "bank_arrays",
-           "bank_from_arrays", "observer_step", "ASINH_SCALE", "member_prefixes", "spread", "spread_expression"]
+           "bank_from_arrays", "observer_step", "latent_size", "latent_run", "latent_step", "ASINH_SCALE",
+           "member_prefixes", "spread", "spread_expression"]
 
 #: Array name of the per-state output transform scales (0: identity, > 0: asinh scale).
 ASINH_SCALE = "decoder/asinh_scale"
@@ -538,13 +544,14 @@ def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: s
     ca.Function
         Inputs ``z`` (nz,), ``y`` (ny,), ``u`` (nu,); output ``xhat`` (nx,).
     """
-    z, y, u = _symbols(bank_from_arrays(arrays))
+    z, y, u = _symbols(arrays)
     out = decoder_expression(arrays, arch, z, y, u, angles=angles, mlp_name=f"{name}_mlp", members=members)
     return ca.Function(name, [z, y, u], [out], ["z", "y", "u"], ["xhat"])
 
 
-def _symbols(bank: FilterBank) -> tuple[ca.MX, ca.MX, ca.MX]:
-    return ca.MX.sym("z", bank.nz), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
+def _symbols(arrays: Mapping[str, Any]) -> tuple[ca.MX, ca.MX, ca.MX]:
+    bank = bank_from_arrays(arrays)
+    return ca.MX.sym("z", latent_size(arrays)), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
 
 
 def _member_expressions(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX,
@@ -552,9 +559,10 @@ def _member_expressions(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: c
     """Each member's network output ``v_j`` at the symbols, and the output scales."""
     bank = bank_from_arrays(arrays)
     spec, scale = _check_decoder(arrays, arch, angles, members)
-    if spec.n_in != angles.n_features(bank.nz, bank.ny, bank.nu):
+    nz = latent_size(arrays)
+    if spec.n_in != angles.n_features(nz, bank.ny, bank.nu):
         raise ValueError(f"decoder input size {spec.n_in} != nz + ny + len(angle outputs) + nu = "
-                         f"{angles.n_features(bank.nz, bank.ny, bank.nu)}")
+                         f"{angles.n_features(nz, bank.ny, bank.nu)}")
     if angles.outputs:
         a = list(angles.outputs)
         other = [j for j in range(bank.ny) if j not in angles.outputs]
@@ -588,12 +596,27 @@ def spread_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.
     return ca.sqrt(sum(ca.sumsqr((vj - mean) * unit) for vj in v) / members)
 
 
+def latent_step(arrays: Mapping[str, Any], dt: float, name: str = "latent_step", *,
+                copies: ModelCopies | None = None) -> ca.Function:
+    """CasADi ``(z, y, y_next, u) -> z_next`` (nz,): the filter bank's exact step (:meth:`FilterBank.step_function`)
+    and the model copies' (:meth:`ModelCopies.step_function`), what :func:`latent_run` takes per sample."""
+    _check_copies(arrays, copies)
+    bank = bank_from_arrays(arrays)
+    filters = bank.step_function(dt)
+    if copies is None:
+        return filters
+    z, u = ca.MX.sym("z", bank.nz + copies.nz), ca.MX.sym("u", bank.nu)
+    y, y_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny)
+    z_next = ca.vertcat(filters(z[:bank.nz], y, y_next, u), copies.step_function(dt)(z[bank.nz:], y, y_next, u))
+    return ca.Function(name, [z, y, y_next, u], [z_next], ["z", "y", "y_next", "u"], ["z_next"])
+
+
 def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float, name: str = "step", *,
-                  angles: Angles = NO_ANGLES, members: int = 1) -> ca.Function:
+                  angles: Angles = NO_ANGLES, members: int = 1, copies: ModelCopies | None = None) -> ca.Function:
     """The whole observer step in the signature of :attr:`kklcasadi.observer.kkl.KKLObserver.step` (window 1).
 
     ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` with ``w = u_k`` (1, nu), the input
-    held over the interval: ``z_next`` from the exact FOH map, ``w_next = u_next``,
+    held over the interval: ``z_next`` from :func:`latent_step`, ``w_next = u_next``,
     ``xhat_next = D(z_next, y_next, u_next)``.
 
     Parameters
@@ -604,11 +627,13 @@ def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float,
         Sample period.
     name : str
         Function name.
+    copies : ModelCopies or None
+        The latent's model copies (required where ``arrays`` has ``copies/*``).
     """
     bank = bank_from_arrays(arrays)
-    latent = bank.step_function(dt)
+    latent = latent_step(arrays, dt, copies=copies)
     dec = decoder_function(arrays, arch, angles=angles, members=members)
-    z, w = ca.MX.sym("z", bank.nz), ca.MX.sym("w", 1, bank.nu)
+    z, w = ca.MX.sym("z", latent_size(arrays)), ca.MX.sym("w", 1, bank.nu)
     y, y_next, u_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny), ca.MX.sym("u_next", bank.nu)
     z_next = latent(z, y, y_next, w.T)
     return ca.Function(name, [z, w, y, y_next, u_next], [z_next, u_next.T, dec(z_next, y_next, u_next)],
@@ -629,8 +654,46 @@ def bank_from_arrays(arrays: Mapping[str, Any]) -> FilterBank:
     return FilterBank(arrays["bank/A"], arrays["bank/By"], arrays["bank/Bu"], arrays["bank/c"])
 
 
+def latent_size(arrays: Mapping[str, Any]) -> int:
+    """The latent's size: the filter bank's latents and the model copies' (``copies/gains``), if any."""
+    return bank_from_arrays(arrays).nz + copy_count(arrays)
+
+
+def _check_copies(arrays: Mapping[str, Any], copies: ModelCopies | None) -> None:
+    n = copy_count(arrays)
+    if n and copies is None:
+        raise ValueError(f"copies: expected the ModelCopies of the arrays' copies/gains ({n} latents: "
+                         "ModelCopies.from_arrays(arrays, system, substeps)), received None.")
+    if copies is not None and copies.nz != n:
+        raise ValueError(f"copies: expected model copies with {n} latents (the arrays' copies/gains), received "
+                         f"{copies.nz}.")
+
+
+def latent_run(arrays: Mapping[str, Any], y: np.ndarray, u: np.ndarray, dt: float, *,
+               copies: ModelCopies | None = None) -> np.ndarray:
+    """The latent from ``z_0 = 0`` for many trials: the filter bank's, then the model copies'.
+
+    Parameters
+    ----------
+    arrays : Mapping[str, array_like]
+        ``bank/*`` (and ``copies/*`` where the latent has model copies).
+    y : numpy.ndarray, shape (M, N, ny)
+    u : numpy.ndarray, shape (M, N, nu)
+    dt : float
+    copies : ModelCopies or None
+        The copies of ``arrays`` (:meth:`ModelCopies.from_arrays`); required where it has them.
+
+    Returns
+    -------
+    numpy.ndarray, shape (M, N, nz)
+    """
+    _check_copies(arrays, copies)
+    z = bank_from_arrays(arrays).run(y, u, dt)
+    return z if copies is None else np.concatenate([z, copies.run(y, u, dt)], axis=-1)
+
+
 def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any, dt: float, *,
-             angles: Angles = NO_ANGLES, members: int = 1) -> np.ndarray:
+             angles: Angles = NO_ANGLES, members: int = 1, copies: ModelCopies | None = None) -> np.ndarray:
     """Reference implementation of the ``bank`` estimator: ``xhat_k = D(z_k, y_k, u_k)``, ``z_0 = 0``.
 
     Parameters
@@ -649,6 +712,8 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
         The decoder's angle layout (the card's ``architecture.bank.angles``).
     members : int
         Networks of the decoder ensemble (the card's ``architecture.bank.members``, default 1).
+    copies : ModelCopies or None
+        The latent's model copies (required where ``arrays`` has ``copies/*``).
 
     Returns
     -------
@@ -656,5 +721,5 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
     """
     bank = bank_from_arrays(arrays)
     y, u, single = _trials(y, u, bank.ny, bank.nu)
-    xhat = decode(arrays, arch, bank.run(y, u, dt), y, u, angles=angles, members=members)
+    xhat = decode(arrays, arch, latent_run(arrays, y, u, dt, copies=copies), y, u, angles=angles, members=members)
     return xhat[0] if single else xhat

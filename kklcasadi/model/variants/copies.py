@@ -1,0 +1,223 @@
+"""Model copies: constant-gain observers of the plant inside the ``bank`` observer's latent.
+
+Copy ``i`` runs ``xhat_i' = f(xhat_i, u) + L_i (y - h(xhat_i))`` from ``xhat_i(0) = r`` (the centre of
+the plant's X0 box); its latents are ``z_i = xhat_i - r`` (0 at the start, as the filters'). The gain
+is the Kalman-Bucy gain of the plant linearised at ``(r, u = 0)``: ``L_i = P_i H^T`` with ``P_i`` the
+stabilising solution of ``F P + P F^T - P H^T H P + w_i I = 0`` (process intensity ``w_i I`` against unit
+measurement intensity; the protocol's EKF, ``Q = (sigma dt)^2 I`` per sample and ``R = sigma^2 I``, is
+``w = 1``). A larger ``w`` gives a faster copy that trusts the measurement more.
+
+The copies carry what a filter bank of the signals cannot: the plant's own response to the input,
+for any input, from the exact model. The decoder reads them beside the filters, so the estimate is
+a learned correction of the model-based ones (docs/design.md, "Model copies").
+
+Between samples ``y`` is held first-order and ``u`` held, and each interval takes ``substeps`` RK4
+steps; after each sample a copy's state is clipped to ``r +- bound`` (the box scaled by
+``BOUND_SCALE`` about its centre), so a copy that an input throws off the plant's range comes back
+instead of blowing up. The latent's linear part goes in the card's ``(A, B)`` (rows
+``F - L_i H`` and ``L_i``, :meth:`ModelCopies.linear_part`) and the remainder
+``f(r + z_i, u) - L_i h(r + z_i) - (F - L_i H) z_i`` is the observer's input term on those rows, so
+``A z + B y + input_term`` is the copies' field.
+
+Arrays ``copies/gains`` (m, nx, ny), ``copies/reference`` (nx,) and ``copies/bound`` (nx,); the card's
+``architecture.bank.copies`` records the weights and the substeps (docs/model-format.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import casadi as ca
+import numpy as np
+import scipy.linalg
+
+from ...plant.rk4 import rk4_step
+from ...plant.systems import System
+from ...validation import error
+
+__all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count"]
+
+#: Half-width of the clip box of a copy's state, in half-widths of the plant's X0 box (the escape box of
+#: the operational runs, :attr:`kklcasadi.train.operational.RolloutConfig.escape_scale`).
+BOUND_SCALE = 10.0
+#: The arrays of the copies in a model file.
+COPY_ARRAYS = ("copies/gains", "copies/reference", "copies/bound")
+
+
+def copy_count(arrays: Mapping[str, Any]) -> int:
+    """Latents of the model copies in ``arrays`` (``m nx``; 0 where there are none)."""
+    gains = arrays.get("copies/gains")
+    return 0 if gains is None else int(np.prod(np.shape(gains)[:2]))
+
+
+def _jacobians(system: System, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``F = df/dx`` and ``H = dh/dx`` at ``(r, u = 0)``."""
+    F, _ = system.f_jac(r, np.zeros(system.nu))
+    return np.array(F, dtype=float), np.array(system.h_jac(r), dtype=float)
+
+
+@dataclass(frozen=True, eq=False)
+class ModelCopies:
+    """Constant-gain observers of ``system`` (see the module docstring).
+
+    Parameters
+    ----------
+    system : System
+        The plant (its ``f`` and ``h``); without angle states.
+    gains : array_like, shape (m, nx, ny)
+        ``L_i``.
+    reference : array_like, shape (nx,)
+        ``r``: every copy's initial state, and the latents' origin.
+    bound : array_like, shape (nx,)
+        Half-widths (> 0) of the box about ``r`` each copy's state is clipped to after each sample.
+    substeps : int
+        RK4 steps per sample interval.
+    """
+
+    system: System
+    gains: np.ndarray
+    reference: np.ndarray
+    bound: np.ndarray
+    substeps: int = 2
+
+    def __post_init__(self) -> None:
+        nx, ny = self.system.nx, self.system.ny
+        if self.system.angle_states:
+            raise error("system", "a plant without angle states (a copy's angle would leave its clip box as it "
+                        "turns)", self.system.name)
+        gains = np.asarray(self.gains, dtype=float)
+        if gains.ndim != 3 or gains.shape[1:] != (nx, ny) or gains.shape[0] < 1 or not np.all(np.isfinite(gains)):
+            raise error("gains", f"finite gains of shape (m >= 1, nx = {nx}, ny = {ny})", gains.shape)
+        for name, value in (("reference", self.reference), ("bound", self.bound)):
+            arr = np.asarray(value, dtype=float)
+            if arr.shape != (nx,) or not np.all(np.isfinite(arr)):
+                raise error(name, f"nx = {nx} finite numbers", arr.tolist() if arr.size < 10 else arr.shape)
+            object.__setattr__(self, name, arr)
+        if np.any(self.bound <= 0):
+            raise error("bound", "half-widths > 0", self.bound.tolist())
+        if isinstance(self.substeps, bool) or not isinstance(self.substeps, (int, np.integer)) or self.substeps < 1:
+            raise error("substeps", "a positive integer (RK4 steps per sample)", self.substeps)
+        object.__setattr__(self, "gains", gains)
+        object.__setattr__(self, "substeps", int(self.substeps))
+
+    @classmethod
+    def design(cls, system: System, weights: Sequence[float], *, substeps: int = 2,
+               bound_scale: float = BOUND_SCALE) -> ModelCopies:
+        """Copies with the Kalman-Bucy gains of ``system`` linearised at its box centre.
+
+        Parameters
+        ----------
+        system : System
+        weights : sequence of float
+            Process intensities ``w_i > 0``, one per copy (against unit measurement intensity).
+        substeps : int
+            RK4 steps per sample interval.
+        bound_scale : float
+            The clip box: the X0 box scaled by this about its centre.
+
+        Raises
+        ------
+        ValueError
+            Where a weight is not a finite number > 0, or the linearisation is not detectable from ``y``.
+        """
+        w = np.asarray(weights, dtype=float)
+        if w.ndim != 1 or w.size < 1 or not np.all(np.isfinite(w)) or np.any(w <= 0):
+            raise error("weights", "one or more finite process intensities > 0, one per copy", list(weights))
+        if not (np.isfinite(bound_scale) and bound_scale > 0):
+            raise error("bound_scale", "a finite number > 0", bound_scale)
+        box = np.asarray(system.x0_box, dtype=float)
+        r = box.mean(axis=1)
+        F, H = _jacobians(system, r)
+        gains = []
+        for wi in w:
+            try:
+                P = scipy.linalg.solve_continuous_are(F.T, H.T, wi * np.eye(system.nx), np.eye(system.ny))
+            except (np.linalg.LinAlgError, ValueError) as exc:
+                raise ValueError(f"weights: no stabilising Kalman-Bucy gain for weight {wi:g}: {system.name} "
+                                 f"linearised at its box centre {r.tolist()} is not detectable from y ({exc}). "
+                                 "Train without model copies.") from exc
+            L = P @ H.T
+            if np.max(np.linalg.eigvals(F - L @ H).real) >= 0:
+                raise ValueError(f"weights: the Kalman-Bucy gain for weight {wi:g} does not stabilise {system.name} "
+                                 "linearised at its box centre; train without model copies.")
+            gains.append(L)
+        return cls(system, np.stack(gains), r, 0.5 * (box[:, 1] - box[:, 0]) * bound_scale, substeps)
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, Any], system: System, substeps: int) -> ModelCopies:
+        """The copies of a model's arrays (:meth:`arrays`) for ``system``."""
+        missing = [k for k in COPY_ARRAYS if k not in arrays]
+        if missing:
+            raise error("arrays", f"the model copies' arrays {list(COPY_ARRAYS)}", f"none of {missing}")
+        return cls(system, np.asarray(arrays["copies/gains"]), np.asarray(arrays["copies/reference"]),
+                   np.asarray(arrays["copies/bound"]), substeps)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """``copies/gains`` (m, nx, ny), ``copies/reference`` (nx,), ``copies/bound`` (nx,)."""
+        return {"copies/gains": self.gains.copy(), "copies/reference": self.reference.copy(),
+                "copies/bound": self.bound.copy()}
+
+    @property
+    def m(self) -> int:
+        """Number of copies."""
+        return self.gains.shape[0]
+
+    @property
+    def nz(self) -> int:
+        """Latents of the copies, ``m nx``."""
+        return self.m * self.system.nx
+
+    def linear_part(self) -> tuple[np.ndarray, np.ndarray]:
+        """The latent's linear part on the copies' rows: ``A`` (nz, nz) block diagonal ``F - L_i H`` and
+        ``B`` (nz, ny) the stacked ``L_i`` (``F``, ``H`` the Jacobians at ``(r, u = 0)``)."""
+        F, H = _jacobians(self.system, self.reference)
+        A = scipy.linalg.block_diag(*[F - L @ H for L in self.gains])
+        return A, np.vstack(list(self.gains))
+
+    def _split(self, z: Any) -> list:
+        nx = self.system.nx
+        return [z[i * nx:(i + 1) * nx] for i in range(self.m)]
+
+    def field(self, z: Any, y: Any, u: Any) -> Any:
+        """The copies' field ``f(r + z_i, u) + L_i (y - h(r + z_i))`` (nz, 1) at CasADi column vectors."""
+        r = ca.DM(self.reference)
+        return ca.vertcat(*[self.system.f(r + zi, u) + ca.mtimes(ca.DM(L), y - self.system.h(r + zi))
+                            for zi, L in zip(self._split(z), self.gains)])
+
+    def remainder(self, z: Any, u: Any) -> Any:
+        """The field less its linear part, ``field - A z - B y`` (nz, 1): independent of ``y``."""
+        A, _ = self.linear_part()
+        r = ca.DM(self.reference)
+        return ca.vertcat(*[self.system.f(r + zi, u) - ca.mtimes(ca.DM(L), self.system.h(r + zi))
+                            for zi, L in zip(self._split(z), self.gains)]) - ca.mtimes(ca.DM(A), z)
+
+    def step_function(self, dt: float, name: str = "copies_step") -> ca.Function:
+        """CasADi ``(z, y, y_next, u) -> z_next`` (nz,): ``substeps`` RK4 steps of :meth:`field` over one
+        sample interval (``y`` first-order hold, ``u`` held), then the clip to ``+- bound``."""
+        z, u = ca.SX.sym("z", self.nz), ca.SX.sym("u", self.system.nu)
+        y, y_next = ca.SX.sym("y", self.system.ny), ca.SX.sym("y_next", self.system.ny)
+        z_next = rk4_step(lambda s, zz: self.field(zz, y + s * (y_next - y), u), z, float(dt), self.substeps)
+        hi = ca.DM(np.tile(self.bound, self.m))
+        z_next = ca.fmin(ca.fmax(z_next, -hi), hi)
+        return ca.Function(name, [z, y, y_next, u], [z_next], ["z", "y", "y_next", "u"], ["z_next"])
+
+    def run(self, y: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+        """The copies' latents from ``z_0 = 0`` for many trials at once (the step of :meth:`step_function`).
+
+        Parameters
+        ----------
+        y : numpy.ndarray, shape (M, N, ny)
+        u : numpy.ndarray, shape (M, N, nu)
+        dt : float
+
+        Returns
+        -------
+        numpy.ndarray, shape (M, N, nz)
+        """
+        M, N = y.shape[:2]
+        step = self.step_function(dt).map(M)
+        z = np.zeros((M, N, self.nz))
+        for k in range(N - 1):
+            z[:, k + 1] = np.asarray(step(z[:, k].T, y[:, k].T, y[:, k + 1].T, u[:, k].T)).T
+        return z

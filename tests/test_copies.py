@@ -1,0 +1,235 @@
+"""Model copies in the ``bank`` latent: the Kalman-Bucy gains, the copies' step against the exact discretisation
+of a linear plant, their split into the card's (A, B) and the input term, and a bank with copies end to end
+(trained, loaded, simulated, compiled to C, checked on load)."""
+
+import json
+import shutil
+import subprocess
+from dataclasses import replace
+
+import casadi as ca
+import numpy as np
+import pytest
+import scipy.linalg
+
+import kklcasadi as kc
+from kklcasadi.model.variants.copies import ModelCopies, copy_count
+from kklcasadi.nets.hold import foh_matrices
+from kklcasadi.plant.systems import LINEAR_F, LINEAR_G, LINEAR_H
+
+
+@pytest.mark.parametrize("name, weights", [("linear", (1.0,)), ("duffing", (1.0, 100.0)), ("vdp", (0.1, 1e4))])
+def test_the_gains_solve_the_filter_riccati_equation_and_stabilise_the_linearisation(name, weights):
+    system = kc.systems.get(name)
+    copies = ModelCopies.design(system, weights)
+    r = system.x0_box.mean(axis=1)
+    x = ca.SX.sym("x", system.nx)
+    F = np.array(ca.Function("F", [x], [ca.jacobian(system.f(x, 0), x)])(r))
+    H = np.array(ca.Function("H", [x], [ca.jacobian(system.h(x), x)])(r))
+    for w, L in zip(weights, copies.gains):
+        # L = P H^T with F P + P F^T - P H^T H P + w I = 0, P symmetric positive definite
+        P = scipy.linalg.solve_continuous_are(F.T, H.T, w * np.eye(system.nx), np.eye(system.ny))
+        np.testing.assert_allclose(L, P @ H.T, rtol=1e-12)
+        residual = F @ P + P @ F.T - P @ H.T @ H @ P + w * np.eye(system.nx)
+        assert np.abs(residual).max() < 1e-9 * max(1.0, w)
+        assert np.linalg.eigvalsh(P).min() > 0
+        assert np.linalg.eigvals(F - L @ H).real.max() < 0
+    assert copies.nz == len(weights) * system.nx and np.array_equal(copies.reference, r)
+    np.testing.assert_allclose(copies.bound, 10 * 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0]))
+
+
+def test_a_faster_copy_trusts_the_measurement_more():
+    copies = ModelCopies.design(kc.systems.get("duffing"), (1.0, 100.0, 1e4))
+    A, _ = copies.linear_part()
+    speeds = [np.abs(np.linalg.eigvals(A[2 * i:2 * i + 2, 2 * i:2 * i + 2])).max() for i in range(3)]
+    assert speeds[0] < speeds[1] < speeds[2]
+    assert copies.gains[0, 0, 0] < copies.gains[1, 0, 0] < copies.gains[2, 0, 0]
+
+
+def _linear_reference(L, y, u, dt):
+    """The copy on the linear plant by the exact discretisation: xhat' = (F - L H) xhat + L y + G u, y FOH, u held."""
+    m = foh_matrices(LINEAR_F - L @ LINEAR_H, L, dt, Bu=LINEAR_G, c=np.zeros(2))
+    z = np.zeros((y.shape[0], 2))
+    for k in range(y.shape[0] - 1):
+        z[k + 1] = m.Ad @ z[k] + m.Gy @ y[k] + m.Gy_next @ y[k + 1] + m.Gu @ u[k] + m.g
+    return z
+
+
+def test_on_a_linear_plant_the_copy_is_the_exact_filter_to_rk4_order():
+    system = kc.systems.get("linear")
+    tr = kc.simulate(system, [0.7, -0.3], kc.signals.make("sinusoid", amplitude=0.8, omega=1.3), T=10.0, dt=0.05,
+                     measurement_std=0.05, seed=2)
+    base = ModelCopies.design(system, (30.0,))
+    exact = _linear_reference(base.gains[0], tr.y, tr.u, 0.05)
+    errors = []
+    for substeps in (1, 2, 4):
+        z = replace(base, substeps=substeps).run(tr.y[None], tr.u[None], 0.05)[0]
+        errors.append(np.abs(z - exact).max())
+    assert errors[0] < 1e-4
+    # fourth order: halving the step divides the error by about 16
+    assert 10 < errors[0] / errors[1] < 22 and 10 < errors[1] / errors[2] < 22
+
+
+def test_the_card_design_and_the_input_term_add_up_to_the_copies_field():
+    system = kc.systems.get("vdp")
+    copies = ModelCopies.design(system, (1.0, 100.0))
+    A, B = copies.linear_part()
+    rng = np.random.default_rng(0)
+    z, y, u = ca.SX.sym("z", copies.nz), ca.SX.sym("y", 1), ca.SX.sym("u", 1)
+    field = ca.Function("field", [z, y, u], [copies.field(z, y, u)])
+    rest = ca.Function("rest", [z, u], [copies.remainder(z, u)])
+    for _ in range(5):
+        zv, yv, uv = rng.normal(size=copies.nz), rng.normal(size=1), rng.normal(size=1)
+        xhat = copies.reference + zv.reshape(2, 2)
+        expected = np.concatenate([np.asarray(system.f(xi, uv)).ravel()
+                                   + L @ (yv - np.asarray(system.h(xi)).ravel()) for xi, L in zip(xhat, copies.gains)])
+        np.testing.assert_allclose(np.asarray(field(zv, yv, uv)).ravel(), expected, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(A @ zv + B @ yv + np.asarray(rest(zv, uv)).ravel(), expected, rtol=1e-12,
+                                   atol=1e-12)
+
+
+def test_a_copy_thrown_off_comes_back_inside_its_bound():
+    system = kc.systems.get("duffing")
+    copies = ModelCopies.design(system, (1.0,))
+    y = np.full((1, 40, 1), 1e3)                 # a measurement far beyond the box
+    z = copies.run(y, np.zeros((1, 40, 1)), 0.05)
+    assert np.all(np.isfinite(z)) and np.all(np.abs(z) <= copies.bound + 1e-12)
+    assert np.isclose(np.abs(z[0, -1, 0]), copies.bound[0])
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"weights": (0.0,)}, "weights: expected one or more finite process intensities > 0"),
+    ({"weights": ()}, "weights: expected one or more"),
+    ({"weights": (1.0,), "bound_scale": -1.0}, "bound_scale: expected a finite number > 0"),
+])
+def test_design_rejects_bad_settings(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ModelCopies.design(kc.systems.get("duffing"), **kwargs)
+
+
+def test_copies_need_a_detectable_plant_without_angles():
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    blind = kc.System("blind", x, u, [x[1], x[1] + u], x[0] * 0 + x[1] ** 3, [[-1, 1], [-1, 1]])
+    with pytest.raises(ValueError, match="not detectable from y"):
+        ModelCopies.design(blind, (1.0,))
+    angle = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-1, 1], [-1, 1]], angle_states=[0],
+                      angle_outputs=[0])
+    with pytest.raises(ValueError, match="system: expected a plant without angle states"):
+        ModelCopies.design(angle, (1.0,))
+
+
+def test_model_copies_validate_their_arrays():
+    system = kc.systems.get("duffing")
+    copies = ModelCopies.design(system, (1.0,))
+    with pytest.raises(ValueError, match="gains: expected finite gains of shape"):
+        replace(copies, gains=np.zeros((1, 3, 1)))
+    with pytest.raises(ValueError, match="bound: expected half-widths > 0"):
+        replace(copies, bound=np.array([1.0, 0.0]))
+    with pytest.raises(ValueError, match="substeps: expected a positive integer"):
+        replace(copies, substeps=0)
+    with pytest.raises(ValueError, match=r"arrays: expected the model copies' arrays"):
+        ModelCopies.from_arrays({"copies/gains": copies.gains}, system, 2)
+    assert copy_count(copies.arrays()) == 2 and copy_count({}) == 0
+
+
+# ---------------------------------------------------------------------- a bank with copies end to end
+@pytest.fixture(scope="module")
+def copies_dir(tmp_path_factory):
+    pytest.importorskip("torch")
+    from kklcasadi.train import LoopConfig, default_config, train_observer
+    from kklcasadi.train.operational import DecoderConfig, RolloutConfig
+
+    config = replace(default_config("duffing", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=2,
+                     copies=(1.0, 1e4), rollouts=RolloutConfig(n_traj=8, T=6.0),
+                     decoder=DecoderConfig(hidden=(8, 8), loop=LoopConfig(epochs=2, batch_size=64)))
+    return train_observer("duffing", "bank", tmp_path_factory.mktemp("copies") / "bank", config=config, seed=3,
+                          progress=False)
+
+
+def test_the_card_records_the_copies_and_their_linear_part(copies_dir):
+    from kklcasadi.model.files import load_model
+
+    model = load_model(copies_dir)
+    spec = model.spec.architecture
+    assert model.card["architecture"]["bank"]["copies"] == {"weights": [1.0, 10000.0], "substeps": 5}
+    assert spec.n_copies == 2 and spec.n_filters == 2 + 1 + 1 and model.A.shape == (8, 8)
+    assert model.card["architecture"]["decoder"]["sizes"][0] == 8 + 1 + 1
+    copies = spec.model_copies(model.arrays, kc.systems.get("duffing"))
+    A, B = copies.linear_part()
+    np.testing.assert_array_equal(model.A[4:, 4:], A)
+    np.testing.assert_array_equal(model.B[4:], B)
+    assert model.spec.monitor.features == 8 + 2
+
+
+def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir, tmp_path):
+    from kklcasadi.model.files import load_model
+    from kklcasadi.model.variants import filterbank as fb
+    from kklcasadi.observer.codegen import generate_c
+
+    obs = kc.load_observer(copies_dir)
+    tr = kc.simulate(obs.system, [0.4, -0.6], kc.signals.make("square", amplitude=0.7, omega=1.0), T=5.0, dt=obs.dt,
+                     process_std=0.1, measurement_std=0.1, seed=4)
+    model = load_model(copies_dir)
+    spec = model.spec.architecture
+    copies = spec.model_copies(model.arrays, obs.system)
+    expected = fb.estimate(spec.filter_arrays(model.arrays), model.card["architecture"]["decoder"], tr.y, tr.u, obs.dt,
+                           members=2, copies=copies)
+    est = obs.simulate(tr.t, tr.y, tr.u)
+    np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
+    live = obs.estimator()
+    np.testing.assert_allclose([live.make_step(y, u) for y, u in zip(tr.y, tr.u)], est.xhat, rtol=0, atol=1e-12)
+    # the whole field A z + B y + input term, integrated by RK4, is the same observer up to the step's accuracy
+    rk4 = kc.load_observer(copies_dir, discretization="rk4", substeps=8).simulate(tr.t, tr.y, tr.u)
+    assert np.abs(rk4.xhat - est.xhat).max() < 1e-4 * (1 + np.abs(est.xhat).max())
+    with pytest.raises(ValueError, match="copies: expected the ModelCopies"):
+        fb.estimate(spec.filter_arrays(model.arrays), model.card["architecture"]["decoder"], tr.y, tr.u, obs.dt,
+                    members=2)
+    if shutil.which("gcc") is None:
+        return
+    files = generate_c(obs, tmp_path, "bank", math="libm")
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
+                    "-o", str(tmp_path / "bank")], check=True)
+    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
+    out = subprocess.run([str(tmp_path / "bank")], input=rows + "\n", capture_output=True, text=True, check=True)
+    np.testing.assert_array_equal(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:], est.xhat)
+
+
+def test_a_card_whose_copies_do_not_match_its_design_is_refused(copies_dir, tmp_path):
+    from kklcasadi.model.files import load_model, save_model
+
+    model = load_model(copies_dir)
+    arrays = dict(model.arrays)
+    arrays["copies/gains"] = arrays["copies/gains"] * 1.5
+    save_model(tmp_path / "m", arrays, model.card, overwrite=True)
+    with pytest.raises(ValueError, match="design: expected the model copies' rows of A and B"):
+        kc.load_observer(tmp_path / "m")
+    card = json.loads(json.dumps(model.card))
+    card["architecture"]["bank"]["copies"] = {"weights": [1.0], "substeps": 0}
+    with pytest.raises(ValueError, match="architecture.bank.copies"):
+        save_model(tmp_path / "n", model.arrays, card, overwrite=True)
+        kc.load_observer(tmp_path / "n")
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("copies", (0.0,), "copies: expected a tuple of process intensities > 0"),
+    ("copies", 1.0, "copies: expected a tuple"),
+    ("copy_substeps", 0, "copy_substeps: expected a positive integer"),
+])
+def test_bank_config_rejects_bad_copies(field, value, match):
+    pytest.importorskip("torch")
+    from kklcasadi.train.bank import BankConfig
+
+    with pytest.raises(ValueError, match=match):
+        BankConfig(**{field: value})
+
+
+def test_design_copies_takes_enough_substeps_for_the_fastest_copy():
+    pytest.importorskip("torch")
+    from kklcasadi.train.bank import BankConfig, design_copies
+
+    system = kc.systems.get("duffing")
+    assert design_copies(system, BankConfig(), 0.05) is None
+    assert design_copies(system, BankConfig(copies=(1.0,)), 0.05).substeps == 1
+    assert design_copies(system, BankConfig(copies=(1.0, 1e4)), 0.05).substeps == 5      # |eig| 100 rad/s
+    assert design_copies(system, BankConfig(copies=(1.0, 1e4)), 0.01).substeps == 1
+    assert design_copies(system, BankConfig(copies=(1.0,), copy_substeps=3), 0.05).substeps == 3
