@@ -18,7 +18,9 @@ Pol, whose ensembles are now fit on 8000 runs, that is the 4000-run ensemble of
 three decoders and its runs add the ``pd`` family; ``vdp_generalisation_two_decoders.json`` is the first
 two decoders of the three-decoder ensemble without it, ``vdp_generalisation_no_pd.json`` that ensemble
 (shipped before the pd one; monitor rows). Duffing's shipped decoders have a linear skip path;
-``duffing_generalisation_no_skip.json`` is the ensemble shipped before, without it (monitor rows).
+``duffing_generalisation_no_skip.json`` is the ensemble shipped before, without it (monitor rows). Duffing's
+shipped latent has model copies of the plant; ``duffing_generalisation_no_copies.json`` is the ensemble with
+skip paths shipped before, without them (monitor rows).
 Roessler's shipped decoders fit MSE plus the protocol's SMAPE; ``rossler_generalisation_mse.json`` is the
 ensemble shipped before, with the MSE loss alone (monitor rows).
 
@@ -74,10 +76,12 @@ def card(system: str) -> dict:
 
 def recipe(system: str) -> str:
     """The shipped bank's recipe in words: "broad-fit", "+ pd" where its runs hold the ``pd`` family, "with skip
-    paths" where its decoders have the linear skip path, "with the SMAPE loss" where they fit MSE plus SMAPE."""
+    paths" where its decoders have the linear skip path, "with the SMAPE loss" where they fit MSE plus SMAPE,
+    "and model copies" where its latent has copies of the plant."""
     text = "broad-fit + pd" if "pd" in card(system)["training"]["rollouts"]["kinds"] else "broad-fit"
     text += " with skip paths" if card(system)["architecture"]["decoder"].get("skip") else ""
-    return text + (" with the SMAPE loss" if card(system)["training"]["decoder"]["loss"] != "mse" else "")
+    text += " with the SMAPE loss" if card(system)["training"]["decoder"]["loss"] != "mse" else ""
+    return text + (" and model copies" if "copies" in card(system)["architecture"]["bank"] else "")
 
 
 def decoders(system: str) -> str:
@@ -126,7 +130,7 @@ def monitor() -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for system in SYSTEMS:
         data = reports(system)
-        for key, suffix in (("no pd", "_no_pd"), ("no skip", "_no_skip"), ("mse", "_mse"),
+        for key, suffix in (("no pd", "_no_pd"), ("no copies", "_no_copies"), ("no skip", "_no_skip"), ("mse", "_mse"),
                             ("two decoders", "_two_decoders"), ("4000 runs", "_4000_runs")):
             path = ROOT / f"{system}_generalisation{suffix}.json"
             if path.exists():
@@ -135,6 +139,7 @@ def monitor() -> str:
         before_runs = 4000 if "4000 runs" in data else runs(system)
         labels = {"shipped": f"{recipe(system)}, {decoders(system)}, {runs(system)} runs (shipped)",
                   "no pd": f"broad-fit, {decoders(system)}, {runs(system)} runs",
+                  "no copies": f"broad-fit with skip paths, {decoders(system)}, {runs(system)} runs, no model copies",
                   "no skip": f"broad-fit, {decoders(system)}, {runs(system)} runs, no skip path",
                   "mse": f"broad-fit, {decoders(system)}, {runs(system)} runs, MSE loss",
                   "two decoders": f"{ensemble}, {runs(system)} runs", "4000 runs": f"{ensemble}, 4000 runs",
@@ -144,7 +149,8 @@ def monitor() -> str:
         before = ROOT / f"{system}_generalisation_monitor_before.json"
         if before.exists():
             data["before"] = json.loads(before.read_text())
-        for k in [k for k in ("shipped", "no pd", "no skip", "mse", "two decoders", "4000 runs", "before", *KINDS[1:])
+        for k in [k for k in ("shipped", "no pd", "no copies", "no skip", "mse", "two decoders", "4000 runs", "before",
+                              *KINDS[1:])
                   if k in data]:
             for g in data[k]["models"][MODEL]["monitor"]:
                 cells = [system, labels[k], g["group"], str(g["trials"]), str(g["bad"]), str(g["flagged"])]

@@ -135,3 +135,18 @@ def monitored_bank(model_dir_factory):
             "fit_families": {"zero": {}, "constant": {"value": [-1.0, 1.0]}}}
     save_model(path, {**model.arrays, **monitor.arrays()}, card, overwrite=True)
     return path, monitor
+
+
+def c_program_estimates(obs, folder, name, t, y, u):
+    """The estimates of ``obs``'s C program (``generate_c`` with the C library's math, built by gcc) fed the rows
+    ``t, y, u`` on stdin: (N, nx)."""
+    import subprocess
+
+    from kklcasadi.observer.codegen import generate_c
+
+    files = generate_c(obs, folder, name, math="libm")
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
+                    "-o", str(folder / name)], check=True)
+    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([t, y, u]))
+    out = subprocess.run([str(folder / name)], input=rows + "\n", capture_output=True, text=True, check=True)
+    return np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:]

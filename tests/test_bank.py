@@ -3,7 +3,6 @@ KKLObserver whose step, simulate and C code reproduce the reference estimator of
 
 import json
 import shutil
-import subprocess
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,11 +12,11 @@ import pytest
 pytest.importorskip("torch")
 
 import casadi as ca  # noqa: E402
+from conftest import c_program_estimates  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
-from kklcasadi.observer.codegen import generate_c
 from kklcasadi.train import LoopConfig, default_config, train_observer  # noqa: E402
 from kklcasadi.train.bank import MonitorConfig, nominal_runs  # noqa: E402
 from kklcasadi.train.operational import DecoderConfig, RolloutConfig  # noqa: E402
@@ -75,14 +74,9 @@ def test_bank_compiles_to_c_that_reproduces_simulate(fixture, x0, request, tmp_p
     """One decoder (Roessler) and a two-decoder ensemble with skip paths (Duffing): the C program's estimates are
     simulate's."""
     obs = kc.load_observer(request.getfixturevalue(fixture))
-    files = generate_c(obs, tmp_path, "bank", math="libm")
-    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
-                    "-o", str(tmp_path / "bank")], check=True)
     tr = kc.simulate(obs.system, x0, kc.signals.make("sinusoid", amplitude=0.4, omega=1.5), T=3.0,
                      dt=obs.dt, measurement_std=0.1, seed=1)
-    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
-    out = subprocess.run([str(tmp_path / "bank")], input=rows + "\n", capture_output=True, text=True, check=True)
-    np.testing.assert_array_equal(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:],
+    np.testing.assert_array_equal(c_program_estimates(obs, tmp_path, "bank", tr.t, tr.y, tr.u),
                                   obs.simulate(tr.t, tr.y, tr.u).xhat)
 
 
@@ -133,12 +127,7 @@ def test_the_angle_observer_equals_the_reference_and_its_c_code(arm_dir, tmp_pat
     np.testing.assert_allclose(moved[:, 1] - est.xhat[:, 1], 2 * np.pi, atol=1e-2)
     if shutil.which("gcc") is None:
         return
-    files = generate_c(obs, tmp_path, "arm", math="libm")
-    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
-                    "-o", str(tmp_path / "arm")], check=True)
-    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
-    out = subprocess.run([str(tmp_path / "arm")], input=rows + "\n", capture_output=True, text=True, check=True)
-    np.testing.assert_allclose(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:], est.xhat, rtol=0,
+    np.testing.assert_allclose(c_program_estimates(obs, tmp_path, "arm", tr.t, tr.y, tr.u), est.xhat, rtol=0,
                                atol=1e-12)
 
 
@@ -160,7 +149,7 @@ def test_a_single_process_std_acts_where_process_on_says():
 # ---------------------------------------------------------------------- decoder ensembles
 @pytest.fixture(scope="module")
 def ensemble_dir(tmp_path_factory):
-    config = replace(default_config("duffing", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=2,
+    config = replace(default_config("duffing", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=2, copies=(),
                      rollouts=RolloutConfig(n_traj=8, T=6.0),
                      monitor=MonitorConfig(spread_quantile=0.97, spread_runs=4),
                      decoder=DecoderConfig(hidden=(8, 8), skip=True, loop=LoopConfig(epochs=2, batch_size=64)))
@@ -334,6 +323,8 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
         config.rollouts.n_traj, list(config.rollouts.kinds), config.rollouts.regime, config.rollouts.noise_range)
     assert tuple(model.card["architecture"]["bank"]["u_poles"]) == config.u_poles
     assert model.spec.architecture.decoder.skip == config.decoder.skip == (system == "duffing")  # skip paths
+    copies = model.card["architecture"]["bank"].get("copies", {"weights": []})   # model copies: Duffing's
+    assert tuple(copies["weights"]) == config.copies == ((1.0, 100.0, 1e4) if system == "duffing" else ())
     decoder = training["decoder"]                    # the loss: Roessler's mse + 0.5 SMAPE, else mse
     assert decoder["loss"] == config.decoder.loss == ("mse+smape" if system == "rossler" else "mse")
     assert decoder["loss"] == "mse" or decoder["smape_weight"] == config.decoder.smape_weight == 0.5
@@ -351,12 +342,13 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
     obs = kc.load_observer(path)
     batch = Protocol(n_trials=1, T=10.0).cell("square").simulate(obs.system)
     est = obs.simulate(batch.t, batch.y[0], batch.u[0])
-    arrays, arch = {**model.arrays, "bank/A": model.A, "bank/By": model.B}, model.card["architecture"]["decoder"]
-    angles = model.spec.architecture.angles
+    spec = model.spec.architecture
+    arrays, arch = spec.filter_arrays(model.arrays), model.card["architecture"]["decoder"]
+    angles, copies = spec.angles, spec.model_copies(model.arrays, obs.system)
     np.testing.assert_allclose(est.xhat, fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles,
-                                                     members=config.members), rtol=1e-9, atol=1e-9)
+                                                     members=config.members, copies=copies), rtol=1e-9, atol=1e-9)
     for fewer in range(1, config.members):            # the ensemble is none of its leading sub-ensembles
-        part = fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles, members=fewer)
+        part = fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles, members=fewer, copies=copies)
         assert np.abs(part - est.xhat).max() > 1e-6
 
 

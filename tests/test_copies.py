@@ -4,13 +4,13 @@ of a linear plant, their split into the card's (A, B) and the input term, and a 
 
 import json
 import shutil
-import subprocess
 from dataclasses import replace
 
 import casadi as ca
 import numpy as np
 import pytest
 import scipy.linalg
+from conftest import c_program_estimates
 
 import kklcasadi as kc
 from kklcasadi.model.variants.copies import ModelCopies, copy_count
@@ -164,7 +164,6 @@ def test_the_card_records_the_copies_and_their_linear_part(copies_dir):
 def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir, tmp_path):
     from kklcasadi.model.files import load_model
     from kklcasadi.model.variants import filterbank as fb
-    from kklcasadi.observer.codegen import generate_c
 
     obs = kc.load_observer(copies_dir)
     tr = kc.simulate(obs.system, [0.4, -0.6], kc.signals.make("square", amplitude=0.7, omega=1.0), T=5.0, dt=obs.dt,
@@ -186,12 +185,7 @@ def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir
                     members=2)
     if shutil.which("gcc") is None:
         return
-    files = generate_c(obs, tmp_path, "bank", math="libm")
-    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
-                    "-o", str(tmp_path / "bank")], check=True)
-    rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([tr.t, tr.y, tr.u]))
-    out = subprocess.run([str(tmp_path / "bank")], input=rows + "\n", capture_output=True, text=True, check=True)
-    np.testing.assert_array_equal(np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:], est.xhat)
+    np.testing.assert_array_equal(c_program_estimates(obs, tmp_path, "bank", tr.t, tr.y, tr.u), est.xhat)
 
 
 def test_a_card_whose_copies_do_not_match_its_design_is_refused(copies_dir, tmp_path):
