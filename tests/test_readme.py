@@ -318,6 +318,19 @@ def test_the_damped3_table_is_the_evaluate_scores():
         if seed == "0":
             clean = (" / ".join(f"{cells[who, k, False]:.1f}" for k in KINDS) for who in ("EKF", method))
             assert "({} % against the bank's {} for seed 0:".format(*clean) in text
+            plain = cells
+    # the same command with --copies 1 100 10000, scored beside a rerun without them (seed 0's row, to the digit)
+    both = json.loads((ROOT / "results" / "accuracy" / "damped3" / "damped3_copies_scores.json").read_text())
+    cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"] for c in both}
+    assert all(round(cells["plain", k, n], 1) == round(plain[m, k, n], 1) for (m, k, n) in plain if m != "EKF")
+    copies, ekf = ([cells[who, k, True] for k in KINDS] for who in ("copies", "EKF"))
+    assert "| bank with model copies (seed 0) | " + " | ".join(f"{v:.1f}" for v in copies) + " |" in README
+    assert "| bank / EKF (model copies, seed 0) | " + " | ".join(f"{b / e:.2f}x" for b, e in zip(copies, ekf)) \
+        + " |" in README
+    clean = " / ".join(f"{cells['copies', k, False]:.1f}" for k in KINDS)
+    assert f"noise-free {clean} %" in text
+    card = json.loads((ROOT / "results" / "accuracy" / "damped3" / "card_copies_seed0.json").read_text())
+    assert card["architecture"]["bank"]["copies"]["weights"] == [1.0, 100.0, 10000.0]
 
 
 def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_banks(capsys):
