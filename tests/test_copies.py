@@ -227,3 +227,33 @@ def test_design_copies_takes_enough_substeps_for_the_fastest_copy():
     assert design_copies(system, BankConfig(copies=(1.0, 1e4)), 0.05).substeps == 5      # |eig| 100 rad/s
     assert design_copies(system, BankConfig(copies=(1.0, 1e4)), 0.01).substeps == 1
     assert design_copies(system, BankConfig(copies=(1.0,), copy_substeps=3), 0.05).substeps == 3
+
+
+PLANTS = '''import casadi as ca
+import kklcasadi as kc
+
+
+def pendulum():
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    return kc.System("pend", x, u, [x[1], -ca.sin(x[0]) - 0.3 * x[1] + u], x[0], [[-1.5, 1.5], [-1.5, 1.5]],
+                     angle_states=[0], angle_outputs=[0])
+
+
+def blind():
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    return kc.System("blind", x, u, [x[1], x[1] + u], x[1] ** 3, [[-1, 1], [-1, 1]])
+'''
+
+
+@pytest.mark.parametrize("plant, message", [
+    ("pendulum", "error: --copies: expected a plant without angle states"),
+    ("blind", "error: --copies: no stabilising Kalman-Bucy gain for weight 1: blind linearised at its box centre"),
+])
+def test_kklcasadi_train_refuses_copies_the_plant_cannot_take_before_training(plant, message, tmp_path, capsys):
+    pytest.importorskip("torch")
+    from kklcasadi.cli import main
+
+    (tmp_path / "plants.py").write_text(PLANTS)
+    code = main(["train", "--plant", f"{tmp_path / 'plants.py'}:{plant}", "--copies", "1", "--out",
+                 str(tmp_path / "m"), "--quiet"])
+    assert code == 2 and message in capsys.readouterr().err and not (tmp_path / "m").exists()

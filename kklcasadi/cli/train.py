@@ -138,8 +138,13 @@ def run(args: argparse.Namespace) -> int:
     if args.method is None and not args.quiet:
         print(f"method: {RECOMMENDED} (the observer for a new plant; --method chooses another)", flush=True)
     config = training_config(plant, method, args)
+    dt = 0.05 if args.dt is None else args.dt
+    if args.copies is not None:         # the plant must take them: no angle states, detectable at the box centre
+        from ..train.bank import design_copies
+
+        flagged("--copies", design_copies, plant, config, dt)
     path = flagged("--" + method, train_observer, plant, method, out, config=config, base=args.base,
-                   dt=0.05 if args.dt is None else args.dt, seed=args.seed, device=args.device, resume=args.resume,
+                   dt=dt, seed=args.seed, device=args.device, resume=args.resume,
                    overwrite=args.overwrite, progress=not args.quiet, threads=args.threads, epochs=args.epochs)
     print(f"wrote {path}/weights.npz and card.json")
     return 0
