@@ -90,7 +90,7 @@ def main() -> None:
     for case in gen.cases():
         batch = cache.trials(plant, case.cell(settings))
         x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
-        z = fb.latent_run(arrays, y, u, model.dt, copies=copies)
+        z = fb.latent_run(bank, y, u, model.dt, copies=copies)
         xhat = fb.decode(arrays, arch, z, y, u, angles=spec.angles, members=spec.members)
         w = np.concatenate([y, u], axis=-1)[..., None]
         after = batch.t >= settings.t_settle

@@ -252,7 +252,7 @@ class OperationalData:
         (the latent's model copies, if any) follow the filters in ``z``."""
         dt = float(runs.t[1] - runs.t[0])
         keep = _keep(runs.t.size, dt, config)
-        z = _latent(bank, copies, runs.y, runs.u, dt)[:, keep]
+        z = fb.latent_run(bank, runs.y, runs.u, dt, copies=copies)[:, keep]
         nz, ny, nu, nx = z.shape[2], runs.y.shape[2], runs.u.shape[2], runs.x.shape[2]
         record = {"runs": len(runs), "cut": 0, "failed": 0, "samples": int(keep.sum() * len(runs)),
                   "simulated_s": float(len(runs) * runs.t.size * dt)}
@@ -260,12 +260,6 @@ class OperationalData:
         return cls(z.reshape(-1, nz), runs.y[:, keep].reshape(-1, ny), runs.u[:, keep].reshape(-1, nu),
                    runs.x[:, keep].reshape(-1, nx), np.broadcast_to(runs.t[keep], shape).ravel(),
                    np.broadcast_to(np.arange(len(runs))[:, None], shape).ravel(), record)
-
-
-def _latent(bank: fb.FilterBank, copies: ModelCopies | None, y: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-    """The bank's latent and the model copies' after it (M, N, nz)."""
-    z = bank.run(y, u, dt)
-    return z if copies is None else np.concatenate([z, copies.run(y, u, dt)], axis=-1)
 
 
 def _keep(n: int, dt: float, config: RolloutConfig, rate: float = 1.0) -> np.ndarray:
@@ -565,7 +559,7 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         valid = np.arange(n)[None, :] < escape[:, None]
         y = np.where(valid[..., None], batch.y, 0.0)          # after an escape: ignored, kept finite
         u = np.where(valid[..., None], batch.u, 0.0)
-        z = _latent(bank, copies, y, u, dt)
+        z = fb.latent_run(bank, y, u, dt, copies=copies)
         mask = valid & keep[None, :]
         runs = np.broadcast_to(np.arange(first, first + len(escape))[:, None], mask.shape)
         first += len(escape)

@@ -25,6 +25,7 @@ Arrays ``copies/gains`` (m, nx, ny), ``copies/reference`` (nx,) and ``copies/bou
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -203,7 +204,8 @@ class ModelCopies:
         return ca.Function(name, [z, y, y_next, u], [z_next], ["z", "y", "y_next", "u"], ["z_next"])
 
     def run(self, y: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-        """The copies' latents from ``z_0 = 0`` for many trials at once (the step of :meth:`step_function`).
+        """The copies' latents from ``z_0 = 0`` for many trials at once: the step of :meth:`step_function`
+        folded over the samples (``mapaccum``) and mapped over the trials on threads.
 
         Parameters
         ----------
@@ -216,8 +218,14 @@ class ModelCopies:
         numpy.ndarray, shape (M, N, nz)
         """
         M, N = y.shape[:2]
-        step = self.step_function(dt).map(M)
+        ny = self.system.ny
         z = np.zeros((M, N, self.nz))
-        for k in range(N - 1):
-            z[:, k + 1] = np.asarray(step(z[:, k].T, y[:, k].T, y[:, k + 1].T, u[:, k].T)).T
+        if N < 2:
+            return z
+        step = self.step_function(dt)
+        zs, p = ca.SX.sym("z", self.nz), ca.SX.sym("p", 2 * ny + self.system.nu)     # p = [y_k; y_k+1; u_k]
+        packed = ca.Function("copies_packed", [zs, p], [step(zs, p[:ny], p[ny:2 * ny], p[2 * ny:])])
+        runs = packed.mapaccum("copies_run", N - 1).map(M, "thread", min(os.cpu_count() or 1, M))
+        params = np.concatenate([y[:, :-1], y[:, 1:], u[:, :-1]], axis=2).reshape(M * (N - 1), -1)
+        z[:, 1:] = np.asarray(runs(np.zeros((self.nz, M)), params.T)).T.reshape(M, N - 1, self.nz)
         return z

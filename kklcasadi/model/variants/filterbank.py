@@ -669,26 +669,24 @@ def _check_copies(arrays: Mapping[str, Any], copies: ModelCopies | None) -> None
                          f"{copies.nz}.")
 
 
-def latent_run(arrays: Mapping[str, Any], y: np.ndarray, u: np.ndarray, dt: float, *,
+def latent_run(bank: FilterBank, y: np.ndarray, u: np.ndarray, dt: float, *,
                copies: ModelCopies | None = None) -> np.ndarray:
     """The latent from ``z_0 = 0`` for many trials: the filter bank's, then the model copies'.
 
     Parameters
     ----------
-    arrays : Mapping[str, array_like]
-        ``bank/*`` (and ``copies/*`` where the latent has model copies).
+    bank : FilterBank
     y : numpy.ndarray, shape (M, N, ny)
     u : numpy.ndarray, shape (M, N, nu)
     dt : float
     copies : ModelCopies or None
-        The copies of ``arrays`` (:meth:`ModelCopies.from_arrays`); required where it has them.
+        The latent's model copies, if any (a model's: :meth:`kklcasadi.model.variants.bank.BankSpec.model_copies`).
 
     Returns
     -------
     numpy.ndarray, shape (M, N, nz)
     """
-    _check_copies(arrays, copies)
-    z = bank_from_arrays(arrays).run(y, u, dt)
+    z = bank.run(y, u, dt)
     return z if copies is None else np.concatenate([z, copies.run(y, u, dt)], axis=-1)
 
 
@@ -719,7 +717,8 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
     -------
     numpy.ndarray, shape (M, N, nx) or (N, nx)
     """
+    _check_copies(arrays, copies)
     bank = bank_from_arrays(arrays)
     y, u, single = _trials(y, u, bank.ny, bank.nu)
-    xhat = decode(arrays, arch, latent_run(arrays, y, u, dt, copies=copies), y, u, angles=angles, members=members)
+    xhat = decode(arrays, arch, latent_run(bank, y, u, dt, copies=copies), y, u, angles=angles, members=members)
     return xhat[0] if single else xhat
