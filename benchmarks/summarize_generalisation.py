@@ -19,8 +19,8 @@ three decoders and its runs add the ``pd`` family; ``vdp_generalisation_two_deco
 two decoders of the three-decoder ensemble without it, ``vdp_generalisation_no_pd.json`` that ensemble
 (shipped before the pd one; monitor rows). Duffing's shipped decoders have a linear skip path;
 ``duffing_generalisation_no_skip.json`` is the ensemble shipped before, without it (monitor rows). Duffing's
-shipped latent has model copies of the plant; ``duffing_generalisation_no_copies.json`` is the ensemble with
-skip paths shipped before, without them (monitor rows).
+and Van der Pol's shipped latents have model copies of the plant; ``<system>_generalisation_no_copies.json`` is
+the ensemble shipped before, without them (monitor rows).
 Roessler's shipped decoders fit MSE plus the protocol's SMAPE; ``rossler_generalisation_mse.json`` is the
 ensemble shipped before, with the MSE loss alone (monitor rows).
 
@@ -139,7 +139,8 @@ def monitor() -> str:
         before_runs = 4000 if "4000 runs" in data else runs(system)
         labels = {"shipped": f"{recipe(system)}, {decoders(system)}, {runs(system)} runs (shipped)",
                   "no pd": f"broad-fit, {decoders(system)}, {runs(system)} runs",
-                  "no copies": f"broad-fit with skip paths, {decoders(system)}, {runs(system)} runs, no model copies",
+                  "no copies": f"{recipe(system).removesuffix(' and model copies')}, {decoders(system)}, "
+                               f"{runs(system)} runs, no model copies",
                   "no skip": f"broad-fit, {decoders(system)}, {runs(system)} runs, no skip path",
                   "mse": f"broad-fit, {decoders(system)}, {runs(system)} runs, MSE loss",
                   "two decoders": f"{ensemble}, {runs(system)} runs", "4000 runs": f"{ensemble}, 4000 runs",

@@ -323,8 +323,8 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
         config.rollouts.n_traj, list(config.rollouts.kinds), config.rollouts.regime, config.rollouts.noise_range)
     assert tuple(model.card["architecture"]["bank"]["u_poles"]) == config.u_poles
     assert model.spec.architecture.decoder.skip == config.decoder.skip == (system == "duffing")  # skip paths
-    copies = model.card["architecture"]["bank"].get("copies", {"weights": []})   # model copies: Duffing's
-    assert tuple(copies["weights"]) == config.copies == ((1.0, 100.0, 1e4) if system == "duffing" else ())
+    copies = model.card["architecture"]["bank"].get("copies", {"weights": []})   # Duffing's and Van der Pol's
+    assert tuple(copies["weights"]) == config.copies == ((1.0, 100.0, 1e4) if system in ("duffing", "vdp") else ())
     decoder = training["decoder"]                    # the loss: Roessler's mse + 0.5 SMAPE, else mse
     assert decoder["loss"] == config.decoder.loss == ("mse+smape" if system == "rossler" else "mse")
     assert decoder["loss"] == "mse" or decoder["smape_weight"] == config.decoder.smape_weight == 0.5

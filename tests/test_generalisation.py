@@ -215,10 +215,14 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
         assert f"| {model['smape_mean'] / case['ekf']['smape_mean']:.3f}x |" in printed.splitlines()[2]
     # two reports of one label (models/vdp/bank before and with the pd family), relabelled per report
     scored = root / "results" / "generalisation"
-    printed = printed_by(scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation.json", "--labels",
-                         "without pd,with pd")
+    printed = printed_by(scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation_no_copies.json",
+                         "--labels", "without pd,with pd")
     assert printed.startswith("| case | without pd | with pd |")
     assert printed in (scored / "vdp_generalisation_pd_compare.md").read_text() + "\n"
+    for system in ("duffing", "vdp"):           # ... and before and with the model copies
+        printed = printed_by(scored / f"{system}_generalisation_no_copies.json",
+                             scored / f"{system}_generalisation.json", "--labels", "no_copies,copies")
+        assert printed in (scored / f"{system}_generalisation_copies_compare.md").read_text() + "\n", system
     module = runpy.run_path(script)
     with pytest.raises(SystemExit, match=r"--labels: expected one label per report \(2\), received 1"):
         module["load"]([scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation.json"], ["a"])

@@ -19,7 +19,7 @@ Variants: ``plain`` (the recipe), ``skip`` (a linear skip path,
 on the SMAPE term, :attr:`kklcasadi.train.operational.DecoderConfig.loss`), ``smape01`` (weight 0.1), and
 ``copies``, which changes the latent rather than the decoder: model copies of the plant with the weights
 ``--copies`` (:attr:`kklcasadi.train.bank.BankConfig.copies`) after the filters, the decoder of the recipe
-fit on the same runs through that latent.
+fit on the same runs through that latent; ``copies_skip`` is that latent with the skip path.
 """
 
 from __future__ import annotations
@@ -44,9 +44,10 @@ from kklcasadi.train.operational import DecoderConfig, fit_bank_decoder, operati
 
 VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True),
             "smape": lambda d: replace(d, loss="mse+smape", smape_weight=0.5),
-            "smape01": lambda d: replace(d, loss="mse+smape", smape_weight=0.1), "copies": lambda d: d}
+            "smape01": lambda d: replace(d, loss="mse+smape", smape_weight=0.1), "copies": lambda d: d,
+            "copies_skip": lambda d: replace(d, skip=True)}
 #: The variants that change the latent: the model copies of ``--copies``.
-LATENT_VARIANTS = ("copies",)
+LATENT_VARIANTS = ("copies", "copies_skip")
 FAMILIES = (("square", "id"), ("sinusoid", "id"), ("square", "ood"), ("chirp", "held_out"),
             ("feedback", "held_out"), ("random", "held_out"))
 
@@ -68,6 +69,8 @@ def main() -> None:
     p.add_argument("--noise-levels", nargs="+", type=float, default=[0.05, 0.1])
     p.add_argument("--copies", type=float, nargs="+", default=[1.0, 100.0, 1e4],
                    help="the weights of the model copies of variant copies")
+    p.add_argument("--copy-substeps", type=int, default=None,
+                   help="RK4 substeps of the copies per sample (default: from their speed, BankConfig.copy_substeps)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", type=Path, required=True, help="OUT.json and OUT.md are written")
     args = p.parse_args()
@@ -81,7 +84,7 @@ def main() -> None:
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
     angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
-    copies = design_copies(system, replace(config, copies=tuple(args.copies)), 0.05)
+    copies = design_copies(system, replace(config, copies=tuple(args.copies), copy_substeps=args.copy_substeps), 0.05)
     runs = {latent: operational_data(system, bank, config.rollouts, args.run_seed, dt=0.05,
                                      measurement_std=config.measurement_std, process_std=process_stds(system, config),
                                      time_scale=rate, copies=latent)
@@ -123,7 +126,9 @@ def main() -> None:
              f"benchmarks/accuracy/decoder_pairs.py {args.system} --variants {' '.join(args.variants)} --seeds "
              f"{' '.join(seeds)} --n-traj {args.n_traj} --epochs {args.epochs} --trial-seed {args.trial_seed} --trials "
              f"{args.trials} --noise-levels {' '.join(f'{n:g}' for n in args.noise_levels)}"
-             + (f" --copies {' '.join(f'{w:g}' for w in args.copies)}" if "copies" in args.variants else "")
+             + (f" --copies {' '.join(f'{w:g}' for w in args.copies)}"
+                if set(args.variants) & set(LATENT_VARIANTS) else "")
+             + (f" --copy-substeps {args.copy_substeps}" if args.copy_substeps is not None else "")
              + f" --out {args.out}`.", "",
              "| case | EKF | " + " | ".join(args.variants) + " |", "|---|---|" + "---|" * len(args.variants)]
     for label in labels:
