@@ -20,7 +20,9 @@ two decoders of the three-decoder ensemble without it, ``vdp_generalisation_no_p
 (shipped before the pd one; monitor rows). Duffing's shipped decoders have a linear skip path;
 ``duffing_generalisation_no_skip.json`` is the ensemble shipped before, without it (monitor rows). Duffing's
 and Van der Pol's shipped latents have model copies of the plant; ``<system>_generalisation_no_copies.json`` is
-the ensemble shipped before, without them (monitor rows).
+the ensemble shipped before, without them (monitor rows). Van der Pol's copies take two RK4 substeps and its
+decoders the skip path; ``vdp_generalisation_copies_5_substeps.json`` is the ensemble shipped before, with the
+automatic five substeps and no skip path (monitor rows).
 Roessler's shipped decoders fit MSE plus the protocol's SMAPE; ``rossler_generalisation_mse.json`` is the
 ensemble shipped before, with the MSE loss alone (monitor rows).
 
@@ -56,6 +58,8 @@ KINDS = ("shipped", "one decoder", "other")
 ONE_DECODER = {"rossler": "of its first decoder alone"}
 BENCHMARK_FIT = {"rossler": "of the benchmark-fit ensemble shipped before it (two decoders, 2000 runs)"}
 NUMBERS = {1: "one", 2: "two", 3: "three", 4: "four"}
+#: The recipe of the ensemble each system shipped before its model copies (``<system>_generalisation_no_copies``).
+BEFORE_COPIES = {"duffing": "broad-fit with skip paths", "vdp": "broad-fit + pd"}
 
 
 def reports(system: str) -> dict:
@@ -130,7 +134,8 @@ def monitor() -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for system in SYSTEMS:
         data = reports(system)
-        for key, suffix in (("no pd", "_no_pd"), ("no copies", "_no_copies"), ("no skip", "_no_skip"), ("mse", "_mse"),
+        for key, suffix in (("no pd", "_no_pd"), ("copies 5 substeps", "_copies_5_substeps"),
+                            ("no copies", "_no_copies"), ("no skip", "_no_skip"), ("mse", "_mse"),
                             ("two decoders", "_two_decoders"), ("4000 runs", "_4000_runs")):
             path = ROOT / f"{system}_generalisation{suffix}.json"
             if path.exists():
@@ -139,8 +144,9 @@ def monitor() -> str:
         before_runs = 4000 if "4000 runs" in data else runs(system)
         labels = {"shipped": f"{recipe(system)}, {decoders(system)}, {runs(system)} runs (shipped)",
                   "no pd": f"broad-fit, {decoders(system)}, {runs(system)} runs",
-                  "no copies": f"{recipe(system).removesuffix(' and model copies')}, {decoders(system)}, "
-                               f"{runs(system)} runs, no model copies",
+                  "no copies": f"{BEFORE_COPIES.get(system)}, {decoders(system)}, {runs(system)} runs, no model copies",
+                  "copies 5 substeps": f"{BEFORE_COPIES.get(system)} and model copies, {decoders(system)}, "
+                                       f"{runs(system)} runs, five RK4 substeps, no skip path",
                   "no skip": f"broad-fit, {decoders(system)}, {runs(system)} runs, no skip path",
                   "mse": f"broad-fit, {decoders(system)}, {runs(system)} runs, MSE loss",
                   "two decoders": f"{ensemble}, {runs(system)} runs", "4000 runs": f"{ensemble}, 4000 runs",
@@ -150,8 +156,8 @@ def monitor() -> str:
         before = ROOT / f"{system}_generalisation_monitor_before.json"
         if before.exists():
             data["before"] = json.loads(before.read_text())
-        for k in [k for k in ("shipped", "no pd", "no copies", "no skip", "mse", "two decoders", "4000 runs", "before",
-                              *KINDS[1:])
+        for k in [k for k in ("shipped", "copies 5 substeps", "no copies", "no pd", "no skip", "mse", "two decoders",
+                              "4000 runs", "before", *KINDS[1:])
                   if k in data]:
             for g in data[k]["models"][MODEL]["monitor"]:
                 cells = [system, labels[k], g["group"], str(g["trials"]), str(g["bad"]), str(g["flagged"])]

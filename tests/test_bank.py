@@ -18,7 +18,7 @@ import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
 from kklcasadi.train import LoopConfig, default_config, train_observer  # noqa: E402
-from kklcasadi.train.bank import MonitorConfig, nominal_runs  # noqa: E402
+from kklcasadi.train.bank import MonitorConfig, design_copies, nominal_runs  # noqa: E402
 from kklcasadi.train.operational import DecoderConfig, RolloutConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -322,9 +322,13 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
     assert (runs["n_traj"], runs["kinds"], runs["regime"], tuple(runs["noise_range"])) == (
         config.rollouts.n_traj, list(config.rollouts.kinds), config.rollouts.regime, config.rollouts.noise_range)
     assert tuple(model.card["architecture"]["bank"]["u_poles"]) == config.u_poles
-    assert model.spec.architecture.decoder.skip == config.decoder.skip == (system == "duffing")  # skip paths
+    assert model.spec.architecture.decoder.skip == config.decoder.skip == (system in ("duffing", "vdp"))  # skip
     copies = model.card["architecture"]["bank"].get("copies", {"weights": []})   # Duffing's and Van der Pol's
     assert tuple(copies["weights"]) == config.copies == ((1.0, 100.0, 1e4) if system in ("duffing", "vdp") else ())
+    if config.copies:                                # Van der Pol's two RK4 substeps; Duffing's from their speed
+        assert copies["substeps"] == design_copies(kc.systems.get(system), config, 0.05).substeps == (
+            2 if system == "vdp" else 5)
+        assert config.copy_substeps == (2 if system == "vdp" else None)
     decoder = training["decoder"]                    # the loss: Roessler's mse + 0.5 SMAPE, else mse
     assert decoder["loss"] == config.decoder.loss == ("mse+smape" if system == "rossler" else "mse")
     assert decoder["loss"] == "mse" or decoder["smape_weight"] == config.decoder.smape_weight == 0.5

@@ -219,10 +219,13 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
                          "--labels", "without pd,with pd")
     assert printed.startswith("| case | without pd | with pd |")
     assert printed in (scored / "vdp_generalisation_pd_compare.md").read_text() + "\n"
-    for system in ("duffing", "vdp"):           # ... and before and with the model copies
+    for system, after in (("duffing", ""), ("vdp", "_copies_5_substeps")):   # ... before and with the model copies
         printed = printed_by(scored / f"{system}_generalisation_no_copies.json",
-                             scored / f"{system}_generalisation.json", "--labels", "no_copies,copies")
+                             scored / f"{system}_generalisation{after}.json", "--labels", "no_copies,copies")
         assert printed in (scored / f"{system}_generalisation_copies_compare.md").read_text() + "\n", system
+    printed = printed_by(scored / "vdp_generalisation_copies_5_substeps.json", scored / "vdp_generalisation.json",
+                         "--labels", "copies,sub2skip")          # ... and with two substeps and skip paths
+    assert printed in (scored / "vdp_generalisation_sub2skip_compare.md").read_text() + "\n"
     module = runpy.run_path(script)
     with pytest.raises(SystemExit, match=r"--labels: expected one label per report \(2\), received 1"):
         module["load"]([scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation.json"], ["a"])
