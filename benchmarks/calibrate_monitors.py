@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 import kklcasadi as kc
-from kklcasadi.model.files import Domain, Model, load_model, parse_card, save_model
+from kklcasadi.model.card import Domain, parse_card
+from kklcasadi.model.files import Model, load_model, save_model
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.model.variants.filterbank import FilterBank
 from kklcasadi.train.bank import MonitorConfig, bank_monitor, member_spread, nominal_runs

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 import kklcasadi as kc
-from kklcasadi.model.files import CARD_FILE, Domain, load_model
+from kklcasadi.model.card import Domain
+from kklcasadi.model.files import CARD_FILE, load_model
 
 PHASE1_STATES = 2000
 PHASE1_TRAJECTORIES = 200

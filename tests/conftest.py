@@ -25,7 +25,7 @@ def _random_model_arrays(card, seed):
     """
     import zlib
 
-    from kklcasadi.model.files import model_array_shapes
+    from kklcasadi.model.card import model_array_shapes
 
     arrays = {}
     for name, shape in model_array_shapes(card).items():
@@ -58,7 +58,8 @@ def model_dir_factory(tmp_path_factory):
     linear skip path.
     """
     import kklcasadi
-    from kklcasadi.model.files import make_card, save_model
+    from kklcasadi.model.card import make_card
+    from kklcasadi.model.files import save_model
     from kklcasadi.model.variants import BankSpec, DynModelSpec, MapsSpec, ObsModelSpec
     from kklcasadi.nets.specs import HyperSpec, MLPSpec, ObsSpec
 

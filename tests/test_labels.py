@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
-from kklcasadi.model.files import load_model, make_card, parse_card, save_model
+from kklcasadi.model.card import make_card, parse_card
+from kklcasadi.model.files import load_model, save_model
 from kklcasadi.nets.hold import foh_matrices
 from kklcasadi.plant import data
 

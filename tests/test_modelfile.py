@@ -16,7 +16,8 @@ import pytest
 
 from kklcasadi.model import files as modelfile
 from kklcasadi.model import variants
-from kklcasadi.model.files import CARD_FILE, WEIGHTS_FILE, load_model, model_array_shapes, save_model
+from kklcasadi.model.card import FORMAT, model_array_shapes
+from kklcasadi.model.files import CARD_FILE, WEIGHTS_FILE, load_model, save_model
 
 NX, NU, NY = 2, 1, 1
 NZ = NY * (2 * NX + 1)
@@ -48,7 +49,7 @@ def make_card(method="autonomous", nu=NU, base=None):
 
 def random_arrays(card, seed=0):
     rng = np.random.default_rng(seed)
-    shapes = model_array_shapes({**card, "format": modelfile.FORMAT})
+    shapes = model_array_shapes({**card, "format": FORMAT})
     return {name: rng.uniform(0.5, 2.0, shape) if name.endswith("_std") else rng.normal(size=shape)
             for name, shape in shapes.items()}
 

@@ -11,7 +11,8 @@ import pytest
 import kklcasadi as kc
 from kklcasadi.cli import build_parser
 from kklcasadi.model import variants
-from kklcasadi.model.files import load_model, make_card, save_model
+from kklcasadi.model.card import make_card
+from kklcasadi.model.files import load_model, save_model
 from kklcasadi.model.variants.base import MapsSpec, Networks, Variant, plain_maps
 
 

@@ -46,7 +46,8 @@ import casadi as ca
 import numpy as np
 
 from ..model import variants
-from ..model.files import CARD_FILE, Model, ModelSpec, derive_model, load_model
+from ..model.card import ModelSpec
+from ..model.files import CARD_FILE, Model, derive_model, load_model
 from ..model.monitor import FeatureMonitor
 from ..model.variants import MODEL_BASED_INJECTION
 from ..nets.hold import foh_matrices

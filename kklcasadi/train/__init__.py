@@ -22,7 +22,8 @@ except ImportError as exc:                              # a deploy-only install:
                               "pip install 'kklcasadi[train]'", name="torch") from exc
 
 from ..model import variants
-from ..model.files import derive_model, load_model, make_card, save_model
+from ..model.card import make_card
+from ..model.files import derive_model, load_model, save_model
 from ..plant import systems
 from ..plant.design import Design
 from ..plant.systems import System

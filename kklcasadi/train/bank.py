@@ -13,7 +13,8 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 import scipy.linalg
 
-from ..model.files import Domain, Model
+from ..model.card import Domain
+from ..model.files import Model
 from ..model.monitor import DEFAULT_QUANTILE, DEFAULT_SPREAD_QUANTILE, FeatureMonitor, calibrate, with_spread
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb

@@ -15,7 +15,8 @@ import numpy as np
 import torch
 from scipy.linalg import solve_continuous_lyapunov
 
-from ..model.files import Domain, Model
+from ..model.card import Domain
+from ..model.files import Model
 from ..model.variants import MapsSpec
 from ..nets.specs import DECODER, ENCODER
 from ..plant import data as kdata

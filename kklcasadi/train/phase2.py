@@ -10,7 +10,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..model.files import Domain, Model
+from ..model.card import Domain
+from ..model.files import Model
 from ..model.variants import DynModelSpec, MapsSpec, ObsModelSpec
 from ..nets.specs import DECODER, ENCODER, lora_target_shapes
 from ..plant import data as kdata

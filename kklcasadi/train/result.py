@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
-from ..model.files import Domain
+from ..model.card import Domain
 from ..model.monitor import MonitorSpec
 from ..plant.data import LabelReport
 from ..plant.design import Design
