@@ -3,12 +3,12 @@
     OMP_NUM_THREADS=1 python benchmarks/calibrate_monitors.py MODEL_DIR [MODEL_DIR ...]
 
 For each model directory: re-simulate the decoder's fitting samples from the card's training record
-(``training.config`` and ``training.seed``, through :func:`kklcasadi.train.operational.operational_data`,
+(``training.config`` and ``training.seed``, through :func:`kklcasadi.model.operational.operational_data`,
 the function that made them), check that they are those samples (the card's ``domain`` is their
 componentwise state and latent range, bit for bit), calibrate the monitor on them with the training
-hook's own function (:func:`kklcasadi.train.bank.bank_monitor`; with the members' spread test for
+hook's own function (:func:`kklcasadi.model.operational.bank_monitor`; with the members' spread test for
 a decoder ensemble, its threshold from runs of the card's recipe at its nominal noise,
-:func:`kklcasadi.train.bank.nominal_runs`, as training sets it), and save the model again with the
+:func:`kklcasadi.model.operational.nominal_runs`, as training sets it), and save the model again with the
 monitor's arrays and card entry and the input families of the fit. The decoder's weights are
 unchanged (the archive gains the ``monitor/*`` arrays, so its SHA-256 changes). A model trained now
 gets both from ``kklcasadi train`` itself.
@@ -26,10 +26,17 @@ import numpy as np
 import kklcasadi as kc
 from kklcasadi.model.card import Domain, parse_card
 from kklcasadi.model.files import Model, load_model, save_model
+from kklcasadi.model.operational import (
+    MonitorConfig,
+    OperationalData,
+    bank_monitor,
+    member_spread,
+    nominal_runs,
+    operational_data,
+)
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.model.variants.filterbank import FilterBank
-from kklcasadi.train.bank import MonitorConfig, bank_monitor, member_spread, nominal_runs
-from kklcasadi.train.operational import OperationalData, RolloutConfig, fit_families, operational_data
+from kklcasadi.plant.runs import RolloutConfig, fit_families
 
 
 def rollouts_of(model: Model) -> RolloutConfig:
@@ -89,7 +96,7 @@ def calibration_source(script: str, fresh: bool) -> str:
 def recalibrate(directory: Path, model: Model, bank: FilterBank, data: OperationalData, arrays: dict, card: dict,
                 source: str, *, monitor: MonitorConfig | None = None) -> dict:
     """Save ``arrays`` and ``card`` (a bank model of ``data``) to ``directory`` with the monitor calibrated on
-    ``data`` as ``monitor`` says (:func:`kklcasadi.train.bank.bank_monitor`; the spread threshold of an ensemble
+    ``data`` as ``monitor`` says (:func:`kklcasadi.model.operational.bank_monitor`; the spread threshold of an ensemble
     from ``monitor.spread_runs`` runs at the card's nominal noise) and the card's ``fit_families``; returns the
     card written."""
     monitor = MonitorConfig() if monitor is None else monitor

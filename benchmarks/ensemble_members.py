@@ -11,7 +11,7 @@ decoders with the card's decoder configuration from the seeds ``seed + 1, ..., s
 names other seeds, e.g. to leave out a member that validation trials found worse than the first), keeps the
 model's own decoder as the first member, and writes DIR: the ensemble (``architecture.bank.members = K``)
 with its monitor recalibrated on the same runs, the spread test included, at
-:class:`kklcasadi.train.bank.MonitorConfig`'s quantiles (choose the spread quantile again with
+:class:`kklcasadi.model.operational.MonitorConfig`'s quantiles (choose the spread quantile again with
 ``benchmarks/monitor_quantiles.py DIR``, apply it with ``benchmarks/calibrate_monitors.py DIR
 --spread-quantile Q``). A model that is already an ensemble of K0 < K decoders keeps its K0 members and
 gains K - K0 (seeds ``seed + K0, ..., seed + K - 1`` by default). ``--cache C`` keeps each member's fitted
@@ -34,7 +34,7 @@ from kklcasadi.model.variants.filterbank import ASINH_SCALE, member_prefixes
 from kklcasadi.nets.specs import DECODER
 from kklcasadi.train.bank import ensemble_arrays
 from kklcasadi.train.config import LoopConfig
-from kklcasadi.train.operational import BankFit, DecoderConfig, fit_bank_decoder
+from kklcasadi.train.decoder import BankFit, DecoderConfig, fit_bank_decoder
 
 
 def decoder_config(record: dict) -> DecoderConfig:

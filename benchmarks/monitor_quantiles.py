@@ -3,7 +3,7 @@
     OMP_NUM_THREADS=1 python benchmarks/monitor_quantiles.py models/duffing/bank [--seed 3030 --trials 20]
 
 The spread test's threshold is a quantile of the members' spread over runs of the card's recipe at
-its nominal noise (:func:`kklcasadi.train.bank.nominal_runs`, the runs ``kklcasadi train`` and
+its nominal noise (:func:`kklcasadi.model.operational.nominal_runs`, the runs ``kklcasadi train`` and
 ``benchmarks/calibrate_monitors.py`` use). For each quantile of a grid, the script scores the domain
 monitor on the generalisation cases of docs/protocol.md at validation seeds (not the scored seed
 2026): the share of samples after 5 s flagged on the in-distribution trials (fitted families at the
@@ -34,9 +34,9 @@ from kklcasadi import metrics
 from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.compiled import Compiler, ekf_estimator
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
+from kklcasadi.model.operational import MonitorConfig, nominal_runs
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.observer.kkl import KKLObserver, load_observer
-from kklcasadi.train.bank import MonitorConfig, nominal_runs
 
 GRID = (0.9, 0.93, 0.95, 0.97, 0.98, 0.99, 0.995)
 OUT = Path("results/accuracy/generalisation")

@@ -16,10 +16,12 @@ from conftest import c_program_estimates  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
+from kklcasadi.model.operational import MonitorConfig, nominal_runs  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
+from kklcasadi.plant.runs import RolloutConfig  # noqa: E402
 from kklcasadi.train import LoopConfig, default_config, train_observer  # noqa: E402
-from kklcasadi.train.bank import MonitorConfig, design_copies, nominal_runs  # noqa: E402
-from kklcasadi.train.operational import DecoderConfig, RolloutConfig  # noqa: E402
+from kklcasadi.train.bank import design_copies  # noqa: E402
+from kklcasadi.train.decoder import DecoderConfig  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -220,7 +222,7 @@ def test_growing_an_ensemble_keeps_its_members_arrays(ensemble_dir, monkeypatch)
     import runpy
 
     from kklcasadi.train.bank import ensemble_arrays
-    from kklcasadi.train.operational import BankFit
+    from kklcasadi.train.decoder import BankFit
 
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     script = runpy.run_path(str(ROOT / "benchmarks" / "ensemble_members.py"), run_name="ensemble_members")
@@ -360,8 +362,7 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
 def test_bank_monitor_sets_both_thresholds_at_their_quantiles_of_the_validation_samples(quantile, spread_quantile):
     """bank_monitor: the prototype threshold and the spread threshold are the requested quantiles over the
     validation samples (the last fifth of the runs, after the settle time), and only those reach the spread."""
-    from kklcasadi.train.bank import bank_monitor
-    from kklcasadi.train.operational import OperationalData
+    from kklcasadi.model.operational import OperationalData, bank_monitor
 
     rng = np.random.default_rng(3)
     runs, per_run = 10, 40
@@ -391,8 +392,7 @@ def test_bank_monitor_takes_the_spread_threshold_from_the_runs_it_is_given(settl
     """bank_monitor with spread_data: the spread threshold is the quantile over those runs' samples after the
     settle time (all of them where the runs end before it), the prototype threshold still from the validation
     samples; the card's calibration record names the source."""
-    from kklcasadi.train.bank import bank_monitor
-    from kklcasadi.train.operational import OperationalData
+    from kklcasadi.model.operational import OperationalData, bank_monitor
 
     rng = np.random.default_rng(4)
 
@@ -426,7 +426,8 @@ def test_bank_monitor_takes_the_spread_threshold_from_the_runs_it_is_given(settl
 @pytest.mark.parametrize("field, value", [("quantile", 1.0), ("spread_quantile", 0.0), ("spread_runs", -1),
                                           ("spread_runs", 2.5)])
 def test_monitor_config_rejects_bad_settings(field, value):
-    from kklcasadi.train.bank import BankConfig, MonitorConfig
+    from kklcasadi.model.operational import MonitorConfig
+    from kklcasadi.train.bank import BankConfig
 
     with pytest.raises((ValueError, TypeError), match=field):
         MonitorConfig(**{field: value})

@@ -349,7 +349,8 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
     from kklcasadi.cli import build_parser
     from kklcasadi.cli.flags import CommandError, plant_of
     from kklcasadi.cli.train import training_config
-    from kklcasadi.train.operational import FAMILIES, LOSSES
+    from kklcasadi.plant.runs import FAMILIES
+    from kklcasadi.train.decoder import LOSSES
 
     def config(*kinds):
         args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant",

@@ -136,8 +136,9 @@ def test_model_copies_validate_their_arrays():
 @pytest.fixture(scope="module")
 def copies_dir(tmp_path_factory):
     pytest.importorskip("torch")
+    from kklcasadi.plant.runs import RolloutConfig
     from kklcasadi.train import LoopConfig, default_config, train_observer
-    from kklcasadi.train.operational import DecoderConfig, RolloutConfig
+    from kklcasadi.train.decoder import DecoderConfig
 
     config = replace(default_config("duffing", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=2,
                      copies=(1.0, 1e4), rollouts=RolloutConfig(n_traj=8, T=6.0),

@@ -11,20 +11,13 @@ import pytest
 torch = pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
+from kklcasadi.model.operational import OperationalData, operational_data  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
 from kklcasadi.nets.specs import DECODER  # noqa: E402
+from kklcasadi.plant.runs import RolloutConfig, rollouts  # noqa: E402
 from kklcasadi.train.config import LoopConfig  # noqa: E402
+from kklcasadi.train.decoder import DecoderConfig, fit_bank_decoder, fold_whitening, torch_decoder  # noqa: E402
 from kklcasadi.train.nets import MLP  # noqa: E402
-from kklcasadi.train.operational import (  # noqa: E402
-    DecoderConfig,
-    OperationalData,
-    RolloutConfig,
-    fit_bank_decoder,
-    fold_whitening,
-    operational_data,
-    rollouts,
-    torch_decoder,
-)
 
 #: The benchmark's input kinds (the runs' default families are broader).
 BENCH = ("zero", "constant", "sinusoid", "square")
@@ -231,7 +224,7 @@ def test_process_noise_per_state_and_a_range_of_noise_levels() -> None:
 def test_the_broad_families_and_the_wide_regime() -> None:
     """multisine stays within its amplitude, feedback and pd are laws of the noisy y within -2..2,
     and the wide regime reaches the ood amplitudes."""
-    from kklcasadi.train.operational import FAMILIES
+    from kklcasadi.plant.runs import FAMILIES
 
     plant = kc.systems.get("duffing")
     cfg = RolloutConfig(n_traj=60, T=20.0, kinds=FAMILIES, regime="wide", substeps=4, chunk=25)
@@ -284,7 +277,7 @@ def test_a_range_of_box_scales_spreads_the_initial_states() -> None:
     (lambda x, u: [-x[0], -x[1]], lambda x: x[0], 1.0),                    # u acts nowhere: +1
 ])
 def test_loop_signs_are_the_first_nonzero_markov_parameter(xdot, y, sign) -> None:
-    from kklcasadi.train.operational import loop_signs
+    from kklcasadi.plant.runs import loop_signs
 
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u")
     plant = kc.System("p", x, u, xdot(x, u), y(x), x0_box=[[-1.0, 1.0], [-1.0, 1.0]])
@@ -296,7 +289,7 @@ def test_pd_law_is_derivative_feedback_on_the_lagged_noisy_output(lag) -> None:
     """The pd family's closed loop: u_k recomputed from the recorded noisy y_k with an independent lag
     filter (yf_0 = y_0) and difference quotient; the derivative action damps Van der Pol's limit cycle
     onto the set point's equilibrium (x1 = g r / (1 + g)), which the proportional law alone does not."""
-    from kklcasadi.train.operational import _closed_loop, _Feedback
+    from kklcasadi.plant.runs import _closed_loop, _Feedback
 
     plant = kc.systems.get("vdp")
     dt, n, g, gd, r = 0.05, 800, 2.0, 3.0, 1.0

@@ -32,8 +32,8 @@ def protocol_trials(system: str, label: str) -> dict[str, dict[str, np.ndarray]]
 
 
 def cached_rollouts(system: str, n_traj: int, seed: int, **overrides: object) -> TrajectoryBatch:
-    """Operational rollouts of :func:`kklcasadi.train.operational.rollouts`, cached on disk."""
-    from kklcasadi.train.operational import RolloutConfig, rollouts
+    """Operational rollouts of :func:`kklcasadi.plant.runs.rollouts`, cached on disk."""
+    from kklcasadi.plant.runs import RolloutConfig, rollouts
 
     tag = "_".join(f"{k}{v}" for k, v in sorted(overrides.items()))
     path = CACHE / f"roll_{system}_{n_traj}_{seed}{'_' + tag if tag else ''}.npz"

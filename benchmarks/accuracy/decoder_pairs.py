@@ -6,7 +6,7 @@ on the same validation trials.
 
 The runs are the system's recipe (:meth:`kklcasadi.train.bank.BankConfig.for_system`) with ``--n-traj`` runs,
 simulated once (training seed ``--run-seed``); each variant's decoder is fitted on them from every seed of
-``--seeds`` (:func:`kklcasadi.train.operational.fit_bank_decoder`, one decoder, the recipe's configuration
+``--seeds`` (:func:`kklcasadi.train.decoder.fit_bank_decoder`, one decoder, the recipe's configuration
 with the variant's change), so that a variant and the plain decoder of one seed start from the same draw of
 the layers. The trials are those of ``kklcasadi generalise`` (seed ``--trial-seed``, ``--trials`` per case,
 from the trial cache), decoded through the bank's latent in numpy
@@ -15,8 +15,8 @@ from the trial cache), decoded through the bank's latent in numpy
 EKF, and per seed the geometric mean over the cases of each variant / plain).
 
 Variants: ``plain`` (the recipe), ``skip`` (a linear skip path,
-:attr:`kklcasadi.train.operational.DecoderConfig.skip`), ``smape`` (the loss ``mse+smape`` with weight 0.5
-on the SMAPE term, :attr:`kklcasadi.train.operational.DecoderConfig.loss`), ``smape01`` (weight 0.1), and
+:attr:`kklcasadi.train.decoder.DecoderConfig.skip`), ``smape`` (the loss ``mse+smape`` with weight 0.5
+on the SMAPE term, :attr:`kklcasadi.train.decoder.DecoderConfig.loss`), ``smape01`` (weight 0.1), and
 ``copies``, which changes the latent rather than the decoder: model copies of the plant with the weights
 ``--copies`` (:attr:`kklcasadi.train.bank.BankConfig.copies`) after the filters, the decoder of the recipe
 fit on the same runs through that latent; ``copies_skip`` is that latent with the skip path.
@@ -38,9 +38,10 @@ from kklcasadi import metrics
 from kklcasadi.evaluation.compiled import ekf_estimator
 from kklcasadi.evaluation.generalisation import Case, Settings, case_ekf
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
+from kklcasadi.model.operational import operational_data
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, design_copies, process_stds
-from kklcasadi.train.operational import DecoderConfig, fit_bank_decoder, operational_data
+from kklcasadi.train.decoder import DecoderConfig, fit_bank_decoder
 
 VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True),
             "smape": lambda d: replace(d, loss="mse+smape", smape_weight=0.5),

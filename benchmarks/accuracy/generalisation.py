@@ -38,8 +38,8 @@ from kklcasadi.evaluation.protocol import Protocol
 from kklcasadi.model.files import load_model
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.plant import signals as sig
+from kklcasadi.plant.runs import _closed_loop
 from kklcasadi.plant.simulate import simulate_batch, time_grid
-from kklcasadi.train.operational import _closed_loop
 
 CACHE = Path("/tmp/acc_gen")
 OUT = Path("results/accuracy/generalisation")

@@ -26,10 +26,12 @@ from common import cached_rollouts, kind_of_rollouts, score, table_row
 from recipes import PAPER_BEST, RECIPES
 
 import kklcasadi as kc
+from kklcasadi.model.operational import OperationalData
 from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.plant.runs import RolloutConfig
 from kklcasadi.plant.signals import BENCHMARK_KINDS
 from kklcasadi.train.config import LoopConfig
-from kklcasadi.train.operational import DecoderConfig, OperationalData, RolloutConfig, config_record, fit_bank_decoder
+from kklcasadi.train.decoder import DecoderConfig, config_record, fit_bank_decoder
 
 OUT = Path("results/accuracy")
 #: Probe weights stay out of the repository (the final models go to results/accuracy/weights).

@@ -20,8 +20,9 @@ from pathlib import Path
 import torch
 
 import kklcasadi as kc
+from kklcasadi.plant.runs import FAMILIES
 from kklcasadi.train import default_config, train_observer
-from kklcasadi.train.operational import FAMILIES, LOSSES
+from kklcasadi.train.decoder import LOSSES
 
 
 def floats(text: str) -> tuple[float, ...]:
@@ -36,7 +37,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("system", help="a shipped system name or FILE.py:NAME")
     p.add_argument("out", type=Path)
-    p.add_argument("--kinds", help="comma-separated families, or 'all' (kklcasadi.train.operational.FAMILIES)")
+    p.add_argument("--kinds", help="comma-separated families, or 'all' (kklcasadi.plant.runs.FAMILIES)")
     p.add_argument("--regime")
     p.add_argument("--noise-range", help="lo,hi factors on the noise levels")
     p.add_argument("--y-poles")

@@ -1,5 +1,6 @@
-"""Training hook of the ``bank`` variant: design the filter bank, simulate noisy operational runs,
-fit the decoder on them (:mod:`kklcasadi.train.operational`), write the model."""
+"""Training hook of the ``bank`` variant: design the filter bank, simulate noisy operational runs
+(:mod:`kklcasadi.plant.runs`, :mod:`kklcasadi.model.operational`), fit the decoder on them
+(:mod:`kklcasadi.train.decoder`), write the model."""
 
 from __future__ import annotations
 
@@ -8,38 +9,35 @@ import os
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Callable, Optional, Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 import scipy.linalg
 
 from ..model.card import Domain
 from ..model.files import Model
-from ..model.monitor import DEFAULT_QUANTILE, DEFAULT_SPREAD_QUANTILE, FeatureMonitor, calibrate, with_spread
+from ..model.operational import (
+    MonitorConfig,
+    OperationalData,
+    bank_monitor,
+    member_spread,
+    nominal_runs,
+    operational_data,
+)
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
 from ..model.variants.copies import ModelCopies
 from ..nets.specs import DECODER, MLPSpec
 from ..plant.design import Design, time_scales
+from ..plant.runs import DEFAULT_KINDS, RolloutConfig, fit_families
 from ..plant.systems import System
-from ..validation import Text, error, nonnegative_int, positive_int
+from ..validation import Text, error
 from .config import LoopConfig, with_epochs
-from .operational import (
-    DEFAULT_KINDS,
-    BankFit,
-    DecoderConfig,
-    OperationalData,
-    RolloutConfig,
-    config_record,
-    fit_bank_decoder,
-    fit_families,
-    operational_data,
-)
+from .decoder import BankFit, DecoderConfig, config_record, fit_bank_decoder
 from .result import Trained
 
-__all__ = ["BankConfig", "MonitorConfig", "train_bank", "design_bank", "bank_model", "bank_monitor", "bank_time_scale",
-           "process_stds", "design_copies", "latent_design", "ensemble_arrays", "fit_members", "member_spread",
-           "nominal_runs", "SPREAD_SEED_OFFSET",
+__all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale",
+           "process_stds", "design_copies", "latent_design", "ensemble_arrays", "fit_members",
            "SHIPPED", "SHIPPED_MEMBERS", "NEW_PLANT_BANK", "PROCESS_ON"]
 
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
@@ -77,42 +75,6 @@ SHIPPED_MEMBERS = 2
 NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 15}
 #: Where a single process-noise std acts (:attr:`BankConfig.process_on`).
 PROCESS_ON = ("all", "forced")
-#: Added to the training seed for the runs that set the spread threshold (:func:`nominal_runs`), so that
-#: none of their draws is a fitting run's.
-SPREAD_SEED_OFFSET = 7919
-
-
-@dataclass(frozen=True)
-class MonitorConfig:
-    """How a ``bank``'s decoder-input domain monitor is calibrated (:func:`bank_monitor`).
-
-    Attributes
-    ----------
-    quantile : float
-        Share of the fitting runs' validation samples (after the settle time) inside the prototype
-        threshold.
-    spread_quantile : float
-        Share of the spread-calibration samples inside the ensemble's spread threshold (a decoder
-        ensemble only).
-    spread_runs : int
-        Runs of the recipe at the card's nominal noise (:func:`nominal_runs`) whose samples after the
-        settle time set the spread threshold; 0: the fitting runs' validation samples, whose noise
-        levels range over ``rollouts.noise_range``. The members disagree more on noisier runs, so a
-        threshold from the broad noise range sits above the spread of the nominal level and flags
-        less of what the observer does badly at it (docs/design.md, "Ensembles").
-    """
-
-    quantile: float = DEFAULT_QUANTILE
-    spread_quantile: float = DEFAULT_SPREAD_QUANTILE
-    spread_runs: int = 400
-
-    def __post_init__(self) -> None:
-        for name in ("quantile", "spread_quantile"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0 < value < 1):
-                raise error(name, "a share in (0, 1)", value)
-        nonnegative_int(self.spread_runs, "spread_runs", "Give the runs at the nominal noise that set the spread "
-                        "threshold, or 0 for the fitting runs' validation samples.")
 
 
 @dataclass(frozen=True)
@@ -194,7 +156,7 @@ class BankConfig:
             raise error("copy_substeps", "a positive integer (RK4 steps per sample) or None (from the gains)",
                         self.copy_substeps)
         if not isinstance(self.monitor, MonitorConfig):
-            raise error("monitor", "a kklcasadi.train.bank.MonitorConfig", Text(type(self.monitor).__name__),
+            raise error("monitor", "a kklcasadi.model.operational.MonitorConfig", Text(type(self.monitor).__name__),
                         kind=TypeError)
         if not (isinstance(self.members, int) and not isinstance(self.members, bool) and self.members >= 1):
             raise error("members", "a positive integer (decoder networks averaged)", self.members)
@@ -321,70 +283,6 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
     return arrays, spec, Domain.of(data.x, data.z)
 
 
-def _settled(data: OperationalData, settle_time: float) -> tuple[np.ndarray, float]:
-    """The samples of ``data`` at or after ``settle_time`` (S,) of bool, and the settle time used: 0 (all
-    samples) where the runs end before it."""
-    if len(data) and data.t.max() < settle_time:
-        settle_time = 0.0
-    return data.t >= settle_time, settle_time
-
-
-def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder's fitting runs",
-                 validation_share: float = 0.2, settle_time: float = 5.0,
-                 spread: Optional[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]] = None,
-                 spread_data: Optional[OperationalData] = None, spread_source: str = "",
-                 quantile: float = DEFAULT_QUANTILE, spread_quantile: float = DEFAULT_SPREAD_QUANTILE
-                 ) -> FeatureMonitor:
-    """The decoder-input domain monitor calibrated on the decoder's samples (:func:`kklcasadi.model.monitor.calibrate`).
-
-    The features are the decoder's input ``[z_k; y_k; u_k]`` (the observer's ``[z; vec(w)]``); the
-    first runs give the prototypes and the metric, the samples after ``settle_time`` of the last
-    ``validation_share`` of the runs the threshold (all their samples where the runs are shorter).
-    ``spread`` (:func:`member_spread`: samples ``(z, y, u)`` to the members' spread of a decoder
-    ensemble) adds the spread test (:func:`kklcasadi.model.monitor.with_spread`), its threshold from the
-    samples after ``settle_time`` of ``spread_data`` (:func:`nominal_runs`; described by
-    ``spread_source`` in the card), or from the same validation samples where it is None. ``quantile``
-    and ``spread_quantile`` are the shares of those samples inside the two thresholds. ``source`` is
-    recorded in the card's ``monitor.calibration``.
-    """
-    features = fb.decoder_features(data.z, data.y, data.u)
-    n_runs = int(data.run.max()) + 1 if len(data) else 0
-    if n_runs < 2:
-        raise error("data", "samples of at least 2 runs (the monitor's threshold comes from runs it was not fit on)",
-                    Text(f"{n_runs} runs"))
-    first_val = n_runs - max(1, int(round(validation_share * n_runs)))
-    after, settle_time = _settled(data, settle_time)
-    fit = features[data.run < first_val]
-    held = (data.run >= first_val) & after
-    monitor = calibrate(fit, features[held], quantile=quantile, settle_time=settle_time, seed=seed,
-                        calibration={"source": source, "fit_runs": first_val, "validation_runs": n_runs - first_val})
-    if spread is None:
-        return monitor
-    if spread_data is None:
-        return with_spread(monitor, spread(data.z[held], data.y[held], data.u[held]), quantile=spread_quantile,
-                           source="the validation samples")
-    if not len(spread_data):
-        raise error("spread_data", "samples of the runs that set the spread threshold", Text("none"))
-    pick, _ = _settled(spread_data, settle_time)
-    return with_spread(monitor, spread(spread_data.z[pick], spread_data.y[pick], spread_data.u[pick]),
-                       quantile=spread_quantile, source=spread_source or "runs given to bank_monitor")
-
-
-def nominal_runs(system: System, bank: fb.FilterBank, rollouts: RolloutConfig, n_runs: int, seed: int, *, dt: float,
-                 measurement_std: float, process_std: np.ndarray, time_scale: float,
-                 copies: Optional[ModelCopies] = None, progress: bool = False) -> tuple[OperationalData, str]:
-    """The runs that set a ``bank``'s spread threshold: ``n_runs`` runs of the recipe ``rollouts`` at the
-    nominal noise levels (factors 1), seeded ``seed + SPREAD_SEED_OFFSET``, and their description for the card.
-
-    ``seed`` is the training seed; the other arguments are those of
-    :func:`kklcasadi.train.operational.operational_data` for the fitting runs.
-    """
-    nominal = replace(rollouts, n_traj=positive_int(n_runs, "n_runs"), noise_range=(1.0, 1.0))
-    data = operational_data(system, bank, nominal, seed + SPREAD_SEED_OFFSET, dt=dt, measurement_std=measurement_std,
-                            process_std=process_std, time_scale=time_scale, copies=copies, progress=progress)
-    return data, (f"{n_runs} runs of the fitting recipe at the nominal noise (factor 1), seed "
-                  f"{seed + SPREAD_SEED_OFFSET}")
-
 
 def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, angles: fb.Angles, seed: int, *,
                 progress: bool) -> list[BankFit]:
@@ -392,21 +290,6 @@ def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, 
     return [fit_bank_decoder(bank, data, config.decoder, angles=angles, seed=seed + j, progress=progress)
             for j in range(config.members)]
 
-
-def member_spread(arrays: dict, bank: fb.FilterBank, spec: BankSpec, *,
-                  chunk: int = 65536) -> Optional[Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]]:
-    """The ensemble's spread as a function of samples ``(z (S, nz), y (S, ny), u (S, nu)) -> (S,)``,
-    evaluated ``chunk`` samples at a time (None for a single decoder)."""
-    if spec.members < 2:
-        return None
-    full, arch = {**arrays, **fb.bank_arrays(bank)}, spec.decoder.to_card()
-
-    def spread(z: np.ndarray, y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.concatenate([fb.spread(full, arch, z[i:i + chunk], y[i:i + chunk], u[i:i + chunk],
-                                         angles=spec.angles, members=spec.members)
-                               for i in range(0, len(z), chunk)] or [np.empty(0)])
-
-    return spread
 
 
 def train_bank(system: System, design: Design, base: Model | None, config: BankConfig, *, dt: float, seed: int,

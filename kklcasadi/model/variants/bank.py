@@ -6,9 +6,10 @@ spread of pole speeds, optional resonators of ``y``, an optional clock ``c`` tha
 how long the observer has run), ``z(0) = 0``; ``xhat = D([z; y_k; u_k])`` with an optional per-state
 ``asinh`` output scale. The latent is linear, so its exact discretisation is used; the decoder reads
 the newest measurement and input, which the observer's memory ``w = [y_k; u_k]`` carries. Built by
-:mod:`kklcasadi.model.variants.filterbank` and trained by :mod:`kklcasadi.train.operational` for the noise level
-and input ranges its card records. There is no encoder: the latent is not a KKL map of the state
-but a fixed filter of the signals, and the decoder learns the state from it.
+:mod:`kklcasadi.model.variants.filterbank` and trained by :mod:`kklcasadi.train.decoder` (on the samples of
+:mod:`kklcasadi.model.operational`) for the noise level and input ranges its card records. There is no
+encoder: the latent is not a KKL map of the state but a fixed filter of the signals, and the decoder learns
+the state from it.
 
 Angles (``System.angle_outputs``, ``angle_states``) are read and written continuously on the circle
 (:class:`kklcasadi.model.variants.filterbank.Angles`).

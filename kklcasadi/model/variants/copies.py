@@ -40,7 +40,7 @@ from ...validation import error
 __all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count"]
 
 #: Half-width of the clip box of a copy's state, in half-widths of the plant's X0 box (the escape box of
-#: the operational runs, :attr:`kklcasadi.train.operational.RolloutConfig.escape_scale`).
+#: the operational runs, :attr:`kklcasadi.plant.runs.RolloutConfig.escape_scale`).
 BOUND_SCALE = 10.0
 #: The arrays of the copies in a model file.
 COPY_ARRAYS = ("copies/gains", "copies/reference", "copies/bound")

@@ -410,7 +410,7 @@ def decoder_outputs(v: Any, y: Any, scale: np.ndarray, angles: Angles = NO_ANGLE
     ``y_j + v_i`` for a measured angle, ``c + atan2(v_{nx+k}, v_i)`` for a free one, else ``v_i``.
 
     ``lib`` is ``numpy`` (arrays ``(..., n)``) or ``casadi`` (column vectors); ``torch`` tensors use
-    :func:`kklcasadi.train.operational.torch_decoder`.
+    :func:`kklcasadi.train.decoder.torch_decoder`.
     """
     nx = scale.size
     measured, free = dict(angles.measured), {i: (k, c) for k, (i, c) in enumerate(angles.free)}

@@ -1,57 +1,36 @@
-"""Operational decoders: fit the decoder on the latents the observer really sees.
+"""The operational runs: noisy simulated runs of a plant under the training families' inputs.
 
-The observer runs on simulated noisy trajectories (initial states from the X0 box, inputs from the
-``train`` ranges of :mod:`kklcasadi.plant.signals`, process and measurement noise at the design level,
-``z(0) = 0`` as in the benchmark), and the decoder is fitted to the true states along those runs.
-For the linear filter-bank latent of :mod:`kklcasadi.model.variants.filterbank` the latent trajectory does not
-depend on the decoder, so one pass suffices.
+The runs start from initial states in the X0 box, take inputs from the ``train`` (or ``wide``) ranges of
+:mod:`kklcasadi.plant.signals` and the families of :data:`FAMILIES` (open loop, or closed around the noisy
+output), and carry process and measurement noise at levels drawn per run about the design level. A ``bank``
+decoder is fitted on the latents the observer sees along them (:mod:`kklcasadi.model.operational`); no torch.
 
 Budgets count simulated seconds and runs, not samples: the runs are simulated in chunks (a progress
-bar per chunk), the latent is run over each chunk at the model's ``dt``, and the decoder keeps
-samples at fixed times (every ``dense_period`` seconds over the first ``dense_time``, every
-``sample_period`` after), so the data and the fit cost about the same at any sample time. A run
-whose state escapes (leaves the X0 box scaled by ``escape_scale`` about its centre, angle states
-compared on the circle, or fails in the integrator) is cut there: none of its samples from the
-escape on is used, and the record counts the cut runs.
+bar per chunk). A run whose state escapes (leaves the X0 box scaled by ``escape_scale`` about its
+centre, angle states compared on the circle, or fails in the integrator) is cut there.
 
-* :func:`operational_data` -- the decoder's samples of the noisy runs (CasADi and numpy; no torch).
+* :class:`RolloutConfig` -- the runs' recipe: how many, how long, families, ranges, noise, sample times.
 * :func:`rollouts` -- the runs themselves (full trajectories of the runs that did not escape).
-* :func:`fit_bank_decoder` -- fit the decoder MLP (torch) on ``[z; y_k; u_k] -> x_k`` with an
-  optional asinh output transform per state and the angle layout of
-  :class:`kklcasadi.model.variants.filterbank.Angles`, and return the model arrays of ``bank``.
+* :func:`fit_families` -- the families of a recipe with their parameter ranges (a card's ``fit_families``).
 """
 
 from __future__ import annotations
 
 import math
-import time
-from dataclasses import asdict, dataclass, field
-from typing import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Iterator, Mapping, Sequence
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
-from ..model.variants import filterbank as fb
-from ..model.variants.copies import ModelCopies
-from ..nets.specs import DECODER, MLPSpec
-from ..plant import signals as sig
-from ..plant.design import time_scales
-from ..plant.simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
-from ..plant.systems import System
-from ..validation import error, positive_number
-from .config import LoopConfig
-from .loop import ArrayDataset, FitResult, fit, torch_dtype
-from .nets import MLP
+from . import signals as sig
+from .design import time_scales
+from .simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
+from .systems import System
 
-__all__ = ["RolloutConfig", "DecoderConfig", "OperationalData", "operational_data", "rollouts", "fit_bank_decoder",
-           "BankFit", "LOSSES", "config_record", "fold_whitening", "torch_decoder", "RK_STEP", "FAMILIES",
-           "DEFAULT_KINDS", "PD_RANGES", "ROLLOUT_REGIMES", "fit_families", "loop_signs"]
+__all__ = ["RolloutConfig", "rollouts", "RK_STEP", "FAMILIES", "DEFAULT_KINDS", "PD_RANGES", "ROLLOUT_REGIMES",
+           "fit_families", "loop_signs"]
 
-Tensor = torch.Tensor
-
-#: Training losses of :func:`fit_bank_decoder`.
-LOSSES = ("mse", "smape", "mse+smape")
 #: Input families of the runs (:attr:`RolloutConfig.kinds`): the benchmark's four; ``multisine``, a
 #: random spectrum (2-6 tones with log-uniform frequencies over the sinusoid's range and Dirichlet
 #: weights of a sinusoid's amplitude); ``feedback``, a closed loop ``u_k = clip(g (r - y_k) / s, -l, l)``
@@ -161,105 +140,6 @@ class RolloutConfig:
         if not isinstance(self.chunk, int) or self.chunk < 1:
             raise ValueError(f"chunk: expected a positive integer, received {self.chunk!r}.")
 
-
-@dataclass(frozen=True)
-class DecoderConfig:
-    """Decoder architecture and its optimisation.
-
-    Attributes
-    ----------
-    hidden : tuple of int
-        Hidden layer widths.
-    activation : str
-    loss : {"mse", "smape", "mse+smape"}
-        ``mse``: mean square error of the normalised (transformed) outputs; ``smape``: the
-        protocol's SMAPE of ``xhat`` (with ``smape_eps`` in the denominator); ``mse+smape``: their
-        sum with weight ``smape_weight`` on the SMAPE term.
-    smape_eps, smape_weight : float
-    asinh_scale : tuple of float or None
-        Per-state output transform scale (0: none); ``None`` for none at all.
-    whiten : bool
-        Train on whitened features (the whitening is folded into the first layer afterwards).
-    skip : bool
-        Give the network a linear skip path (:class:`kklcasadi.nets.specs.MLPSpec`; zero at the start):
-        off the fitted states the estimate keeps the slope of that path where the tanh layers level
-        off (docs/design.md, "Runs").
-    loop : LoopConfig
-    dtype : {"float32", "float64"}
-        Training precision; the returned arrays are float64 either way.
-    """
-
-    hidden: tuple[int, ...] = (256, 256, 256)
-    activation: str = "tanh"
-    loss: str = "mse"
-    smape_eps: float = 1e-3
-    smape_weight: float = 0.01
-    asinh_scale: tuple[float, ...] | None = None
-    whiten: bool = True
-    skip: bool = False
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=1024, lr=1e-3,
-                                                                  schedule="cosine", val_fraction=0.05))
-    dtype: str = "float32"
-
-    def __post_init__(self) -> None:
-        if self.loss not in LOSSES:
-            raise ValueError(f"loss: expected one of {LOSSES}, received {self.loss!r}.")
-        positive_number(self.smape_weight, "smape_weight", "the weight of the SMAPE term of loss 'mse+smape'")
-        if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
-            raise ValueError(f"hidden: expected a non-empty tuple of positive widths, received {self.hidden!r}.")
-        torch_dtype(self.dtype)
-        if not isinstance(self.skip, bool):
-            raise error("skip", "True or False (a linear skip path in the decoder)", self.skip, kind=TypeError)
-
-
-@dataclass(frozen=True, eq=False)
-class OperationalData:
-    """The decoder's samples of the operational runs.
-
-    Attributes
-    ----------
-    z : numpy.ndarray, shape (S, nz)
-        The bank's latent at the kept samples (from ``z = 0`` at each run's start).
-    y : numpy.ndarray, shape (S, ny)
-    u : numpy.ndarray, shape (S, nu)
-    x : numpy.ndarray, shape (S, nx)
-        The true states there.
-    t : numpy.ndarray, shape (S,)
-        Each sample's time from its run's start (seconds).
-    run : numpy.ndarray, shape (S,)
-        Each sample's run (int, ascending: the samples are ordered run by run).
-    record : dict
-        ``runs`` simulated, ``cut`` (runs that escaped and were cut there), ``failed`` (of them, the
-        ones that blew up or that the integrator failed on), ``samples`` kept, ``simulated_s`` (seconds simulated), the
-        per-run noise factors' range, ``substeps`` and ``seconds`` (wall time).
-    """
-
-    z: np.ndarray
-    y: np.ndarray
-    u: np.ndarray
-    x: np.ndarray
-    t: np.ndarray
-    run: np.ndarray
-    record: dict
-
-    def __len__(self) -> int:
-        return len(self.x)
-
-    @classmethod
-    def from_runs(cls, bank: fb.FilterBank, runs: TrajectoryBatch, config: RolloutConfig, *,
-                  copies: ModelCopies | None = None) -> OperationalData:
-        """The samples of given runs (all of each run valid), kept at ``config``'s sample times; ``copies``
-        (the latent's model copies, if any) follow the filters in ``z``."""
-        dt = float(runs.t[1] - runs.t[0])
-        keep = _keep(runs.t.size, dt, config)
-        z = fb.latent_run(bank, runs.y, runs.u, dt, copies=copies)[:, keep]
-        nz, ny, nu, nx = z.shape[2], runs.y.shape[2], runs.u.shape[2], runs.x.shape[2]
-        record = {"runs": len(runs), "cut": 0, "failed": 0, "samples": int(keep.sum() * len(runs)),
-                  "simulated_s": float(len(runs) * runs.t.size * dt)}
-        shape = (len(runs), int(keep.sum()))
-        return cls(z.reshape(-1, nz), runs.y[:, keep].reshape(-1, ny), runs.u[:, keep].reshape(-1, nu),
-                   runs.x[:, keep].reshape(-1, nx), np.broadcast_to(runs.t[keep], shape).ravel(),
-                   np.broadcast_to(np.arange(len(runs))[:, None], shape).ravel(), record)
 
 
 def _keep(n: int, dt: float, config: RolloutConfig, rate: float = 1.0) -> np.ndarray:
@@ -509,72 +389,6 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
                    {"process": p_factor, "measurement": m_factor, "substeps": substeps})
 
 
-def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig, seed: int, *, dt: float,
-                     measurement_std: float, process_std: float | Sequence[float] = 0.0, time_scale: float = 1.0,
-                     copies: ModelCopies | None = None, progress: bool = False) -> OperationalData:
-    """Simulate the operational runs and keep the decoder's samples of them.
-
-    Parameters
-    ----------
-    system : System
-    bank : FilterBank
-        The observer's latent, run over each run from ``z = 0``.
-    config : RolloutConfig
-    seed : int
-        Seeds the initial states (Latin hypercube), the input parameters and the noise.
-    dt : float
-        The model's sample period.
-    measurement_std : float
-        Measurement-noise std (nominal; times the per-run factor of ``config.noise_range``).
-    process_std : float or sequence of float (nx,)
-        Process-noise std added to ``xdot`` (one for all states or one per state).
-    time_scale : float
-        The rate (rad/s) ``config``'s times are in units of (``T`` seconds at 1): its horizon and
-        sample times are divided by it, the inputs' frequencies multiplied.
-    copies : ModelCopies or None
-        The latent's model copies of the plant (:mod:`kklcasadi.model.variants.copies`), run over each run
-        after the filters (their latents follow the bank's in ``z``).
-    progress : bool
-        A progress bar over the runs.
-
-    Returns
-    -------
-    OperationalData
-        Every run's samples before its escape (if any).
-    """
-    t0 = time.perf_counter()
-    n = time_grid(_horizon(config.T, time_scale, dt), dt).size
-    keep = _keep(n, dt, config, time_scale)
-    parts: dict[str, list[np.ndarray]] = {"z": [], "y": [], "u": [], "x": [], "t": [], "run": []}
-    first = 0
-    cut = failed = 0
-    factors: list[float] = []
-    substeps = 0
-    for batch, escape, noise in _chunks(system, config, seed, dt, measurement_std, process_std, time_scale, progress,
-                                        "operational runs"):
-        cut += int(np.sum(escape < n))
-        failed += int(np.sum(~np.all(np.isfinite(batch.x), axis=(1, 2))))
-        factors.extend(noise["measurement"].tolist())
-        substeps = noise["substeps"]
-        valid = np.arange(n)[None, :] < escape[:, None]
-        y = np.where(valid[..., None], batch.y, 0.0)          # after an escape: ignored, kept finite
-        u = np.where(valid[..., None], batch.u, 0.0)
-        z = fb.latent_run(bank, y, u, dt, copies=copies)
-        mask = valid & keep[None, :]
-        runs = np.broadcast_to(np.arange(first, first + len(escape))[:, None], mask.shape)
-        first += len(escape)
-        for name, arr in (("z", z), ("y", y), ("u", u), ("x", np.asarray(batch.x)),
-                          ("t", np.broadcast_to(batch.t, mask.shape)), ("run", runs)):
-            parts[name].append(arr[mask])
-    data = {k: np.concatenate(v) for k, v in parts.items()}
-    record = {"runs": config.n_traj, "cut": cut, "failed": failed, "samples": int(len(data["x"])),
-              "horizon_s": n * dt, "simulated_s": float(config.n_traj * n * dt),
-              "sample_period_s": config.sample_period / time_scale, "substeps": substeps,
-              "measurement_factor_range": [float(min(factors)), float(max(factors))],
-              "seconds": round(time.perf_counter() - t0, 2)}
-    return OperationalData(data["z"], data["y"], data["u"], data["x"], data["t"], data["run"], record)
-
-
 def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.05, measurement_std: float = 0.1,
              process_std: float | Sequence[float] = 0.1, time_scale: float = 1.0,
              progress: bool = False) -> TrajectoryBatch:
@@ -595,177 +409,3 @@ def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.
         parts.append((batch.x[ok], batch.u[ok], batch.y[ok]))
     x, u, y = (np.concatenate([p[i] for p in parts]) for i in range(3))
     return TrajectoryBatch(time_grid(_horizon(config.T, time_scale, dt), dt), x, u, y, np.ones(len(x), dtype=bool))
-
-
-def _whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
-    """Mean (d,) and symmetric whitening matrix W (d, d): ``cov((f - mean) W^T) = I`` up to the floor."""
-    mean = f.mean(axis=0)
-    cov = np.cov((f - mean).T)
-    cov = np.atleast_2d(cov)
-    vals, vecs = np.linalg.eigh(cov)
-    vals = np.maximum(vals, floor * vals.max())
-    return mean, (vecs / np.sqrt(vals)) @ vecs.T
-
-
-def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np.ndarray) -> dict[str, np.ndarray]:
-    """Fold an input whitening into an MLP trained on ``(f - mean) W^T`` (with unit input normalisation).
-
-    ``W0 ((f - mean) W^T)^T = (W0 W) (f - mean)``, so the returned arrays have ``W0 <- W0 W``
-    (and ``Wskip <- Wskip W`` with the skip path), ``in_mean <- mean``, ``in_std <- 1`` and evaluate the
-    same map on the raw features ``f``.
-
-    Parameters
-    ----------
-    arrays : Mapping[str, numpy.ndarray]
-        ``decoder/*`` arrays of the MLP trained on whitened features (``in_mean = 0``, ``in_std = 1``).
-    mean : numpy.ndarray, shape (d,)
-    white : numpy.ndarray, shape (d, d)
-    """
-    d = white.shape[0]
-    if not (np.allclose(arrays[f"{DECODER}/in_mean"], 0.0) and np.allclose(arrays[f"{DECODER}/in_std"], 1.0)):
-        raise ValueError("fold_whitening expects an MLP with in_mean = 0 and in_std = 1")
-    out = dict(arrays)
-    for name in (f"{DECODER}/W0", f"{DECODER}/Wskip"):
-        if name in arrays:
-            out[name] = np.asarray(arrays[name]) @ white
-    out[f"{DECODER}/in_mean"] = np.asarray(mean, dtype=float).copy()
-    out[f"{DECODER}/in_std"] = np.ones(d)
-    return out
-
-
-def _torch_outputs(v: Tensor, y: Tensor, scale: np.ndarray, angles: fb.Angles) -> Tensor:
-    """:func:`kklcasadi.model.variants.filterbank.decoder_outputs` in torch."""
-    nx = scale.size
-    s = torch.as_tensor(scale, dtype=v.dtype, device=v.device)
-    pos = s > 0
-    cols = list(torch.where(pos, torch.where(pos, s, torch.ones_like(s)) * torch.sinh(v[..., :nx]),
-                            v[..., :nx]).unbind(-1))
-    for i, j in angles.measured:
-        cols[i] = y[..., j] + v[..., i]
-    for k, (i, c) in enumerate(angles.free):
-        cols[i] = c + torch.atan2(v[..., nx + k], v[..., i])
-    return torch.stack(cols, dim=-1)
-
-
-def torch_decoder(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], *,
-                  angles: fb.Angles = fb.NO_ANGLES) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
-    """The bank decoder in torch (float64): ``(z (..., nz), y (..., ny), u (..., nu)) -> xhat (..., nx)``.
-
-    The same map as :func:`kklcasadi.model.variants.filterbank.decode` and
-    :func:`kklcasadi.model.variants.filterbank.decoder_function`.
-    """
-    mlp = MLP.from_arrays(arrays, DECODER, MLPSpec.from_card(arch, "architecture", DECODER), dtype=torch.float64)
-    scale = np.asarray(arrays[fb.ASINH_SCALE], dtype=float)
-    a = list(angles.outputs)
-    other = [j for j in range(np.asarray(arrays["bank/By"]).shape[1]) if j not in angles.outputs]
-    gains = torch.as_tensor(fb.dc_gains(fb.bank_from_arrays(arrays))[:, a])
-
-    def apply(z: Tensor, y: Tensor, u: Tensor) -> Tensor:
-        if a:
-            ya = y[..., a]
-            f = torch.cat([z - ya @ gains.T, y[..., other], torch.sin(ya), torch.cos(ya), u], dim=-1)
-        else:
-            f = torch.cat([z, y, u], dim=-1)
-        return _torch_outputs(mlp(f), y, scale, angles)
-
-    return apply
-
-
-@dataclass(frozen=True, eq=False)
-class BankFit:
-    """Result of :func:`fit_bank_decoder`.
-
-    Attributes
-    ----------
-    arrays : dict
-        ``bank/*``, ``decoder/*`` and ``decoder/asinh_scale`` arrays (float64).
-    arch : dict
-        The decoder's card entry.
-    angles : Angles
-        The decoder's angle layout.
-    fit : FitResult
-    n_samples : int
-    seconds : float
-    domain : dict
-        Per-state 0.1 / 50 / 99.9 percentiles of the training states (the domain the model covers).
-    """
-
-    arrays: dict
-    arch: dict
-    angles: fb.Angles
-    fit: FitResult
-    n_samples: int
-    seconds: float
-    domain: dict
-
-
-def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: DecoderConfig, *,
-                     angles: fb.Angles = fb.NO_ANGLES, seed: int = 0, progress: bool = False) -> BankFit:
-    """Fit the decoder ``[z_k; y_k; u_k] -> x_k`` on operational samples of the bank observer.
-
-    Parameters
-    ----------
-    bank : FilterBank
-    data : OperationalData
-        Samples of noisy runs (:func:`operational_data`, or :meth:`OperationalData.from_runs`).
-    config : DecoderConfig
-    angles : Angles
-        How angle outputs are read and angle states written (:meth:`Angles.of` the plant).
-    seed : int
-        Seeds torch, the split and the shuffles.
-    progress : bool
-        Show a progress bar.
-
-    Returns
-    -------
-    BankFit
-    """
-    t0 = time.perf_counter()
-    nx = data.x.shape[1]
-    scale = np.zeros(nx) if config.asinh_scale is None else np.asarray(config.asinh_scale, dtype=float)
-    if scale.shape != (nx,) or np.any(scale < 0):
-        raise ValueError(f"asinh_scale: expected nx = {nx} entries >= 0, received {config.asinh_scale!r}.")
-    feats = fb.decoder_features(data.z, data.y, data.u, angles=angles, gains=fb.dc_gains(bank))
-    v = fb.decoder_targets(data.x, data.y, scale, angles)
-    sizes = (feats.shape[1], *config.hidden, v.shape[1])
-    dtype = torch_dtype(config.dtype)
-    torch.manual_seed(seed)
-    mlp = MLP(sizes, config.activation, skip=config.skip).to(torch.float64)
-    if config.whiten:
-        f_mean, white = _whitening(feats)
-    else:
-        f_mean, white = feats.mean(axis=0), np.diag(1.0 / (feats.std(axis=0) + 1e-12))
-    mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), v.mean(axis=0), v.std(axis=0) + 1e-12)
-    mlp = mlp.to(dtype)
-    data_set = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v, "x": data.x, "y": data.y}, dtype=dtype)
-    out_std = torch.as_tensor(mlp.out_std.detach().clone())
-
-    def loss_fn(batch: Mapping[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
-        pred = mlp(batch["f"])
-        parts: dict[str, float] = {}
-        total = pred.new_zeros(())
-        if config.loss in ("mse", "mse+smape"):
-            mse = (((pred - batch["v"]) / out_std) ** 2).mean()
-            parts["mse"] = mse.item()
-            total = total + mse
-        if config.loss in ("smape", "mse+smape"):
-            xhat = _torch_outputs(pred, batch["y"], scale, angles)
-            xt = batch["x"]
-            sm = (2.0 * (xt - xhat).abs() / (xt.abs() + xhat.abs() + config.smape_eps)).mean()
-            parts["smape"] = sm.item()
-            total = total + (sm if config.loss == "smape" else config.smape_weight * sm)
-        return total, parts
-
-    result = fit(list(mlp.parameters()), loss_fn, data_set, config.loop, name="bank decoder", seed=seed,
-                 progress=progress)
-    arrays = fold_whitening(mlp.to(torch.float64).to_arrays(DECODER), f_mean, white)
-    arrays[fb.ASINH_SCALE] = scale.copy()
-    arrays.update(fb.bank_arrays(bank))
-    pct = np.percentile(data.x, [0.1, 50.0, 99.9], axis=0)
-    domain = {"x_p0.1": pct[0].tolist(), "x_p50": pct[1].tolist(), "x_p99.9": pct[2].tolist()}
-    return BankFit(arrays, mlp.spec.to_card(), angles, result, int(len(v)), time.perf_counter() - t0, domain)
-
-
-def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:
-    """JSON-able record of the two configurations (for a model card)."""
-    return {"rollouts": asdict(rollout), "decoder": {**asdict(decoder), "loop": asdict(decoder.loop)}}

@@ -1,0 +1,257 @@
+"""The ``bank`` decoder's fit (torch): the MLP ``[z; y_k; u_k] -> x_k`` on the operational samples.
+
+* :func:`fit_bank_decoder` -- fit the decoder MLP on the samples of :func:`kklcasadi.model.operational.operational_data`
+  with an optional asinh output transform per state and the angle layout of
+  :class:`kklcasadi.model.variants.filterbank.Angles`, and return the model arrays of ``bank``.
+* :func:`torch_decoder` -- the decoder of such arrays in torch.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Callable, Mapping
+
+import numpy as np
+import torch
+
+from ..model.operational import OperationalData
+from ..model.variants import filterbank as fb
+from ..nets.specs import DECODER, MLPSpec
+from ..plant.runs import RolloutConfig
+from ..validation import error, positive_number
+from .config import LoopConfig
+from .loop import ArrayDataset, FitResult, fit, torch_dtype
+from .nets import MLP
+
+__all__ = ["DecoderConfig", "fit_bank_decoder", "BankFit", "LOSSES", "config_record", "fold_whitening",
+           "torch_decoder"]
+
+Tensor = torch.Tensor
+
+#: Training losses of :func:`fit_bank_decoder`.
+LOSSES = ("mse", "smape", "mse+smape")
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    """Decoder architecture and its optimisation.
+
+    Attributes
+    ----------
+    hidden : tuple of int
+        Hidden layer widths.
+    activation : str
+    loss : {"mse", "smape", "mse+smape"}
+        ``mse``: mean square error of the normalised (transformed) outputs; ``smape``: the
+        protocol's SMAPE of ``xhat`` (with ``smape_eps`` in the denominator); ``mse+smape``: their
+        sum with weight ``smape_weight`` on the SMAPE term.
+    smape_eps, smape_weight : float
+    asinh_scale : tuple of float or None
+        Per-state output transform scale (0: none); ``None`` for none at all.
+    whiten : bool
+        Train on whitened features (the whitening is folded into the first layer afterwards).
+    skip : bool
+        Give the network a linear skip path (:class:`kklcasadi.nets.specs.MLPSpec`; zero at the start):
+        off the fitted states the estimate keeps the slope of that path where the tanh layers level
+        off (docs/design.md, "Runs").
+    loop : LoopConfig
+    dtype : {"float32", "float64"}
+        Training precision; the returned arrays are float64 either way.
+    """
+
+    hidden: tuple[int, ...] = (256, 256, 256)
+    activation: str = "tanh"
+    loss: str = "mse"
+    smape_eps: float = 1e-3
+    smape_weight: float = 0.01
+    asinh_scale: tuple[float, ...] | None = None
+    whiten: bool = True
+    skip: bool = False
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=30, batch_size=1024, lr=1e-3,
+                                                                  schedule="cosine", val_fraction=0.05))
+    dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss: expected one of {LOSSES}, received {self.loss!r}.")
+        positive_number(self.smape_weight, "smape_weight", "the weight of the SMAPE term of loss 'mse+smape'")
+        if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
+            raise ValueError(f"hidden: expected a non-empty tuple of positive widths, received {self.hidden!r}.")
+        torch_dtype(self.dtype)
+        if not isinstance(self.skip, bool):
+            raise error("skip", "True or False (a linear skip path in the decoder)", self.skip, kind=TypeError)
+
+
+def _whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (d,) and symmetric whitening matrix W (d, d): ``cov((f - mean) W^T) = I`` up to the floor."""
+    mean = f.mean(axis=0)
+    cov = np.cov((f - mean).T)
+    cov = np.atleast_2d(cov)
+    vals, vecs = np.linalg.eigh(cov)
+    vals = np.maximum(vals, floor * vals.max())
+    return mean, (vecs / np.sqrt(vals)) @ vecs.T
+
+
+def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np.ndarray) -> dict[str, np.ndarray]:
+    """Fold an input whitening into an MLP trained on ``(f - mean) W^T`` (with unit input normalisation).
+
+    ``W0 ((f - mean) W^T)^T = (W0 W) (f - mean)``, so the returned arrays have ``W0 <- W0 W``
+    (and ``Wskip <- Wskip W`` with the skip path), ``in_mean <- mean``, ``in_std <- 1`` and evaluate the
+    same map on the raw features ``f``.
+
+    Parameters
+    ----------
+    arrays : Mapping[str, numpy.ndarray]
+        ``decoder/*`` arrays of the MLP trained on whitened features (``in_mean = 0``, ``in_std = 1``).
+    mean : numpy.ndarray, shape (d,)
+    white : numpy.ndarray, shape (d, d)
+    """
+    d = white.shape[0]
+    if not (np.allclose(arrays[f"{DECODER}/in_mean"], 0.0) and np.allclose(arrays[f"{DECODER}/in_std"], 1.0)):
+        raise ValueError("fold_whitening expects an MLP with in_mean = 0 and in_std = 1")
+    out = dict(arrays)
+    for name in (f"{DECODER}/W0", f"{DECODER}/Wskip"):
+        if name in arrays:
+            out[name] = np.asarray(arrays[name]) @ white
+    out[f"{DECODER}/in_mean"] = np.asarray(mean, dtype=float).copy()
+    out[f"{DECODER}/in_std"] = np.ones(d)
+    return out
+
+
+def _torch_outputs(v: Tensor, y: Tensor, scale: np.ndarray, angles: fb.Angles) -> Tensor:
+    """:func:`kklcasadi.model.variants.filterbank.decoder_outputs` in torch."""
+    nx = scale.size
+    s = torch.as_tensor(scale, dtype=v.dtype, device=v.device)
+    pos = s > 0
+    cols = list(torch.where(pos, torch.where(pos, s, torch.ones_like(s)) * torch.sinh(v[..., :nx]),
+                            v[..., :nx]).unbind(-1))
+    for i, j in angles.measured:
+        cols[i] = y[..., j] + v[..., i]
+    for k, (i, c) in enumerate(angles.free):
+        cols[i] = c + torch.atan2(v[..., nx + k], v[..., i])
+    return torch.stack(cols, dim=-1)
+
+
+def torch_decoder(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], *,
+                  angles: fb.Angles = fb.NO_ANGLES) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
+    """The bank decoder in torch (float64): ``(z (..., nz), y (..., ny), u (..., nu)) -> xhat (..., nx)``.
+
+    The same map as :func:`kklcasadi.model.variants.filterbank.decode` and
+    :func:`kklcasadi.model.variants.filterbank.decoder_function`.
+    """
+    mlp = MLP.from_arrays(arrays, DECODER, MLPSpec.from_card(arch, "architecture", DECODER), dtype=torch.float64)
+    scale = np.asarray(arrays[fb.ASINH_SCALE], dtype=float)
+    a = list(angles.outputs)
+    other = [j for j in range(np.asarray(arrays["bank/By"]).shape[1]) if j not in angles.outputs]
+    gains = torch.as_tensor(fb.dc_gains(fb.bank_from_arrays(arrays))[:, a])
+
+    def apply(z: Tensor, y: Tensor, u: Tensor) -> Tensor:
+        if a:
+            ya = y[..., a]
+            f = torch.cat([z - ya @ gains.T, y[..., other], torch.sin(ya), torch.cos(ya), u], dim=-1)
+        else:
+            f = torch.cat([z, y, u], dim=-1)
+        return _torch_outputs(mlp(f), y, scale, angles)
+
+    return apply
+
+
+@dataclass(frozen=True, eq=False)
+class BankFit:
+    """Result of :func:`fit_bank_decoder`.
+
+    Attributes
+    ----------
+    arrays : dict
+        ``bank/*``, ``decoder/*`` and ``decoder/asinh_scale`` arrays (float64).
+    arch : dict
+        The decoder's card entry.
+    angles : Angles
+        The decoder's angle layout.
+    fit : FitResult
+    n_samples : int
+    seconds : float
+    domain : dict
+        Per-state 0.1 / 50 / 99.9 percentiles of the training states (the domain the model covers).
+    """
+
+    arrays: dict
+    arch: dict
+    angles: fb.Angles
+    fit: FitResult
+    n_samples: int
+    seconds: float
+    domain: dict
+
+
+def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: DecoderConfig, *,
+                     angles: fb.Angles = fb.NO_ANGLES, seed: int = 0, progress: bool = False) -> BankFit:
+    """Fit the decoder ``[z_k; y_k; u_k] -> x_k`` on operational samples of the bank observer.
+
+    Parameters
+    ----------
+    bank : FilterBank
+    data : OperationalData
+        Samples of noisy runs (:func:`operational_data`, or :meth:`OperationalData.from_runs`).
+    config : DecoderConfig
+    angles : Angles
+        How angle outputs are read and angle states written (:meth:`Angles.of` the plant).
+    seed : int
+        Seeds torch, the split and the shuffles.
+    progress : bool
+        Show a progress bar.
+
+    Returns
+    -------
+    BankFit
+    """
+    t0 = time.perf_counter()
+    nx = data.x.shape[1]
+    scale = np.zeros(nx) if config.asinh_scale is None else np.asarray(config.asinh_scale, dtype=float)
+    if scale.shape != (nx,) or np.any(scale < 0):
+        raise ValueError(f"asinh_scale: expected nx = {nx} entries >= 0, received {config.asinh_scale!r}.")
+    feats = fb.decoder_features(data.z, data.y, data.u, angles=angles, gains=fb.dc_gains(bank))
+    v = fb.decoder_targets(data.x, data.y, scale, angles)
+    sizes = (feats.shape[1], *config.hidden, v.shape[1])
+    dtype = torch_dtype(config.dtype)
+    torch.manual_seed(seed)
+    mlp = MLP(sizes, config.activation, skip=config.skip).to(torch.float64)
+    if config.whiten:
+        f_mean, white = _whitening(feats)
+    else:
+        f_mean, white = feats.mean(axis=0), np.diag(1.0 / (feats.std(axis=0) + 1e-12))
+    mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), v.mean(axis=0), v.std(axis=0) + 1e-12)
+    mlp = mlp.to(dtype)
+    data_set = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v, "x": data.x, "y": data.y}, dtype=dtype)
+    out_std = torch.as_tensor(mlp.out_std.detach().clone())
+
+    def loss_fn(batch: Mapping[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        pred = mlp(batch["f"])
+        parts: dict[str, float] = {}
+        total = pred.new_zeros(())
+        if config.loss in ("mse", "mse+smape"):
+            mse = (((pred - batch["v"]) / out_std) ** 2).mean()
+            parts["mse"] = mse.item()
+            total = total + mse
+        if config.loss in ("smape", "mse+smape"):
+            xhat = _torch_outputs(pred, batch["y"], scale, angles)
+            xt = batch["x"]
+            sm = (2.0 * (xt - xhat).abs() / (xt.abs() + xhat.abs() + config.smape_eps)).mean()
+            parts["smape"] = sm.item()
+            total = total + (sm if config.loss == "smape" else config.smape_weight * sm)
+        return total, parts
+
+    result = fit(list(mlp.parameters()), loss_fn, data_set, config.loop, name="bank decoder", seed=seed,
+                 progress=progress)
+    arrays = fold_whitening(mlp.to(torch.float64).to_arrays(DECODER), f_mean, white)
+    arrays[fb.ASINH_SCALE] = scale.copy()
+    arrays.update(fb.bank_arrays(bank))
+    pct = np.percentile(data.x, [0.1, 50.0, 99.9], axis=0)
+    domain = {"x_p0.1": pct[0].tolist(), "x_p50": pct[1].tolist(), "x_p99.9": pct[2].tolist()}
+    return BankFit(arrays, mlp.spec.to_card(), angles, result, int(len(v)), time.perf_counter() - t0, domain)
+
+
+def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:
+    """JSON-able record of the two configurations (for a model card)."""
+    return {"rollouts": asdict(rollout), "decoder": {**asdict(decoder), "loop": asdict(decoder.loop)}}
