@@ -10,6 +10,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from kklcasadi import provenance
 from kklcasadi.estimators.ekf import EKF
 from kklcasadi.evaluation.bench import scaling as sc
 from kklcasadi.observer.codegen import generate_c
@@ -111,4 +112,6 @@ def test_a_tiny_scaling_run(tmp_path):
     assert 0 < row.smape_observer and 0 < row.smape_ekf and row.simulated_s == 8 * 20.0
     assert (tmp_path / "scaling.png").stat().st_size > 0 and "| 2 | 1 | 14 |" in (tmp_path / "scaling.md").read_text()
     saved = json.loads((tmp_path / "scaling.json").read_text())
+    for name in ("scaling.md", "scaling.json", "scaling.png"):
+        assert provenance.read(tmp_path / name).seeds == {"training_and_trials": 0}
     assert sc.ScalingRow(**saved["rows"][0]) == row and saved["settings"]["runs"] == 8

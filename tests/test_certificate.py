@@ -155,7 +155,12 @@ def test_certificate_command_prints_and_saves(tmp_path, capsys):
     assert main(["certificate", str(model), "--kinds", "zero", "--points", "300", "--labels", "2", "--trials", "2",
                  "--T", "6", "--settle", "4", "--out", str(out)]) == 0
     assert "Proposition 1 certificate: linear / autonomous" in capsys.readouterr().out
-    record = json.loads(out.read_text())[0]
+    from kklcasadi import provenance
+
+    data = json.loads(out.read_text())
+    assert data["provenance"]["command"].startswith("kklcasadi certificate ") and data["provenance"]["seeds"] == {
+        "seed": 0}
+    record = provenance.json_payload(data)[0]
     assert record["model"] == str(model) and record["holds_sampled"] is True
     assert record["eps_pde"] < 1e-12 and len(record["domain"]) == 2
 

@@ -8,6 +8,7 @@ import casadi as ca
 import numpy as np
 import pytest
 
+from kklcasadi import provenance
 from kklcasadi.cli import main
 from kklcasadi.model.files import load_model
 
@@ -63,11 +64,18 @@ def test_evaluate_prints_the_protocol_scores_and_writes_plots(model_dir_factory,
     a = model_dir_factory("autonomous")
     b = model_dir_factory("inject", base=True)
     out = tmp_path / "eval"
-    assert main(["evaluate", str(a), str(b), "--trials", "3", "--kinds", "zero", "constant", "--noise", "off",
-                 "--ekf", "--out", str(out)]) == 0
+    args = ["evaluate", str(a), str(b), "--trials", "3", "--kinds", "zero", "constant", "--noise", "off", "--ekf",
+            "--out", str(out)]
+    assert main(args) == 0
     table = capsys.readouterr().out
-    assert (out / "duffing_smape_clean.png").exists()
-    scores = {(r["method"], r["kind"]): r for r in json.loads((out / "duffing_scores.json").read_text())}
+    # every file written carries the command line, the commit and the trials' seed
+    written = sorted(p.name for p in out.iterdir())
+    assert written == ["duffing_scores.json", "duffing_smape_clean.png", "duffing_table.md"]
+    for name in written:
+        stamp = provenance.read(out / name)
+        assert stamp.command == "kklcasadi " + " ".join(args) and stamp.seeds == {"trials": 2026} and stamp.commit
+    scores = {(r["method"], r["kind"]): r
+              for r in provenance.json_payload(json.loads((out / "duffing_scores.json").read_text()))}
     assert sorted(scores) == [(m, k) for m in ("EKF", "autonomous", "inject") for k in ("constant", "zero")]
     rows = {line.split("|")[1].strip(): line.split("|")[2:4] for line in table.splitlines()
             if line.startswith("| duffing")}
@@ -245,7 +253,8 @@ def test_evaluate_counts_the_trials_that_escape_per_cell(escaping, tmp_path, cap
     assert main(["evaluate", str(model), "--plant", spec, "--trials", "4", "--kinds", "zero", "square", "--noise",
                  "off", "--vm", "--out", str(out)]) == 0
     captured = capsys.readouterr()
-    records = {r["kind"]: r for r in __import__("json").loads((out / "runaway_scores.json").read_text())}
+    records = {r["kind"]: r for r in provenance.json_payload(__import__("json").loads(
+        (out / "runaway_scores.json").read_text()))}
     square = records["square"]
     assert square["escaped"] > 0 and len(square["smape"]) + square["escaped"] == 4
     assert f"runaway square clean: {square['escaped']} of 4 trials escaped" in captured.err

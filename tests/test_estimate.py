@@ -2,6 +2,7 @@
 
 import csv
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.cli import main
 from kklcasadi.evaluation.logged import ekf_for_model, estimate_log, output_ranges, read_plant_log
 from kklcasadi.plant.logs import read_log
@@ -57,7 +59,8 @@ def test_estimate_writes_the_estimates_flags_and_the_ekf(model, plant, tmp_path,
     assert "EKF      Q = (0.5 dt)^2 I, R = 0.002^2 I" in printed          # the card's noise levels
     assert "against 'alpha_dot': KKL" in printed
     with open(out, newline="") as stream:
-        rows = list(csv.reader(stream))
+        comment, rows = stream.readline(), list(csv.reader(stream))
+    assert provenance.read(out).command == shlex.join(["kklcasadi", *args]) and comment.startswith("# provenance")
     assert rows[0] == ["time", *STATES.split(","), "in_domain", *[f"ekf_{s}" for s in STATES.split(",")]]
     values = np.array(rows[1:], dtype=float)
     # the same as the observer and the EKF run on the log read onto the grid by hand

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.cli import main
 from kklcasadi.estimators.ekf import EKF
 from kklcasadi.estimators.pf import ROUGHENING, ParticleFilter
@@ -162,7 +163,10 @@ def test_the_command(monitored_bank, tmp_path, capsys):
     assert "| zero | id | 0.1 | fit | 2 |" in printed and "| random | held_out | 0.1 | held out | 2 |" in printed
     data = json.loads((out / "duffing_generalisation.json").read_text())
     assert [c["family"] for c in data["cases"]] == ["zero", "random"] and "mine" in data["models"]
-    assert (out / "duffing_generalisation.md").read_text().startswith("**duffing, mine**")
+    assert provenance.strip_markdown((out / "duffing_generalisation.md").read_text()).startswith("**duffing, mine**")
+    for name in ("duffing_generalisation.md", "duffing_generalisation.json"):
+        stamp = provenance.read(out / name)
+        assert stamp.command.startswith("kklcasadi generalise ") and stamp.seeds == {"trials": 2026}
     assert main(["generalise", str(path), "--families", "chirp", "--regimes", "id"]) == 2
     assert "error: --families, --regimes: no case" in capsys.readouterr().err
 

@@ -11,6 +11,7 @@ import pytest
 from scipy.interpolate import interp1d
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.plant import logs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -257,7 +258,8 @@ def test_write_read_round_trip(tmp_path):
     path = logs.write_estimates(tmp_path / "est.csv", t, xhat, state_names=("a", "b", "c"), in_domain=in_domain,
                                 extra={"ref": reference})
     with open(path, newline="") as stream:
-        rows = list(csv.reader(stream))
+        comment, rows = stream.readline(), list(csv.reader(stream))
+    assert comment.startswith("# provenance {") and provenance.read(path).command     # the stamp, then the header
     assert rows[0] == ["time", "a", "b", "c", "in_domain", "ref"]
     assert {r[4] for r in rows[1:]} == {"0", "1"}
     log = logs.read_log(path, time_col="time", y_cols=("a", "b", "c"), reference_cols=("in_domain", "ref"), dt=DT)

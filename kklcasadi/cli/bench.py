@@ -6,7 +6,7 @@ import argparse
 
 from ..model.shipped import shipped as shipped_listing
 from ..plant import systems
-from .flags import CommandError, flagged, needs_torch, nonnegative_int, positive_int, shipped
+from .flags import CommandError, flagged, needs_torch, nonnegative_int, positive_int, shipped, stamp_of
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -71,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
 
         print("== the cost as the plant grows: chains of coupled oscillators ==")
         result = flagged("--sizes", bench_scaling, args.sizes, runs=args.runs, epochs=args.epochs,
-                         trials=args.trials or 10, threads=args.threads or 1, out=args.out)
+                         trials=args.trials or 10, threads=args.threads or 1, out=args.out,
+                         stamp=stamp_of(args, training_and_trials=0))
         print(result.table())
         return 0
     if args.what in ("all", "simulation"):

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from .flags import add_kinds, flagged, load, nonnegative_float, positive_float, positive_int
+from .flags import add_kinds, flagged, load, nonnegative_float, positive_float, positive_int, stamp_of
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -36,6 +36,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{model}\n{cert}\n")
         records.append({"model": str(model), **cert.to_json()})
     if args.out:
+        from ..provenance import json_record
+
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(records, indent=1))
+        Path(args.out).write_text(json.dumps(json_record(records, stamp_of(args, seed=args.seed)), indent=1) + "\n")
     return 0

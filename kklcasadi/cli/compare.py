@@ -21,6 +21,7 @@ from .flags import (
     positive_float,
     positive_int,
     shipped,
+    stamp_of,
 )
 
 #: The systems compared by default, in the order of the README's table.
@@ -64,7 +65,9 @@ def _saved(out: Path) -> list:
     from ..evaluation.compare import SystemComparison
 
     names = [*SYSTEMS, *(n for n in systems.names() if n not in SYSTEMS)]
-    return [SystemComparison.from_json(json.loads((out / f"{name}.json").read_text()))
+    from ..provenance import json_payload
+
+    return [SystemComparison.from_json(json_payload(json.loads((out / f"{name}.json").read_text())))
             for name in names if (out / f"{name}.json").exists()]
 
 
@@ -74,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.compare import compare_system
     from ..evaluation.protocol import Protocol
     from ..evaluation.report import markdown_table
+    from ..provenance import json_record, markdown
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -92,9 +96,11 @@ def run(args: argparse.Namespace) -> int:
         comparison = compare_system(observer, protocol, horizons=tuple(args.horizons),
                                     primed_horizon=args.primed_horizon, calibration_trials=args.calibration_trials,
                                     kinds=kinds, noise=NOISE[args.noise], log=log, ekf=ekf)
-        (out / f"{name}.json").write_text(json.dumps(comparison.to_json(), indent=1))
+        stamp = stamp_of(args, trials=args.seed, calibration=args.seed + 1)
+        (out / f"{name}.json").write_text(json.dumps(json_record(comparison.to_json(), stamp), indent=1) + "\n")
         every = [s for saved in _saved(out) for s in saved.scores]
-        (out / "table.md").write_text(markdown_table(every, kinds, timing=True) + "\n")
+        # the table gathers every system's saved comparison: its stamp is this command's, the rows name their files
+        (out / "table.md").write_text(markdown(markdown_table(every, kinds, timing=True) + "\n", stamp))
         print(markdown_table(comparison.scores, kinds, timing=True))
     print(f"wrote {out}/", file=sys.stderr)
     return 0

@@ -25,6 +25,7 @@ from .flags import (
     positive_float,
     quiet_casadi,
     shipped,
+    stamp_of,
 )
 
 #: Noise std of the run where the card records no levels (docs/protocol.md).
@@ -112,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"time     {t_obs * 1e3:.1f} ms for {len(tr.t)} samples ({t_obs / len(tr.t) * 1e6:.1f} us/step, CasADi VM)")
     out = Path(args.out)
     trajectory_plot(tr.t, tr.x, {f"KKL {obs.method}": est.xhat, "EKF": ekf}, out, u=tr.u,
-                    title=f"{plant.name}: {args.input} input, noise std {measurement_std:g}")
+                    title=f"{plant.name}: {args.input} input, noise std {measurement_std:g}",
+                    stamp=stamp_of(args, run=args.seed))
     print(f"plot     {out}")
     return 0

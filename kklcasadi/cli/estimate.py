@@ -23,6 +23,7 @@ from .flags import (
     model_label,
     nonnegative_float,
     plant_of,
+    stamp_of,
 )
 
 
@@ -101,6 +102,6 @@ def run(args: argparse.Namespace) -> int:
               f"EKF      Q = diag({q[1:-1]})^2 dt^2, R = {levels[1]:g}^2 I")
     if columns:
         print(result.table(args.state_names))
-    path = flagged("--out", result.write, args.out, state_names=args.state_names)
+    path = flagged("--out", result.write, args.out, state_names=args.state_names, stamp=stamp_of(args))
     print(f"wrote    {path}")
     return 0

@@ -34,6 +34,7 @@ from .flags import (
     load,
     plant_of,
     positive_int,
+    stamp_of,
 )
 
 
@@ -137,13 +138,16 @@ def run(args: argparse.Namespace) -> int:
         scores.append(_mhe_scores(horizon, plant, protocol, noise, kinds, trials))
     print(markdown_table(scores, kinds))
     if args.out:
+        from ..provenance import markdown
+
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        save_scores(scores, out / f"{plant.name}_scores.json")
+        stamp = stamp_of(args, trials=args.seed)
+        save_scores(scores, out / f"{plant.name}_scores.json", stamp=stamp)
         for noisy in noise:
             smape_boxplot(scores, out / f"{plant.name}_smape_{'noisy' if noisy else 'clean'}.png", noisy=noisy,
-                          kinds=kinds)
-        (out / f"{plant.name}_table.md").write_text(markdown_table(scores, kinds) + "\n")
+                          kinds=kinds, stamp=stamp)
+        (out / f"{plant.name}_table.md").write_text(markdown(markdown_table(scores, kinds) + "\n", stamp))
         print(f"wrote {out}/", file=sys.stderr)
     if profile is not None:
         children = os.times()

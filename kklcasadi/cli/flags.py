@@ -37,6 +37,7 @@ from typing import Any, Callable, Iterator, NoReturn, Optional
 
 import numpy as np
 
+from .. import provenance
 from ..model.shipped import is_shipped, shipped_model
 from ..plant import signals as sig
 from ..plant import systems
@@ -44,8 +45,8 @@ from ..plant.systems import System
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
            "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
-           "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "NOISE",
-           "USER_ERRORS"]
+           "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "stamp_of",
+           "NOISE", "USER_ERRORS"]
 
 #: ``--noise`` choices -> the benchmark's noise columns (False: noise-free).
 NOISE = {"on": (True,), "off": (False,), "both": (False, True)}
@@ -221,3 +222,9 @@ def quiet_casadi() -> Iterator[None]:
     finally:
         os.dup2(saved, 2)
         os.close(saved)
+
+
+def stamp_of(args: argparse.Namespace, **seeds: Any) -> provenance.Stamp:
+    """The provenance stamp of what a command writes: its command line as parsed by :func:`kklcasadi.cli.main`
+    (this process's otherwise) and the seeds, by role, of what it drew."""
+    return provenance.stamp(command=getattr(args, "command_line", None), seeds=seeds)

@@ -13,7 +13,17 @@ import time
 from pathlib import Path
 
 from ..plant import signals as sig
-from .flags import CommandError, add_cache, add_plant, add_roughening, load, plant_of, positive_float, positive_int
+from .flags import (
+    CommandError,
+    add_cache,
+    add_plant,
+    add_roughening,
+    load,
+    plant_of,
+    positive_float,
+    positive_int,
+    stamp_of,
+)
 
 #: ``--regimes`` choices: the protocol's ``id`` and ``ood`` ranges, and the held-out families' ranges.
 REGIMES = ("id", "ood", "held_out")
@@ -76,9 +86,13 @@ def run(args: argparse.Namespace) -> int:
     tables = report.markdown() + "\n\nDomain monitor:\n\n" + report.monitor_markdown()
     print(tables)
     if args.out:
+        from ..provenance import json_record, markdown
+
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        (out / f"{report.system}_generalisation.md").write_text(tables + "\n")
-        (out / f"{report.system}_generalisation.json").write_text(json.dumps(report.to_json(), indent=1) + "\n")
+        stamp = stamp_of(args, trials=args.seed)
+        (out / f"{report.system}_generalisation.md").write_text(markdown(tables + "\n", stamp))
+        (out / f"{report.system}_generalisation.json").write_text(
+            json.dumps(json_record(report.to_json(), stamp), indent=1) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
     return 0

@@ -23,6 +23,7 @@ from ..estimators.ekf import EKF
 from ..observer.kkl import KKLObserver
 from ..plant.logs import Log, read_log, write_estimates
 from ..plant.systems import System
+from ..provenance import Stamp
 from ..validation import Text, error, nonnegative_number, state_stds
 
 __all__ = ["LogEstimate", "estimate_log", "read_plant_log", "output_ranges", "ekf_for_model"]
@@ -71,20 +72,24 @@ class LogEstimate:
     scores: dict
     settle: float
 
-    def write(self, path: str | os.PathLike, *, state_names: Optional[Sequence[str]] = None) -> Path:
+    def write(self, path: str | os.PathLike, *, state_names: Optional[Sequence[str]] = None,
+              stamp: Optional[Stamp] = None) -> Path:
         """Write ``time``, the estimates, ``in_domain`` (where recorded) and ``ekf_<state>`` columns (with
-        the EKF) as CSV, atomically (:func:`kklcasadi.plant.logs.write_estimates`).
+        the EKF) as CSV under a provenance line, atomically (:func:`kklcasadi.plant.logs.write_estimates`).
 
         Parameters
         ----------
         path : str or path-like
         state_names : sequence of str, optional
             Column names of the states; default ``x1 .. xn``.
+        stamp : kklcasadi.provenance.Stamp, optional
+            The file's provenance (default: this process's).
         """
         nx = self.xhat.shape[1]
         names = tuple(state_names) if state_names is not None else tuple(f"x{i + 1}" for i in range(nx))
         extra = None if self.ekf is None else {f"ekf_{name}": self.ekf[:, i] for i, name in enumerate(names)}
-        return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain, extra=extra)
+        return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain, extra=extra,
+                               stamp=stamp)
 
     def table(self, state_names: Optional[Sequence[str]] = None) -> str:
         """The scores as a few lines of text (one per recorded state)."""

@@ -9,11 +9,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Optional, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
 
+from .. import provenance
 from ..plant import signals as sig
 from ..plant.systems import System
 from .protocol import BatchEstimator, CellResult, Profile, Protocol, evaluate_cells
@@ -130,9 +131,12 @@ def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BE
     return "\n".join(lines)
 
 
-def save_scores(scores: Iterable[MethodScores], path: str | Path) -> None:
+def save_scores(scores: Iterable[MethodScores], path: str | Path, *,
+                stamp: Optional[provenance.Stamp] = None) -> None:
     """Per-trial SMAPE and RMSE-after-settle of every cell, and the trials that escaped, as JSON
-    (the summary statistics are null where every trial escaped)."""
+    (the summary statistics are null where every trial escaped): ``{"provenance": stamp, "records":
+    [one per cell]}`` (:func:`kklcasadi.provenance.json_payload` gives the list back); ``stamp``
+    defaults to this process's."""
     out = []
     for s in scores:
         for (noisy, kind), r in s.results.items():
@@ -143,7 +147,7 @@ def save_scores(scores: Iterable[MethodScores], path: str | Path) -> None:
             out.append({"method": s.label, "system": s.system, "kind": kind, "noisy": noisy, **stats,
                         "rmse_after_mean": float(np.nanmean(r.rmse_after)) if len(r.rmse_after) else None,
                         "escaped": r.escaped, "smape": r.smape.tolist()})
-    Path(path).write_text(json.dumps(out, indent=1))
+    Path(path).write_text(json.dumps(provenance.json_record(out, stamp or provenance.stamp()), indent=1) + "\n")
 
 
 def _pyplot():
@@ -156,8 +160,9 @@ def _pyplot():
 
 
 def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bool = True,
-                  kinds: Sequence[str] = sig.BENCHMARK_KINDS) -> Path:
-    """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG).
+                  kinds: Sequence[str] = sig.BENCHMARK_KINDS, stamp: Optional[provenance.Stamp] = None) -> Path:
+    """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG, with ``stamp``,
+    default this process's, in its metadata).
 
     A method without cells in this noise column (the particle filter's noise-free one) is left out.
     """
@@ -180,14 +185,15 @@ def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bo
     ax.set_title(f"{system}: {'with' if noisy else 'without'} noise")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
     plt.close(fig)
     return Path(path)
 
 
 def trajectory_plot(t: np.ndarray, x: np.ndarray, estimates: dict, path: str | Path, *, u: np.ndarray | None = None,
-                    title: str = "") -> Path:
-    """True states and estimates over time (PNG); ``estimates`` maps a label to ``xhat`` (N, nx)."""
+                    title: str = "", stamp: Optional[provenance.Stamp] = None) -> Path:
+    """True states and estimates over time (PNG, ``stamp`` in its metadata); ``estimates`` maps a label to
+    ``xhat`` (N, nx)."""
     plt = _pyplot()
     nx = x.shape[1]
     rows = nx + (u is not None)
@@ -205,6 +211,6 @@ def trajectory_plot(t: np.ndarray, x: np.ndarray, estimates: dict, path: str | P
     axes[0, 0].set_title(title)
     axes[-1, 0].set_xlabel("t (s)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
     plt.close(fig)
     return Path(path)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import csv
 import io
+import itertools
 import math
 import os
 import tempfile
@@ -34,6 +35,7 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
+from .. import provenance
 from ..validation import Text, error, finite_number, is_int, nonnegative_number, positive_int, positive_number
 
 __all__ = ["Log", "Resampling", "read_log", "write_estimates", "savgol_derivative", "Y_METHOD", "U_METHOD"]
@@ -149,10 +151,14 @@ def _where(source: str, row: int, line: int, column: Optional[str] = None) -> st
 
 
 def _read_table(path: Path, wanted: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """The ``wanted`` columns of a CSV file as floats (n, len(wanted)), and each row's line number."""
+    """The ``wanted`` columns of a CSV file as floats (n, len(wanted)), and each row's line number; comment
+    lines starting with ``#`` before the header row (a provenance stamp) are skipped."""
     source = str(path)
     with open(path, newline="") as stream:
-        reader = csv.reader(stream)
+        skipped, first = 0, stream.readline()
+        while first.startswith("#"):
+            skipped, first = skipped + 1, stream.readline()
+        reader = csv.reader(itertools.chain([first] if first else [], stream))
         header = next(reader, None)
         if header is None:
             raise error(source, "a CSV file with a header row", Text("an empty file"))
@@ -169,7 +175,7 @@ def _read_table(path: Path, wanted: tuple[str, ...]) -> tuple[np.ndarray, np.nda
         for row in reader:
             if not row:                                   # blank lines carry no sample
                 continue
-            k, line = len(values), reader.line_num
+            k, line = len(values), reader.line_num + skipped
             if len(row) != len(header):
                 raise error(_where(source, k, line), f"{len(header)} fields (one per header column)",
                             Text(f"{len(row)} fields"))
@@ -196,7 +202,8 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
     Parameters
     ----------
     path : str or path-like
-        A CSV file with a header row; other columns are ignored, blank lines skipped.
+        A CSV file with a header row (comment lines starting with ``#`` before it are skipped); other
+        columns are ignored, blank lines skipped.
     time_col : str
         The column of sample times (seconds, strictly increasing, any origin).
     y_cols : sequence of str
@@ -349,14 +356,17 @@ def _finite(value: Any, argument: str, ndim: int, n: Optional[int] = None) -> np
 
 
 def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: Sequence[str],
-                    in_domain: Any = None, extra: Optional[Mapping[str, Any]] = None) -> Path:
+                    in_domain: Any = None, extra: Optional[Mapping[str, Any]] = None,
+                    stamp: Optional[provenance.Stamp] = None) -> Path:
     """Write estimates as a CSV file, atomically.
 
-    Columns: ``time``, the ``state_names``, then ``in_domain`` (0/1) if given, then the ``extra``
-    columns in their order. Numbers are written with :func:`repr`, so reading them back gives the
-    same floats. Everything is validated and formatted before the file is touched; the text goes
-    to a temporary file in the same folder, which then replaces ``path`` (:func:`os.replace`): a
-    failure leaves an existing file as it was and no temporary file behind.
+    A first line ``# provenance {...}`` holds the stamp (:mod:`kklcasadi.provenance`; ``stamp``,
+    default this process's), then the header row (:func:`read_log` skips the comment). Columns:
+    ``time``, the ``state_names``, then ``in_domain`` (0/1) if given, then the ``extra`` columns in
+    their order. Numbers are written with :func:`repr`, so reading them back gives the same floats.
+    Everything is validated and formatted before the file is touched; the text goes to a temporary
+    file in the same folder, which then replaces ``path`` (:func:`os.replace`): a failure leaves an
+    existing file as it was and no temporary file behind.
 
     Parameters
     ----------
@@ -402,7 +412,8 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     if repeated:
         raise error("state_names, extra", "names distinct from each other and from 'time', 'in_domain'",
                     Text(f"repeated {repeated}"))
-    text = io.StringIO()
+    text = io.StringIO(provenance.csv_comment(stamp or provenance.stamp()))
+    text.seek(0, io.SEEK_END)
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(header)
     for row in zip(*body):

@@ -30,7 +30,7 @@ from typing import Optional, Sequence
 import casadi as ca
 import numpy as np
 
-from ... import metrics
+from ... import metrics, provenance
 from ...estimators.ekf import EKF, EKF_FORMS
 from ...estimators.mhe import MHE
 from ...observer.codegen import DEFAULT_FLAGS, check_flags, generate_c
@@ -174,7 +174,7 @@ class ScalingResult:
                      + ("at no size measured" if cross is None else f"from nx = {cross} on"))
         return "\n".join(lines)
 
-    def plot(self, path: Path) -> Path:
+    def plot(self, path: Path, *, stamp: Optional[provenance.Stamp] = None) -> Path:
         """Log-log PNG of the costs against nx, and the accuracy ratio."""
         import matplotlib
 
@@ -202,7 +202,7 @@ class ScalingResult:
             axis.set_xticks(nx, [str(int(v)) for v in nx])
             axis.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         fig.tight_layout()
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
         plt.close(fig)
         return path
 
@@ -284,7 +284,7 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
                   T: float = 50.0, trials: int = 10, mhe_steps: int = 40, mhe_horizon: int = 10,
                   repeat: int = 50, flags: Sequence[str] = DEFAULT_FLAGS, ekf_flags: Sequence[str] = EKF_FLAGS,
                   callgrind: Optional[bool] = None, threads: int = 1, seed: int = 0, out: Optional[Path] = None,
-                  progress: bool = True) -> ScalingResult:
+                  progress: bool = True, stamp: Optional[provenance.Stamp] = None) -> ScalingResult:
     """Measure the costs and the accuracy on chains of ``n`` oscillators for every ``n`` in ``sizes``.
 
     Parameters
@@ -312,6 +312,8 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
         Write ``scaling.md``, ``scaling.json`` (the rows) and ``scaling.png`` there.
     progress : bool
         Print each size's row as it is measured.
+    stamp : kklcasadi.provenance.Stamp, optional
+        The provenance of the files in ``out`` (default: this process's, with ``seed``).
 
     Returns
     -------
@@ -368,8 +370,9 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        (out / "scaling.md").write_text(result.table() + "\n")
-        (out / "scaling.json").write_text(json.dumps({"settings": result.settings,
-                                                      "rows": [asdict(r) for r in rows]}, indent=1))
-        result.plot(out / "scaling.png")
+        stamp = stamp or provenance.stamp(seeds={"training_and_trials": seed})
+        (out / "scaling.md").write_text(provenance.markdown(result.table() + "\n", stamp))
+        (out / "scaling.json").write_text(json.dumps(provenance.json_record(
+            {"settings": result.settings, "rows": [asdict(r) for r in rows]}, stamp), indent=1) + "\n")
+        result.plot(out / "scaling.png", stamp=stamp)
     return result
