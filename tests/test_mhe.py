@@ -161,11 +161,17 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
                  "--T", "0.5", "--kinds", "zero", "--noise", "off", "--horizons", "3",
                  "--primed-horizon", "2", "--calibration-trials", "1", "--out", str(out),
                  "--quiet"]) == 0
+    from kklcasadi import provenance
+
     comparison = SystemComparison.from_json(json.loads((out / "duffing.json").read_text()))
+    for name in ("duffing.json", "table.md"):
+        stamp = provenance.read(out / name)
+        assert stamp.command.startswith("kklcasadi compare --systems duffing") and stamp.seeds == {"trials": 2026,
+                                                                                                   "calibration": 2027}
     assert [s.label for s in comparison.scores] == ["KKL (bank)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
     cells = [cell for s in comparison.scores for cell in s.results.values()]
     assert len(cells) == 4 and all(cell.n_samples == 10 and len(cell.smape) == 1 for cell in cells)
-    table = (out / "table.md").read_text()
+    table = provenance.strip_markdown((out / "table.md").read_text())
     assert table.strip() == markdown_table(comparison.scores, ("zero",), timing=True)
     assert "| duffing (1 trials) | MHE N=3 |" in table
 

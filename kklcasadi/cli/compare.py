@@ -65,9 +65,7 @@ def _saved(out: Path) -> list:
     from ..evaluation.compare import SystemComparison
 
     names = [*SYSTEMS, *(n for n in systems.names() if n not in SYSTEMS)]
-    from ..provenance import json_payload
-
-    return [SystemComparison.from_json(json_payload(json.loads((out / f"{name}.json").read_text())))
+    return [SystemComparison.from_json(json.loads((out / f"{name}.json").read_text()))
             for name in names if (out / f"{name}.json").exists()]
 
 

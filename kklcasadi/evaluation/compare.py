@@ -18,7 +18,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
-from .. import metrics
+from .. import metrics, provenance
 from ..estimators.ekf import EKF
 from ..estimators.mhe import MHE, MHEStats, kkl_error_profile
 from ..observer.kkl import KKLObserver
@@ -60,8 +60,9 @@ class SystemComparison:
 
     @classmethod
     def from_json(cls, data: dict) -> SystemComparison:
-        """Read :meth:`to_json`'s record (records written before ``rmse_after`` was kept read as NaN, before
-        ``escaped`` was kept as 0)."""
+        """Read :meth:`to_json`'s record, stamped (``kklcasadi compare``'s file) or not (records written before
+        ``rmse_after`` was kept read as NaN, before ``escaped`` was kept as 0)."""
+        data = provenance.json_payload(data)
         results: dict[str, dict] = {}
         for c in data["cells"]:
             smape = np.asarray(c["smape"], dtype=float)
