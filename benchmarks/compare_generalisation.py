@@ -18,6 +18,8 @@ import math
 import sys
 from pathlib import Path
 
+from kklcasadi import provenance
+
 
 def load(paths: list[Path], names: list[str] | None = None) -> tuple[list[tuple], dict[str, dict[tuple, float]]]:
     """The cases (family, regime, noise) in the first report's order and each model's ratios per case;
@@ -70,7 +72,7 @@ def main() -> int:
     text = table(*load(args.reports, args.labels.split(",") if args.labels else None))
     print(text)
     if args.out:
-        args.out.write_text(text + "\n")
+        args.out.write_text(provenance.markdown(text + "\n", provenance.stamp()))
     return 0
 
 

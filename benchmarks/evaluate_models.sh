@@ -23,5 +23,5 @@ for s in "${systems[@]}"; do
   math=vector
   if [ "$s" = fhn ]; then math=libm; fi
   TIMEFORMAT="$s: $trials trials per cell in %R s wall, %U s user + %S s system CPU"
-  time "${PYTHON:-python}" -m kklcasadi evaluate "${models[@]}" --trials "$trials" --ekf --math "$math" --out "results/$s"
+  time "${PYTHON:-python}" -m kklcasadi evaluate "${models[@]}" --trials "$trials" --ekf --math "$math" --out "results/protocol/$s"
 done

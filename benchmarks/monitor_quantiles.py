@@ -11,7 +11,7 @@ card's noise level; the target is at most 5 %), and on the bad trials (SMAPE abo
 the trial; the target is at least half) of the ood and held-out cases at that noise and of the other
 noise levels. It picks the lowest quantile whose in-distribution share is within ``--budget`` (half
 the target by default, for the difference between validation and scored trials), and writes
-``results/accuracy/generalisation/<system>_<seed>_monitor.{md,json}``. Apply it with
+``results/generalisation/<system>/<system>_<seed>_monitor.{md,json}``. Apply it with
 ``benchmarks/calibrate_monitors.py MODEL --spread-quantile Q``.
 
 The monitor's other tests (the card's boxes, the nearest-prototype distance) are the model's own; the
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from calibrate_monitors import noise_of, rollouts_of
 
-from kklcasadi import metrics
+from kklcasadi import metrics, provenance
 from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.compiled import Compiler, ekf_estimator
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
@@ -39,7 +39,7 @@ from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.observer.kkl import KKLObserver, load_observer
 
 GRID = (0.9, 0.93, 0.95, 0.97, 0.98, 0.99, 0.995)
-OUT = Path("results/accuracy/generalisation")
+OUT = Path("results/generalisation")
 GROUPS = ("in distribution", "ood and held out", "other noise levels")
 
 
@@ -134,12 +134,13 @@ def main() -> None:
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines)
     print(table)
-    OUT.mkdir(parents=True, exist_ok=True)
-    stem = OUT / f"{name}_{args.seed}_monitor"
-    stem.with_suffix(".md").write_text(table + "\n")
-    stem.with_suffix(".json").write_text(json.dumps({"system": name, "model": str(args.model), "seed": args.seed,
-                                                     "trials": args.trials, "budget": args.budget, "source": source,
-                                                     "chosen": chosen, "rows": rows, "cases": cases}, indent=1) + "\n")
+    (OUT / name).mkdir(parents=True, exist_ok=True)
+    stem = OUT / name / f"{name}_{args.seed}_monitor"
+    stamp = provenance.stamp(seeds={"trials": args.seed})
+    stem.with_suffix(".md").write_text(provenance.markdown(table + "\n", stamp))
+    record = {"system": name, "model": str(args.model), "seed": args.seed, "trials": args.trials, "budget": args.budget,
+              "source": source, "chosen": chosen, "rows": rows, "cases": cases}
+    stem.with_suffix(".json").write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ For each roughening of a grid the script runs the filter on generalisation cases
 at a validation seed (not the scored seed 2026) for the four systems at noise 0.05 and 0.2, and prints
 the mean SMAPE over the trials of the filter over the EKF's on the same trials. The rule: the lowest
 roughening whose geometric mean over the cases is within 0.5 % of the grid's lowest.
-Writes ``results/accuracy/generalisation/pf_roughening_<seed>.{md,json}``; the choice is
+Writes ``results/generalisation/all/pf_roughening_<seed>.{md,json}``; the choice is
 :data:`kklcasadi.estimators.pf.ROUGHENING`.
 """
 
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from kklcasadi import metrics
+from kklcasadi import metrics, provenance
 from kklcasadi.estimators.pf import SUBSTEPS
 from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.compiled import Compiler, ekf_estimator, pf_estimator
@@ -42,7 +42,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3030)
     parser.add_argument("--trials", type=int, default=20)
     parser.add_argument("--particles", type=int, default=1000)
-    parser.add_argument("--out", default="results/accuracy/generalisation")
+    parser.add_argument("--out", default="results/generalisation/all")
     args = parser.parse_args()
     if args.seed == 2026:
         parser.error("--seed: 2026 is the scored seed; choose on validation trials (e.g. 3030)")
@@ -80,10 +80,11 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = out / f"pf_roughening_{args.seed}"
-    stem.with_suffix(".md").write_text(table)
-    stem.with_suffix(".json").write_text(json.dumps({"seed": args.seed, "trials": args.trials,
-                                                    "particles": args.particles, "grid": list(GRID),
-                                                    "geometric_mean": geo, "chosen": chosen, "rows": rows}, indent=1))
+    stamp = provenance.stamp(seeds={"trials": args.seed, "particles": args.seed})
+    stem.with_suffix(".md").write_text(provenance.markdown(table, stamp))
+    record = {"seed": args.seed, "trials": args.trials, "particles": args.particles, "grid": list(GRID),
+              "geometric_mean": geo, "chosen": chosen, "rows": rows}
+    stem.with_suffix(".json").write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
 
 
 if __name__ == "__main__":

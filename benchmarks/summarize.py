@@ -1,4 +1,4 @@
-"""Print the README's results tables from results/<system>/<system>_scores.json.
+"""Print the README's results tables from results/protocol/<system>/<system>_scores.json.
 
 Usage: python benchmarks/summarize.py   (after benchmarks/evaluate_models.sh)
 
@@ -9,6 +9,8 @@ the other shipped observers (which one), and the EKF.
 
 import json
 from pathlib import Path
+
+from kklcasadi.provenance import json_payload
 
 KINDS = ("zero", "constant", "sinusoid", "square")
 #: docs/protocol.md: the paper's best method per cell (noise-free).
@@ -34,10 +36,10 @@ def main() -> None:
     noisy = ["| system | noise on | " + " | ".join(KINDS) + " |", "|---|---|" + "---|" * len(KINDS)]
     clean = ["| system | noise-free | " + " | ".join(KINDS) + " |", "|---|---|" + "---|" * len(KINDS)]
     for system in PAPER_BEST:
-        path = root / system / f"{system}_scores.json"
+        path = root / "protocol" / system / f"{system}_scores.json"
         if not path.exists():
             continue
-        cells = json.loads(path.read_text())
+        cells = json_payload(json.loads(path.read_text()))
         trials = len(cells[0]["smape"])
         bank = [_cell(cells, NOISY, k, True) for k in KINDS]
         ekf = [_cell(cells, "EKF", k, True) for k in KINDS]

@@ -1,7 +1,7 @@
 """Print the README's generalisation tables from results/generalisation/.
 
 Usage: python benchmarks/summarize_generalisation.py
-(after ``kklcasadi generalise models/<system>/bank --pf 4000 --out results/generalisation`` per
+(after ``kklcasadi generalise models/<system>/bank --pf 4000 --out results/generalisation/<system>`` per
 system; the 1000-particle runs are ``<system>_generalisation_pf1000.json``). Beside each shipped
 bank's ``<system>_generalisation.json`` (a decoder ensemble of the broad recipe; Roessler's at the
 nominal noise with 3 input filters), on the same trials:
@@ -65,7 +65,8 @@ BEFORE_COPIES = {"duffing": "broad-fit with skip paths", "vdp": "broad-fit + pd"
 def reports(system: str) -> dict:
     """``{"shipped": report, "one decoder": report, "other": report}`` of one system."""
     names = {"shipped": "", "one decoder": "_one_decoder", "other": "_benchmark_fit"}
-    return {k: json.loads((ROOT / f"{system}_generalisation{suffix}.json").read_text()) for k, suffix in names.items()}
+    return {k: json.loads((ROOT / system / f"{system}_generalisation{suffix}.json").read_text())
+            for k, suffix in names.items()}
 
 
 def runs(system: str) -> int:
@@ -137,7 +138,7 @@ def monitor() -> str:
         for key, suffix in (("no pd", "_no_pd"), ("copies 5 substeps", "_copies_5_substeps"),
                             ("no copies", "_no_copies"), ("no skip", "_no_skip"), ("mse", "_mse"),
                             ("two decoders", "_two_decoders"), ("4000 runs", "_4000_runs")):
-            path = ROOT / f"{system}_generalisation{suffix}.json"
+            path = ROOT / system / f"{system}_generalisation{suffix}.json"
             if path.exists():
                 data[key] = json.loads(path.read_text())
         ensemble = "broad-fit, two decoders"
@@ -153,7 +154,7 @@ def monitor() -> str:
                   "before": f"{ensemble}, {before_runs} runs, spread threshold from the fitting runs",
                   "one decoder": f"{recipe(system) if system in ONE_DECODER else 'broad-fit'}, one decoder",
                   "other": "benchmark-fit, two decoders" if system in BENCHMARK_FIT else "benchmark-fit"}
-        before = ROOT / f"{system}_generalisation_monitor_before.json"
+        before = ROOT / system / f"{system}_generalisation_monitor_before.json"
         if before.exists():
             data["before"] = json.loads(before.read_text())
         for k in [k for k in ("shipped", "copies 5 substeps", "no copies", "no pd", "no skip", "mse", "two decoders",

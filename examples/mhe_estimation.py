@@ -26,6 +26,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
+from kklcasadi import provenance  # noqa: E402
 from kklcasadi.estimators.ekf import EKF  # noqa: E402
 from kklcasadi.estimators.mhe import MHE, KKLPrimedMHE, kkl_error_profile  # noqa: E402
 from kklcasadi.evaluation.protocol import Protocol  # noqa: E402
@@ -75,7 +76,7 @@ def main(argv: list[str] | None = None) -> dict:
     fig.tight_layout()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=110, metadata=provenance.png_metadata(provenance.stamp(seeds={"trials": args.seed})))
     plt.close(fig)
     print(f"wrote {out}")
     return results

@@ -13,7 +13,7 @@ with the plant simulated by CVODES under the docs/protocol.md noise (process std
 per interval, measurement std 0.1), the same noise for every feed. The script writes one table
 (markdown and JSON) and one PNG::
 
-    python examples/nmpc_output_feedback.py --out results/estimators/nmpc
+    python examples/nmpc_output_feedback.py --out results/nmpc/all
 
 The reported cost is the mean stage cost ``||x - x_ref||_Q^2 + ||u - u_ref||_R^2`` of the true
 trajectory over the whole run (the observer's transient included) and after ``--settle`` seconds;
@@ -35,6 +35,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
+from kklcasadi import provenance  # noqa: E402
 from kklcasadi.estimators.nmpc import NMPC, ClosedLoop, EKFEstimator, TrueState, closed_loop, steady_state  # noqa: E402
 
 #: Per system: set point magnitude r for x1 and the bound on |x2|.
@@ -113,7 +114,7 @@ def table(rows: list[dict], *, settle: float) -> str:
     return "\n".join(lines)
 
 
-def plot(runs: dict[str, dict[str, ClosedLoop]], out: Path) -> Path:
+def plot(runs: dict[str, dict[str, ClosedLoop]], out: Path, stamp: provenance.Stamp) -> Path:
     """One row per system: x1 and its reference, x2 and its bound, u; one line per feed."""
     fig, axes = plt.subplots(len(runs), 3, figsize=(14, 3.2 * len(runs)), squeeze=False)
     for row, (name, by_feed) in enumerate(runs.items()):
@@ -135,7 +136,7 @@ def plot(runs: dict[str, dict[str, ClosedLoop]], out: Path) -> Path:
     fig.suptitle("Output-feedback NMPC, noise on (docs/protocol.md): true state vs EKF vs KKL observer")
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=110, metadata=provenance.png_metadata(stamp))
     plt.close(fig)
     return out
 
@@ -152,7 +153,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--period", type=float, default=10.0, help="reference period in s")
     parser.add_argument("--settle", type=float, default=5.0, help="s; cost also reported after it")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", default="results/estimators/nmpc", help="output directory")
+    parser.add_argument("--out", default="results/nmpc/all", help="output directory")
     args = parser.parse_args(argv)
     rows, runs = [], {}
     for name in args.systems:
@@ -164,9 +165,11 @@ def main(argv: list[str] | None = None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     text = table(rows, settle=args.settle)
-    (out / "nmpc_table.md").write_text(text + "\n")
-    (out / "nmpc.json").write_text(json.dumps({"settings": vars(args), "rows": rows}, indent=1))
-    png = plot(runs, out / "nmpc.png")
+    stamp = provenance.stamp(seeds={"initial_states_and_noise": args.seed})    # names this command in every file
+    (out / "nmpc_table.md").write_text(provenance.markdown(text + "\n", stamp))
+    (out / "nmpc.json").write_text(json.dumps(provenance.json_record({"settings": vars(args), "rows": rows}, stamp),
+                                              indent=1) + "\n")
+    png = plot(runs, out / "nmpc.png", stamp)
     print(text)
     print(f"wrote {out / 'nmpc_table.md'}, {out / 'nmpc.json'}, {png}")
     return {"rows": rows, "runs": runs, "png": png}

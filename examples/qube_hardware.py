@@ -2,7 +2,7 @@
 
 1. **Settings from the fit runs only.** The runs are split before anything is looked at: runs 1,
    3 and 5 chose the settings (``benchmarks/accuracy/qube.py``, its records
-   ``results/accuracy/qube/*_fit.json``: process std 4 / 8 / 16 / 32 on the velocities, initial
+   ``results/real_rig/qube/*_fit.json``: process std 4 / 8 / 16 / 32 on the velocities, initial
    states from half or all of the box); runs 7, 9 and 11 are scored and chose nothing.
 2. **Train** with the one command, for ``y = (theta, alpha)`` and for ``y = alpha``
    (``make_plant_alpha``), its Python path: the configuration
@@ -41,6 +41,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.evaluation.logged import estimate_log
 from kklcasadi.metrics import rmse
 from kklcasadi.plant.logs import Log, read_log, savgol_derivative
@@ -217,7 +218,7 @@ def plot(traces: dict, path: Path) -> Path:
     axes[0].set_title(f"Qube Servo 2, free swing {traces['run']} (scored), {traces['label']}")
     axes[-1].set_xlabel("t [s]")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(provenance.stamp()))
     plt.close(fig)
     return path
 
@@ -254,7 +255,8 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
                         "runs": {str(k): {name: _json(v) for name, v in row.items()} for k, row in table.items()},
                         "scored_mean": {name: _json(v) for name, v in scored_mean(table).items()}}
     results.parent.mkdir(parents=True, exist_ok=True)
-    results.write_text(json.dumps(record, indent=1))
+    stamp = provenance.stamp(seeds={"training": seed})                # the command line, commit and versions
+    results.write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
     print(f"scores {results}")
     return done
 

@@ -336,7 +336,7 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
     assert decoder["loss"] == "mse" or decoder["smape_weight"] == config.decoder.smape_weight == 0.5
     # the spread quantile chosen on validation trials (benchmarks/monitor_quantiles.py), on runs at the nominal
     # noise; where no quantile met the budget the card keeps the fitting runs' validation samples at 0.99
-    choice = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{system}_3030_monitor.json").read_text())
+    choice = json.loads((ROOT / "results" / "generalisation" / system / f"{system}_3030_monitor.json").read_text())
     threshold, quantile = model.spec.monitor.spread
     assert threshold > 0 and quantile == (0.99 if choice["chosen"] is None else choice["chosen"])
     source = model.spec.monitor.calibration.get("spread_source", "")

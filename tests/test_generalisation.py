@@ -15,6 +15,7 @@ from kklcasadi.evaluation.protocol import Protocol
 from kklcasadi.evaluation.trialcache import TrialCache
 from kklcasadi.observer.kkl import load_observer
 from kklcasadi.plant import signals as sig
+from kklcasadi.provenance import strip_markdown
 
 SHORT = gen.Settings(n_trials=3, T=6.0)
 
@@ -183,7 +184,7 @@ def test_a_model_without_a_monitor_or_a_record(model_dir_factory):
 
 
 def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other_trials(tmp_path, capsys):
-    """benchmarks/compare_generalisation.py: the lever tables under results/accuracy/generalisation are what it
+    """benchmarks/compare_generalisation.py: the lever tables under results/generalisation/ are what it
     prints of their reports (ratios recomputed from the mean SMAPEs); reports of other trials are refused."""
     import runpy
     import sys
@@ -191,7 +192,10 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
 
     root = Path(__file__).resolve().parent.parent
     script = str(root / "benchmarks" / "compare_generalisation.py")
-    records = root / "results" / "accuracy" / "generalisation"
+
+    def records(name):                                 # results/generalisation/<system>/<name>
+        return root / "results" / "generalisation" / name.split("_")[0] / name
+
     tables = {name: [name] for name in ("duffing_3030_cheap_levers", "duffing_3030_lr", "vdp_3030_lr")}
     tables["duffing_3030_cheap_filters"] = ["duffing_3030_cheap_levers", "duffing_3030_cheap_filters"]
     tables["rossler_3030_runs"] = ["rossler_3030_recipe", "rossler_3030_runs"]
@@ -211,31 +215,31 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
         return capsys.readouterr().out
 
     for name, inputs in tables.items():
-        printed = printed_by(*(records / f"{n}.json" for n in inputs))
-        assert printed.strip() and printed in (records / f"{name}.md").read_text() + "\n", name
-        report = json.loads((records / f"{inputs[0]}.json").read_text())
+        printed = printed_by(*(records(f"{n}.json") for n in inputs))
+        assert printed.strip() and printed in strip_markdown(records(f"{name}.md").read_text()) + "\n", name
+        report = json.loads(records(f"{inputs[0]}.json").read_text())
         case = report["cases"][0]
         label, model = next(iter(case["models"].items()))
         assert f"| {model['smape_mean'] / case['ekf']['smape_mean']:.3f}x |" in printed.splitlines()[2]
     # two reports of one label (models/vdp/bank before and with the pd family), relabelled per report
-    scored = root / "results" / "generalisation"
-    printed = printed_by(scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation_no_copies.json",
+    scored = records
+    printed = printed_by(scored("vdp_generalisation_no_pd.json"), scored("vdp_generalisation_no_copies.json"),
                          "--labels", "without pd,with pd")
     assert printed.startswith("| case | without pd | with pd |")
-    assert printed in (scored / "vdp_generalisation_pd_compare.md").read_text() + "\n"
+    assert printed in strip_markdown(scored("vdp_generalisation_pd_compare.md").read_text()) + "\n"
     for system, after in (("duffing", ""), ("vdp", "_copies_5_substeps")):   # ... before and with the model copies
-        printed = printed_by(scored / f"{system}_generalisation_no_copies.json",
-                             scored / f"{system}_generalisation{after}.json", "--labels", "no_copies,copies")
-        assert printed in (scored / f"{system}_generalisation_copies_compare.md").read_text() + "\n", system
-    printed = printed_by(scored / "vdp_generalisation_copies_5_substeps.json", scored / "vdp_generalisation.json",
+        printed = printed_by(scored(f"{system}_generalisation_no_copies.json"),
+                             scored(f"{system}_generalisation{after}.json"), "--labels", "no_copies,copies")
+        assert printed in strip_markdown(scored(f"{system}_generalisation_copies_compare.md").read_text()) + "\n"
+    printed = printed_by(scored("vdp_generalisation_copies_5_substeps.json"), scored("vdp_generalisation.json"),
                          "--labels", "copies,sub2skip")          # ... and with two substeps and skip paths
-    assert printed in (scored / "vdp_generalisation_sub2skip_compare.md").read_text() + "\n"
+    assert printed in strip_markdown(scored("vdp_generalisation_sub2skip_compare.md").read_text()) + "\n"
     module = runpy.run_path(script)
     with pytest.raises(SystemExit, match=r"--labels: expected one label per report \(2\), received 1"):
-        module["load"]([scored / "vdp_generalisation_no_pd.json", scored / "vdp_generalisation.json"], ["a"])
-    other = json.loads((records / "duffing_3030_lr.json").read_text())
+        module["load"]([scored("vdp_generalisation_no_pd.json"), scored("vdp_generalisation.json")], ["a"])
+    other = json.loads(records("duffing_3030_lr.json").read_text())
     other["cases"][0]["ekf"]["smape"][0] += 1.0
     path = tmp_path / "other.json"
     path.write_text(json.dumps(other))
     with pytest.raises(SystemExit, match="differ.*other trials"):
-        module["load"]([records / "duffing_3030_lr.json", path])
+        module["load"]([records("duffing_3030_lr.json"), path])

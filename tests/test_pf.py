@@ -315,12 +315,12 @@ def test_bad_inputs_name_the_argument():
 
 
 def test_the_benchmarks_roughening_is_the_validation_choice():
-    """results/accuracy/generalisation/pf_roughening_3030.json (``benchmarks/pf_roughening.py``, validation
+    """results/generalisation/all/pf_roughening_3030.json (``benchmarks/pf_roughening.py``, validation
     seed 3030): ROUGHENING is the lowest roughening within 0.5 % of the grid's lowest geometric mean of
     PF / EKF, which the plain filter (0) misses."""
     from pathlib import Path
 
-    record = Path(__file__).resolve().parent.parent / "results" / "accuracy" / "generalisation"
+    record = Path(__file__).resolve().parent.parent / "results" / "generalisation" / "all"
     data = json.loads((record / "pf_roughening_3030.json").read_text())
     assert data["seed"] != 2026 and data["particles"] == 1000
     ratios = np.array([row["ratios"] for row in data["rows"]])

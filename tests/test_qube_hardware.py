@@ -27,7 +27,7 @@ def test_the_split_fits_nothing_on_the_scored_runs(example):
 @pytest.mark.parametrize("case", ["theta_alpha", "alpha"])
 def test_the_settings_are_the_ones_chosen_on_the_fit_runs(example, case):
     """Each case's flags are those of the best fit-run record of benchmarks/accuracy/qube.py (runs 1, 3, 5)."""
-    root = EXAMPLE.parents[1] / "results" / "accuracy" / "qube"
+    root = EXAMPLE.parents[1] / "results" / "real_rig" / "qube"
     outputs = {"theta_alpha": "both", "alpha": "alpha"}[case]
     records = [json.loads(f.read_text()) for f in root.glob(f"*_{outputs}_fit.json")]
     tried = [r for r in records if r["args"] and r["args"]["n_traj"] == "1000" and r["args"]["T"] == "60.0"

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
+from kklcasadi.provenance import json_payload
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text()
@@ -21,9 +22,14 @@ KINDS = ("zero", "constant", "sinusoid", "square")
 SYSTEMS = ("duffing", "vdp", "rossler", "fhn")
 
 
+def gen_file(name):
+    """A file of results/generalisation/<system>/ by its name (``<system>_...``)."""
+    return ROOT / "results" / "generalisation" / name.split("_")[0] / name
+
+
 def scores(system):
-    """``{(method, kind, noisy): per-trial SMAPE array}`` of ``results/<system>/<system>_scores.json``."""
-    cells = json.loads((ROOT / "results" / system / f"{system}_scores.json").read_text())
+    """``{(method, kind, noisy): per-trial SMAPE array}`` of ``results/protocol/<system>/<system>_scores.json``."""
+    cells = json_payload(json.loads((ROOT / "results" / "protocol" / system / f"{system}_scores.json").read_text()))
     return {(c["method"], c["kind"], c["noisy"]): np.array(c["smape"]) for c in cells}
 
 
@@ -64,7 +70,7 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     smape = smape_by_the_formula(tr.x, est.xhat)
     assert float(out[0]) == pytest.approx(smape, rel=1e-12)
     # a noisy square-wave run of the shipped bank: inside the spread of its 100 protocol trials of
-    # that cell (results/duffing: 7.0-21.4 %; this run gives 17.7 %)
+    # that cell (results/protocol/duffing: 7.0-21.4 %; this run gives 17.7 %)
     cell = scores("duffing")[("bank", "square", True)]
     assert cell.min() <= smape <= cell.max()
 
@@ -106,7 +112,8 @@ def test_the_use_it_snippet_runs_reruns_and_prints_what_a_recomputation_gives(tm
     np.testing.assert_array_equal([bool(boxed.domain_check(p[boxed.nx:], w, p[:boxed.nx])) for p in edge], expected)
 
     # the certificate it prints is the stored record of results/estimators (kklcasadi certificate)
-    record = json.loads((ROOT / "results" / "estimators" / "certificates_zero.json").read_text())[0]
+    record = json_payload(json.loads((ROOT / "results" / "certificates" / "all" /
+                                      "certificates_zero.json").read_text()))[0]
     assert record.pop("model") == "models/duffing/autonomous"
     computed = namespace["cert"].to_json()
     assert sorted(computed) == sorted(record)
@@ -209,7 +216,7 @@ def test_the_streaming_tables_are_the_shipped_models_scores_and_cards(method):
 def test_the_levers_table_is_the_ablation_records_and_the_shipped_scores():
     """Rows of "The levers of the bank observer": the ablation records (benchmarks/accuracy/tables.py
     --ablation, same order, without its validation column), the shipped autonomous and bank models
-    (results/duffing) and the EKF, to the digits printed."""
+    (results/protocol/duffing) and the EKF, to the digits printed."""
     table = re.search(r"^\| configuration \| nz \|.*?\n\|---.*?\n(.*?)\n\n", README, re.M | re.S).group(1)
     rows = [[c.strip().strip("*") for c in line.strip("|").split("|")] for line in table.splitlines()]
     ablation = subprocess.run([sys.executable, "benchmarks/accuracy/tables.py", "--ablation"], cwd=ROOT,
@@ -225,11 +232,12 @@ def test_the_levers_table_is_the_ablation_records_and_the_shipped_scores():
 
 
 def test_the_certificate_paragraph_is_the_stored_certificates():
-    """Figures of "Proposition 1 as a certificate", from results/estimators/certificates_*.json."""
+    """Figures of "Proposition 1 as a certificate", from results/certificates/all/certificates_*.json."""
     text = re.sub(r"\s+", " ", README)
     records = {}
     for kinds in ("zero", "inputs"):
-        for r in json.loads((ROOT / "results" / "estimators" / f"certificates_{kinds}.json").read_text()):
+        for r in json_payload(json.loads((ROOT / "results" / "certificates" / "all" /
+                                          f"certificates_{kinds}.json").read_text())):
             records[kinds, r["model"]] = r
     informative = [key for key, r in records.items() if not r["vacuous"]]
     assert informative == [("zero", "models/duffing/autonomous")]           # "informative once"
@@ -245,9 +253,9 @@ def test_the_certificate_paragraph_is_the_stored_certificates():
     assert f"(Lipschitz {inject['ell_inj']:.1f} > `lam` = {inject['lam']:.0f} on Duffing)" in text
 
 
-@pytest.mark.parametrize("table", ["estimators/table.md", "estimators/nmpc/nmpc_table.md"])
+@pytest.mark.parametrize("table", ["estimators/all/table.md", "nmpc/all/nmpc_table.md"])
 def test_the_estimator_tables_are_the_stored_ones(table):
-    """kklcasadi compare's results/estimators/table.md and examples/nmpc_output_feedback.py's
+    """kklcasadi compare's results/estimators/all/table.md and examples/nmpc_output_feedback.py's
     nmpc_table.md appear in the README row for row."""
     rows = [line for line in (ROOT / "results" / table).read_text().splitlines() if line.startswith("|")]
     assert len(rows) > 2 and "\n".join(rows) in README
@@ -255,11 +263,11 @@ def test_the_estimator_tables_are_the_stored_ones(table):
 
 def test_the_per_state_figures_are_the_accuracy_records():
     """Roessler's per-state SMAPE and Duffing's training range, quoted under the results tables and
-    in the levers, from results/accuracy/probes/."""
+    in the levers, from results/levers/."""
     text = re.sub(r"\s+", " ", README)
 
     def probe(name):
-        return json.loads((ROOT / "results" / "accuracy" / "probes" / f"{name}.json").read_text())
+        return json.loads((ROOT / "results" / "levers" / name.split("_")[0] / f"{name}.json").read_text())
 
     bank, plain = probe("rossler_bank"), probe("rossler_g1")
     ours, ekf = bank["noisy"]["zero"]["ours_per_state"], bank["noisy"]["zero"]["ekf_per_state"]
@@ -280,12 +288,12 @@ def test_the_per_state_figures_are_the_accuracy_records():
 
 def test_the_real_rig_table_and_commands_are_the_examples_records():
     """The Qube table of "A real rig" is examples/qube_hardware.py's summary of its records
-    (results/accuracy/qube/hardware_*.json, scored runs only), the README's training commands are the
+    (results/real_rig/qube/hardware_*.json, scored runs only), the README's training commands are the
     records' commands, and the second seed's ratios are its records' (hardware_seed1_*.json)."""
     example = runpy.run_path(str(ROOT / "examples" / "qube_hardware.py"), run_name="qube_hardware")
 
     def records(prefix):
-        folder = ROOT / "results" / "accuracy" / "qube"
+        folder = ROOT / "results" / "real_rig" / "qube"
         return {case: json.loads((folder / f"{prefix}_{case}.json").read_text())[case] for case in example["CASES"]}
 
     first = records("hardware")
@@ -302,12 +310,13 @@ def test_the_real_rig_table_and_commands_are_the_examples_records():
 
 
 def test_the_damped3_table_is_the_evaluate_scores():
-    """The damped 3-state plant's rows (noise on) and its noise-free figures are results/accuracy/damped3/'s
+    """The damped 3-state plant's rows (noise on) and its noise-free figures are results/own_plant/damped3/'s
     kklcasadi evaluate scores, within issue 17's 1.5x of the EKF in every noisy cell."""
     text = re.sub(r"\s+", " ", README)
     for seed, path in (("0", "damped3_scores.json"), ("1", "damped3_seed1_scores.json")):
-        file = ROOT / "results" / "accuracy" / "damped3" / path
-        cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"] for c in json.loads(file.read_text())}
+        file = ROOT / "results" / "own_plant" / "damped3" / path
+        cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"]
+                 for c in json_payload(json.loads(file.read_text()))}
         method = next(m for m, _, _ in cells if m != "EKF")
         bank, ekf = ([cells[who, k, True] for k in KINDS] for who in (method, "EKF"))
         assert f"| bank (seed {seed}) | " + " | ".join(f"{v:.1f}" for v in bank) + " |" in README
@@ -320,8 +329,8 @@ def test_the_damped3_table_is_the_evaluate_scores():
             assert "({} % against the bank's {} for seed 0:".format(*clean) in text
             plain = cells
     # the same command with --copies 1 100 10000, scored beside a rerun without them (seed 0's row, to the digit)
-    both = json.loads((ROOT / "results" / "accuracy" / "damped3" / "damped3_copies_scores.json").read_text())
-    cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"] for c in both}
+    both = json.loads((ROOT / "results" / "own_plant" / "damped3" / "damped3_copies_scores.json").read_text())
+    cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"] for c in json_payload(both)}
     assert all(round(cells["plain", k, n], 1) == round(plain[m, k, n], 1) for (m, k, n) in plain if m != "EKF")
     copies, ekf = ([cells[who, k, True] for k in KINDS] for who in ("copies", "EKF"))
     assert "| bank with model copies (seed 0) | " + " | ".join(f"{v:.1f}" for v in copies) + " |" in README
@@ -329,7 +338,7 @@ def test_the_damped3_table_is_the_evaluate_scores():
         + " |" in README
     clean = " / ".join(f"{cells['copies', k, False]:.1f}" for k in KINDS)
     assert f"noise-free {clean} %" in text
-    card = json.loads((ROOT / "results" / "accuracy" / "damped3" / "card_copies_seed0.json").read_text())
+    card = json.loads((ROOT / "results" / "own_plant" / "damped3" / "card_copies_seed0.json").read_text())
     assert card["architecture"]["bank"]["copies"]["weights"] == [1.0, 100.0, 10000.0]
 
 
@@ -343,22 +352,21 @@ def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_bank
     assert len(blocks) == 2 + 2 * len(SYSTEMS)
     for block in blocks:
         assert "\n" + block + "\n" in README, block
-    root = ROOT / "results" / "generalisation"
     for system in SYSTEMS:
-        shipped = json.loads((root / f"{system}_generalisation.json").read_text())
+        shipped = json.loads(gen_file(f"{system}_generalisation.json").read_text())
         card = json.loads((ROOT / "models" / system / "bank" / "card.json").read_text())
         assert shipped["models"]["bank"]["fit_families"] == card["fit_families"], system
         assert (shipped["settings"]["seed"], shipped["settings"]["n_trials"]) == (2026, 100)
-        other = json.loads((root / f"{system}_generalisation_benchmark_fit.json").read_text())
+        other = json.loads(gen_file(f"{system}_generalisation_benchmark_fit.json").read_text())
         assert other["models"]["bank"]["fit_families"] != card["fit_families"]
         assert [c["ekf"]["smape"] for c in other["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
         assert other["pf_particles"] == 1000                                        # "also holds the particle filter"
         assert shipped["pf_particles"] == 4000                          # "4000 in the shipped banks' reports"
-        pf1000 = json.loads((root / f"{system}_generalisation_pf1000.json").read_text())
+        pf1000 = json.loads(gen_file(f"{system}_generalisation_pf1000.json").read_text())
         assert pf1000["pf_particles"] == 1000 and [c["models"]["bank"]["smape"] for c in pf1000["cases"]] == \
             [c["models"]["bank"]["smape"] for c in shipped["cases"]]
         assert shipped["pf_roughening"] == 0.6 and "pf_roughening" not in other      # roughened in the shipped's only
-        one = json.loads((root / f"{system}_generalisation_one_decoder.json").read_text())    # the bank before
+        one = json.loads(gen_file(f"{system}_generalisation_one_decoder.json").read_text())    # the bank before
         fitted = {k: v for k, v in card["fit_families"].items() if k != "pd"}       # Van der Pol's pd since
         assert one["models"]["bank"]["fit_families"] == fitted
         assert [c["ekf"]["smape"] for c in one["cases"]] == [c["ekf"]["smape"] for c in shipped["cases"]]
@@ -366,13 +374,12 @@ def test_the_generalisation_tables_are_what_summarize_prints_of_the_shipped_bank
 
 def test_the_generalisation_text_follows_from_the_reports():
     """The spans, misses, monitor shares and the validation choices quoted under the generalisation
-    tables, recomputed from results/generalisation and results/accuracy/generalisation."""
+    tables, recomputed from results/generalisation and results/generalisation/."""
     text = re.sub(r"\s+", " ", README)
-    root = ROOT / "results" / "generalisation"
     names = {"duffing": "Duffing", "vdp": "Van der Pol", "rossler": "Roessler", "fhn": "FitzHugh-Nagumo"}
 
     def report(system, suffix=""):
-        return json.loads((root / f"{system}_generalisation{suffix}.json").read_text())
+        return json.loads(gen_file(f"{system}_generalisation{suffix}.json").read_text())
 
     def ratios(data, noise, in_distribution):
         return {(c["family"], c["regime"]): c["models"]["bank"]["ratio_ekf"] for c in data["cases"]
@@ -495,7 +502,7 @@ def test_the_generalisation_text_follows_from_the_reports():
 
     # two decoders against one, on the validation trials (seed 3030): lower in how many of the 30 cases
     def members(system):
-        data = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{system}_3030_members.json")
+        data = json.loads((ROOT / "results" / "generalisation" / system / f"{system}_3030_members.json")
                           .read_text())
         assert data["settings"]["seed"] == 3030
         return sum(c["models"]["k2"]["smape_mean"] < c["models"]["k1"]["smape_mean"] for c in data["cases"])
@@ -506,8 +513,7 @@ def test_the_generalisation_text_follows_from_the_reports():
 
     # 4000 runs against 2000 (Duffing, Van der Pol): the validation trials that chose them and the scored trials
     def runs_choice(system):
-        acc = ROOT / "results" / "accuracy" / "generalisation"
-        new, old = (json.loads((acc / f"{system}_3030_{name}.json").read_text()) for name in ("runs", "members"))
+        new, old = (json.loads(gen_file(f"{system}_3030_{name}.json").read_text()) for name in ("runs", "members"))
         assert new["settings"]["seed"] == old["settings"]["seed"] == 3030
         r_new = [c["models"]["runs4000"]["ratio_ekf"] for c in new["cases"]]
         r_old = [c["models"]["k2"]["ratio_ekf"] for c in old["cases"]]
@@ -533,7 +539,7 @@ def test_the_generalisation_text_follows_from_the_reports():
 
     chosen = []
     for s in ("duffing", "vdp"):
-        data = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{s}_3030_runs8000.json").read_text())
+        data = json.loads((ROOT / "results" / "generalisation" / s / f"{s}_3030_runs8000.json").read_text())
         assert data["settings"]["seed"] == 3030
         gm = [gmean(data, m) for m in ("shipped", "runs8000")]
         assert gm[1] < gm[0]
@@ -548,7 +554,7 @@ def test_the_generalisation_text_follows_from_the_reports():
             "cases" in text)
 
     # Duffing's skip paths: the validation trials that chose them and the scored trials
-    skip = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "duffing_3030_skip.json").read_text())
+    skip = json.loads((ROOT / "results" / "generalisation" / "duffing" / "duffing_3030_skip.json").read_text())
     assert skip["settings"]["seed"] == 3030
     gm = [gmean(skip, m) for m in ("shipped", "skip")]
     better = [c["models"]["skip"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in skip["cases"]]
@@ -567,7 +573,7 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"{chirp[2]['models']['bank']['ratio_ekf']:.3f}x" in text)
 
     # Duffing's model copies: the validation trials that chose them and the scored trials
-    copies = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "duffing_3030_copies.json").read_text())
+    copies = json.loads((ROOT / "results" / "generalisation" / "duffing" / "duffing_3030_copies.json").read_text())
     assert copies["settings"]["seed"] == 3030
     gm = [gmean(copies, m) for m in ("shipped", "copies")]
     won = sum(c["models"]["copies"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in copies["cases"])
@@ -586,28 +592,26 @@ def test_the_generalisation_text_follows_from_the_reports():
     assert no_copies["models"]["bank"]["fit_families"] == shipped["duffing"]["models"]["bank"]["fit_families"]
 
     # Van der Pol's skip paths, not adopted: the validation trials that turned them down
-    vskip = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_skip.json").read_text())
+    vskip = json.loads((ROOT / "results" / "generalisation" / "vdp" / "vdp_3030_skip.json").read_text())
     assert vskip["settings"]["seed"] == 3030
     gm = [gmean(vskip, m) for m in ("shipped", "skip")]
     won = sum(c["models"]["skip"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in vskip["cases"])
     sq = next(c for c in vskip["cases"] if (c["family"], c["regime"], c["noise"]) == ("square", "ood", 0.05))
     assert all(np.allclose(a["models"]["shipped"]["smape"], b["models"]["pd"]["smape"], rtol=1e-9, atol=0)
-               for a, b in zip(vskip["cases"], json.loads((ROOT / "results" / "accuracy" / "generalisation"
-                                                           / "vdp_3030_pd.json").read_text())["cases"]))
+               for a, b in zip(vskip["cases"], json.loads(gen_file("vdp_3030_pd.json").read_text())["cases"]))
     # (the shipped bank's decoders, the chosen pd bank: the same SMAPE up to the compiled code's rounding)
     assert (f"geometric mean {gm[0]:.4f} to {gm[1]:.4f}, lower in {won} of the 30 cases, square ood at noise 0.05 "
             f"{sq['models']['shipped']['ratio_ekf']:.3f}x to {sq['models']['skip']['ratio_ekf']:.3f}x" in text)
 
-    rskip = [json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"rossler_3030_{n}.json").read_text())
+    rskip = [json.loads(gen_file(f"rossler_3030_{n}.json").read_text())
              for n in ("noise_range", "skip")]
     assert all(a["ekf"]["smape"] == b["ekf"]["smape"] for a, b in zip(rskip[0]["cases"], rskip[1]["cases"]))
     assert (f"gave {gmean(rskip[1], 'skip'):.3f} against {gmean(rskip[0], 'nominal'):.3f} on the same validation "
             "trials" in text) and gmean(rskip[1], "skip") > gmean(rskip[0], "nominal")
 
     # Roessler's SMAPE-loss ensemble against the shipped one on the same validation trials
-    recipe = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "rossler_3030_recipe.json").read_text())
-    lossy = json.loads((ROOT / "results" / "accuracy" / "generalisation" /
-                        "rossler_3030_smape05_ensemble.json").read_text())
+    recipe = json.loads((ROOT / "results" / "generalisation" / "rossler" / "rossler_3030_recipe.json").read_text())
+    lossy = json.loads(gen_file("rossler_3030_smape05_ensemble.json").read_text())
     assert all(a["ekf"]["smape"] == b["ekf"]["smape"] for a, b in zip(recipe["cases"], lossy["cases"]))
     new, old = gmean(lossy, "smape05_seeds_11_13"), gmean(recipe, "wide6 seeds 11,13")
     won = sum(b["models"]["smape05_seeds_11_13"]["smape_mean"] < a["models"]["wide6 seeds 11,13"]["smape_mean"]
@@ -618,8 +622,7 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"lower in all {won} cases, in distribution at noise 0.05 {min(low):.3f}-{max(low):.3f}x" in text)
     assert won == 30 and max(low) < 1.1
     # ... and on the scored trials, shipped (rossler_generalisation.json) against the MSE-fit ensemble before it
-    scored = ROOT / "results" / "generalisation"
-    ross_new, ross_old = (json.loads((scored / f"rossler_generalisation{n}.json").read_text()) for n in ("", "_mse"))
+    ross_new, ross_old = (json.loads(gen_file(f"rossler_generalisation{n}.json").read_text()) for n in ("", "_mse"))
     assert all(a["ekf"]["smape"] == b["ekf"]["smape"] for a, b in zip(ross_new["cases"], ross_old["cases"]))
     won = sum(a["models"]["bank"]["smape_mean"] < b["models"]["bank"]["smape_mean"]
               for a, b in zip(ross_new["cases"], ross_old["cases"]))
@@ -637,7 +640,7 @@ def test_the_generalisation_text_follows_from_the_reports():
         ross_new["models"]["bank"]["fit_families"]
 
     # Van der Pol's third decoder: the validation trials that chose it and the scored trials
-    third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_members3.json").read_text())
+    third = json.loads((ROOT / "results" / "generalisation" / "vdp" / "vdp_3030_members3.json").read_text())
     assert third["settings"]["seed"] == 3030
     gm = [gmean(third, m) for m in ("shipped", "members3")]
     won = sum(c["models"]["members3"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in third["cases"])
@@ -681,7 +684,7 @@ def test_the_generalisation_text_follows_from_the_reports():
                 for a, b in zip(report(system)["cases"], report(system, "_pf1000")["cases"]))
     assert f"4000 particles moved PF / EKF by at most {moved:.3f} in any of their 90 cases" in text
     # Van der Pol's pd family (three decoders, 8000 runs): the validation trials that chose it and the scored trials
-    pd = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_pd.json").read_text())
+    pd = json.loads((ROOT / "results" / "generalisation" / "vdp" / "vdp_3030_pd.json").read_text())
     assert pd["settings"]["seed"] == 3030
     assert [c["ekf"]["smape"] for c in pd["cases"]] == [c["ekf"]["smape"] for c in third["cases"]]
     gm_pd = [gmean(third, "members3"), gmean(pd, "pd")]
@@ -700,7 +703,7 @@ def test_the_generalisation_text_follows_from_the_reports():
     card = json.loads((ROOT / "models" / "vdp" / "bank" / "card.json").read_text())
     assert card["architecture"]["bank"]["members"] == 3 and "pd" in card["training"]["rollouts"]["kinds"]
     # Van der Pol's model copies (on the pd ensemble): the validation trials that chose them and the scored trials
-    vcopies = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_copies.json").read_text())
+    vcopies = json.loads((ROOT / "results" / "generalisation" / "vdp" / "vdp_3030_copies.json").read_text())
     assert vcopies["settings"]["seed"] == 3030 and card["architecture"]["bank"]["copies"]["weights"] == [1, 100, 1e4]
     gm = [gmean(vcopies, m) for m in ("shipped", "copies")]
     won = sum(c["models"]["copies"]["smape_mean"] < c["models"]["shipped"]["smape_mean"] for c in vcopies["cases"])
@@ -725,7 +728,7 @@ def test_the_generalisation_text_follows_from_the_reports():
             "four systems over a target" in text) and max(low["new"]) > 1.1
     assert vdp_pd["models"]["bank"]["fit_families"] == vdp_c5["models"]["bank"]["fit_families"]
     # ... then two RK4 substeps for the copies and skip paths: the validation trials that chose them and the scored
-    sub2 = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "vdp_3030_sub2skip.json").read_text())
+    sub2 = json.loads((ROOT / "results" / "generalisation" / "vdp" / "vdp_3030_sub2skip.json").read_text())
     assert sub2["settings"]["seed"] == 3030
     assert card["architecture"]["bank"]["copies"]["substeps"] == 2 and card["architecture"]["decoder"]["skip"]
     assert all(np.allclose(a["models"]["shipped"]["smape"], b["models"]["copies"]["smape"], rtol=1e-9, atol=0)
@@ -746,8 +749,7 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"{max(now['new']):.3f}x, the largest ratio off distribution {off['old']:.3f}x to {off['new']:.3f}x"
             in text)
     # Duffing's pd family, not adopted: its gain is the feedback cells the family covers
-    records = ROOT / "results" / "accuracy" / "generalisation"
-    base, duf_pd = (json.loads((records / f"duffing_3030_{n}.json").read_text()) for n in ("runs8000", "pd"))
+    base, duf_pd = (json.loads(gen_file(f"duffing_3030_{n}.json").read_text()) for n in ("runs8000", "pd"))
     assert [c["ekf"]["smape"] for c in base["cases"]] == [c["ekf"]["smape"] for c in duf_pd["cases"]]
     rest = [i for i, c in enumerate(base["cases"]) if c["family"] != "feedback"]
     pair = [[c["models"][m]["smape_mean"] / c["ekf"]["smape_mean"] for c in d["cases"]]
@@ -760,7 +762,7 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"family covers; over the other {len(rest)} cases it rose from {geo[1][0]:.3f} to {geo[1][1]:.3f} "
             f"(lower in {won} of {len(rest)}), chirp at noise 0.05, Duffing's miss, from {pair[0][chirp]:.3f}x to "
             f"{pair[1][chirp]:.3f}x" in text)
-    third = json.loads((ROOT / "results" / "accuracy" / "generalisation" / "duffing_3030_members3.json").read_text())
+    third = json.loads((ROOT / "results" / "generalisation" / "duffing" / "duffing_3030_members3.json").read_text())
     worse = [c for c in third["cases"] if c["family"] in ("chirp", "feedback")
              and c["models"]["members3"]["smape_mean"] >= c["models"]["shipped"]["smape_mean"]]
     assert third["settings"]["seed"] == 3030 and len(worse) == 6
@@ -771,7 +773,7 @@ def test_the_generalisation_text_follows_from_the_reports():
 
     # the choice, on the validation trials (seed 3030), by the geometric mean of bank / EKF over the cases
     def validation(system):
-        data = json.loads((ROOT / "results" / "accuracy" / "generalisation" / f"{system}_3030_broad.json").read_text())
+        data = json.loads((ROOT / "results" / "generalisation" / system / f"{system}_3030_broad.json").read_text())
         assert data["settings"]["seed"] == 3030
         return data
 
@@ -792,12 +794,11 @@ def test_the_generalisation_text_follows_from_the_reports():
             f"benchmark-fit on Roessler ({g['rossler', 'shipped']:.2f} against {g['rossler', 'broad']:.2f}:" in text)
 
     # Roessler's broad recipe, its parts and its members on the validation trials, and the scored trials
-    acc = ROOT / "results" / "accuracy" / "generalisation"
-    recipe, before = (json.loads((acc / f"rossler_3030_{n}.json").read_text()) for n in ("recipe", "members"))
+    recipe, before = (json.loads(gen_file(f"rossler_3030_{n}.json").read_text()) for n in ("recipe", "members"))
     assert recipe["settings"]["seed"] == before["settings"]["seed"] == 3030
     assert [c["ekf"]["smape"] for c in recipe["cases"]] == [c["ekf"]["smape"] for c in before["cases"]]
     # that ensemble, fit on the MSE alone, shipped until its SMAPE-loss refit: its scored report
-    mse = json.loads((ROOT / "results" / "generalisation" / "rossler_generalisation_mse.json").read_text())
+    mse = json.loads((ROOT / "results" / "generalisation" / "rossler" / "rossler_generalisation_mse.json").read_text())
 
     r = {m: gmean(recipe, m) for m in recipe["models"]}
     ship, k2 = "wide6 seeds 11,13", gmean(before, "k2")
@@ -825,10 +826,9 @@ def test_the_generalisation_text_follows_from_the_reports():
 def test_the_spread_quantiles_are_the_validation_choices():
     """The spread quantile quoted per system, and for the ensembles shipped before, is the one
     benchmarks/monitor_quantiles.py chose and recorded."""
-    acc = ROOT / "results" / "accuracy" / "generalisation"
 
     def q(name, suffix=""):
-        return f"{json.loads((acc / f'{name}_3030_monitor{suffix}.json').read_text())['chosen']:g}"
+        return f"{json.loads(gen_file(f'{name}_3030_monitor{suffix}.json').read_text())['chosen']:g}"
 
     quoted = (f"Duffing {q('duffing')} ({q('duffing', '_no_copies')} before its model copies, "
               f"{q('duffing', '_no_skip')} before its skip paths), Van der Pol {q('vdp')} "
@@ -840,9 +840,9 @@ def test_the_spread_quantiles_are_the_validation_choices():
 
 def test_the_protocol_timing_is_the_benchmarks_output():
     """"The benchmark protocol in minutes": the walls, CPU seconds and per-trial costs quoted are
-    results/bench/protocol_duffing.md's (kklcasadi bench protocol --system duffing), and meet the
+    results/speed/duffing/protocol_duffing.md's (kklcasadi bench protocol --system duffing), and meet the
     targets they are quoted against."""
-    out = (ROOT / "results" / "bench" / "protocol_duffing.md").read_text()
+    out = (ROOT / "results" / "speed" / "duffing" / "protocol_duffing.md").read_text()
     text = re.sub(r"\s+", " ", README)
     for run, target in (("warm", 120.0), ("cold", 180.0)):
         wall, cpu = re.search(rf"- {run} caches \(.*?\): ([\d.]+) s wall, ([\d.]+) s CPU", out).groups()

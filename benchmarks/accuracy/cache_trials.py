@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from common import CACHE
 
 import kklcasadi as kc
 from kklcasadi.estimators.ekf import EKF
@@ -48,7 +49,7 @@ def cache_system(name: str, cache: Path, n_trials: int, regime: str = "id") -> N
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("systems", nargs="+")
-    parser.add_argument("--cache", type=Path, default=Path("/tmp/acc_cache"))
+    parser.add_argument("--cache", type=Path, default=CACHE, help=f"where the cells go (default {CACHE})")
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument("--regime", default="id", choices=("id", "ood"))
     args = parser.parse_args()

@@ -7,16 +7,17 @@ operational rollouts (train ranges, seeds disjoint from the protocol's) are cach
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 import kklcasadi as kc
+from kklcasadi.evaluation.trialcache import cache_root
 from kklcasadi.plant.signals import BENCHMARK_KINDS
 from kklcasadi.plant.simulate import TrajectoryBatch
 
-CACHE = Path("/tmp/acc_cache")
+#: The accuracy study's cached trials and rollouts, under kklcasadi's cache (``$KKLCASADI_CACHE``).
+CACHE = cache_root() / "accuracy"
 #: RK4 substeps per sample for the rollouts (checked against CVODES: SMAPE difference < 0.1 %).
 SUBSTEPS = {"fhn": 8}
 Estimator = Callable[[np.ndarray, np.ndarray], np.ndarray]

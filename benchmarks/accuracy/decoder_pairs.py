@@ -2,7 +2,7 @@
 on the same validation trials.
 
     PYTHONPATH=. python benchmarks/accuracy/decoder_pairs.py duffing --variants plain skip --seeds 11 12 13 14 \\
-        --n-traj 1000 --epochs 10 --out results/accuracy/generalisation/duffing_3030_cheap_skip
+        --n-traj 1000 --epochs 10 --out results/generalisation/duffing/duffing_3030_cheap_skip
 
 The runs are the system's recipe (:meth:`kklcasadi.train.bank.BankConfig.for_system`) with ``--n-traj`` runs,
 simulated once (training seed ``--run-seed``); each variant's decoder is fitted on them from every seed of
@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 import kklcasadi as kc
-from kklcasadi import metrics
+from kklcasadi import metrics, provenance
 from kklcasadi.evaluation.compiled import ekf_estimator
 from kklcasadi.evaluation.generalisation import Case, Settings, case_ekf
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
@@ -118,7 +118,9 @@ def main() -> None:
     record = {"system": args.system, "samples": len(runs[None]), "ekf": ekf, "smape": smape, "fit_seconds": seconds,
               "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(record, indent=1))
+    stamp = provenance.stamp(seeds={"trials": args.trial_seed, "runs": args.run_seed,
+                                    **{f"decoder_{s}": s for s in args.seeds}})
+    args.out.with_suffix(".json").write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
     labels = list(trials)
     seeds = [str(s) for s in args.seeds]
     lines = [f"**{args.system}, paired decoders** ({args.n_traj} runs, {args.epochs} epochs, one decoder per variant "
@@ -142,7 +144,7 @@ def main() -> None:
         lines.append(f"| {variant} | " + " | ".join(
             f"{geometric_mean([smape[variant][s][lab] / smape['plain'][s][lab] for lab in labels]):.4f}"
             for s in seeds) + " |")
-    args.out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    args.out.with_suffix(".md").write_text(provenance.markdown("\n".join(lines) + "\n", stamp))
     print("\n".join(lines))
 
 

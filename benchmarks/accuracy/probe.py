@@ -26,6 +26,7 @@ from common import cached_rollouts, kind_of_rollouts, score, table_row
 from recipes import PAPER_BEST, RECIPES
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.model.operational import OperationalData
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.plant.runs import RolloutConfig
@@ -33,9 +34,7 @@ from kklcasadi.plant.signals import BENCHMARK_KINDS
 from kklcasadi.train.config import LoopConfig
 from kklcasadi.train.decoder import DecoderConfig, config_record, fit_bank_decoder
 
-OUT = Path("results/accuracy")
-#: Probe weights stay out of the repository (the final models go to results/accuracy/weights).
-WEIGHTS = Path("/tmp/acc_weights")
+OUT = Path("results/levers")
 
 DEFAULTS = {"y_poles": "0.2,0.5,1,2,4,7", "u_poles": "0.5,2", "resonators": "", "clock": None, "n_traj": 1000,
             "n_val": 200, "seed": 11, "epochs": 20, "batch": 1024, "lr": 1e-3, "hidden": "256,256,256",
@@ -52,7 +51,8 @@ def parse() -> argparse.Namespace:
     p.add_argument("system")
     p.add_argument("--tag", required=True)
     p.add_argument("--recipe", action="store_true", help="start from recipes.RECIPES[system]")
-    p.add_argument("--save", type=Path, default=WEIGHTS)
+    p.add_argument("--save", type=Path, help="also write the weights and the record to this folder (default: the "
+                   "record alone, under results/levers/SYSTEM/)")
     p.add_argument("--y-poles")
     p.add_argument("--u-poles")
     p.add_argument("--resonators", help="zeta:omega,... second-order y filters")
@@ -122,17 +122,18 @@ def main() -> None:
     for k in BENCHMARK_KINDS:
         print(f"  per-state {k}: ours {np.round(noisy[k]['ours_per_state'], 2).tolist()} "
               f"ekf {np.round(noisy[k]['ekf_per_state'], 2).tolist()}")
-    (OUT / "probes").mkdir(parents=True, exist_ok=True)
-    args.save.mkdir(parents=True, exist_ok=True)
+    (OUT / args.system).mkdir(parents=True, exist_ok=True)
     record = {"system": args.system, "tag": args.tag, "args": {k: str(v) for k, v in vars(args).items()},
               "nz": bank.nz, "config": config_record(sampling, dec),
               "fit_seconds": result.seconds, "n_samples": result.n_samples, "best_epoch": result.fit.best_epoch,
               "history": result.fit.history, "domain": result.domain, "validation": val_scores,
               "noisy": noisy, "clean": clean, "arch": arch}
-    (OUT / "probes" / f"{args.system}_{args.tag}.json").write_text(json.dumps(record, indent=1))
-    np.savez(args.save / f"{args.system}_{args.tag}.npz", **arrays)
-    if args.save != WEIGHTS:
-        (args.save / f"{args.system}_{args.tag}.json").write_text(json.dumps(record, indent=1))
+    text = json.dumps(provenance.json_record(record, provenance.stamp(seeds={"decoder": args.seed})), indent=1) + "\n"
+    (OUT / args.system / f"{args.system}_{args.tag}.json").write_text(text)
+    if args.save is not None:
+        args.save.mkdir(parents=True, exist_ok=True)
+        np.savez(args.save / f"{args.system}_{args.tag}.npz", **arrays)
+        (args.save / f"{args.system}_{args.tag}.json").write_text(text)
 
 
 if __name__ == "__main__":

@@ -15,9 +15,9 @@ dynamics do not depend on it): its error is printed but not scored.
 Usage::
 
     PYTHONPATH=. python benchmarks/accuracy/qube.py --outputs both --process-std 8 --runs fit --tag q8
-    PYTHONPATH=. python benchmarks/accuracy/qube.py --outputs alpha --model /tmp/qube/q8_alpha --runs report
+    PYTHONPATH=. python benchmarks/accuracy/qube.py --outputs alpha --model DIR/q8_alpha --runs report
 
-Writes ``results/accuracy/qube/<tag>_<outputs>_<runs>.json``.
+Writes ``results/real_rig/qube/<tag>_<outputs>_<runs>.json``.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -33,6 +34,7 @@ import numpy as np
 import torch
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.metrics import rmse
 from kklcasadi.plant import logs
 
@@ -43,7 +45,7 @@ from qube_plant import make_plant, make_plant_alpha  # noqa: E402
 DT = 0.004
 RUNS = {"fit": (1, 3, 5), "report": (7, 9, 11)}
 STATES = ("theta", "alpha", "theta_dot", "alpha_dot")
-OUT = ROOT / "results" / "accuracy" / "qube"
+OUT = ROOT / "results" / "real_rig" / "qube"
 
 
 def plant_of(outputs: str) -> kc.System:
@@ -110,13 +112,14 @@ def main() -> None:
     p.add_argument("--no-angles", action="store_true")
     p.add_argument("--skip", choices=("on", "off"), help="the decoder's linear skip path (default: the recipe's)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("/tmp/qube"))
+    p.add_argument("--out", type=Path, help="where the trained model goes (default: a new temporary folder)")
     args = p.parse_args()
     plant = plant_of(args.outputs)
     wall = None
     model = args.model
     if model is None:
-        model, wall = train(args, plant, args.out / f"{args.tag}_{args.outputs}")
+        out = args.out if args.out is not None else Path(tempfile.mkdtemp(prefix="kklcasadi-qube-"))
+        model, wall = train(args, plant, out / f"{args.tag}_{args.outputs}")
     obs = kc.load_observer(model, system=plant)
     outputs = [0, 1] if args.outputs == "both" else [1]
     ekf = kc.EKF(plant, DT, Q=np.diag([0.0, 0.0, 1e-3, 1e-3]), R=1e-6 * np.eye(plant.ny))
@@ -142,7 +145,9 @@ def main() -> None:
         for name in ("bank", "ekf"):
             print(f"{name} {str(n):5s}" + "".join(f"{record[name][n][c]:12.4f}" for c in cols))
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"{args.tag}_{args.outputs}_{args.runs}.json").write_text(json.dumps(record, indent=1))
+    stamp = provenance.stamp(seeds={"training": args.seed} if args.model is None else {})
+    (OUT / f"{args.tag}_{args.outputs}_{args.runs}.json").write_text(
+        json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
 
 
 if __name__ == "__main__":

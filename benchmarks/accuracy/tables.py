@@ -1,4 +1,4 @@
-"""Markdown tables of the accuracy results from the probe records (``results/accuracy/probes/*.json``).
+"""Markdown tables of the accuracy results from the probe records (``results/levers/*/*.json``).
 
 Usage: ``python benchmarks/accuracy/tables.py [--final TAG] [--ablation]``; prints to stdout.
 """
@@ -14,19 +14,19 @@ from recipes import PAPER_BEST
 
 from kklcasadi.plant.signals import BENCHMARK_KINDS
 
-PROBES = Path("results/accuracy/probes")
+PROBES = Path("results/levers")
 SYSTEMS = ("duffing", "vdp", "fhn", "rossler")
 
 
 def load(system: str, tag: str) -> dict:
-    return json.loads((PROBES / f"{system}_{tag}.json").read_text())
+    return json.loads((PROBES / system / f"{system}_{tag}.json").read_text())
 
 
 def final_table(tag: str) -> str:
     """Per system: noise on (ours, EKF, ratio, trials won) and noise-free (ours, paper's best)."""
     lines = ["| system | | zero | constant | sinusoid | square |", "|---|---|---|---|---|---|"]
     for system in SYSTEMS:
-        path = PROBES / f"{system}_{tag}.json"
+        path = PROBES / system / f"{system}_{tag}.json"
         if not path.exists():
             continue
         r = json.loads(path.read_text())
@@ -64,14 +64,14 @@ def lever_table(system: str, rows: dict[str, str]) -> str:
     lines = ["| configuration | nz | validation mean | noisy: zero | constant | sinusoid | square | noise-free: zero | "
              "constant | sinusoid | square |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for label, tag in rows.items():
-        path = PROBES / f"{system}_{tag}.json"
+        path = PROBES / system / f"{system}_{tag}.json"
         if not path.exists():
             continue
         r = json.loads(path.read_text())
         lines.append(f"| {label} | {r['nz']} | {np.mean(list(r['validation'].values())):.2f} | "
                      + " | ".join(f"{r['noisy'][k]['ours']:.2f}" for k in BENCHMARK_KINDS) + " | "
                      + " | ".join(f"{r['clean'][k]['ours']:.2f}" for k in BENCHMARK_KINDS) + " |")
-    r = json.loads(next(PROBES.glob(f"{system}_*.json")).read_text())
+    r = json.loads(next((PROBES / system).glob(f"{system}_*.json")).read_text())
     lines.append("| EKF | - | - | " + " | ".join(f"{r['noisy'][k]['ekf']:.2f}" for k in BENCHMARK_KINDS) + " | "
                  + " | ".join(f"{r['clean'][k]['ekf']:.2f}" for k in BENCHMARK_KINDS) + " |")
     return "\n".join(lines)
@@ -84,7 +84,7 @@ def domain_table(tag: str) -> str:
     lines = ["| system | state | training rollouts (0.1 / 50 / 99.9 %) | protocol trials, noise on, all regimes |",
              "|---|---|---|---|"]
     for system in SYSTEMS:
-        path = PROBES / f"{system}_{tag}.json"
+        path = PROBES / system / f"{system}_{tag}.json"
         if not path.exists():
             continue
         dom = json.loads(path.read_text())["domain"]

@@ -1,7 +1,7 @@
 """Train one ``bank`` model with a configuration given by flags (``BankConfig.for_system`` plus overrides).
 
 The model directory is what ``kklcasadi train --method bank`` writes (card, weights, history); the
-flags reach the fields the command line does not. Score it with ``generalisation.py`` (held-out
+flags reach the fields the command line does not. Score it with ``kklcasadi generalise`` (held-out
 families and seeds) or ``kklcasadi evaluate`` (the protocol).
 
 Example::

@@ -1,7 +1,7 @@
 """Score a study's best model and its baseline again on fresh validation trials (another seed than the
 study's, same families), beside the EKF: the check that the best trial's edge is not selection noise.
 
-Usage: python benchmarks/tune/confirm.py OUT --plant FILE.py:NAME [--seed S] [--trials N]
+Usage: python benchmarks/tune/confirm.py OUT --plant FILE.py:NAME [--seed S] [--trials N]   (writes OUT/confirm.md)
 """
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from kklcasadi import provenance
 from kklcasadi.evaluation import tune as tn
 from kklcasadi.evaluation.trialcache import TrialCache
 from kklcasadi.observer.kkl import load_observer
@@ -31,13 +32,16 @@ def main() -> None:
     validation = tn.Validation.build(plant, cells, trials=TrialCache(args.out / "cache"))
     scores = {name: tn.score(obs, validation) for name, obs in models.items()}
     names = [c.name for c in cells]
-    print(f"study {search.study}: best trial {search.trial} (validation {search.value:.4f}, baseline "
-          f"{search.baseline:.4f}); fresh trials: seed {args.seed}, {args.trials} per cell\n")
-    print("| model | score (SMAPE / EKF's) | " + " | ".join(names) + " |")
-    print("|---" * (len(names) + 2) + "|")
+    lines = [f"study {search.study}: best trial {search.trial} (validation {search.value:.4f}, baseline "
+             f"{search.baseline:.4f}); fresh trials: seed {args.seed}, {args.trials} per cell", "",
+             "| model | score (SMAPE / EKF's) | " + " | ".join(names) + " |", "|---" * (len(names) + 2) + "|"]
     for name, (value, per_cell) in scores.items():
-        print(f"| {name} | {value:.4f} | " + " | ".join(f"{per_cell[n]:.2f}" for n in names) + " |")
-    print("| EKF | 1 | " + " | ".join(f"{validation.ekf[n]:.2f}" for n in names) + " |")
+        lines.append(f"| {name} | {value:.4f} | " + " | ".join(f"{per_cell[n]:.2f}" for n in names) + " |")
+    lines.append("| EKF | 1 | " + " | ".join(f"{validation.ekf[n]:.2f}" for n in names) + " |")
+    text = "\n".join(lines) + "\n"
+    print(text, end="")
+    (args.out / "confirm.md").write_text(provenance.markdown(text, provenance.stamp(seeds={"trials": args.seed})))
+    print(f"wrote {args.out / 'confirm.md'}")
 
 
 if __name__ == "__main__":

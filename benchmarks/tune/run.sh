@@ -4,10 +4,10 @@
 # trained at the same caps as the baseline, then the best trial and the baseline scored again on
 # fresh validation trials (another seed) beside the EKF.
 # Usage: benchmarks/tune/run.sh [PLANT [OUT [TRIALS]]]
-#        (default examples/two_masses.py:make_plant, /tmp/kklcasadi-tune-two_masses, 32)
+#        (default examples/two_masses.py:make_plant, a new temporary folder, 32)
 set -euo pipefail
 PLANT=${1:-examples/two_masses.py:make_plant}
-OUT=${2:-/tmp/kklcasadi-tune-two_masses}
+OUT=${2:-$(mktemp -d -t kklcasadi-tune-XXXXXX)}
 TRIALS=${3:-32}
 ARGS=(--plant "$PLANT" --method bank --trials "$TRIALS" --runs 400 --epochs 15 --out "$OUT" --quiet --threads 1)
 mkdir -p "$OUT"

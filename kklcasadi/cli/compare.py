@@ -47,7 +47,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--primed-horizon", type=positive_int, default=5, help="KKL-primed MHE horizon")
     c.add_argument("--calibration-trials", type=positive_int, default=5,
                    help="runs per regime (seed + 1) calibrating the KKL error profile")
-    c.add_argument("--out", default="results/estimators")
+    c.add_argument("--out", default="results/estimators/all", help="folder of the per-system JSON and the table "
+                   "(default results/estimators/all)")
     c.add_argument("--quiet", action="store_true")
     c.set_defaults(func=run)
 

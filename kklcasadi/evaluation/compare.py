@@ -5,7 +5,7 @@ input regimes, noise off and on) and times each in the same run; the table is
 :func:`kklcasadi.evaluation.report.markdown_table` with ``timing=True``: the mean SMAPE per cell and
 the computation time per sample.
 
-Command line: ``kklcasadi compare --systems duffing vdp --trials 20 --out results/estimators``.
+Command line: ``kklcasadi compare --systems duffing vdp --trials 20 --out results/estimators/all``.
 Each system's scores go to ``OUT/<system>.json``; the table of every system found in ``OUT`` is
 rewritten to ``OUT/table.md`` after each system, so systems can run in separate processes.
 """

@@ -1,0 +1,60 @@
+"""results/ is traceable: every file names the command and commit that made it in its own content, the tree is
+results/<study>/<system>/, and the index is what benchmarks/results_index.py writes from the stamps."""
+
+import re
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+
+from kklcasadi import provenance
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "results"
+SCRIPT = ROOT / "benchmarks" / "results_index.py"
+FILES = sorted(str(p.relative_to(RESULTS)) for p in RESULTS.rglob("*") if p.is_file())
+
+
+@pytest.fixture(scope="module")
+def index():
+    return runpy.run_path(str(SCRIPT))
+
+
+@pytest.mark.parametrize("name", FILES)
+def test_every_file_names_its_command_and_commit(index, name):
+    path = RESULTS / name
+    stamp = index["stamp_of"](path)                   # a weights.npz: its card's, which holds their SHA-256
+    assert stamp.command.strip() and re.fullmatch(r"[0-9a-f]{40}(-dirty)?", stamp.commit), name
+    assert not stamp.retroactive or "retroactive stamp" in stamp.note, name
+    if path.suffix != ".npz":
+        assert provenance.read(path) == stamp
+
+
+def test_the_tree_is_study_system_file(index):
+    assert len(FILES) > 250
+    for name in FILES:
+        parts = Path(name).parts
+        assert len(parts) >= 3 and parts[0] in index["STUDIES"] or name == "README.md", name
+
+
+def test_the_index_is_what_the_script_writes_from_the_stamps(index):
+    assert provenance.strip_markdown(index["INDEX"].read_text()) == index["index"](), \
+        "results/README.md is stale: run python benchmarks/results_index.py"
+    assert provenance.read(index["INDEX"]).command == "python benchmarks/results_index.py"
+
+
+def test_a_file_without_a_stamp_is_named(index, tmp_path, monkeypatch):
+    (tmp_path / "protocol" / "x").mkdir(parents=True)
+    (tmp_path / "protocol" / "x" / "t.md").write_text("| a |\n")
+    monkeypatch.setitem(index["index"].__globals__, "RESULTS", tmp_path)
+    monkeypatch.setitem(index["index"].__globals__, "ROOT", tmp_path.parent)
+    with pytest.raises(SystemExit, match=r"protocol/x/t\.md: no provenance stamp"):
+        index["index"]()
+
+
+def test_the_check_flag_says_when_the_index_is_stale(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", [str(SCRIPT), "--check"])
+    with pytest.raises(SystemExit) as done:
+        runpy.run_path(str(SCRIPT), run_name="__main__")
+    assert done.value.code == 0
