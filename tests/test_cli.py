@@ -156,7 +156,7 @@ def _cli(*args, env=None):
 
 
 @pytest.mark.parametrize("args, expected", [
-    (["demo", "--model", "/nope"], "/nope/card.json: file not found"),
+    (["demo", "--model", "/nope"], "--model: expected an existing model directory or a shipped model.s name"),
     (["demo", "--T", "-5"], "argument --T: expected a positive number, received '-5'"),
     (["evaluate", "models/duffing/inject", "--trials", "0"], "argument --trials: expected a positive integer"),
     (["export", "models/duffing/inject", "--name", "1bad", "--casadi", "x.casadi"], "argument --name: expected a C"),

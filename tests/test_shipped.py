@@ -59,3 +59,35 @@ def test_an_installed_package_finds_its_models_from_any_directory(tmp_path):
                          env={"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}).stdout.splitlines()
     assert out == [str((site / "kklcasadi" / "_models").resolve()), "{'duffing': ['bank']}",
                    str(site / "kklcasadi" / "_models" / "duffing" / "bank"), "True"]
+
+
+def test_a_shipped_model_loads_by_name_from_any_directory(tmp_path, monkeypatch, capsys):
+    """kc.load_observer("duffing/bank") and the command line name shipped models anywhere; a directory of that
+    name where it is given wins; neither is one error naming both readings."""
+    import pytest
+
+    import kklcasadi as kc
+    from kklcasadi.cli import main
+
+    monkeypatch.chdir(tmp_path)                                         # outside the clone
+    for name in ("duffing/bank", "models/duffing/bank", Path("vdp") / "autonomous"):
+        resolved = shipped.resolve(name)
+        assert resolved.parent.parent == shipped.SHIPPED_ROOT and shipped.is_shipped(resolved)
+    obs = kc.load_observer("duffing/bank")
+    assert obs.method == "bank" and obs.model.path == (ROOT / "models" / "duffing" / "bank").resolve()
+    mine = tmp_path / "duffing" / "bank"                                # a user's folder of that name wins
+    shutil.copytree(ROOT / "models" / "duffing" / "autonomous", mine)
+    assert shipped.resolve("duffing/bank") == Path("duffing/bank") and kc.load_observer("duffing/bank").method == \
+        "autonomous"
+    with pytest.raises(ValueError, match=r"^path: expected an existing model directory or a shipped model's name "
+                                         r"SYSTEM/METHOD \(duffing: autonomous, .*\), received 'duffing/nope'"):
+        kc.load_observer("duffing/nope")
+    with pytest.raises(ValueError, match=r"received '/nope/bank'"):                    # an absolute path is a path
+        shipped.resolve("/nope/bank")
+    with pytest.raises(TypeError, match=r"^path: expected a model directory or a shipped model's name"):
+        shipped.resolve(3)
+    assert main(["export", "vdp/autonomous", "--casadi", str(tmp_path / "step.casadi")]) == 0
+    assert (tmp_path / "step.casadi").exists()
+    assert main(["demo", "--model", "fhn/nope"]) == 2
+    assert "error: --model: expected an existing model directory or a shipped model's name" in \
+        capsys.readouterr().err

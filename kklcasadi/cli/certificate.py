@@ -12,7 +12,8 @@ from .flags import add_kinds, flagged, load, nonnegative_float, positive_float, 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("certificate", help="estimate Proposition 1's error bound for models and compare it with "
                                            "their observed error")
-    c.add_argument("models", nargs="+", metavar="MODELS", help="model directories")
+    c.add_argument("models", nargs="+", metavar="MODELS",
+                   help="model directories, or shipped models by name SYSTEM/METHOD (e.g. duffing/autonomous)")
     add_kinds(c, "input regimes of the input set and the runs (zero: u = 0 only)")
     c.add_argument("--points", type=positive_int, default=4000, help="domain sample size")
     c.add_argument("--labels", type=positive_int, default=40, help="held-out label trajectories")

@@ -37,7 +37,7 @@ def _columns(text: str) -> tuple[str, ...]:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("estimate", help="run an observer (and the EKF) over a recorded CSV log, write the estimates")
-    e.add_argument("model", metavar="MODEL", help="model directory")
+    e.add_argument("model", metavar="MODEL", help="a model directory, or a shipped model by name SYSTEM/METHOD")
     add_plant(e, "for a model of a plant that kklcasadi does not ship")
     e.add_argument("--data", required=True, metavar="LOG.csv", help="the log: a CSV file with a header row")
     e.add_argument("--time-col", default="time", help="the column of sample times in seconds (default time)")

@@ -40,7 +40,8 @@ from .flags import (
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("evaluate", help="score models on the docs/protocol.md benchmark (SMAPE table, box plots)")
-    e.add_argument("models", nargs="+", metavar="MODELS", help="model directories (same system)")
+    e.add_argument("models", nargs="+", metavar="MODELS",
+                   help="model directories (same system), or shipped models by name SYSTEM/METHOD (e.g. vdp/bank)")
     e.add_argument("--labels", nargs="*", help="row labels, one per model (default: the model directories' names)")
     e.add_argument("--trials", type=positive_int, default=100, help="trials per cell (docs/protocol.md: 100)")
     add_plant(e, "for models of a plant that kklcasadi does not ship")

@@ -10,7 +10,8 @@ from .flags import CommandError, add_plant, c_name, load, plant_of
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     x = sub.add_parser("export", help="export an observer as C code and/or a serialised CasADi Function")
-    x.add_argument("model", metavar="MODEL")
+    x.add_argument("model", metavar="MODEL", help="a model directory, or a shipped model's name SYSTEM/METHOD "
+                                                  "(e.g. duffing/bank)")
     add_plant(x, "for a model of a plant that kklcasadi does not ship")
     x.add_argument("--c", metavar="OUT_DIR", help="write C code of the observer step here")
     x.add_argument("--name", type=c_name, default="kkl_obs", help="C name prefix (a C identifier)")

@@ -38,7 +38,7 @@ from typing import Any, Callable, Iterator, NoReturn, Optional
 import numpy as np
 
 from .. import provenance
-from ..model.shipped import is_shipped, shipped_model
+from ..model.shipped import is_shipped, resolve, shipped_model
 from ..plant import signals as sig
 from ..plant import systems
 from ..plant.systems import System
@@ -198,9 +198,10 @@ def check_dt(dt: float, T: float, models: dict[str, float]) -> None:
 
 
 def model_label(path: str | Path) -> str:
-    """``shipped model models/S/M`` or ``your model PATH`` (the CLI tells them apart)."""
-    if is_shipped(path):
-        resolved = Path(path).resolve()
+    """``shipped model models/S/M`` or ``your model PATH`` (the CLI tells them apart; a shipped model's name
+    ``S/M`` is resolved as :func:`kklcasadi.load_observer` resolves it)."""
+    if is_shipped(resolve(path)):
+        resolved = resolve(path).resolve()
         return f"shipped model models/{resolved.parent.name}/{resolved.name}"
     return f"your model {path}"
 

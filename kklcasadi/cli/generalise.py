@@ -32,7 +32,8 @@ REGIMES = ("id", "ood", "held_out")
 def add_parser(sub: argparse._SubParsersAction) -> None:
     g = sub.add_parser("generalise", help="score models on input families, ranges and noise levels they were not fit "
                                           "on, beside the EKF (and PF), with the domain monitor's precision and recall")
-    g.add_argument("models", nargs="+", metavar="MODELS", help="model directories (same system)")
+    g.add_argument("models", nargs="+", metavar="MODELS",
+                   help="model directories (same system), or shipped models by name SYSTEM/METHOD (e.g. vdp/bank)")
     g.add_argument("--labels", nargs="*", help="row labels, one per model (default: the model directories' names)")
     g.add_argument("--families", nargs="+", default=list(sig.FAMILIES), choices=sig.FAMILIES,
                    help="input families (default: all: the benchmark's four, chirp, random steps, feedback)")

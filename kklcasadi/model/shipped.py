@@ -3,7 +3,9 @@
 The shipped models live in the ``models/`` directory of the source tree, which the package reaches
 as ``kklcasadi/_models`` (a link to it in the tree; ``pip install .`` copies the models' cards and
 weights there as package data, so an installed kklcasadi finds them from any directory). A model
-directory given by path is the user's; only these are "shipped".
+directory given by path is the user's; only these are "shipped". :func:`resolve` names them from any
+directory: ``"duffing/bank"`` (or ``"models/duffing/bank"``) is the shipped model unless a directory
+of that name exists where it is given, which wins.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from typing import Union
 
 from ..validation import Text, error
 
-__all__ = ["SHIPPED_ROOT", "METHOD_ORDER", "shipped", "shipped_models", "shipped_model", "is_shipped"]
+__all__ = ["SHIPPED_ROOT", "METHOD_ORDER", "shipped", "shipped_models", "shipped_model", "is_shipped", "resolve"]
 
 #: Where the shipped models live: the package's ``_models`` (in a source tree a link to ``models/``), resolved.
 SHIPPED_ROOT = (Path(__file__).resolve().parents[1] / "_models").resolve()
@@ -77,3 +79,36 @@ def is_shipped(path: PathLike) -> bool:
         raise error("path", "a model directory path", Text(type(path).__name__), kind=TypeError)
     resolved = Path(path).resolve()
     return resolved.parent.parent == SHIPPED_ROOT and (resolved / "card.json").exists()
+
+
+def resolve(path: PathLike) -> Path:
+    """The model directory ``path`` names: the directory itself where it exists, else the shipped model
+    ``SYSTEM/METHOD`` (also written ``models/SYSTEM/METHOD``), from any directory.
+
+    Parameters
+    ----------
+    path : str or path-like
+        A model directory, or a shipped model's name such as ``"duffing/bank"``.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path`` as given where it exists (a path that exists wins over a shipped name), else the
+        shipped model's directory.
+
+    Raises
+    ------
+    ValueError
+        Neither an existing path nor a shipped model's name; the message lists the shipped models.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise error("path", "a model directory or a shipped model's name (SYSTEM/METHOD)", Text(type(path).__name__),
+                    kind=TypeError)
+    given = Path(path)
+    if given.exists():
+        return given
+    parts = given.parts[1:] if given.parts[:1] == ("models",) else given.parts
+    if len(parts) == 2 and not given.is_absolute() and (SHIPPED_ROOT / parts[0] / parts[1] / "card.json").is_file():
+        return SHIPPED_ROOT / parts[0] / parts[1]
+    raise error("path", f"an existing model directory or a shipped model's name SYSTEM/METHOD ({_listing()})",
+                str(path), "No directory of that name exists here, and no shipped model has that name.")

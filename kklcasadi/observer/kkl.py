@@ -49,6 +49,7 @@ from ..model import variants
 from ..model.card import ModelSpec
 from ..model.files import CARD_FILE, Model, derive_model, load_model
 from ..model.monitor import FeatureMonitor
+from ..model.shipped import resolve
 from ..model.variants import MODEL_BASED_INJECTION
 from ..nets.hold import foh_matrices
 from ..plant import systems
@@ -646,12 +647,14 @@ def _check_sample(value: Any, argument: str, dim: int, k: int) -> np.ndarray:
 # ---------------------------------------------------------------------- loading
 def load_observer(path: PathLike, *, system: Optional[System] = None,
                   discretization: Optional[str] = None, substeps: int = 1) -> KKLObserver:
-    """Load a model directory as a :class:`KKLObserver` (no torch needed).
+    """Load a model directory, or a shipped model by name, as a :class:`KKLObserver` (no torch needed).
 
     Parameters
     ----------
     path : str or path-like
-        A model directory (``weights.npz`` + ``card.json``).
+        A model directory (``weights.npz`` + ``card.json``), or the name of a shipped model,
+        ``"SYSTEM/METHOD"`` such as ``"duffing/bank"``, from any directory (a directory of that
+        name that exists where it is given wins; :func:`kklcasadi.model.shipped.resolve`).
     system : System, optional
         The plant; default ``kklcasadi.plant.systems.get(card["system"]["name"])``. Its name, nx, nu
         and ny must match the card.
@@ -670,7 +673,7 @@ def load_observer(path: PathLike, *, system: Optional[System] = None,
         A damaged or inconsistent model directory (see :func:`kklcasadi.model.files.load_model`),
         an unregistered system name without ``system``, or a system that does not match the card.
     """
-    model = load_model(path)
+    model = load_model(resolve(path))
     if system is None:
         name = model.card["system"]["name"]
         if name not in systems.names():
