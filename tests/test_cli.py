@@ -22,6 +22,56 @@ def test_help_lists_the_subcommands(capsys):
         assert cmd in out
 
 
+def _subcommands():
+    import argparse
+
+    from kklcasadi.cli import build_parser
+
+    (sub,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    return sub.choices
+
+
+@pytest.mark.parametrize("command", sorted(_subcommands()))
+def test_every_flag_and_positional_has_help(command):
+    import argparse
+
+    missing = [a.option_strings or a.dest for a in _subcommands()[command]._actions
+               if not isinstance(a, argparse._HelpAction) and not (a.help or "").strip()]
+    assert missing == [], f"kklcasadi {command}: no help for {missing}"
+
+
+def test_version_names_the_package_commit_and_libraries(capsys):
+    import casadi
+
+    from kklcasadi import provenance
+    from kklcasadi.version import __version__
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    printed = capsys.readouterr().out
+    commit = provenance.commit()
+    where = "not a git checkout" if commit == "unknown" else f"commit {commit}"
+    assert printed.startswith(f"kklcasadi {__version__} ({where}; casadi {casadi.__version__}, torch ")
+
+
+def test_system_flags_offer_the_systems_with_shipped_models_and_name_the_others(capsys):
+    from kklcasadi.model.shipped import shipped
+    from kklcasadi.plant import systems
+
+    having = sorted(shipped())
+    none = [name for name in systems.names() if name not in having]
+    assert having and none                                        # linear and lorenz ship no model
+    commands = _subcommands()
+    for command, flag in (("demo", "--system"), ("train", "--system"), ("bench", "--system"), ("compare", "--systems")):
+        (action,) = [a for a in commands[command]._actions if flag in a.option_strings]
+        assert f"shipped models for {', '.join(having)}; none for {', '.join(none)}" in action.help, command
+        assert list(action.choices) == (having if command == "demo" else systems.names()), command
+    with pytest.raises(SystemExit) as exc:
+        main(["demo", "--system", none[0]])
+    assert exc.value.code == 2 and f"argument --system: invalid choice: '{none[0]}'" in capsys.readouterr().err
+
+
 def test_console_script_entry_point():
     out = subprocess.run([sys.executable, "-m", "kklcasadi", "export", "--help"], capture_output=True, text=True,
                          check=True).stdout
@@ -47,7 +97,45 @@ def test_demo_prints_the_errors_of_its_run_and_writes_a_plot(model_dir_factory, 
     kkl = metrics.smape(tr.x, obs.simulate(tr.t, tr.y, tr.u).xhat)
     ekf = metrics.smape(tr.x, EKF(obs.system, obs.dt).simulate(tr.t, tr.y, tr.u).xhat)
     assert f"SMAPE    KKL (obs) {kkl:6.2f} %   EKF {ekf:6.2f} %" in out, out
-    assert png.stat().st_size > 5000
+    assert png.stat().st_size > 5000 and provenance.read(png).seeds == {"run": 3}
+
+
+def test_the_demo_figure_shows_the_measurement_each_error_and_the_flagged_samples():
+    """estimates_figure: y on its own panel, the states with the first estimator drawn above the others, one
+    error panel per estimator holding xhat - x on a shared scale, the flagged samples shaded, labelled axes, and
+    the legend above the panels (outside every axes)."""
+    import matplotlib
+    import numpy as np
+
+    from kklcasadi.evaluation.report import estimates_figure
+
+    matplotlib.use("Agg")
+    t = np.linspace(0.0, 10.0, 201)
+    x = np.column_stack([np.sin(t), np.cos(t)])
+    y = x[:, :1] + 0.1 * np.random.default_rng(0).normal(size=(201, 1))
+    kkl, ekf = x + 0.05, x - 0.5 * np.exp(-t)[:, None]
+    flags = np.ones(201, bool)
+    flags[20:30] = flags[150:160] = False
+    fig = estimates_figure(t, x, y, {"KKL (bank)": kkl, "EKF": ekf}, u=np.sign(np.sin(t))[:, None], in_domain=flags,
+                           title="test")
+    axes = fig.axes
+    assert [ax.get_ylabel() for ax in axes] == ["y (measured)", "x1", "x2", "KKL (bank)\nerror", "EKF\nerror", "u"]
+    assert axes[-1].get_xlabel() == "t (s)"
+    np.testing.assert_array_equal(axes[0].lines[0].get_ydata(), y[:, 0])
+    line = {ln.get_label(): ln for ln in axes[1].lines}
+    assert line["KKL (bank)"].get_zorder() > line["EKF"].get_zorder() > line["true state"].get_zorder()
+    for ax, xhat in zip(axes[3:5], (kkl, ekf)):                        # xhat - x per state, then the zero line
+        for i in range(2):
+            np.testing.assert_allclose(ax.lines[i].get_ydata(), xhat[:, i] - x[:, i])
+    assert axes[3].get_ylim() == axes[4].get_ylim()                  # one error scale
+    spans = [p for p in axes[2].patches]
+    assert len(spans) == 2 and spans[0].get_x() == t[20]                # the two flagged stretches, on every panel
+    (legend,) = fig.legends
+    labels = [text.get_text() for text in legend.get_texts()]
+    assert "measured y" in labels and "outside the trained domain (20 samples)" in labels and "error of x2" in labels
+    fig.canvas.draw()
+    box = legend.get_window_extent()
+    assert all(box.y0 >= ax.get_window_extent().y1 for ax in axes)     # above every panel: off the data
 
 
 def test_evaluate_prints_the_protocol_scores_and_writes_plots(model_dir_factory, tmp_path, capsys):
@@ -102,11 +190,39 @@ def test_evaluate_scores_the_mhe_beside_the_models(model_dir_factory, tmp_path, 
     assert mhe_clean < float(rows["duffing EKF"].split("|")[2])          # noise-free: the exact model wins
 
 
-def test_train_inject_via_the_cli(model_dir_factory, tmp_path):
+def test_train_inject_via_the_cli_ends_with_its_quality_and_what_to_run_next(model_dir_factory, tmp_path, capsys):
+    """The closing summary: the observer and the EKF on 3 held-out noisy runs per input kind (seed 7), recomputed
+    here from docs/protocol.md's draw, the share inside the trained domain, the wall time, the next commands."""
+    import re
+
+    import kklcasadi as kc
+    from kklcasadi import metrics
+    from kklcasadi.evaluation.protocol import Protocol
+
     base = model_dir_factory("autonomous")
     out = tmp_path / "inject"
     assert main(["train", "--system", "duffing", "--method", "inject", "--out", str(out), "--base", str(base)]) == 0
     assert load_model(out).method == "inject"
+    printed = capsys.readouterr().out
+    assert re.search(rf"wrote    {re.escape(str(out))}/weights.npz and card.json \(\d+ s\)", printed)
+    assert "quality  SMAPE of the observer / the EKF on 3 held-out runs per input (noise std 0.1 / 0.1, seed 7" \
+        in printed
+    obs = kc.load_observer(out)
+    ekf = kc.EKF.for_noise(obs.system, obs.dt, process_std=0.1, measurement_std=0.1)
+    inside = []
+    for kind in ("zero", "constant", "sinusoid", "square"):
+        batch = Protocol(n_trials=3, dt=obs.dt, seed=7).trials(obs.system, kind)
+        est = obs.simulate(batch.t, batch.y, batch.u)
+        ours = np.mean(metrics.smape(batch.x, est.xhat))
+        theirs = np.mean(metrics.smape(batch.x, ekf.simulate(batch.t, batch.y, batch.u).xhat))
+        assert f"{kind} {ours:.2f} % / {theirs:.2f} % ({ours / theirs:.2f}x)" in printed
+        inside.append(est.in_domain)
+    if inside[0] is None:                             # this test model keeps no domain: the line is left out
+        assert "\ndomain   " not in printed
+    else:
+        share = 100 * np.mean([flags.mean() for flags in inside])
+        assert f"domain   {share:.1f} % of the estimates inside" in printed
+    assert f"next     kklcasadi evaluate {out} --ekf" in printed and f"kklcasadi demo --model {out}" in printed
 
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
@@ -156,11 +272,11 @@ def _cli(*args, env=None):
 
 
 @pytest.mark.parametrize("args, expected", [
-    (["demo", "--model", "/nope"], "--model: expected an existing model directory or a shipped model.s name"),
+    (["demo", "--model", "/nope"], "--model: expected an existing model directory or a shipped model's name"),
     (["demo", "--T", "-5"], "argument --T: expected a positive number, received '-5'"),
     (["evaluate", "models/duffing/inject", "--trials", "0"], "argument --trials: expected a positive integer"),
     (["export", "models/duffing/inject", "--name", "1bad", "--casadi", "x.casadi"], "argument --name: expected a C"),
-    (["demo", "--system", "lorenz"], "--system lorenz --method bank: no shipped model"),
+    (["demo", "--system", "lorenz"], "argument --system: invalid choice: 'lorenz' (choose from 'duffing', "),
     (["demo", "--system", "vdp", "--model", "models/duffing/inject"], "--system vdp: the model"),
     (["train", "--method", "inject", "--out", "x"], "--system/--plant: give exactly one"),
     (["train", "--plant", "nope.py", "--method", "inject", "--out", "x"], "--plant: expected an existing Python"),

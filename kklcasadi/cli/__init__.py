@@ -16,6 +16,7 @@ import shlex
 import sys
 from typing import Sequence
 
+from .. import provenance
 from . import bench, certificate, compare, demo, estimate, evaluate, export, generalise, train, tune
 from .flags import USER_ERRORS, Parser
 
@@ -24,8 +25,23 @@ __all__ = ["main", "build_parser"]
 COMMANDS = (demo, train, evaluate, estimate, export, bench, compare, certificate, tune, generalise)
 
 
+class _Version(argparse.Action):
+    """``--version``: the package version, the commit of its checkout, casadi's and torch's versions; exit."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str = argparse.SUPPRESS, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS,
+                         help="print the version (and the commit of a git checkout) and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        stamp = provenance.stamp(command="kklcasadi --version")
+        where = "not a git checkout" if stamp.commit == provenance.UNKNOWN else f"commit {stamp.commit}"
+        parser.exit(message=f"kklcasadi {stamp.version} ({where}; casadi {stamp.casadi}, torch {stamp.torch}, "
+                            f"python {stamp.python})\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(prog="kklcasadi", description="Learned KKL observers (HyperKKL) in CasADi and C.")
+    parser.add_argument("--version", action=_Version)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     for command in COMMANDS:
         command.add_parser(sub)

@@ -5,8 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..model.shipped import shipped as shipped_listing
-from ..plant import systems
-from .flags import CommandError, flagged, needs_torch, nonnegative_int, positive_int, shipped, stamp_of
+from .flags import CommandError, add_system, flagged, needs_torch, nonnegative_int, positive_int, shipped, stamp_of
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -14,7 +13,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("what", nargs="?", default="all",
                    choices=("all", "simulation", "observer", "training", "protocol", "scaling"),
                    help="which benchmark ('all' is every one but scaling, which trains an observer per size)")
-    b.add_argument("--system", default="duffing", choices=systems.names())
+    add_system(b, with_models=False, what="the system benchmarked (default duffing; the observer and protocol "
+               "benchmarks need its shipped models)", default="duffing")
     b.add_argument("--model", help="model directory for the observer benchmark")
     b.add_argument("--models", nargs="+", help="protocol benchmark: model directories (default: the shipped ones)")
     b.add_argument("--trials", type=positive_int,

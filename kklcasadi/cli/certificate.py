@@ -6,7 +6,17 @@ import argparse
 import json
 from pathlib import Path
 
-from .flags import add_kinds, flagged, load, nonnegative_float, positive_float, positive_int, stamp_of
+from .flags import (
+    add_kinds,
+    add_plant,
+    flagged,
+    load,
+    nonnegative_float,
+    plant_of,
+    positive_float,
+    positive_int,
+    stamp_of,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +30,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--trials", type=positive_int, default=10, help="noise-free runs per regime")
     c.add_argument("--T", type=positive_float, default=30.0, help="run duration (s)")
     c.add_argument("--settle", type=nonnegative_float, default=10.0, help="settle time (s)")
-    c.add_argument("--seed", type=int, default=0)
+    add_plant(c, "for models of a plant that kklcasadi does not ship")
+    c.add_argument("--seed", type=int, default=0, help="seed of the domain sample and the runs (default 0)")
     c.add_argument("--out", help="write the certificates to this JSON file")
     c.set_defaults(func=run)
 
@@ -29,9 +40,9 @@ def run(args: argparse.Namespace) -> int:
     """Print each model's certificate; ``--out`` saves them as JSON."""
     from ..evaluation.certificate import certificate
 
-    records = []
+    records, plant = [], plant_of(args)
     for model in args.models:
-        cert = flagged("MODELS", certificate, load(model, None, "MODELS"), kinds=tuple(args.kinds),
+        cert = flagged("MODELS", certificate, load(model, plant, "MODELS"), kinds=tuple(args.kinds),
                        n_points=args.points, n_labels=args.labels, n_trials=args.trials, T=args.T,
                        t_settle=args.settle, seed=args.seed)
         print(f"{model}\n{cert}\n")

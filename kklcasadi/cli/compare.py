@@ -16,6 +16,7 @@ from .flags import (
     add_kinds,
     add_noise,
     add_noise_levels,
+    add_system,
     check_dt,
     load,
     positive_float,
@@ -31,14 +32,17 @@ SYSTEMS = ("duffing", "vdp", "fhn", "rossler")
 def add_parser(sub: argparse._SubParsersAction) -> None:
     c = sub.add_parser("compare", help="KKL observer vs EKF vs MHE vs KKL-primed MHE on the docs/protocol.md "
                                        "benchmark (SMAPE and time per sample)")
-    c.add_argument("--systems", nargs="+", default=list(SYSTEMS), choices=systems.names())
+    add_system(c, with_models=False, flag="--systems", nargs="+", default=list(SYSTEMS),
+               what=f"the systems compared (default {' '.join(SYSTEMS)}; without --models-root each needs its shipped "
+               "model)")
     c.add_argument("--method", default="bank", help="the learned observer: shipped model models/SYSTEM/METHOD "
                                                      "of every system (default bank)")
     c.add_argument("--models-root", help="directory holding SYSTEM/METHOD model directories (default: the shipped "
                                          "models)")
     c.add_argument("--trials", type=positive_int, default=100, help="trials per cell (docs/protocol.md: 100)")
     c.add_argument("--T", type=positive_float, default=50.0, help="horizon in seconds (docs/protocol.md: 50)")
-    c.add_argument("--seed", type=int, default=2026)
+    c.add_argument("--seed", type=int, default=2026, help="seed of the trials (default 2026; the KKL-primed MHE's "
+                   "calibration runs use seed + 1)")
     add_noise(c)
     add_noise_levels(c, "the noisy column's and the EKF's and MHE's (default docs/protocol.md's 0.1)")
     add_dt(c, "the protocol's sample time (default 0.05, docs/protocol.md); the models' must equal it")
@@ -49,7 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="runs per regime (seed + 1) calibrating the KKL error profile")
     c.add_argument("--out", default="results/estimators/all", help="folder of the per-system JSON and the table "
                    "(default results/estimators/all)")
-    c.add_argument("--quiet", action="store_true")
+    c.add_argument("--quiet", action="store_true", help="no progress lines")
     c.set_defaults(func=run)
 
 

@@ -11,12 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from ..plant import signals as sig
-from ..plant import systems
 from .flags import (
     CommandError,
     add_dt,
     add_noise_levels,
     add_plant,
+    add_system,
     levels_text,
     load,
     model_label,
@@ -24,30 +24,31 @@ from .flags import (
     plant_of,
     positive_float,
     quiet_casadi,
+    run_noise,
     shipped,
     stamp_of,
 )
 
-#: Noise std of the run where the card records no levels (docs/protocol.md).
-PROTOCOL_STD = 0.1
-
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     d = sub.add_parser("demo", help="estimate a noisy run with a shipped observer and the EKF, write a PNG")
-    d.add_argument("--system", choices=systems.names(), help="shipped system (default duffing)")
+    add_system(d, with_models=True, what="the system of the shipped model (default duffing)")
     d.add_argument("--method", default="bank",
                    help="shipped model under models/SYSTEM/ (default: bank, the observer fit for noisy measurements)")
     d.add_argument("--model", help="a model directory instead of a shipped one")
     add_plant(d, "with --model")
-    d.add_argument("--input", default="square", choices=sig.BENCHMARK_KINDS)
-    d.add_argument("--amplitude", type=nonnegative_float, default=0.8)
-    d.add_argument("--omega", type=positive_float, default=1.0, help="rad/s")
+    d.add_argument("--input", default="square", choices=sig.BENCHMARK_KINDS,
+                   help="the input signal u(t) of the run (default square)")
+    d.add_argument("--amplitude", type=nonnegative_float, default=0.8,
+                   help="the input's amplitude, the constant's value (default 0.8)")
+    d.add_argument("--omega", type=positive_float, default=1.0,
+                   help="the sinusoid's and square wave's angular frequency, rad/s (default 1)")
     add_noise_levels(d, "the run's and the EKF's (default: the card's levels where it records both, else "
                         "docs/protocol.md's 0.1)")
     add_dt(d, "the sample time; the model's (a model runs only at its own)")
     d.add_argument("--T", type=positive_float, default=50.0, help="horizon, seconds")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--out", default="demo.png")
+    d.add_argument("--seed", type=int, default=0, help="seed of the initial state and the noise (default 0)")
+    d.add_argument("--out", default="demo.png", help="the figure to write, PNG (default demo.png)")
     d.set_defaults(func=run)
 
 
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     """Estimate one noisy trajectory with a shipped observer and the EKF; print SMAPE, write a PNG."""
     from .. import metrics
     from ..estimators.ekf import EKF
-    from ..evaluation.report import trajectory_plot
+    from ..evaluation.report import estimates_plot
     from ..plant.simulate import simulate_batch
 
     if args.model is None and args.plant is not None:
@@ -76,12 +77,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dt is not None and abs(args.dt - obs.dt) > 1e-12 * obs.dt:
         raise CommandError(f"--dt {args.dt:g}: the model {model} runs at dt = {obs.dt:g} s; drop --dt or pass a model "
                            f"trained at {args.dt:g} s")
-    spec = obs.model.spec
-    recorded = spec.process_std is not None
-    process_std = args.process_std if args.process_std is not None else (
-        spec.process_std if recorded else PROTOCOL_STD)
-    measurement_std = args.measurement_std if args.measurement_std is not None else (
-        spec.measurement_std if recorded else PROTOCOL_STD)
+    process_std, measurement_std = run_noise(obs, args.process_std, args.measurement_std)
     x0 = plant.sample_box(1, args.seed)[0]
     with quiet_casadi():
         batch = simulate_batch(plant, x0[None], u, T=args.T, dt=obs.dt, process_std=process_std,
@@ -112,8 +108,9 @@ def run(args: argparse.Namespace) -> int:
                  else ""))
     print(f"time     {t_obs * 1e3:.1f} ms for {len(tr.t)} samples ({t_obs / len(tr.t) * 1e6:.1f} us/step, CasADi VM)")
     out = Path(args.out)
-    trajectory_plot(tr.t, tr.x, {f"KKL {obs.method}": est.xhat, "EKF": ekf}, out, u=tr.u,
-                    title=f"{plant.name}: {args.input} input, noise std {measurement_std:g}",
-                    stamp=stamp_of(args, run=args.seed))
+    estimates_plot(tr.t, tr.x, tr.y, {f"KKL ({obs.method})": est.xhat, "EKF": ekf}, out, u=tr.u,
+                   in_domain=est.in_domain, stamp=stamp_of(args, run=args.seed),
+                   title=f"{plant.name}: {args.input} input, noise std {levels_text(process_std)} (process) / "
+                         f"{measurement_std:g} (measurement), seed {args.seed}")
     print(f"plot     {out}")
     return 0

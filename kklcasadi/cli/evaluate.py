@@ -47,7 +47,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_plant(e, "for models of a plant that kklcasadi does not ship")
     add_noise(e)
     add_kinds(e)
-    e.add_argument("--regime", default="id", choices=sig.REGIMES)
+    e.add_argument("--regime", default="id", choices=sig.REGIMES,
+                   help="the input parameters' ranges (docs/protocol.md): id, the benchmark's (default), or ood")
     add_dt(e, "the protocol's sample time (default 0.05, docs/protocol.md); the models' must equal it")
     add_noise_levels(e, "the noisy column's and the EKF's and MHE's (default docs/protocol.md's 0.1)")
     e.add_argument("--ekf", action="store_true", help="add the EKF baseline")
@@ -58,7 +59,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_roughening(e)
     e.add_argument("--mhe", nargs="+", type=positive_int, metavar="N",
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
-    e.add_argument("--seed", type=int, default=2026)
+    e.add_argument("--seed", type=int, default=2026, help="seed of the trials (docs/protocol.md's scored trials: "
+                   "2026; choose on another)")
     e.add_argument("--out", help="directory for the JSON scores, table and box plots")
     add_cache(e)
     e.add_argument("--vm", action="store_true", help="run the observers in the CasADi VM instead of compiled C "

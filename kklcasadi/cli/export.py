@@ -16,7 +16,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     x.add_argument("--c", metavar="OUT_DIR", help="write C code of the observer step here")
     x.add_argument("--name", type=c_name, default="kkl_obs", help="C name prefix (a C identifier)")
     x.add_argument("--casadi", metavar="FILE", help="write the step as a ca.Function (Function.save)")
-    x.add_argument("--overwrite", action="store_true")
+    x.add_argument("--overwrite", action="store_true", help="replace files that exist")
     x.set_defaults(func=run)
 
 

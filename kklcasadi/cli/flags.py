@@ -39,6 +39,7 @@ import numpy as np
 
 from .. import provenance
 from ..model.shipped import is_shipped, resolve, shipped_model
+from ..model.shipped import shipped as shipped_listing
 from ..plant import signals as sig
 from ..plant import systems
 from ..plant.systems import System
@@ -46,8 +47,10 @@ from ..plant.systems import System
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
            "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
            "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "stamp_of",
-           "NOISE", "USER_ERRORS"]
+           "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS"]
 
+#: Noise std of a run (and its EKF) where a model's card records no levels (docs/protocol.md).
+PROTOCOL_STD = 0.1
 #: ``--noise`` choices -> the benchmark's noise columns (False: noise-free).
 NOISE = {"on": (True,), "off": (False,), "both": (False, True)}
 
@@ -137,6 +140,18 @@ def needs_torch(command: str) -> None:
 def add_plant(parser: argparse.ArgumentParser, what: str = "") -> None:
     parser.add_argument("--plant", help="your plant: FILE.py:NAME or MODULE:NAME, NAME a kklcasadi.System or a "
                                         "function returning one" + (f" ({what})" if what else ""))
+
+
+def add_system(parser: argparse.ArgumentParser, *, with_models: bool, what: str = "", flag: str = "--system",
+               **kwargs: Any) -> None:
+    """``--system NAME`` (``flag``): with ``with_models`` one of the systems with shipped models, else any
+    registered system; the help says which systems have shipped models and which have none."""
+    having = sorted(shipped_listing())
+    none = [name for name in systems.names() if name not in having]
+    listing = f"shipped models for {', '.join(having)}" + (f"; none for {', '.join(none)} (train one: kklcasadi "
+                                                             "train --system NAME)" if none else "")
+    parser.add_argument(flag, choices=having if with_models else systems.names(),
+                        help=(what + "; " if what else "") + listing, **kwargs)
 
 
 def add_noise(parser: argparse.ArgumentParser) -> None:
@@ -229,3 +244,12 @@ def stamp_of(args: argparse.Namespace, **seeds: Any) -> provenance.Stamp:
     """The provenance stamp of what a command writes: its command line as parsed by :func:`kklcasadi.cli.main`
     (this process's otherwise) and the seeds, by role, of what it drew."""
     return provenance.stamp(command=getattr(args, "command_line", None), seeds=seeds)
+
+
+def run_noise(obs: Any, process_std: Optional[float] = None, measurement_std: Optional[float] = None) -> tuple:
+    """``(process_std, measurement_std)`` of a run of ``obs`` and its EKF: the given levels, else the card's where
+    it records both, else :data:`PROTOCOL_STD` (a per-state process std stays a tuple)."""
+    spec = obs.model.spec
+    recorded = spec.process_std is not None
+    return (process_std if process_std is not None else spec.process_std if recorded else PROTOCOL_STD,
+            measurement_std if measurement_std is not None else spec.measurement_std if recorded else PROTOCOL_STD)

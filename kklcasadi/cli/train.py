@@ -7,25 +7,37 @@ plant: ``kklcasadi train --plant FILE.py:NAME --dt DT --measurement-std S --out 
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
+
+import numpy as np
 
 from ..model import variants
+from ..plant import signals as sig
 from ..plant import systems
 from .flags import (
     CommandError,
     add_dt,
-    add_noise_levels,
     add_plant,
+    add_system,
     flagged,
+    levels_text,
+    load,
     needs_torch,
+    nonnegative_float,
     plant_of,
     positive_float,
     positive_int,
+    quiet_casadi,
+    run_noise,
 )
 
 #: The method trained without ``--method``: the filter bank with a decoder fit on noisy runs of the plant.
 RECOMMENDED = "bank"
+#: The closing quality summary: runs per input kind of docs/protocol.md, and their seed (a validation seed: not
+#: the protocol's scored 2026, and not a training seed's runs, which come from the training sampler).
+SUMMARY_TRIALS, SUMMARY_SEED = 3, 7
 
 #: Flags that set a field of the method's training configuration: flag -> (field, value from args). A
 #: field is found at the top of the configuration or in the one nested configuration that holds it
@@ -45,7 +57,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     t = sub.add_parser("train", help="train an observer variant and write its model directory")
-    t.add_argument("--system", choices=systems.names(), help="a shipped system")
+    add_system(t, with_models=False, what="a system kklcasadi ships (its plant; or --plant for yours)")
     add_plant(t)
     t.add_argument("--method", choices=variants.trainable(),
                    help=f"default {RECOMMENDED} (the observer for a new plant); "
@@ -53,8 +65,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--out", required=True, help="model directory to write")
     add_dt(t, "the observer's sample time (default 0.05, the paper systems')")
     t.add_argument("--base", help="Phase-1 model (default OUT/../autonomous for Phase-2 methods)")
-    add_noise_levels(t, "the noise of the training data the observer is fit for, where the method uses it "
-                     "(autonomous: measurement_std of its decoder; bank: its noisy runs); recorded in the card")
+    t.add_argument("--measurement-std", type=nonnegative_float,
+                   help="the measurement noise std on y the observer is fit for: bank's noisy training runs (default "
+                   "0.1), autonomous's decoder (default 0); recorded in the card, where demo and estimate read the "
+                   "EKF's from")
+    t.add_argument("--process-std", type=nonnegative_float,
+                   help="bank only: the process noise std of its noisy training runs, on xdot in the plant's units "
+                   "per second (default 0.1): on every state of a shipped system; on a plant of yours only on the "
+                   "rows that are not x_i' = x_j, so that it stands for unmodelled forces, not for a position "
+                   "drifting from its velocity; recorded in the card")
     t.add_argument("--box-scale", type=positive_float, metavar="FACTOR",
                    help="draw the training runs' initial states from the X0 box scaled by FACTOR about its centre "
                    "(bank: its runs; autonomous: its Phase-1 data; default 1, the whole box). Below 1 where the "
@@ -87,10 +106,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--on-inject", action="store_true",
                    help="obs: learn the residual on top of the model-based injection of 'inject'")
     t.add_argument("--epochs", type=positive_int, help="override the number of epochs of every stage")
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    t.add_argument("--seed", type=int, default=0, help="seed of the training data and the networks' weights "
+                   "(default 0)")
+    t.add_argument("--device", default="cpu", choices=("cpu", "cuda"), help="where torch trains (default cpu)")
     t.add_argument("--resume", action="store_true", help="continue from the checkpoints in OUT/.train")
-    t.add_argument("--overwrite", action="store_true")
+    t.add_argument("--overwrite", action="store_true", help="replace a model already in OUT")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
     t.add_argument("--threads", type=positive_int, help="torch CPU threads (1 per process on a shared machine)")
     t.set_defaults(func=run)
@@ -143,8 +163,57 @@ def run(args: argparse.Namespace) -> int:
         from ..train.bank import design_copies
 
         flagged("--copies", design_copies, plant, config, dt)
+    t0 = time.perf_counter()
     path = flagged("--" + method, train_observer, plant, method, out, config=config, base=args.base,
                    dt=dt, seed=args.seed, device=args.device, resume=args.resume,
                    overwrite=args.overwrite, progress=not args.quiet, threads=args.threads, epochs=args.epochs)
-    print(f"wrote {path}/weights.npz and card.json")
+    print(f"wrote    {path}/weights.npz and card.json ({time.perf_counter() - t0:.0f} s)")
+    print(summary(path, plant, args.plant))
     return 0
+
+
+def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str:
+    """How good the trained observer is, in a few lines, and the commands to run next.
+
+    The observer and the EKF (``Q``, ``R`` of the card's noise levels, else docs/protocol.md's 0.1) on
+    :data:`SUMMARY_TRIALS` noisy runs per input kind of docs/protocol.md, drawn with :data:`SUMMARY_SEED`
+    (runs nothing was fit or chosen on): mean SMAPE of each and their ratio per kind, the share of the
+    estimates inside the domain the maps were trained on, and the trials whose state escaped.
+    """
+    from .. import metrics
+    from ..estimators.ekf import EKF
+    from ..evaluation.protocol import Protocol
+
+    obs = load(path, plant, "--out")
+    process_std, measurement_std = run_noise(obs)
+    draw = Protocol(n_trials=SUMMARY_TRIALS, dt=obs.dt, seed=SUMMARY_SEED, process_std=process_std,
+                    measurement_std=measurement_std)
+    ekf = EKF.for_noise(plant, obs.dt, process_std=process_std, measurement_std=measurement_std)
+    rows, inside, escaped = [], [], 0
+    for kind in sig.BENCHMARK_KINDS:
+        with quiet_casadi():
+            batch = draw.trials(plant, kind)
+        ok = batch.ok
+        escaped += int((~ok).sum())
+        if not ok.any():
+            continue
+        est = obs.simulate(batch.t, batch.y[ok], batch.u[ok])
+        ours = float(np.mean(metrics.smape(batch.x[ok], est.xhat, angles=plant.angle_states)))
+        theirs = float(np.mean(metrics.smape(batch.x[ok], ekf.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat,
+                                             angles=plant.angle_states)))
+        rows.append(f"{kind} {ours:.2f} % / {theirs:.2f} % ({ours / theirs:.2f}x)")
+        if est.in_domain is not None:
+            inside.append(est.in_domain.mean())
+    noise = f"noise std {levels_text(process_std)} / {measurement_std:g}"
+    lines = [f"quality  SMAPE of the observer / the EKF on {draw.n_trials} held-out runs per input ({noise}, seed "
+             f"{SUMMARY_SEED}; not the benchmark's trials):",
+             "         " + ("; ".join(rows) if rows else "every run escaped")
+             + (f"; {escaped} run(s) escaped, not scored" if escaped else "")]
+    if inside:
+        lines.append(f"domain   {100 * float(np.mean(inside)):.1f} % of the estimates inside the domain the maps were "
+                     "trained on")
+    own = f" --plant {plant_flag}" if plant_flag else ""
+    lines += ["next     kklcasadi evaluate " + f"{path}{own} --ekf" + "      # the benchmark, 100 trials per cell",
+              f"         kklcasadi demo --model {path}{own}          # one run, printed and plotted",
+              f"         kklcasadi export {path}{own} --c build/obs   # the observer step as C"]
+    return "\n".join(lines)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Optional, Sequence
+from typing import Any, Iterable, Optional, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -20,7 +20,8 @@ from ..plant.systems import System
 from .protocol import BatchEstimator, CellResult, Profile, Protocol, evaluate_cells
 from .trialcache import TrialCache
 
-__all__ = ["MethodScores", "score", "markdown_table", "smape_boxplot", "trajectory_plot", "save_scores"]
+__all__ = ["MethodScores", "score", "markdown_table", "smape_boxplot", "estimates_plot", "estimates_figure",
+           "save_scores"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -190,27 +191,95 @@ def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bo
     return Path(path)
 
 
-def trajectory_plot(t: np.ndarray, x: np.ndarray, estimates: dict, path: str | Path, *, u: np.ndarray | None = None,
-                    title: str = "", stamp: Optional[provenance.Stamp] = None) -> Path:
-    """True states and estimates over time (PNG, ``stamp`` in its metadata); ``estimates`` maps a label to
-    ``xhat`` (N, nx)."""
+#: Line styles of the states in the error panels.
+STYLES = ("-", "--", ":", "-.")
+
+
+def estimates_plot(t: np.ndarray, x: np.ndarray, y: np.ndarray, estimates: dict, path: str | Path, *,
+                   u: np.ndarray | None = None, in_domain: np.ndarray | None = None, title: str = "",
+                   stamp: Optional[provenance.Stamp] = None) -> Path:
+    """:func:`estimates_figure` written to ``path`` (PNG, ``stamp``, default this process's, in its metadata)."""
     plt = _pyplot()
-    nx = x.shape[1]
-    rows = nx + (u is not None)
-    fig, axes = plt.subplots(rows, 1, figsize=(9, 2.2 * rows), sharex=True, squeeze=False)
-    for i in range(nx):
-        ax = axes[i, 0]
-        ax.plot(t, x[:, i], "k", lw=1.5, label="true")
-        for j, (label, xhat) in enumerate(estimates.items()):
-            ax.plot(t, xhat[:, i], color=f"C{j}", lw=1, label=label)
-        ax.set_ylabel(f"x{i + 1}")
-    if u is not None:
-        axes[-1, 0].plot(t, u, "C7")
-        axes[-1, 0].set_ylabel("u")
-    axes[0, 0].legend(fontsize=8, ncol=len(estimates) + 1)
-    axes[0, 0].set_title(title)
-    axes[-1, 0].set_xlabel("t (s)")
-    fig.tight_layout()
+    fig = estimates_figure(t, x, y, estimates, u=u, in_domain=in_domain, title=title)
     fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
     plt.close(fig)
     return Path(path)
+
+
+def estimates_figure(t: np.ndarray, x: np.ndarray, y: np.ndarray, estimates: dict, *, u: np.ndarray | None = None,
+                     in_domain: np.ndarray | None = None, title: str = "") -> Any:
+    """One run and its estimates: what an estimator saw and how far off it was (a matplotlib Figure).
+
+    Panels, top to bottom: the measured outputs ``y``; each state, true (black) and estimated, the first
+    estimator of ``estimates`` drawn above the others; each estimator's error ``xhat - x`` per state on its
+    own panel (the error panels share their scale); the input ``u``. Samples the domain monitor flags
+    (``in_domain`` False) are shaded on every panel. The legend sits above the panels, off the data.
+
+    Parameters
+    ----------
+    t : array_like, shape (N,)
+        Times, seconds.
+    x : array_like, shape (N, nx)
+        True states.
+    y : array_like, shape (N, ny)
+        Measured outputs.
+    estimates : dict {label: array_like (N, nx)}
+        Estimates in drawing priority: the first is drawn on top.
+    u : array_like, shape (N, nu), optional
+    in_domain : array_like of bool, shape (N,), optional
+        The domain monitor's flags of the first estimator.
+    title : str
+    """
+    plt = _pyplot()
+    import matplotlib.lines
+
+    t, x, y = np.asarray(t), np.atleast_2d(np.asarray(x)), np.asarray(y).reshape(len(t), -1)
+    nx, ny, labels = x.shape[1], y.shape[1], list(estimates)
+    rows = 1 + nx + len(labels) + (u is not None)
+    fig, axes = plt.subplots(rows, 1, figsize=(9, 1.7 * rows + 0.8), sharex=True, squeeze=False)
+    axes = axes[:, 0]
+    for j in range(ny):
+        axes[0].plot(t, y[:, j], ".", ms=1.5, color=f"C{7 + j}", label="measured y" if j == 0 else None)
+    axes[0].set_ylabel("y (measured)" if ny == 1 else f"y1..y{ny} (measured)")
+    for i in range(nx):
+        ax = axes[1 + i]
+        ax.plot(t, x[:, i], "k", lw=1.6, zorder=2, label="true state" if i == 0 else None)
+        for k, label in enumerate(labels):                      # the first estimator on top
+            ax.plot(t, np.asarray(estimates[label])[:, i], color=f"C{k}", lw=1.1, zorder=3 + len(labels) - k,
+                    label=label if i == 0 else None)
+        ax.set_ylabel(f"x{i + 1}")
+    errors = axes[1 + nx:1 + nx + len(labels)]
+    for k, (label, ax) in enumerate(zip(labels, errors)):
+        error = np.asarray(estimates[label]) - x
+        for i in range(nx):
+            ax.plot(t, error[:, i], color=f"C{k}", lw=0.9, ls=STYLES[i % len(STYLES)])
+        ax.axhline(0.0, color="0.6", lw=0.6)
+        ax.set_ylabel(f"{label}\nerror")
+    if len(errors) > 1:                                          # one scale: the panels compare at a glance
+        low = min(ax.get_ylim()[0] for ax in errors)
+        high = max(ax.get_ylim()[1] for ax in errors)
+        for ax in errors:
+            ax.set_ylim(low, high)
+    if u is not None:
+        axes[-1].plot(t, np.asarray(u).reshape(len(t), -1), color="C9", lw=1, label="input u")
+        axes[-1].set_ylabel("u")
+    if in_domain is not None and not np.all(in_domain):
+        flagged = ~np.asarray(in_domain, dtype=bool)
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], flagged.astype(int), [0]])))
+        for ax in axes:
+            for start, stop in zip(edges[::2], edges[1::2]):
+                ax.axvspan(t[start], t[min(stop, len(t) - 1)], color="C3", alpha=0.15, lw=0,
+                           label=f"outside the trained domain ({int(flagged.sum())} samples)"
+                           if ax is axes[0] and start == edges[0] else None)
+    axes[-1].set_xlabel("t (s)")
+    handles = {h_label: handle for ax in axes for handle, h_label in zip(*ax.get_legend_handles_labels())}
+    for i in range(nx):                                          # the error panels' line styles, in neutral grey
+        handles[f"error of x{i + 1}"] = matplotlib.lines.Line2D([], [], color="0.4", lw=0.9,
+                                                                 ls=STYLES[i % len(STYLES)])
+    height = fig.get_figheight()
+    fig.suptitle(title, y=1 - 0.1 / height)
+    fig.legend(handles.values(), handles.keys(), loc="upper center", ncol=min(len(handles), 4), fontsize=8,
+               bbox_to_anchor=(0.5, 1 - 0.35 / height), frameon=False)
+    fig.tight_layout()
+    fig.subplots_adjust(top=1 - (0.5 + 0.18 * np.ceil(len(handles) / 4)) / height)   # room for title and legend
+    return fig
