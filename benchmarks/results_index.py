@@ -1,7 +1,7 @@
 """Write results/README.md, the index of results/, from the provenance stamp every file there carries.
 
     python benchmarks/results_index.py            # rewrite results/README.md
-    python benchmarks/results_index.py --check    # exit 1 where the index is not what this writes
+    python benchmarks/results_index.py --check    # exit 1 where the index is not what this writes (--print: print it)
 
 The tree is ``results/<study>/<system>/...`` (``all`` for a file that spans systems). Every file names
 the command, commit and seeds that made it in its own content (:mod:`kklcasadi.provenance`: a JSON key, a
@@ -12,15 +12,15 @@ share a command and commit, and marks the stamps written after the fact ("retroa
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import sys
 from pathlib import Path
 
+from pages import ROOT, publish
+
 from kklcasadi import provenance
 
-ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "results"
 INDEX = RESULTS / "README.md"
 #: What each study is, in the index's order.
@@ -108,19 +108,7 @@ def index() -> str:
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--check", action="store_true", help="exit 1 where results/README.md is not what this writes")
-    args = parser.parse_args()
-    text = index()
-    if args.check:
-        current = provenance.strip_markdown(INDEX.read_text()) if INDEX.exists() else ""
-        if current != text:
-            print(f"{INDEX.relative_to(ROOT)} is stale: run python benchmarks/results_index.py", file=sys.stderr)
-            return 1
-        return 0
-    INDEX.write_text(provenance.markdown(text, provenance.stamp()))
-    print(f"wrote {INDEX.relative_to(ROOT)} ({text.count(chr(10)) + 1} lines)")
-    return 0
+    return publish(INDEX.name, index, description=__doc__.splitlines()[0], folder=RESULTS)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,11 @@ FILES = sorted(str(p.relative_to(RESULTS)) for p in RESULTS.rglob("*") if p.is_f
 
 @pytest.fixture(scope="module")
 def index():
-    return runpy.run_path(str(SCRIPT))
+    sys.path.insert(0, str(SCRIPT.parent))                       # the script imports its sibling pages.py
+    try:
+        return runpy.run_path(str(SCRIPT))
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
 
 
 @pytest.mark.parametrize("name", FILES)
@@ -54,6 +58,7 @@ def test_a_file_without_a_stamp_is_named(index, tmp_path, monkeypatch):
 
 
 def test_the_check_flag_says_when_the_index_is_stale(monkeypatch, capsys):
+    monkeypatch.syspath_prepend(str(SCRIPT.parent))
     monkeypatch.setattr(sys, "argv", [str(SCRIPT), "--check"])
     with pytest.raises(SystemExit) as done:
         runpy.run_path(str(SCRIPT), run_name="__main__")

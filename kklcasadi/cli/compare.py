@@ -25,7 +25,7 @@ from .flags import (
     stamp_of,
 )
 
-#: The systems compared by default, in the order of the README's table.
+#: The systems compared by default, in the order of docs/results/estimators.md's table.
 SYSTEMS = ("duffing", "vdp", "fhn", "rossler")
 
 

@@ -517,7 +517,7 @@ def _torch_cases(obs: KKLObserver, args: list[np.ndarray], reference: list[np.nd
     default_threads = torch.get_num_threads()
     implementations = {"torch eager": step}
     with torch.no_grad(), warnings.catch_warnings():
-        # torch 2.9+ deprecates TorchScript; it is still the fastest torch here (see the README)
+        # torch 2.9+ deprecates TorchScript; it is still the fastest torch here (docs/notes/speed.md)
         warnings.filterwarnings("ignore", "`torch.jit.trace` is deprecated", DeprecationWarning)
         start = time.perf_counter()
         implementations["torch.jit.trace"] = torch.jit.trace(step, tuple(tensors),

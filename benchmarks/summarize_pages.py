@@ -1,0 +1,142 @@
+"""Write the docs/results/ pages of the stored results that no measuring script summarises itself.
+
+    python benchmarks/summarize_pages.py [--check | --print]
+
+``estimators.md`` (``kklcasadi compare``, the NMPC example, ``kklcasadi certificate``), ``speed.md``
+(``kklcasadi bench protocol`` and ``bench scaling``), ``tune.md`` (``kklcasadi tune`` and
+``benchmarks/tune/confirm.py``), ``own_plant.md`` (the damped 3-state plant) and ``real_rig.md`` (the
+Qube): the stored tables as their commands wrote them, or recomputed from their records, each under the
+command its stamp names.
+"""
+
+from __future__ import annotations
+
+import json
+import runpy
+import sys
+from pathlib import Path
+
+from pages import ROOT, header, publish
+
+from kklcasadi import provenance
+
+RESULTS = ROOT / "results"
+KINDS = ("zero", "constant", "sinusoid", "square")
+
+
+def _table(path: Path) -> str:
+    """A stored markdown file without its stamp, and the command that wrote it."""
+    stamp = provenance.read(path)
+    retro = " (stamped after the fact)" if stamp.retroactive else ""
+    return (f"From `{path.relative_to(ROOT)}`, written by `{stamp.command}` at commit `{stamp.commit[:12]}`{retro}:"
+            f"\n\n{provenance.strip_markdown(path.read_text()).strip()}\n")
+
+
+def _records(path: Path) -> object:
+    return provenance.json_payload(json.loads(path.read_text()))
+
+
+def estimators() -> str:
+    certificates = []
+    for kinds in ("zero", "inputs"):
+        for r in _records(RESULTS / "certificates" / "all" / f"certificates_{kinds}.json"):
+            certificates.append(f"| `{r['model']}` | {', '.join(r['kinds'])} | {r['kappa']:.3g} | {r['lam']:.3g} | "
+                                f"{r['eps_pde']:.3g} | {r['ell_dec']:.3g} | {r['bound']} | {r['observed']:.3g} | "
+                                f"{'yes' if r['holds_sampled'] else 'no'} |")
+    return (header("Results: the observer beside the EKF, MHE and NMPC", "python benchmarks/summarize_pages.py",
+                   "`results/estimators/`, `results/nmpc/` and `results/certificates/`")
+            + "\n## Estimators side by side\n\nThe learned observer (`bank`), the EKF, the exact-model MHE and the "
+              "KKL-primed MHE on docs/protocol.md's trials, mean SMAPE % and the wall time per sample. "
+            + _table(RESULTS / "estimators" / "all" / "table.md")
+            + "\n## Output-feedback NMPC with an observer in the loop\n\n"
+            + _table(RESULTS / "nmpc" / "all" / "nmpc_table.md")
+            + "\n## Proposition 1 as a certificate\n\nThe paper's terms estimated for shipped models (`kklcasadi "
+              "certificate`; `kappa`, `lam` of A, the PDE residual `eps_pde`, the decoder's sampled Lipschitz "
+              "constant `ell_dec`), the resulting asymptotic bound (`inf` where the injection's Lipschitz constant "
+              "exceeds `lam`) and the worst error observed after 10 s on noise-free runs "
+              "(`results/certificates/all/certificates_*.json`):\n\n"
+              "| model | input regimes | kappa | lam | eps_pde | ell_dec | bound | observed | sampled bound holds |\n"
+              "|---|---|---|---|---|---|---|---|---|\n" + "\n".join(certificates) + "\n")
+
+
+def speed() -> str:
+    return (header("Results: speed", "python benchmarks/summarize_pages.py", "`results/speed/`")
+            + "\nSpeed depends on the machine and its load; each table says where it ran. The observer step's C "
+              "timings beside the CasADi VM and torch (`kklcasadi bench observer`) and the training throughput "
+              "(`kklcasadi bench training`) were not kept as files: `docs/notes/speed.md` has them with their "
+              "commands.\n\n## The benchmark protocol in minutes\n\n"
+            + _table(RESULTS / "speed" / "duffing" / "protocol_duffing.md")
+            + "\n## The cost as the plant grows\n\nChains of n coupled Duffing oscillators (nx = 2n): the observer's "
+              "C step, the EKF's (two forms), the MHE's solve and the training time per size; the log-log plot is "
+              "`results/speed/oscillator_chain/scaling.png`. "
+            + _table(RESULTS / "speed" / "oscillator_chain" / "scaling.md"))
+
+
+def tune() -> str:
+    parts = [header("Results: design searches", "python benchmarks/summarize_pages.py", "`results/tune/`"),
+             "\n`kklcasadi tune` searches a method's configuration on Optuna (`docs/notes/design-searches.md` says "
+             "how; `benchmarks/tune/run.sh` is the run below). The score is the observer's mean SMAPE over the EKF's "
+             "on validation families no configuration fits on (seed 7); `confirm.md` scores the best trial and the "
+             "recipe again on fresh trials (seed 1007).\n"]
+    for plant, title in (("two_masses", "Two masses (`examples/two_masses.py`)"),
+                         ("pendulum", "The damped pendulum (`examples/own_plant.py`)")):
+        folder = RESULTS / "tune" / plant
+        parts.append(f"\n## {title}\n\n" + _table(folder / "summary.md") + "\n" + _table(folder / "confirm.md"))
+    return "".join(parts)
+
+
+def own_plant() -> str:
+    folder = RESULTS / "own_plant" / "damped3"
+    rows, ratios = [], []
+    for label, name in (("bank (seed 0)", "damped3_scores.json"), ("bank (seed 1)", "damped3_seed1_scores.json"),
+                        ("bank with model copies (seed 0)", "damped3_copies_scores.json")):
+        cells = {(c["method"], c["kind"], c["noisy"]): c["smape_mean"] for c in _records(folder / name)}
+        method = "copies" if "copies" in name else next(m for m, _, _ in cells if m != "EKF")
+        bank, ekf = ([cells[who, k, True] for k in KINDS] for who in (method, "EKF"))
+        clean = [cells[method, k, False] for k in KINDS]
+        rows.append(f"| {label} | " + " | ".join(f"{v:.1f}" for v in bank) + " | "
+                    + " / ".join(f"{v:.1f}" for v in clean) + " |")
+        ratios.append(f"| {label} / EKF | " + " | ".join(f"{b / e:.2f}x" for b, e in zip(bank, ekf)) + " | |")
+    ekf_clean = " / ".join(f"{cells['EKF', k, False]:.1f}" for k in KINDS)
+    rows.append("| EKF | " + " | ".join(f"{v:.1f}" for v in ekf) + f" | {ekf_clean} |")
+    return (header("Results: a plant kklcasadi does not ship", "python benchmarks/summarize_pages.py",
+                   "`results/own_plant/damped3/`")
+            + "\n`examples/damped3_plant.py` (not input-affine, 3 states, `y = x1 + 0.3 x1 x3`, box `[-1, 1]^3`), "
+              "trained by the one command with its defaults (`kklcasadi train --plant "
+              "examples/damped3_plant.py:make_plant --out DIR [--seed 1]`; with `--copies 1 100 10000` for the "
+              "model copies) and scored on docs/protocol.md's trials (`kklcasadi evaluate DIR --plant "
+              "examples/damped3_plant.py:make_plant --ekf --trials 100`). Mean SMAPE %, noise on per input, and "
+              "noise-free (zero / constant / sinusoid / square); nothing was chosen on these trials:\n\n"
+              "| observer | zero | constant | sinusoid | square | noise-free |\n|---|---|---|---|---|---|\n"
+            + "\n".join(rows + ratios) + "\n\nThe cards of the three models: `card_seed0.json`, `card_seed1.json`, "
+              "`card_copies_seed0.json` there; variants of the recipe compared on validation trials (seed 7; none "
+              "adopted): `validation_seed7/`.\n")
+
+
+def real_rig() -> str:
+    example = runpy.run_path(str(ROOT / "examples" / "qube_hardware.py"), run_name="qube_hardware")
+    folder = RESULTS / "real_rig" / "qube"
+    first = {case: _records(folder / f"hardware_{case}.json")[case] for case in example["CASES"]}
+    commands = "\n".join(record["command"] for record in first.values())
+    return (header("Results: a real rig (the Quanser Qube Servo 2)", "python benchmarks/summarize_pages.py",
+                   "`results/real_rig/qube/hardware_*.json`")
+            + "\nSix logged free swings of `examples/qube/` (both encoders, about 4 ms with jitter); the settings "
+              "chosen on runs 1, 3 and 5 (`benchmarks/accuracy/qube.py`, `results/real_rig/qube/*_fit.json`), the "
+              "observers trained by\n\n```bash\n" + commands + "\n```\n\nand scored by `python "
+              "examples/qube_hardware.py` on runs 7, 9 and 11 for `t >= 2 s` against the measured angles and a "
+              "zero-phase derivative of them, beside the EKF and a filtered difference. RMSE, mean over the three "
+              "scored runs (rad, rad/s):\n\n" + example["summary"](first).strip() + "\n\nWith the pendulum encoder "
+              "alone the arm's angle is unobservable: its error is shown, not a target. A second training seed: "
+              "`hardware_seed1_*.json`.\n")
+
+
+PAGES = {"estimators.md": estimators, "speed.md": speed, "tune.md": tune, "own_plant.md": own_plant,
+         "real_rig.md": real_rig}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return max(publish(name, page, argv, description=__doc__.splitlines()[0]) for name, page in PAGES.items())
+
+
+if __name__ == "__main__":
+    sys.exit(main())
