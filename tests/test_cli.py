@@ -63,7 +63,8 @@ def test_system_flags_offer_the_systems_with_shipped_models_and_name_the_others(
     none = [name for name in systems.names() if name not in having]
     assert having and none                                        # linear and lorenz ship no model
     commands = _subcommands()
-    for command, flag in (("demo", "--system"), ("train", "--system"), ("bench", "--system"), ("compare", "--systems")):
+    for command, flag in (("demo", "--system"), ("train", "--system"), ("tune", "--system"), ("bench", "--system"),
+                          ("compare", "--systems")):
         (action,) = [a for a in commands[command]._actions if flag in a.option_strings]
         assert f"shipped models for {', '.join(having)}; none for {', '.join(none)}" in action.help, command
         assert list(action.choices) == (having if command == "demo" else systems.names()), command

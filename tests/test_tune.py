@@ -206,3 +206,9 @@ def test_two_workers_one_killed_mid_trial_is_retried_and_the_study_resumes(tmp_p
               line.split("|")[1].strip().isdigit()]
     assert str(retries[0].number) in listed and str(killed.number) not in listed      # the retry, not the killed
     assert (out / "search.png").stat().st_size > 0 and "4 complete, 1 fail" in (out / "summary.md").read_text()
+    from kklcasadi import provenance
+
+    for name in ("summary.md", "search.png"):          # the last worker's command line, its seeds
+        stamp = provenance.read(out / name)
+        assert stamp.command.startswith("kklcasadi tune ") and "--sampler-seed 3" in stamp.command, name
+        assert stamp.seeds == {"training": 0, "sampler": 3, "validation": tn.VALIDATION_SEED}, name

@@ -35,8 +35,8 @@ class _Version(argparse.Action):
     def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
         stamp = provenance.stamp(command="kklcasadi --version")
         where = "not a git checkout" if stamp.commit == provenance.UNKNOWN else f"commit {stamp.commit}"
-        parser.exit(message=f"kklcasadi {stamp.version} ({where}; casadi {stamp.casadi}, torch {stamp.torch}, "
-                            f"python {stamp.python})\n")
+        print(f"kklcasadi {stamp.version} ({where}; casadi {stamp.casadi}, torch {stamp.torch}, python {stamp.python})")
+        parser.exit()
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 
 from ..plant import systems
-from .flags import CommandError, add_plant, flagged, needs_torch, plant_of, positive_int
+from .flags import CommandError, add_plant, add_system, flagged, needs_torch, plant_of, positive_int, stamp_of
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -17,7 +17,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     t = sub.add_parser("tune", help="search a method's design on Optuna (SQLite here, PostgreSQL across machines)",
                        description=__doc__.split("\n\n", 1)[1])
-    t.add_argument("--system", choices=systems.names(), help="a shipped system")
+    add_system(t, with_models=False, what="a system kklcasadi ships (its plant; or --plant for yours)")
     add_plant(t)
     t.add_argument("--method", default="bank", choices=sorted(SPACES), help="the observer variant (default bank)")
     t.add_argument("--trials", type=positive_int, required=True,
@@ -56,14 +56,15 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         raise CommandError("kklcasadi tune needs optuna, which is not installed; install the tune extra: "
                            "pip install 'kklcasadi[tune]'") from None
-    from ..evaluation.tune import tune
+    from ..evaluation.tune import VALIDATION_SEED, tune
 
     caps = {name: value for name, value in (("runs", args.runs), ("epochs", args.epochs)) if value is not None}
     result = flagged("--method " + args.method, tune, plant, args.method, args.out, n_trials=args.trials,
                      study=args.study, storage=args.storage, caps=caps, base=args.base, seed=args.seed,
                      threads=args.threads, val_trials=args.val_trials, heartbeat=args.heartbeat,
                      baseline=args.baseline, copy_from=args.copy_from, sampler_seed=args.sampler_seed,
-                     progress=not args.quiet)
+                     progress=not args.quiet, stamp=stamp_of(args, training=args.seed, sampler=args.sampler_seed,
+                                                             validation=VALIDATION_SEED))
     print(result.summary.read_text())
     print(f"wrote {result.summary}, {result.plot}" + ("" if result.best_dir is None else f", {result.best_dir}/"))
     return 0

@@ -4,10 +4,11 @@ mattered."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
+from ... import provenance
 from .storage import complete_trials, optuna_module, public_url
 
 __all__ = ["summary_table", "search_plot"]
@@ -53,9 +54,10 @@ def _short(value: Any) -> str:
     return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
-def search_plot(study: Any, path: Path) -> Path:
+def search_plot(study: Any, path: Path, *, stamp: Optional[provenance.Stamp] = None) -> Path:
     """PNG of the search: the score of every complete trial against its number (with the best so
-    far and the baseline), and Optuna's parameter importances."""
+    far and the baseline), and Optuna's parameter importances; ``stamp`` (default this process's) in its
+    metadata."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -84,6 +86,6 @@ def search_plot(study: Any, path: Path) -> Path:
         bx.text(0.5, 0.5, f"importances need 4 complete trials ({len(complete)} so far)", ha="center")
         bx.set_axis_off()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
     plt.close(fig)
     return path

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Union
 
+from ... import provenance
 from ...model import variants
 from ...model.card import Search
 from ...model.files import load_model, save_model
@@ -23,7 +24,7 @@ from ..trialcache import TrialCache
 from .report import search_plot, summary_table
 from .space import Space, search_space
 from .storage import MAX_RETRY, complete_trials, driver_url, open_storage, optuna_module, public_url, storage_url
-from .validation import Validation, score, validation_cells
+from .validation import VALIDATION_SEED, Validation, score, validation_cells
 
 __all__ = ["TuneResult", "tune", "export_best", "TRIALS_DIR", "BEST_DIR", "BASELINE_DIR"]
 
@@ -64,7 +65,8 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
          storage: Optional[str] = None, config: Any = None, caps: Optional[dict] = None,
          base: Optional[PathLike] = None, seed: int = 0, threads: int = 1, val_trials: int = 20,
          heartbeat: int = 30, baseline: bool = False, copy_from: Optional[str] = None,
-         sampler_seed: Optional[int] = None, progress: bool = True) -> TuneResult:
+         sampler_seed: Optional[int] = None, progress: bool = True,
+         stamp: Optional[provenance.Stamp] = None) -> TuneResult:
     """Run one worker of an Optuna study of ``method``'s design on ``system``.
 
     Parameters
@@ -110,6 +112,8 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
         Seed of this worker's TPE sampler (default: none; workers must not share one).
     progress : bool
         Optuna's log lines per trial.
+    stamp : kklcasadi.provenance.Stamp, optional
+        The provenance of ``summary.md`` and ``search.png`` (default: this process's, with the seeds).
 
     Returns
     -------
@@ -172,9 +176,11 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
         the_study.optimize(objective, n_trials=todo + MAX_RETRY, callbacks=[stop], catch=(ValueError, RuntimeError))
     best_dir = export_best(the_study, out, system, method, space, validation, url=url, base=base_path, seed=seed,
                            threads=threads)
+    stamp = stamp or provenance.stamp(seeds={"training": seed, "sampler": sampler_seed,
+                                             "validation": VALIDATION_SEED})
     summary = out / "summary.md"
-    summary.write_text(summary_table(the_study, url) + "\n")
-    plot = search_plot(the_study, out / "search.png")
+    summary.write_text(provenance.markdown(summary_table(the_study, url) + "\n", stamp))
+    plot = search_plot(the_study, out / "search.png", stamp=stamp)
     return TuneResult(the_study, best_dir, summary, plot, len(started))
 
 
