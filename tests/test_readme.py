@@ -183,6 +183,29 @@ def test_the_whole_pipeline_runs_as_written(tmp_path):
     _check_pipeline_outputs(tmp_path, plant)
 
 
+def test_every_command_line_of_the_readme_parses_and_names_models_that_exist(tmp_path, monkeypatch):
+    """The ``kklcasadi`` lines of every bash block parse with the command line's own parser, and every model they
+    name is a shipped model's name or a folder an earlier command of the README writes."""
+    from kklcasadi.cli import build_parser
+    from kklcasadi.model.shipped import resolve
+
+    monkeypatch.chdir(tmp_path)
+    written, lines = set(), []
+    for block in re.findall(r"```bash\n(.*?)```", README, re.S):
+        lines += [line.split("#")[0].strip() for line in block.replace("\\\n", " ").splitlines()
+                  if line.startswith("kklcasadi ")]
+    assert len(lines) >= 12
+    for line in lines:
+        args = build_parser().parse_args(shlex.split(line)[1:])
+        for model in [getattr(args, "model", None), *(getattr(args, "models", None) or [])]:
+            if model is not None and model not in written and args.command not in ("demo",):
+                assert resolve(model), line
+        if args.command == "demo" and args.model is not None:
+            assert args.model in written, line
+        if args.command == "train":
+            written.add(args.out)
+
+
 # --- the results ----------------------------------------------------------------------------------------------------
 
 def _pages(monkeypatch):
