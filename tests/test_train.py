@@ -203,6 +203,11 @@ def test_phase1_end_to_end_writes_a_torch_free_model(phase1_dir):
     import json
 
     hist = json.loads((phase1_dir / "history.json").read_text())
+    from kklcasadi import provenance  # the model's files name what trained them
+
+    stamp = provenance.read(phase1_dir / "history.json")
+    assert stamp.command and stamp == provenance.read(phase1_dir / "history.png") == provenance.read(
+        phase1_dir / "card.json") and stamp.seeds == {"training": card["training"]["seed"]}
     for stage in ("encoder", "decoder"):          # the card's record is the history's
         record, history = card["training"][stage], hist[stage]
         assert record["epochs"] == len(history["val"]) == 3 and record["final_train"] == history["train"][-1]

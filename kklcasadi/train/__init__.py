@@ -21,6 +21,7 @@ except ImportError as exc:                              # a deploy-only install:
     raise ModuleNotFoundError("kklcasadi.train needs torch, which is not installed; install the training extra: "
                               "pip install 'kklcasadi[train]'", name="torch") from exc
 
+from .. import provenance
 from ..model import variants
 from ..model.card import make_card
 from ..model.files import derive_model, load_model, save_model
@@ -81,7 +82,7 @@ def _load_base(base: str | Path | None, out: Path, plant: System, method: str) -
     return model
 
 
-def _history_plot(histories: dict[str, dict], path: Path) -> None:
+def _history_plot(histories: dict[str, dict], path: Path, stamp: provenance.Stamp) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -95,7 +96,7 @@ def _history_plot(histories: dict[str, dict], path: Path) -> None:
         ax.set_xlabel("epoch")
         ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp))
     plt.close(fig)
 
 
@@ -185,8 +186,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
                      process_std=(config_field(config, "process_std") if trained.process_std is None
                                   else trained.process_std),
                      monitor=trained.monitor, fit_families=trained.fit_families)
-    path = save_model(out, trained.arrays, card, overwrite=overwrite or resume)
+    stamp = provenance.stamp(seeds={"training": seed})    # the command line that trained it, the commit, versions
+    path = save_model(out, trained.arrays, {**card, provenance.KEY: stamp.to_json()}, overwrite=overwrite or resume)
     if trained.histories:
-        (out / "history.json").write_text(json.dumps(_jsonable(trained.histories)))
-        _history_plot(trained.histories, out / "history.png")
+        (out / "history.json").write_text(json.dumps(provenance.json_record(_jsonable(trained.histories), stamp)))
+        _history_plot(trained.histories, out / "history.png", stamp)
     return path
