@@ -131,6 +131,29 @@ def test_angle_indices_are_stored_sorted_and_enter_the_fingerprint_only_when_giv
     assert _pendulum(angle_states=(1, 0)).fingerprint == _pendulum(angle_states=(0, 1)).fingerprint
 
 
+def test_u_box_is_stored_read_only_and_enters_the_fingerprint_only_when_given():
+    plain = _pendulum()
+    boxed = _pendulum(u_box=[[-4.5, 6.0]])
+    assert plain.u_box is None
+    np.testing.assert_array_equal(boxed.u_box, [[-4.5, 6.0]])
+    assert not boxed.u_box.flags.writeable
+    # the dynamics are the same; what the plant declares about its rig is not
+    prints = {plain.fingerprint, boxed.fingerprint, _pendulum(u_box=[[-4.5, 6.5]]).fingerprint}
+    assert len(prints) == 3
+    assert _pendulum(u_box=np.array([[-4.5, 6.0]])).fingerprint == boxed.fingerprint
+    assert boxed.definition_digest != plain.definition_digest
+
+
+@pytest.mark.parametrize("u_box, words", [
+    ([[-1, 1], [-1, 1]], r"u_box: expected shape \(nu, 2\) = \(1, 2\)"),
+    ([[1, -1]], r"u_box: expected rows \[lo, hi\] with lo < hi \(rows \[0\]"),
+    ([[0, np.inf]], "u_box: expected finite bounds"),
+])
+def test_bad_u_box_is_rejected_naming_it(u_box, words):
+    with pytest.raises(ValueError, match=words):
+        _pendulum(u_box=u_box)
+
+
 @pytest.mark.parametrize("angles, kind, words", [
     ({"angle_states": (2,)}, ValueError, "angle_states: expected a sequence of distinct indices in [0, 2)"),
     ({"angle_states": (0, 0)}, ValueError, "repeated"),

@@ -47,15 +47,15 @@ def _column_expr(value: object, arg: str, n: int | None = None) -> ca.SX:
     return value
 
 
-def _box(x0_box: object, nx: int) -> np.ndarray:
-    box = np.asarray(x0_box, dtype=float)
-    if box.shape != (nx, 2):
-        raise error("x0_box", f"shape (nx, 2) = ({nx}, 2) as [[lo, hi], ...]", Text(f"shape {box.shape}"))
+def _box(value: object, n: int, arg: str = "x0_box", size: str = "nx") -> np.ndarray:
+    box = np.asarray(value, dtype=float)
+    if box.shape != (n, 2):
+        raise error(arg, f"shape ({size}, 2) = ({n}, 2) as [[lo, hi], ...]", Text(f"shape {box.shape}"))
     if not np.all(np.isfinite(box)):
-        raise error("x0_box", "finite bounds", box.tolist())
+        raise error(arg, "finite bounds", box.tolist())
     if np.any(box[:, 1] <= box[:, 0]):
         bad = np.nonzero(box[:, 1] <= box[:, 0])[0].tolist()
-        raise error("x0_box", f"rows [lo, hi] with lo < hi (rows {bad} are empty or inverted)", box.tolist())
+        raise error(arg, f"rows [lo, hi] with lo < hi (rows {bad} are empty or inverted)", box.tolist())
     box.setflags(write=False)
     return box
 
@@ -87,6 +87,9 @@ class System:
         Indices of the states and of the outputs that are angles in radians, defined modulo
         ``2 pi`` (e.g. a pendulum angle): errors on them are wrapped (:func:`kklcasadi.metrics.wrap_angle`)
         and logs unwrap them (:func:`kklcasadi.plant.logs.read_log`). Default none.
+    u_box : array_like, shape (nu, 2), optional
+        The range ``[[lo, hi], ...]`` of each input on the rig (e.g. a drive's voltage limits, or
+        what its logs reach); in the fingerprint when given. Default None (not declared).
 
     Attributes
     ----------
@@ -100,6 +103,8 @@ class System:
         ``h_jac(x) -> dh_dx (ny, nx)``, exact.
     angle_states, angle_outputs : tuple of int
         The sorted indices given (empty tuples by default).
+    u_box : numpy.ndarray, shape (nu, 2), or None
+        The input range given (read-only).
 
     Examples
     --------
@@ -112,7 +117,8 @@ class System:
 
     def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
                  x0_box: object, *, description: str = "", paper_design: bool = False,
-                 angle_states: Sequence[int] = (), angle_outputs: Sequence[int] = ()) -> None:
+                 angle_states: Sequence[int] = (), angle_outputs: Sequence[int] = (),
+                 u_box: object = None) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise error("name", "a Python identifier such as 'duffing'", name)
         x = _column_symbol(x, "x")
@@ -136,6 +142,7 @@ class System:
         self.x0_box = _box(x0_box, self.nx)
         self.angle_states = index_tuple(angle_states, "angle_states", self.nx)
         self.angle_outputs = index_tuple(angle_outputs, "angle_outputs", self.ny)
+        self.u_box = None if u_box is None else _box(u_box, self.nu, "u_box", "nu")
         self.x_sym, self.u_sym = x, u
         self.xdot_expr, self.y_expr = xdot, y
         self.f = ca.Function("f", [x, u], [xdot], ["x", "u"], ["xdot"])
@@ -155,8 +162,8 @@ class System:
         10 significant digits, so the fingerprint does not depend on symbol names, on how the
         expressions are written or on the CasADi version, but changes with the dynamics. Model
         cards record it, and a model refuses to load against a plant with another fingerprint.
-        The angle indices enter only when some are given, so a plant without angles keeps the
-        fingerprint it had before they existed.
+        The angle indices and the input range enter only when given, so a plant without them keeps
+        the fingerprint it had before they existed.
         """
         rng = np.random.default_rng(20261127)
         lo, hi = self.x0_box[:, 0], self.x0_box[:, 1]
@@ -167,11 +174,14 @@ class System:
                                                              for v in values)
         if self.angle_states or self.angle_outputs:
             text += f";angles x{list(self.angle_states)} y{list(self.angle_outputs)}"
+        if self.u_box is not None:
+            text += ";u_box " + ",".join(np.format_float_scientific(v, precision=9) for v in self.u_box.ravel())
         return hashlib.sha256(text.encode()).hexdigest()
 
     @property
     def definition_digest(self) -> str:
-        """SHA-256 of the plant's exact definition: name, sizes, X0 box and the serialised ``f`` and ``h``.
+        """SHA-256 of the plant's exact definition: name, sizes, X0 box (and input range, where given) and the
+        serialised ``f`` and ``h``.
 
         Unlike :attr:`fingerprint` (what the plant computes, rounded), any change of the expressions
         changes it, down to the last bit of a constant; caches of simulated trials are keyed by it.
@@ -179,6 +189,8 @@ class System:
         digest = hashlib.sha256()
         header = {"name": self.name, "nx": self.nx, "nu": self.nu, "ny": self.ny,
                   "x0_box": np.asarray(self.x0_box, dtype=float).tolist()}
+        if self.u_box is not None:
+            header["u_box"] = self.u_box.tolist()
         digest.update(json.dumps(header, sort_keys=True).encode())
         for function in (self.f, self.h):
             digest.update(function.serialize().encode())
