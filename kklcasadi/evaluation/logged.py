@@ -10,7 +10,6 @@ domain flags and the EKF's estimates as CSV.
 
 from __future__ import annotations
 
-import itertools
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,15 +20,12 @@ import numpy as np
 from .. import metrics
 from ..estimators.ekf import EKF
 from ..observer.kkl import KKLObserver
+from ..plant.envelope import output_ranges
 from ..plant.logs import Log, read_log, write_estimates
-from ..plant.systems import System
 from ..provenance import Stamp
 from ..validation import Text, error, nonnegative_number, state_stds
 
 __all__ = ["LogEstimate", "estimate_log", "read_plant_log", "output_ranges", "ekf_for_model"]
-
-#: Samples of the X0 box at which :func:`output_ranges` evaluates ``h``.
-_RANGE_SAMPLES = 4096
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,15 +97,6 @@ class LogEstimate:
             ekf = "" if s["rmse_ekf"] is None else f"   EKF {s['rmse_ekf']:.4g}"
             lines.append(f"  {name:<12s} against {s['column']!r}: KKL {s['rmse']:.4g}{ekf}")
         return "\n".join(lines)
-
-
-def output_ranges(system: System) -> np.ndarray:
-    """The range of each output ``h(x)`` over the X0 box, (ny, 2): a Latin hypercube of the box and its corners."""
-    points = [system.sample_box(_RANGE_SAMPLES, 0)]
-    if system.nx <= 12:                                   # the 2^nx corners, where a monotone output peaks
-        points.append(np.array(list(itertools.product(*system.x0_box))))
-    y = system.h_batch(np.vstack(points))
-    return np.column_stack([y.min(axis=0), y.max(axis=0)])
 
 
 def _reference_columns(reference_cols: Sequence[Optional[str]], nx: int) -> dict:
