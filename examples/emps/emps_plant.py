@@ -30,7 +30,7 @@ PARAMETERS = {"M": 95.11, "Fv": 203.5, "Fc": 20.39, "offset": -3.165, "g_tau": 3
 #: The Coulomb friction's sign smoothed to tanh(q_dot / VELOCITY_SCALE), m/s.
 VELOCITY_SCALE = 0.005
 #: Where the rig lives: position (m) and velocity (m/s).
-BOX = ((-0.01, 0.26), (-0.15, 0.15))
+BOX = ((-0.01, 0.26), (-0.2, 0.2))
 #: The drive voltage the rig is run at (V).
 U_BOX = ((-7.0, 7.0),)
 #: State names, in order.

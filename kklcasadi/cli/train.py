@@ -1,7 +1,10 @@
 """``kklcasadi train``: train an observer variant and write its model directory.
 
 Without ``--method`` it trains :data:`RECOMMENDED`, the observer the README recommends for a new
-plant: ``kklcasadi train --plant FILE.py:NAME --dt DT --measurement-std S --out DIR``.
+plant: ``kklcasadi train --plant FILE.py:NAME --dt DT --measurement-std S --out DIR``. With
+``--like LOG.csv`` (and the log's columns) the training runs take the rig's envelope from its logs
+(:func:`kklcasadi.estimators.noise.rig_envelope`): inputs like the logged ones, the outputs' range,
+the noise levels (``--measurement-std``/``--process-std`` win over the estimates).
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import numpy as np
 from ..model import variants
 from ..plant import signals as sig
 from ..plant import systems
+from .estimate import _columns
 from .flags import (
     CommandError,
     add_dt,
@@ -79,7 +83,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(bank: its runs; autonomous: its Phase-1 data; default 1, the whole box). Below 1 where the "
                    "box bounds whole trajectories rather than their starts (the Qube: 0.5)")
     t.add_argument("--kinds", nargs="+", metavar="FAMILY",
-                   help="the input families of the training data. bank: kklcasadi.plant.runs.FAMILIES "
+                   help="the input families of the training data. bank: kklcasadi.train.operational.FAMILIES "
                    "(default: the benchmark's four, multisine and a proportional feedback loop; add pd for a plant "
                    "that a controller with derivative action will drive); obs, dyn: the benchmark's kinds")
     t.add_argument("--width", type=positive_int, help="autonomous: hidden width of T and T* (default 150; the "
@@ -105,6 +109,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "shipped recipe: mse+smape, 0.5)")
     t.add_argument("--on-inject", action="store_true",
                    help="obs: learn the residual on top of the model-based injection of 'inject'")
+    t.add_argument("--like", action="append", metavar="LOG.csv",
+                   help="bank: a log of the rig (CSV with a header row; repeat for several): the training runs replay "
+                   "resampled and rescaled segments of its inputs from the states it went through beside the input "
+                   "families, are bounded by its outputs' range, and take its noise: the measurement std from the "
+                   "outputs' high-frequency residual, the process std per state by the likelihood of the EKF's "
+                   "innovations (recorded in the card; --measurement-std, --process-std win)")
+    t.add_argument("--time-col", default="time", help="with --like: the logs' column of sample times in seconds "
+                   "(default time)")
+    t.add_argument("--y-cols", type=_columns, metavar="NAMES",
+                   help="with --like: the measured outputs' columns, comma-separated, in the plant's output order")
+    t.add_argument("--u-cols", type=_columns, metavar="NAMES",
+                   help="with --like: the inputs' columns in the plant's input order (a log faster than --dt: "
+                   "averaged over each interval)")
+    t.add_argument("--u-zero", action="store_true",
+                   help="with --like: the rig's input was zero throughout the logs (a plant with inputs needs "
+                   "--u-cols or this)")
+    t.add_argument("--angle-cols", type=_columns, metavar="NAMES",
+                   help="with --like: columns to unwrap as angles (default: those of the plant's angle outputs)")
     t.add_argument("--epochs", type=positive_int, help="override the number of epochs of every stage")
     t.add_argument("--seed", type=int, default=0, help="seed of the training data and the networks' weights "
                    "(default 0)")
@@ -116,21 +138,68 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.set_defaults(func=run)
 
 
-def _takers(name: str, plant: str) -> list[str]:
-    """The trainable methods whose configuration has the field ``name``."""
+def _takes(method: str, name: str, plant: str) -> bool:
+    """Whether ``method``'s configuration has the field ``name``."""
     from ..train import default_config, has_field
 
-    return [v.name for v in variants.VARIANTS.values() if v.config_class() is not None
-            and has_field(default_config(plant, v.name), name)]
+    return variants.get(method).config_class() is not None and has_field(default_config(plant, method), name)
 
 
-def training_config(plant: systems.System, method: str, args: argparse.Namespace) -> Any:
+def _takers(name: str, plant: str) -> list[str]:
+    """The trainable methods whose configuration has the field ``name``."""
+    return [v.name for v in variants.VARIANTS.values() if _takes(v.name, name, plant)]
+
+
+#: The arguments of :func:`kklcasadi.estimators.noise.rig_envelope` that are flags of ``train --like``.
+_LOG_FLAGS = {"time_col": "--time-col", "y_cols": "--y-cols", "u_cols": "--u-cols", "angle_cols": "--angle-cols",
+              "paths": "--like", "measurement_std": "--measurement-std", "process_std": "--process-std"}
+
+
+def _envelope(plant: systems.System, args: argparse.Namespace) -> Any:
+    """The rig's envelope from ``--like`` and its column flags (None without ``--like``)."""
+    from ..estimators.noise import rig_envelope
+
+    if not args.like:
+        given = [flag for flag, name in (("--y-cols", "y_cols"), ("--u-cols", "u_cols"), ("--angle-cols", "angle_cols"))
+                 if getattr(args, name) is not None] + (["--u-zero"] if args.u_zero else [])
+        if given:
+            raise CommandError(f"{given[0]}: names the columns of the logs of --like, received no --like LOG.csv")
+        return None
+    if args.y_cols is None:
+        raise CommandError(f"--y-cols: expected the logs' columns of the {plant.ny} output(s) of {plant.name!r} "
+                           "(comma-separated), received none")
+    if args.u_cols is not None and args.u_zero:
+        raise CommandError("--u-zero: the rig's input was zero, so give no --u-cols; received both")
+    if args.u_cols is None and not args.u_zero:
+        raise CommandError(f"--u-cols: expected the logs' column(s) of the {plant.nu} input(s) of {plant.name!r}, "
+                           "received none; pass --u-zero if the rig's input was zero throughout")
+    dt = 0.05 if args.dt is None else args.dt
+    try:
+        return rig_envelope(plant, args.like, dt=dt, time_col=args.time_col, y_cols=args.y_cols,
+                            u_cols=args.u_cols or (), angle_cols=args.angle_cols,
+                            measurement_std=args.measurement_std, process_std=args.process_std)
+    except (ValueError, TypeError) as exc:
+        head, sep, rest = str(exc).partition(": ")
+        if sep and head in _LOG_FLAGS:
+            raise CommandError(f"{_LOG_FLAGS[head]}: {rest}") from exc
+        raise CommandError(f"--like: {rest}" if sep and head.isidentifier() else f"--like: {exc}") from exc
+
+
+def training_config(plant: systems.System, method: str, args: argparse.Namespace, envelope: Any = None) -> Any:
     """The configuration ``kklcasadi train`` trains ``method`` of ``plant`` with: the method's default for
-    the plant with the fields of :data:`_CONFIG_FLAGS` the flags in ``args`` set (None: a method without
-    a configuration). A flag the method's configuration has no field for is a :class:`CommandError`."""
+    the plant, with the rig's ``envelope`` (:func:`kklcasadi.train.bank.with_envelope`, from ``--like``) and
+    the fields of :data:`_CONFIG_FLAGS` the flags in ``args`` set (None: a method without a configuration).
+    A flag the method's configuration has no field for is a :class:`CommandError`."""
     from ..train import config_field, default_config, has_field, with_field
 
     config = None if variants.get(method).config_class() is None else default_config(plant.name, method)
+    if envelope is not None:
+        if config is None or not has_field(config, "envelope"):
+            raise CommandError(f"--like: only --method {' or '.join(_takers('envelope', plant.name))} takes it, "
+                               f"received --method {method}")
+        from ..train.bank import with_envelope
+
+        config = with_envelope(config, envelope)
     for flag, (name, value) in _CONFIG_FLAGS.items():
         if value(args) is None:
             continue
@@ -142,6 +211,19 @@ def training_config(plant: systems.System, method: str, args: argparse.Namespace
         raise CommandError(f"--smape-weight: weighs the SMAPE term of --loss mse+smape, received --loss {loss}"
                            f"{'' if args.loss else ' (the default)'}; add --loss mse+smape")
     return config
+
+
+def envelope_text(envelope: Any, plant: systems.System) -> str:
+    """A few lines on what the logs gave: files, ranges, noise levels and where each came from."""
+    noise = envelope.noise
+    process = ", ".join(f"{v:.3g}" for v in envelope.process_std)
+    lines = [f"like     {len(envelope.sources)} log(s): " + ", ".join(f"{s['path']} ({s['rows']} rows)"
+                                                            for s in envelope.sources),
+             f"         outputs {envelope.y_range.round(6).tolist()}"
+             + ("" if envelope.u_range is None else f", inputs {envelope.u_range.round(6).tolist()}"),
+             f"         measurement std {envelope.measurement_std:.3g} ({noise.get('measurement_std_from')}), "
+             f"process std ({process}) ({noise.get('process_std_from')})"]
+    return "\n".join(lines)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -157,7 +239,13 @@ def run(args: argparse.Namespace) -> int:
     method = args.method or RECOMMENDED
     if args.method is None and not args.quiet:
         print(f"method: {RECOMMENDED} (the observer for a new plant; --method chooses another)", flush=True)
-    config = training_config(plant, method, args)
+    if args.like and not _takes(method, "envelope", plant.name):
+        raise CommandError(f"--like: only --method {' or '.join(_takers('envelope', plant.name))} takes it, "
+                           f"received --method {method}")
+    envelope = _envelope(plant, args)
+    if envelope is not None and not args.quiet:
+        print(envelope_text(envelope, plant), flush=True)
+    config = training_config(plant, method, args, envelope)
     dt = 0.05 if args.dt is None else args.dt
     if args.copies is not None:         # the plant must take them: no angle states, detectable at the box centre
         from ..train.bank import design_copies

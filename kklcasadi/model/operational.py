@@ -21,7 +21,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from ..plant.runs import RolloutConfig, _chunks, _horizon, _keep
+from ..plant.runs import RolloutConfig, _chunks, _horizon, _keep, drifting_states, resolved
 from ..plant.simulate import TrajectoryBatch, time_grid
 from ..plant.systems import System
 from ..validation import Text, error, nonnegative_int, positive_int
@@ -155,6 +155,7 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         Every run's samples before its escape (if any).
     """
     t0 = time.perf_counter()
+    plan = resolved(system, config)
     n = time_grid(_horizon(config.T, time_scale, dt), dt).size
     keep = _keep(n, dt, config, time_scale)
     parts: dict[str, list[np.ndarray]] = {"z": [], "y": [], "u": [], "x": [], "t": [], "run": []}
@@ -162,9 +163,14 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
     cut = failed = 0
     factors: list[float] = []
     substeps = 0
+    cut_by_kind: dict[str, list[int]] = {}
     for batch, escape, noise in _chunks(system, config, seed, dt, measurement_std, process_std, time_scale, progress,
                                         "operational runs"):
         cut += int(np.sum(escape < n))
+        for kind, left in zip(noise["kinds"], escape):
+            tally = cut_by_kind.setdefault(kind, [0, 0])
+            tally[0] += 1
+            tally[1] += int(left < n)
         failed += int(np.sum(~np.all(np.isfinite(batch.x), axis=(1, 2))))
         factors.extend(noise["measurement"].tolist())
         substeps = noise["substeps"]
@@ -183,6 +189,9 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
               "horizon_s": n * dt, "simulated_s": float(config.n_traj * n * dt),
               "sample_period_s": config.sample_period / time_scale, "substeps": substeps,
               "measurement_factor_range": [float(min(factors)), float(max(factors))],
+              "escape_scale": float(plan.escape_scale), "stabilised": bool(plan.stabilise),
+              "drifting_states": list(drifting_states(system)),
+              "kinds": {kind: {"runs": runs_, "cut": cut_} for kind, (runs_, cut_) in cut_by_kind.items()},
               "seconds": round(time.perf_counter() - t0, 2)}
     return OperationalData(data["z"], data["y"], data["u"], data["x"], data["t"], data["run"], record)
 

@@ -17,19 +17,21 @@ centre, angle states compared on the circle, or fails in the integrator) is cut 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Iterator, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Iterator, Mapping, Optional, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from . import signals as sig
 from .design import time_scales
+from .envelope import LIKE_AMPLITUDE_FACTORS, LIKE_TIME_FACTORS, OUTPUT_MARGIN, Envelope
 from .simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
 from .systems import System
 
 __all__ = ["RolloutConfig", "rollouts", "RK_STEP", "FAMILIES", "DEFAULT_KINDS", "PD_RANGES", "ROLLOUT_REGIMES",
-           "fit_families", "loop_signs"]
+           "fit_families", "loop_signs", "drifting_states", "input_range", "declares_envelope", "resolved",
+           "ENVELOPE_ESCAPE", "LEGACY_ESCAPE", "LOG_INPUT_MARGIN"]
 
 #: Input families of the runs (:attr:`RolloutConfig.kinds`): the benchmark's four; ``multisine``, a
 #: random spectrum (2-6 tones with log-uniform frequencies over the sinusoid's range and Dirichlet
@@ -52,6 +54,14 @@ PD_RANGES = {"gain": (0.5, 5.0), "derivative_time": (0.1, 1.5), "lag": (0.05, 0.
 ROLLOUT_REGIMES = (*sig.REGIMES, "wide")
 #: Largest RK4 step of the plant in units of its time scale (``h * omega``) when ``substeps`` is None.
 RK_STEP = 0.05
+#: ``escape_scale`` where the plant declares where it lives (a ``u_box``, or an envelope from its logs) and
+#: the recipe leaves it to the plant (None): a run leaving the X0 box by a quarter of its half-width is cut.
+ENVELOPE_ESCAPE = 1.25
+#: ``escape_scale`` where it does not (the runs of the benchmark's conventions).
+LEGACY_ESCAPE = 10.0
+#: Without a ``u_box``, the families' input range from logs is the logged inputs' range widened by this
+#: share of its half-width on each side (a rig run harder than its logs stays covered).
+LOG_INPUT_MARGIN = 0.25
 
 
 @dataclass(frozen=True)
@@ -89,8 +99,25 @@ class RolloutConfig:
         With a ``box_scale`` range: the share of the runs (drawn at random) whose initial state is
         scaled so; the others start in the X0 box itself (a few runs reach far states without
         spending the fit on them).
-    escape_scale : float
-        A run is cut where its state leaves the X0 box scaled by this about its centre.
+    escape_scale : float or None
+        A run is cut where its state leaves the X0 box scaled by this about its centre (counted in the
+        card); None: :data:`ENVELOPE_ESCAPE` where the plant declares where it lives
+        (:func:`declares_envelope`), else :data:`LEGACY_ESCAPE` (:func:`resolved`).
+    stabilise : bool or None
+        Run every open-loop family under a PD loop around set points in the outputs' range (the
+        ``pd`` family's law, its input added to the family's), as a rig runs under its controller: the
+        plant's integrators then cover the box rather than drift out of it. None: where the plant has
+        drifting states (:func:`drifting_states`).
+    envelope : Envelope or None
+        The rig's envelope from its logs (:func:`kklcasadi.estimators.noise.rig_envelope`): a share
+        ``like_share`` of the runs replays segments of the logged inputs (``like``: resampled in time and
+        rescaled by factors :data:`kklcasadi.plant.envelope.LIKE_TIME_FACTORS`,
+        :data:`~kklcasadi.plant.envelope.LIKE_AMPLITUDE_FACTORS`) from the state the rig was in at the
+        segment's start (under the loop of ``stabilise``, around the logged outputs); the other runs start
+        where the outputs lie in the logged range, and every run is cut where an output leaves that
+        range widened by :data:`~kklcasadi.plant.envelope.OUTPUT_MARGIN` of its width.
+    like_share : float
+        With an envelope: the share of the runs that are ``like`` runs.
     sample_period, dense_period, dense_time : float
         The decoder's samples: one every ``dense_period`` seconds over the first ``dense_time``
         (the transient from ``z = 0``), one every ``sample_period`` seconds after (the first
@@ -108,11 +135,14 @@ class RolloutConfig:
     substeps: int | None = None
     box_scale: float | tuple[float, float] = 1.0
     box_share: float = 1.0
-    escape_scale: float = 10.0
+    escape_scale: Optional[float] = LEGACY_ESCAPE
     sample_period: float = 0.1
     dense_period: float = 0.05
     dense_time: float = 5.0
     chunk: int = 100
+    stabilise: Optional[bool] = False
+    envelope: Optional[Envelope] = None
+    like_share: float = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_traj, int) or self.n_traj < 1:
@@ -131,6 +161,8 @@ class RolloutConfig:
         if not (isinstance(self.box_share, (int, float)) and 0 < self.box_share <= 1):
             raise ValueError(f"box_share: expected a share in (0, 1], received {self.box_share!r}.")
         for name in ("T", "escape_scale", "sample_period", "dense_period"):
+            if name == "escape_scale" and self.escape_scale is None:
+                continue
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 raise ValueError(f"{name}: expected a finite number > 0, received {getattr(self, name)!r}.")
         if not self.dense_time >= 0:
@@ -139,6 +171,14 @@ class RolloutConfig:
             raise ValueError(f"substeps: expected a positive integer or None, received {self.substeps!r}.")
         if not isinstance(self.chunk, int) or self.chunk < 1:
             raise ValueError(f"chunk: expected a positive integer, received {self.chunk!r}.")
+        if self.stabilise not in (None, True, False):
+            raise ValueError(f"stabilise: expected True, False or None (where the plant drifts), received "
+                             f"{self.stabilise!r}.")
+        if self.envelope is not None and not isinstance(self.envelope, Envelope):
+            raise TypeError(f"envelope: expected a kklcasadi.plant.envelope.Envelope or None, received "
+                            f"{type(self.envelope).__name__}.")
+        if not (isinstance(self.like_share, (int, float)) and 0 <= self.like_share <= 1):
+            raise ValueError(f"like_share: expected a share in [0, 1], received {self.like_share!r}.")
 
 
 
@@ -166,6 +206,57 @@ def _substeps(system: System, config: RolloutConfig, dt: float) -> int:
     return max(1, int(math.ceil(dt * omega / RK_STEP)))
 
 
+def drifting_states(system: System) -> tuple[int, ...]:
+    """The states the plant lets drift: the non-angle state that dominates (in units of the X0 box's
+    half-widths) each real mode of the plant linearised at its box centre and ``u = 0`` that does not
+    decay (eigenvalue ``>= -1e-6`` times the time scale), e.g. the position of a mass that only friction
+    slows. Open-loop runs of such a plant wander out of its box; an angle that turns freely does not
+    (it is compared on the circle)."""
+    centre = system.x0_box.mean(axis=1)
+    half = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0])
+    f_x = np.asarray(system.f_jac(centre, np.zeros(system.nu))[0], dtype=float)
+    values, vectors = np.linalg.eig(f_x)
+    rate = time_scales(system)[0]
+    out = set()
+    for value, vector in zip(values, vectors.T):
+        if abs(value.imag) <= 1e-6 * rate and value.real >= -1e-6 * rate:
+            i = int(np.argmax(np.abs(vector) / half))
+            if i not in system.angle_states:
+                out.add(i)
+    return tuple(sorted(out))
+
+
+def declares_envelope(system: System, envelope: Optional[Envelope]) -> bool:
+    """Whether the plant says where it lives: it declares a ``u_box``, or the runs have its logs' envelope."""
+    return system.u_box is not None or envelope is not None
+
+
+def input_range(system: System, envelope: Optional[Envelope] = None) -> tuple[Optional[np.ndarray], str]:
+    """The range the runs' inputs span, (nu, 2) or None (the families' own ranges, ``|u| <= 2`` in the
+    ``wide`` regime), and where it comes from: the plant's ``u_box``; else the logged inputs' range
+    widened by :data:`LOG_INPUT_MARGIN` of its half-width on each side; else None."""
+    if system.u_box is not None:
+        return np.array(system.u_box, dtype=float), "the plant's u_box"
+    if envelope is not None and envelope.u_range is not None:
+        lo, hi = envelope.u_range[:, 0], envelope.u_range[:, 1]
+        pad = LOG_INPUT_MARGIN * np.maximum(0.5 * (hi - lo), 1e-9)
+        return np.column_stack([lo - pad, hi + pad]), (f"the logged inputs' range widened by {LOG_INPUT_MARGIN:g} "
+                                                       "of its half-width (the plant declares no u_box)")
+    return None, ("the benchmark's ranges (|u| <= 2 in the wide regime): the plant declares no u_box; declare the "
+                  "rig's input range with kc.System(..., u_box=[[lo, hi], ...])")
+
+
+def resolved(system: System, config: RolloutConfig) -> RolloutConfig:
+    """``config`` with what it leaves to the plant decided: ``escape_scale`` (:data:`ENVELOPE_ESCAPE` where
+    the plant declares where it lives, else :data:`LEGACY_ESCAPE`) and ``stabilise`` (where the plant has
+    :func:`drifting_states`)."""
+    escape = config.escape_scale
+    if escape is None:
+        escape = ENVELOPE_ESCAPE if declares_envelope(system, config.envelope) else LEGACY_ESCAPE
+    stabilise = bool(drifting_states(system)) if config.stabilise is None else config.stabilise
+    return replace(config, escape_scale=escape, stabilise=stabilise)
+
+
 def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
     """First escaped sample of each run (M,), ``N`` where none: outside the X0 box scaled by ``scale``
     about its centre (angle states on the circle: never), or not finite."""
@@ -180,8 +271,30 @@ def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
     return np.where(bad.any(axis=1), bad.argmax(axis=1), x.shape[1])
 
 
+def _output_bounds(envelope: Envelope) -> np.ndarray:
+    """The logged outputs' range widened by :data:`~kklcasadi.plant.envelope.OUTPUT_MARGIN` of its width, (ny, 2)."""
+    lo, hi = envelope.y_range[:, 0], envelope.y_range[:, 1]
+    pad = OUTPUT_MARGIN * np.maximum(hi - lo, 1e-12)
+    return np.column_stack([lo - pad, hi + pad])
+
+
+def _left_outputs(y: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """First sample of each run (M,) whose output lies outside ``bounds`` (ny, 2), ``N`` where none."""
+    with np.errstate(invalid="ignore"):
+        bad = ~np.all((y >= bounds[:, 0]) & (y <= bounds[:, 1]), axis=-1)
+    return np.where(bad.any(axis=1), bad.argmax(axis=1), y.shape[1])
+
+
 def _initial_states(system: System, config: RolloutConfig, seed: int) -> np.ndarray:
-    """The runs' initial states (n_traj, nx): a Latin hypercube over the X0 box, scaled about its centre."""
+    """The runs' initial states (n_traj, nx): a Latin hypercube over the X0 box, scaled about its centre;
+    with an envelope, the first of a larger hypercube whose outputs lie in the logged range (widened)."""
+    if config.envelope is not None:
+        pool = system.sample_box(8 * config.n_traj, seed, scale=float(np.max(config.box_scale)))
+        y = system.h_batch(pool)
+        bounds = _output_bounds(config.envelope)
+        inside = np.all((y >= bounds[:, 0]) & (y <= bounds[:, 1]), axis=1)
+        order = np.concatenate([np.flatnonzero(inside), np.flatnonzero(~inside)])   # outside ones only if short
+        return pool[order[:config.n_traj]]
     if np.ndim(config.box_scale) == 0:
         return system.sample_box(config.n_traj, seed, scale=float(config.box_scale))
     lo, hi = config.box_scale
@@ -205,41 +318,56 @@ def _ranges(kind: str, regime: str) -> Mapping[str, tuple[float, float]]:
     return ranges
 
 
-def fit_families(config: RolloutConfig, rate: float = 1.0) -> dict[str, dict[str, tuple[float, float]]]:
+def fit_families(config: RolloutConfig, rate: float = 1.0,
+                 system: Optional[System] = None) -> dict[str, dict[str, tuple[float, float]]]:
     """The input families of ``config``'s runs with the range of each parameter, as a card's
     ``fit_families`` records them (frequencies in rad/s and holds in seconds at the time scale ``rate``).
 
     The benchmark's families carry :func:`kklcasadi.plant.signals.family_ranges`' parameters;
     ``multisine`` its tones' amplitude and frequency ranges and their number; ``feedback`` (a
     proportional law, not the PD law of the held-out family of that name) its gain, hold and limit;
-    ``pd`` (:data:`PD_RANGES`) also its derivative time and lag.
+    ``pd`` (:data:`PD_RANGES`) also its derivative time and lag; ``like`` (with an envelope) the factors
+    its log segments are resampled and rescaled by. With ``system``, values, amplitudes and limits are
+    in the plant's input units (:func:`input_range`; over all inputs where they differ).
     """
     out: dict[str, dict[str, tuple[float, float]]] = {}
     sine = _ranges("sinusoid", config.regime)
+    limit = float(_ranges("constant", config.regime)["value"][1])
+    u_box = None if system is None else input_range(system, config.envelope)[0]
+
+    def units(name: str, lo: float, hi: float) -> tuple[float, float]:
+        if u_box is None or name not in ("value", "amplitude", "limit"):
+            return (lo, hi)
+        offset = u_box.mean(axis=1) if name == "value" else 0.0
+        scale = 0.5 * (u_box[:, 1] - u_box[:, 0]) / limit
+        return (float(np.min(offset + scale * lo)), float(np.max(offset + scale * hi)))
+
     for kind in config.kinds:
         if kind == "zero":
             out[kind] = {}
         elif kind in ("constant", "sinusoid", "square"):
-            out[kind] = {name: ((lo * rate, hi * rate) if name == "omega" else (lo, hi))
+            out[kind] = {name: ((lo * rate, hi * rate) if name == "omega" else units(name, lo, hi))
                          for name, (lo, hi) in _ranges(kind, config.regime).items()}
         elif kind == "multisine":
-            out[kind] = {"amplitude": sine["amplitude"], "omega": (sine["omega"][0] * rate, sine["omega"][1] * rate),
-                         "tones": (2.0, 6.0)}
+            out[kind] = {"amplitude": units("amplitude", *sine["amplitude"]),
+                         "omega": (sine["omega"][0] * rate, sine["omega"][1] * rate), "tones": (2.0, 6.0)}
         else:
-            limit = float(_ranges("constant", config.regime)["value"][1])
-            out[kind] = {"gain": (0.5, 3.0), "hold": (2.0 / rate, 10.0 / rate), "limit": (limit, limit)}
+            out[kind] = {"gain": (0.5, 3.0), "hold": (2.0 / rate, 10.0 / rate), "limit": units("limit", limit, limit)}
             if kind == "pd":
                 out[kind].update(gain=PD_RANGES["gain"],
                                  **{name: (lo / rate, hi / rate) for name, (lo, hi) in PD_RANGES.items()
                                     if name != "gain"})
+    if config.envelope is not None and config.like_share > 0:
+        out["like"] = {"time_factor": LIKE_TIME_FACTORS, "amplitude_factor": LIKE_AMPLITUDE_FACTORS}
     return out
 
 
 @dataclass(frozen=True)
 class _Feedback:
-    """``u_k = clip((gain (r(t_k) - y_k[j]) - dgain dyf_k[j]) / y_scale, -limit, limit)`` per input, ``r``
-    piecewise constant, ``dyf_k`` the rate of the output through a first-order lag of time constant
-    ``lag`` (``dgain = 0``: a proportional law)."""
+    """``u_k = offset + scale clip(ff_k + (gain (r(t_k) - y_k[j]) - dgain dyf_k[j]) / y_scale, -limit, limit)`` per
+    input, ``r`` piecewise constant, ``dyf_k`` the rate of the output through a first-order lag of time
+    constant ``lag`` (``dgain = 0``: a proportional law), ``ff`` a feedforward input (none: 0) and
+    ``offset + scale v`` the map of the families' unit range onto the plant's input range (none: ``u = v``)."""
 
     gain: np.ndarray          # (nu,)
     output: np.ndarray        # (nu,) output index per input
@@ -249,32 +377,89 @@ class _Feedback:
     levels: np.ndarray        # (L, nu) set points
     dgain: np.ndarray | None = None   # (nu,) derivative gains (gain times the derivative time)
     lag: float = 0.0
+    feedforward: np.ndarray | None = None   # (N, nu) per sample, in the families' units
+    u_map: tuple | None = None              # (offset (nu,), scale (nu,))
 
-    def __call__(self, t: float, y: np.ndarray, dyf: np.ndarray) -> np.ndarray:
+    def __call__(self, t: float, y: np.ndarray, dyf: np.ndarray, k: int = 0) -> np.ndarray:
         r = self.levels[np.searchsorted(self.times, t, side="right") - 1]
         v = self.gain * (r - y[self.output])
         if self.dgain is not None:
             v = v - self.dgain * dyf[self.output]
-        return np.clip(v / self.y_scale, -self.limit, self.limit)
+        v = v / self.y_scale
+        if self.feedforward is not None:
+            v = v + self.feedforward[k]
+        v = np.clip(v, -self.limit, self.limit)
+        return v if self.u_map is None else self.u_map[0] + self.u_map[1] * v
+
+
+def _pd_law(rng: np.random.Generator, system: System, t: np.ndarray, rate: float, output: np.ndarray,
+            y_scale: np.ndarray, limit: float, times: np.ndarray, levels: np.ndarray, **options: object) -> _Feedback:
+    """The ``pd`` family's law: gain in :data:`PD_RANGES` with the sign that feeds back negatively."""
+    nu = system.nu
+    gain = rng.uniform(*PD_RANGES["gain"], size=nu) * loop_signs(system)
+    dgain = gain * rng.uniform(*PD_RANGES["derivative_time"], size=nu) / rate
+    return _Feedback(gain, output, y_scale, limit, times, levels, dgain, rng.uniform(*PD_RANGES["lag"]) / rate,
+                     **options)
+
+
+def _set_points(rng: np.random.Generator, system: System, t: np.ndarray, y_range: np.ndarray,
+                rate: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Set points held 2-10 time units each within ``y_range``: (times, levels (L, nu)), the output each
+    input's law reads (nu,) and its scale (nu,)."""
+    nu = system.nu
+    holds = rng.uniform(2.0, 10.0, size=int(np.ceil(t[-1] * rate / 2.0)) + 1) / rate
+    times = np.concatenate([[0.0], np.cumsum(holds)])[:-1]
+    lo, hi = y_range
+    output = np.arange(nu) % system.ny
+    levels = rng.uniform(lo[output], hi[output], size=(times.size, nu))
+    y_scale = np.maximum(0.5 * (hi - lo)[output], 1e-9)
+    return times, levels, output, y_scale
+
+
+#: The stabilising loop's set points (``RolloutConfig.stabilise``): tones over this band, in units of the time
+#: scale, spanning the outputs' range (a reference a rig's controller would follow, not steps).
+REFERENCE_BAND = (0.05, 0.5)
+#: Range of the factor (log-uniform) a family's input is scaled by under the stabilising loop.
+FEEDFORWARD_FACTORS = (0.05, 1.0)
+
+
+def _reference(rng: np.random.Generator, system: System, t: np.ndarray, y_range: np.ndarray,
+               rate: float) -> np.ndarray:
+    """A smooth set point per input (N, nu) within ``y_range`` of the output it reads: 2-4 tones with
+    log-uniform frequencies over :data:`REFERENCE_BAND` times ``rate`` and Dirichlet weights."""
+    nu = system.nu
+    output = np.arange(nu) % system.ny
+    lo, hi = y_range[0][output], y_range[1][output]
+    k = int(rng.integers(2, 5))
+    omega = np.exp(rng.uniform(*np.log(REFERENCE_BAND), size=(k, 1))) * rate
+    weights = rng.dirichlet(np.ones(k), size=nu).T
+    phase = rng.uniform(0.0, 2.0 * np.pi, size=(k, nu))
+    wave = np.einsum("kn,tkn->tn", weights, np.sin(omega[None] * t[:, None, None] + phase[None]))
+    return 0.5 * (lo + hi) + 0.5 * (hi - lo) * wave
 
 
 def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System, t: np.ndarray,
-                y_range: np.ndarray, rate: float) -> object:
+                y_range: np.ndarray, rate: float, u_map: tuple | None = None) -> object:
     """One run's input: a signal or samples (N, nu) for open-loop kinds, a :class:`_Feedback` law.
 
     Frequencies are the regime's times ``rate`` and hold times the regime's over ``rate`` (the
     plant's time scale; 1 for the shipped systems, whose draws are those of
-    :func:`kklcasadi.plant.signals.sample`)."""
+    :func:`kklcasadi.plant.signals.sample`). With ``u_map = (offset, scale)`` every family's input ``v``
+    (within the regime's largest constant input) becomes ``offset + scale v`` (open-loop ones as samples)."""
     nu = system.nu
+    signal = None
     if kind == "zero":
-        return sig.make("zero", size=nu)
-    if kind in ("constant", "sinusoid", "square"):
+        signal = sig.make("zero", size=nu)
+    elif kind in ("constant", "sinusoid", "square"):
         r = _ranges(kind, regime)
         if kind == "constant":
-            return sig.make("constant", value=rng.uniform(*r["value"], size=nu))
-        amplitude = rng.uniform(*r["amplitude"], size=nu)
-        omega = rng.uniform(*r["omega"]) * rate
-        return sig.make(kind, amplitude=amplitude, omega=omega, phase=rng.uniform(0.0, 2.0 * np.pi))
+            signal = sig.make("constant", value=rng.uniform(*r["value"], size=nu))
+        else:
+            amplitude = rng.uniform(*r["amplitude"], size=nu)
+            omega = rng.uniform(*r["omega"]) * rate
+            signal = sig.make(kind, amplitude=amplitude, omega=omega, phase=rng.uniform(0.0, 2.0 * np.pi))
+    if signal is not None:
+        return signal if u_map is None else u_map[0] + u_map[1] * signal(t)
     sine = _ranges("sinusoid", regime)
     if kind == "multisine":          # a random spectrum: 2-6 tones, log-uniform frequencies
         k = int(rng.integers(2, 7))
@@ -282,20 +467,36 @@ def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System
         weights = rng.dirichlet(np.ones(k), size=nu).T                     # (k, nu)
         amplitude = rng.uniform(*sine["amplitude"], size=nu)
         phase = rng.uniform(0.0, 2.0 * np.pi, size=(k, nu))
-        return np.einsum("kn,tkn->tn", weights * amplitude, np.sin(omega[None] * t[:, None, None] + phase[None]))
+        samples = np.einsum("kn,tkn->tn", weights * amplitude, np.sin(omega[None] * t[:, None, None] + phase[None]))
+        return samples if u_map is None else u_map[0] + u_map[1] * samples
     limit = float(_ranges("constant", regime)["value"][1])
-    holds = rng.uniform(2.0, 10.0, size=int(np.ceil(t[-1] * rate / 2.0)) + 1) / rate
-    times = np.concatenate([[0.0], np.cumsum(holds)])[:-1]
-    lo, hi = y_range
-    output = np.arange(nu) % system.ny
-    levels = rng.uniform(lo[output], hi[output], size=(times.size, nu))
-    y_scale = np.maximum(0.5 * (hi - lo)[output], 1e-9)
+    times, levels, output, y_scale = _set_points(rng, system, t, y_range, rate)
     if kind == "feedback":
         return _Feedback(rng.uniform(0.5, 3.0, size=nu) * rng.choice([-1.0, 1.0], size=nu), output, y_scale, limit,
-                         times, levels)
-    gain = rng.uniform(*PD_RANGES["gain"], size=nu) * loop_signs(system)
-    dgain = gain * rng.uniform(*PD_RANGES["derivative_time"], size=nu) / rate
-    return _Feedback(gain, output, y_scale, limit, times, levels, dgain, rng.uniform(*PD_RANGES["lag"]) / rate)
+                         times, levels, u_map=u_map)
+    return _pd_law(rng, system, t, rate, output, y_scale, limit, times, levels, u_map=u_map)
+
+
+def _like_run(envelope: Envelope, rng: np.random.Generator, system: System, t: np.ndarray,
+              u_box: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A ``like`` run: a segment of a log (drawn in proportion to the logs' lengths) from a random sample
+    on, resampled in time by a factor from :data:`~kklcasadi.plant.envelope.LIKE_TIME_FACTORS` (continued
+    from the log's start where it runs out) and its input rescaled about zero by one from
+    :data:`~kklcasadi.plant.envelope.LIKE_AMPLITUDE_FACTORS` (clipped to ``u_box``): the state there (nx,), the
+    input (N, nu) (0 for a log without inputs) and the logged outputs along it (N, ny), ``h`` of its states."""
+    lengths = np.array([len(s) for s in envelope.states], dtype=float)
+    i = int(rng.choice(len(lengths), p=lengths / lengths.sum()))
+    states = envelope.states[i]
+    start = int(rng.integers(len(states)))
+    factor, amplitude = (float(np.exp(rng.uniform(*np.log(r)))) for r in (LIKE_TIME_FACTORS, LIKE_AMPLITUDE_FACTORS))
+    rows = (start + np.floor(factor * (t - t[0]) / envelope.dt).astype(int)) % len(states)
+    if envelope.inputs:
+        u = amplitude * envelope.inputs[i][rows]
+        if u_box is not None:
+            u = np.clip(u, u_box[:, 0], u_box[:, 1])
+    else:
+        u = np.zeros((t.size, system.nu))
+    return states[start], u, system.h_batch(states[rows])
 
 
 def loop_signs(system: System) -> np.ndarray:
@@ -334,7 +535,7 @@ def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: n
         dyf = (yf_next - yf) / dt if k else np.zeros_like(yf)
         yf = yf_next
         for i in np.flatnonzero(np.all(np.isfinite(y[:, k]), axis=1)):       # runs that have not blown up
-            u[i, k] = laws[i](t[k], y[i, k], dyf[i])
+            u[i, k] = laws[i](t[k], y[i, k], dyf[i], k)
         if k < n - 1:
             with np.errstate(invalid="ignore", over="ignore"):
                 x[:, k + 1] = np.asarray(step(x[:, k].T, np.concatenate([u[:, k], w[:, k]], axis=1).T)).T
@@ -343,18 +544,61 @@ def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: n
     return TrajectoryBatch(t, x, u, y, ok)
 
 
+def _inputs(system: System, config: RolloutConfig, seed: int, t: np.ndarray, rate: float,
+            x0: np.ndarray) -> tuple[list, np.ndarray, list]:
+    """Every run's input (a signal, samples (N, nu) or a :class:`_Feedback` law), its initial state
+    (n_traj, nx) and its kind: the families in turn, and with an envelope ``like`` runs among them."""
+    rng = np.random.default_rng([seed, 1])
+    u_box, _ = input_range(system, config.envelope)
+    limit = float(_ranges("constant", config.regime)["value"][1])
+    u_map = None if u_box is None else (u_box.mean(axis=1), 0.5 * (u_box[:, 1] - u_box[:, 0]) / limit)
+    y_range = (_output_bounds(config.envelope).T if config.envelope is not None else
+               np.quantile(system.h_batch(system.sample_box(256, seed + 1)), [0.05, 0.95], axis=0))
+    like = np.zeros(config.n_traj, dtype=bool)
+    extra = np.random.default_rng([seed, 5])             # draws the legacy runs do not make
+    if config.envelope is not None and config.like_share > 0:
+        like[extra.permutation(config.n_traj)[:int(round(config.like_share * config.n_traj))]] = True
+    kinds = [config.kinds[j % len(config.kinds)] for j in range(int((~like).sum()))][::-1]
+    x0 = x0.copy()
+    inputs, names = [], []
+    for i in range(config.n_traj):
+        if like[i]:
+            x0[i], u, reference = _like_run(config.envelope, extra, system, t, u_box)
+            names.append("like")
+            if not config.stabilise:
+                inputs.append(u)
+                continue
+            output = np.arange(system.nu) % system.ny
+            y_scale = np.maximum(0.5 * (y_range[1] - y_range[0])[output], 1e-9)
+            unit = u if u_map is None else (u - u_map[0]) / u_map[1]
+            inputs.append(_pd_law(extra, system, t, rate, output, y_scale, limit, t, reference[:, output],
+                                  feedforward=unit, u_map=u_map))
+            continue
+        kind = kinds.pop()
+        names.append(kind)
+        drawn = _draw_input(kind, rng, config.regime, system, t, y_range, rate, u_map)
+        if config.stabilise and not isinstance(drawn, _Feedback):
+            samples = np.asarray(drawn(t) if callable(drawn) else drawn, dtype=float)
+            unit = samples if u_map is None else (samples - u_map[0]) / u_map[1]
+            unit = unit * float(np.exp(extra.uniform(*np.log(FEEDFORWARD_FACTORS))))
+            output = np.arange(system.nu) % system.ny
+            y_scale = np.maximum(0.5 * (y_range[1] - y_range[0])[output], 1e-9)
+            drawn = _pd_law(extra, system, t, rate, output, y_scale, limit, t,
+                            _reference(extra, system, t, y_range, rate), feedforward=unit, u_map=u_map)
+        inputs.append(drawn)
+    return inputs, x0, names
+
+
 def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measurement_std: float,
             process_std: float | Sequence[float], rate: float, progress: bool,
             desc: str) -> Iterator[tuple[TrajectoryBatch, np.ndarray, dict]]:
     """The runs, ``config.chunk`` at a time: each chunk's batch (``y`` carries the measurement noise),
-    the first escaped sample of each run, and the chunk's noise factors."""
-    rng = np.random.default_rng([seed, 1])
+    the first escaped sample of each run, and the chunk's noise factors (``config`` as :func:`resolved`)."""
+    config = resolved(system, config)
     horizon = _horizon(config.T, rate, dt)
     t = time_grid(horizon, dt)
-    x0 = _initial_states(system, config, seed)
-    y_range = np.quantile(system.h_batch(system.sample_box(256, seed + 1)), [0.05, 0.95], axis=0)
-    inputs = [_draw_input(config.kinds[i % len(config.kinds)], rng, config.regime, system, t, y_range, rate)
-              for i in range(config.n_traj)]
+    inputs, x0, kinds = _inputs(system, config, seed, t, rate, _initial_states(system, config, seed))
+    bounds = None if config.envelope is None else _output_bounds(config.envelope)
     seeds = np.random.SeedSequence([seed, 2]).spawn(config.n_traj)
     noise = np.random.default_rng([seed, 3])
     log_lo, log_hi = np.log(config.noise_range)
@@ -384,9 +628,12 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
                     y[where] = np.asarray(batch.y) + v[where]
                 x[where], u[where] = batch.x, batch.u
             escape = _escaped(system, x.copy(), config.escape_scale)
+            if bounds is not None:
+                escape = np.minimum(escape, _left_outputs(y, bounds))
             bar.update(len(idx))
             yield (TrajectoryBatch(t, x, u, y, escape == t.size), escape,
-                   {"process": p_factor, "measurement": m_factor, "substeps": substeps})
+                   {"process": p_factor, "measurement": m_factor, "substeps": substeps,
+                    "kinds": [kinds[i] for i in idx]})
 
 
 def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.05, measurement_std: float = 0.1,

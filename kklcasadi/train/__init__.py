@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, is_dataclass
+from dataclasses import fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -55,8 +55,10 @@ METHODS = variants.trainable()
 
 
 def _jsonable(value: Any) -> Any:
+    if is_dataclass(value) and hasattr(value, "to_card"):          # a record of its own (the rig's envelope)
+        return _jsonable(value.to_card())
     if is_dataclass(value):
-        return _jsonable(asdict(value))
+        return {f.name: _jsonable(getattr(value, f.name)) for f in fields(value)}
     if isinstance(value, dict):
         return {str(k): _jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

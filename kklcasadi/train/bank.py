@@ -29,7 +29,8 @@ from ..model.variants import filterbank as fb
 from ..model.variants.copies import ModelCopies
 from ..nets.specs import DECODER, MLPSpec
 from ..plant.design import Design, time_scales
-from ..plant.runs import DEFAULT_KINDS, RolloutConfig, fit_families
+from ..plant.envelope import Envelope
+from ..plant.runs import DEFAULT_KINDS, RolloutConfig, declares_envelope, fit_families, input_range
 from ..plant.systems import System
 from ..validation import Text, error
 from .config import LoopConfig, with_epochs
@@ -188,8 +189,21 @@ class BankConfig:
             return replace(config, decoder=replace(config.decoder, **decoder))
         budget = dict(NEW_PLANT_BANK)
         config = replace(config, process_on="forced",
-                         rollouts=replace(config.rollouts, n_traj=budget["n_traj"], T=budget["T"]))
+                         rollouts=replace(config.rollouts, n_traj=budget["n_traj"], T=budget["T"], escape_scale=None,
+                                          stabilise=None))
         return with_epochs(config, budget["epochs"])
+
+
+def with_envelope(config: BankConfig, envelope: Envelope) -> BankConfig:
+    """``config`` with the rig's envelope from its logs (:func:`kklcasadi.estimators.noise.rig_envelope`): its
+    runs (``rollouts.envelope``: ``like`` runs, the outputs' range) and its noise levels (the measurement std,
+    the process std per state)."""
+    if not isinstance(envelope, Envelope):
+        raise error("envelope", "a kklcasadi.plant.envelope.Envelope (kklcasadi.estimators.noise.rig_envelope)",
+                    Text(type(envelope).__name__), kind=TypeError)
+    return replace(config, measurement_std=float(envelope.measurement_std),
+                   process_std=tuple(float(v) for v in envelope.process_std),
+                   rollouts=replace(config.rollouts, envelope=envelope))
 
 
 def process_stds(system: System, config: BankConfig) -> np.ndarray:
@@ -298,6 +312,9 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     if type(config) is not BankConfig:
         raise TypeError(f"config: expected a BankConfig for 'bank', received {type(config).__name__}.")
     load_start = os.getloadavg()
+    u_range, u_source = input_range(system, config.rollouts.envelope)
+    if u_range is None:
+        print(f"inputs   {system.name!r}: {u_source}", flush=True)
     process = process_stds(system, config)
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
@@ -311,7 +328,10 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     fits = fit_members(bank, data, config, angles, seed, progress=progress)
     fitted = fits[0]
     arrays, spec, domain = bank_model(system, bank, config, rate, fits, data, dt, copies=copies)
+    if declares_envelope(system, config.rollouts.envelope):     # the domain is the box the user gave
+        domain = replace(domain, x_lo=system.x0_box[:, 0].copy(), x_hi=system.x0_box[:, 1].copy())
     training = {"config": config, **config_record(config.rollouts, config.decoder), "time_scale": rate,
+                "input_range": {"range": None if u_range is None else u_range.tolist(), "source": u_source},
                 "measurement_std": config.measurement_std, "process_std": process.tolist(),
                 "runs": data.record, "decoder_fit": fitted.fit.summary(), "samples": fitted.n_samples,
                 **({"member_fits": [f.fit.summary() for f in fits[1:]]} if len(fits) > 1 else {}),
@@ -329,5 +349,5 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     history = {prefix: fit.fit.history for prefix, fit in zip(fb.member_prefixes(len(fits)), fits)}
     return Trained(arrays, spec, SimpleNamespace(A=spec.A, B=spec.By), training, history, 1,
                    config.measurement_std, domain, coverage=None, monitor=monitor.spec,
-                   fit_families=fit_families(config.rollouts, rate),
+                   fit_families=fit_families(config.rollouts, rate, system),
                    process_std=tuple(float(v) for v in process))

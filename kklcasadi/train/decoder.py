@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable, Mapping
 
 import numpy as np
@@ -254,4 +254,6 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
 
 def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:
     """JSON-able record of the two configurations (for a model card)."""
-    return {"rollouts": asdict(rollout), "decoder": {**asdict(decoder), "loop": asdict(decoder.loop)}}
+    rollouts = asdict(replace(rollout, envelope=None))
+    rollouts["envelope"] = None if rollout.envelope is None else rollout.envelope.to_card()
+    return {"rollouts": rollouts, "decoder": {**asdict(decoder), "loop": asdict(decoder.loop)}}

@@ -1,0 +1,207 @@
+"""The training runs where the rig lives (issue 45): inputs across the plant's u_box, integrators kept in the
+box by a stabilising loop, and the envelope of a rig's logs (like runs from logged states, outputs bounded)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import casadi as ca
+import numpy as np
+import pytest
+
+import kklcasadi as kc
+from kklcasadi.model.operational import operational_data
+from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.plant import runs as rn
+from kklcasadi.plant.envelope import LIKE_AMPLITUDE_FACTORS, Envelope
+from kklcasadi.plant.runs import FAMILIES, RolloutConfig, fit_families, rollouts
+
+
+def _oscillator(u_box=None):
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    return kc.System("osc", x, u, [x[1], -x[0] - 0.5 * x[1] + u], x[0], [[-2.0, 2.0], [-2.0, 2.0]], u_box=u_box)
+
+
+def _mass(u_box=((-1.0, 1.0),)):
+    """A mass with viscous friction: its position only drifts (and a held input of 1 drives it at twice the
+    box's speed)."""
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    return kc.System("mass", x, u, [x[1], -0.5 * x[1] + u], x[0], [[-1.0, 1.0], [-1.0, 1.0]], u_box=u_box)
+
+
+def _bank():
+    return fb.FilterBank.design(1, 1, [0.5, 2.0], [1.0])
+
+
+def test_every_family_draws_inside_the_u_box_and_covers_it():
+    plant = _oscillator(u_box=[[-1.0, 3.0]])
+    cfg = RolloutConfig(n_traj=70, T=20.0, kinds=FAMILIES, chunk=35)
+    runs = rollouts(plant, cfg, 0, measurement_std=0.01, process_std=0.0)
+    assert len(runs) == 70
+    u = runs.u[..., 0]
+    assert u.min() >= -1.0 - 1e-12 and u.max() <= 3.0 + 1e-12
+    counts, _ = np.histogram(u, bins=10, range=(-1.0, 3.0))
+    assert np.all(counts > 0) and u.min() < -0.95 and u.max() > 2.95          # all of it, ends included
+    kinds = np.array([FAMILIES[i % len(FAMILIES)] for i in range(70)])
+    constants = u[kinds == "constant", 0]                                     # uniform over the box
+    assert constants.min() < 0.0 and constants.max() > 2.0
+    families = fit_families(cfg, 1.0, plant)
+    assert families["constant"]["value"] == (-1.0, 3.0) and families["sinusoid"]["amplitude"] == (0.1, 2.0)
+    # without a u_box: the benchmark's ranges, and the source says to declare one
+    free = rollouts(_oscillator(), cfg, 0, measurement_std=0.01, process_std=0.0)
+    assert np.abs(free.u).max() <= 2.0 + 1e-12
+    box, source = rn.input_range(_oscillator())
+    assert box is None and "u_box" in source and "|u| <= 2" in source
+
+
+def test_an_integrator_plant_runs_in_its_box_under_the_stabilising_loop():
+    from kklcasadi.train.bank import BankConfig
+
+    plant = _mass()
+    assert rn.drifting_states(plant) == (0,) and rn.drifting_states(_oscillator()) == ()
+    new = replace(BankConfig.for_system("mass").rollouts, n_traj=36, T=30.0, chunk=36)
+    plan = rn.resolved(plant, new)
+    assert plan.stabilise is True and plan.escape_scale == rn.ENVELOPE_ESCAPE
+    assert rn.resolved(_mass(u_box=None), new).escape_scale == rn.LEGACY_ESCAPE    # no envelope declared
+    share = {}
+    rate = kc.plant.design.time_scales(plant)[0]
+    n = rn.time_grid(rn._horizon(new.T, rate, 0.05), 0.05).size
+    full = new.n_traj * int(rn._keep(n, 0.05, new, rate).sum())             # the samples of runs never cut
+    for stabilise in (True, False):
+        data = operational_data(plant, _bank(), replace(new, stabilise=stabilise), 0, dt=0.05, measurement_std=0.01,
+                                process_std=0.0)
+        assert np.all(np.abs(data.x) <= 1.25 + 1e-12)                          # cut where they leave the box
+        share[stabilise] = len(data) / full
+        assert data.record["stabilised"] is stabilise and data.record["escape_scale"] == 1.25
+        assert sum(k["cut"] for k in data.record["kinds"].values()) == data.record["cut"]
+        if stabilise:
+            counts, _ = np.histogram(data.x[:, 0], bins=8, range=(-1.0, 1.0))
+            assert np.all(counts > 0.03 * len(data))                           # it covers the box
+    assert share[True] > 0.8 and share[False] < 0.7 * share[True]          # 0.87 and 0.52 (seed 0)
+
+
+def _envelope(plant, seed=0):
+    """An envelope from a simulated log of ``plant`` under random steps (states and inputs as logged)."""
+    u = kc.signals.make("random", amplitude=1.5, hold=0.7, seed=seed, horizon=40.0)
+    log = kc.simulate(plant, [0.5, 0.0], u, T=40.0, dt=0.05, measurement_std=0.01, seed=seed, method="rk")
+    return Envelope(0.05, (log.u,), (log.x,), np.array([[log.y.min(), log.y.max()]]),
+                    np.array([[log.u.min(), log.u.max()]]), 0.01, np.array([0.0, 0.1]),
+                    ({"path": "simulated", "sha256": "-", "rows": log.t.size},)), log
+
+
+def test_like_runs_replay_rescaled_log_segments_from_the_logged_states():
+    plant = _oscillator()
+    envelope, log = _envelope(plant)
+    cfg = RolloutConfig(n_traj=12, T=10.0, kinds=("zero",), envelope=envelope, like_share=1.0, escape_scale=100.0)
+    runs = rollouts(plant, cfg, 1, dt=0.05, measurement_std=0.0, process_std=0.0)
+    assert len(runs) == 12
+    for x, u in zip(runs.x, runs.u[..., 0]):
+        start = np.flatnonzero(np.all(log.x == x[0], axis=1))
+        assert start.size == 1                                                   # a state the rig was in
+        scale = u[0] / log.u[start[0], 0]
+        assert LIKE_AMPLITUDE_FACTORS[0] - 1e-12 <= scale <= LIKE_AMPLITUDE_FACTORS[1] + 1e-12
+        np.testing.assert_allclose(np.isin(np.round(u / scale, 9), np.round(log.u[:, 0], 9)), True)
+    families = fit_families(cfg, 1.0, plant)
+    assert set(families) == {"zero", "like"}
+    # the families' input range comes from the logs (widened) where the plant declares no u_box
+    box, source = rn.input_range(plant, envelope)
+    lo, hi = envelope.u_range[0]
+    np.testing.assert_allclose(box[0], [lo - 0.25 * (hi - lo) / 2, hi + 0.25 * (hi - lo) / 2])
+    assert "logged inputs" in source
+
+
+def test_the_logged_output_range_bounds_the_runs_and_their_starts():
+    plant = _oscillator()
+    envelope, _ = _envelope(plant)
+    narrow = replace(envelope, y_range=np.array([[-0.3, 0.3]]))
+    cfg = RolloutConfig(n_traj=30, T=10.0, kinds=("sinusoid",), envelope=narrow, like_share=0.0, escape_scale=100.0)
+    starts = rn._initial_states(plant, cfg, 0)
+    assert np.all(np.abs(starts[:, 0]) <= 0.36 + 1e-12)                          # outputs in range, margin 0.06
+    data = operational_data(plant, _bank(), cfg, 0, dt=0.05, measurement_std=0.0, process_std=0.0)
+    assert 0 < data.record["cut"] <= 30
+    assert np.all(np.abs(data.y) <= 0.36 + 1e-12)
+    with pytest.raises(TypeError, match="envelope: expected a kklcasadi.plant.envelope.Envelope"):
+        RolloutConfig(envelope={"y_range": [[0, 1]]})
+
+
+def _plant_file(tmp_path, u_box="None"):
+    path = tmp_path / "osc_plant.py"
+    path.write_text("import casadi as ca\nimport kklcasadi as kc\n\n\ndef make_plant():\n"
+                    "    x, u = ca.SX.sym('x', 2), ca.SX.sym('u', 1)\n"
+                    "    return kc.System('osc', x, u, [x[1], -x[0] - 0.5 * x[1] + u], x[0],\n"
+                    f"                     [[-2.0, 2.0], [-2.0, 2.0]], u_box={u_box})\n")
+    return path
+
+
+def _log_file(tmp_path):
+    plant = _oscillator()
+    tr = kc.simulate(plant, [0.5, 0.0], kc.signals.make("random", amplitude=1.5, hold=0.7, seed=3, horizon=30.0),
+                     T=30.0, dt=0.05, process_std=[0.0, 0.3], measurement_std=0.01, seed=3, method="rk")
+    path = tmp_path / "rig.csv"
+    np.savetxt(path, np.column_stack([tr.t, tr.u[:, 0], tr.y[:, 0]]), delimiter=",", header="t,volts,pos",
+               comments="")
+    return path
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--y-cols", "pos"], "--y-cols: names the columns of the logs of --like, received no --like LOG.csv"),
+    (["--like", "{log}"], "--y-cols: expected the logs' columns of the 1 output(s) of 'osc'"),
+    (["--like", "{log}", "--y-cols", "pos"], "--u-cols: expected the logs' column(s) of the 1 input(s) of 'osc', "
+     "received none; pass --u-zero"),
+    (["--like", "{log}", "--y-cols", "pos,volts", "--u-zero"], "--y-cols: expected 1 columns"),
+    (["--like", "{log}", "--y-cols", "pos", "--u-cols", "volts", "--time-col", "time"], "--like: "),
+    (["--like", "{log}", "--time-col", "t", "--y-cols", "pos", "--u-zero", "--method", "autonomous"],
+     "--like: only --method bank takes it, received --method autonomous"),
+])
+def test_train_like_refuses_what_it_cannot_read_naming_the_flag(tmp_path, capsys, flags, message):
+    pytest.importorskip("torch")
+    from kklcasadi.cli import main
+
+    log = _log_file(tmp_path)
+    argv = ["train", "--plant", f"{_plant_file(tmp_path)}:make_plant", "--out", str(tmp_path / "m"),
+            *[f.format(log=log) for f in flags]]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err and err.count("\n") == 1
+
+
+def test_train_like_takes_the_rigs_envelope_into_the_runs_and_the_card(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("torch")
+    import hashlib
+
+    import kklcasadi.train as training
+    from kklcasadi.cli import main
+    from kklcasadi.model.files import load_model
+
+    def tiny(system, method, **kw):          # the new-plant bank recipe on a budget a test can afford
+        config = training.default_config.__wrapped__(system, method, **kw)
+        return replace(config, rollouts=replace(config.rollouts, n_traj=16, T=4.0, chunk=16),
+                       decoder=replace(config.decoder, hidden=(16,), loop=replace(config.decoder.loop, batch_size=64)))
+
+    tiny.__wrapped__ = training.default_config
+    monkeypatch.setattr(training, "default_config", tiny)
+    log, out = _log_file(tmp_path), tmp_path / "m"
+    assert main(["train", "--plant", f"{_plant_file(tmp_path)}:make_plant", "--like", str(log), "--time-col", "t",
+                 "--y-cols", "pos", "--u-cols", "volts", "--epochs", "1", "--quiet", "--out", str(out)]) == 0
+    card = load_model(out).card
+    envelope = card["training"]["rollouts"]["envelope"]
+    assert envelope["sources"][0]["sha256"] == hashlib.sha256(log.read_bytes()).hexdigest()
+    assert envelope["noise"]["process_std_from"] == "logs" and envelope["process_std"][0] == 0.0
+    assert card["training"]["measurement_std"] == envelope["measurement_std"] == card["noise"]["measurement_std"]
+    assert abs(envelope["process_std"][1] / 0.3 - 1) < 0.5                      # 30 s of log: roughly
+    assert card["training"]["input_range"]["source"].startswith("the logged inputs' range")
+    assert card["domain"]["x_lo"] == [-2.0, -2.0] and card["domain"]["x_hi"] == [2.0, 2.0]
+    assert "like" in card["fit_families"] and card["training"]["runs"]["kinds"]["like"]["runs"] == 8
+    # a flag wins over the estimate
+    assert main(["train", "--plant", f"{_plant_file(tmp_path)}:make_plant", "--like", str(log), "--time-col", "t",
+                 "--y-cols", "pos", "--u-cols", "volts", "--process-std", "0.7", "--epochs", "1", "--quiet",
+                 "--overwrite", "--out", str(out)]) == 0
+    card = load_model(out).card
+    assert card["noise"]["process_std"] == [0.0, 0.7] and card["training"]["rollouts"]["envelope"]["noise"][
+        "process_std_from"] == "given"
+    # a plant with inputs and no u_box (and no logs) says so in one line naming u_box
+    capsys.readouterr()
+    assert main(["train", "--plant", f"{_plant_file(tmp_path)}:make_plant", "--epochs", "1", "--quiet",
+                 "--overwrite", "--out", str(out)]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "u_box" in line]
+    assert len(lines) == 1 and "declares no u_box" in lines[0]
