@@ -18,7 +18,8 @@ from kklcasadi.nets.hold import foh_matrices
 from kklcasadi.plant.systems import LINEAR_F, LINEAR_G, LINEAR_H
 
 
-@pytest.mark.parametrize("name, weights", [("linear", (1.0,)), ("duffing", (1.0, 100.0)), ("vdp", (0.1, 1e4))])
+@pytest.mark.parametrize("name, weights", [("linear", (1.0,)), ("duffing", (1.0, 100.0)), ("vdp", (0.1, 1e4)),
+                                           ("duffing", ((0.0, 8e8), 3.0))])          # one intensity per state
 def test_the_gains_solve_the_filter_riccati_equation_and_stabilise_the_linearisation(name, weights):
     system = kc.systems.get(name)
     copies = ModelCopies.design(system, weights)
@@ -27,11 +28,12 @@ def test_the_gains_solve_the_filter_riccati_equation_and_stabilise_the_linearisa
     F = np.array(ca.Function("F", [x], [ca.jacobian(system.f(x, 0), x)])(r))
     H = np.array(ca.Function("H", [x], [ca.jacobian(system.h(x), x)])(r))
     for w, L in zip(weights, copies.gains):
-        # L = P H^T with F P + P F^T - P H^T H P + w I = 0, P symmetric positive definite
-        P = scipy.linalg.solve_continuous_are(F.T, H.T, w * np.eye(system.nx), np.eye(system.ny))
+        # L = P H^T with F P + P F^T - P H^T H P + Q = 0 (Q = w I, or diag(w) per state), P symmetric positive definite
+        Q = np.diag(np.broadcast_to(np.asarray(w, dtype=float), (system.nx,)))
+        P = scipy.linalg.solve_continuous_are(F.T, H.T, Q, np.eye(system.ny))
         np.testing.assert_allclose(L, P @ H.T, rtol=1e-12)
-        residual = F @ P + P @ F.T - P @ H.T @ H @ P + w * np.eye(system.nx)
-        assert np.abs(residual).max() < 1e-9 * max(1.0, w)
+        residual = F @ P + P @ F.T - P @ H.T @ H @ P + Q
+        assert np.abs(residual).max() < 1e-9 * max(1.0, np.max(w))
         assert np.linalg.eigvalsh(P).min() > 0
         assert np.linalg.eigvals(F - L @ H).real.max() < 0
     assert copies.nz == len(weights) * system.nx and np.array_equal(copies.reference, r)
@@ -99,6 +101,9 @@ def test_a_copy_thrown_off_comes_back_inside_its_bound():
 
 @pytest.mark.parametrize("kwargs, match", [
     ({"weights": (0.0,)}, "weights: expected one or more finite process intensities > 0"),
+    ({"weights": ((0.0, 0.0),)}, r"or per copy nx = 2 of them >= 0, not all 0"),
+    ({"weights": ((1.0, -1.0),)}, "weights: expected one or more finite process intensities > 0"),
+    ({"weights": ((1.0, 1.0, 1.0),)}, "weights: expected one or more finite process intensities > 0"),
     ({"weights": ()}, "weights: expected one or more"),
     ({"weights": (1.0,), "bound_scale": -1.0}, "bound_scale: expected a finite number > 0"),
 ])

@@ -192,6 +192,10 @@ def test_train_like_takes_the_rigs_envelope_into_the_runs_and_the_card(tmp_path,
     assert card["training"]["input_range"]["source"].startswith("the logged inputs' range")
     assert card["domain"]["x_lo"] == [-2.0, -2.0] and card["domain"]["x_hi"] == [2.0, 2.0]
     assert "like" in card["fit_families"] and card["training"]["runs"]["kinds"]["like"]["runs"] == 8
+    # the plant declares where it lives: its latent holds a copy at the training noise's ratio, per state
+    ratio = [(q / envelope["measurement_std"]) ** 2 for q in envelope["process_std"]]
+    np.testing.assert_allclose(card["architecture"]["bank"]["copies"]["weights"], [ratio], rtol=1e-12)
+    assert card["training"]["noise_copy"].startswith("one copy at the training noise's ratio")
     # a flag wins over the estimate
     assert main(["train", "--plant", f"{_plant_file(tmp_path)}:make_plant", "--like", str(log), "--time-col", "t",
                  "--y-cols", "pos", "--u-cols", "volts", "--process-std", "0.7", "--epochs", "1", "--quiet",
@@ -205,3 +209,23 @@ def test_train_like_takes_the_rigs_envelope_into_the_runs_and_the_card(tmp_path,
                  "--overwrite", "--out", str(out)]) == 0
     lines = [line for line in capsys.readouterr().out.splitlines() if "u_box" in line]
     assert len(lines) == 1 and "declares no u_box" in lines[0]
+
+
+def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
+    pytest.importorskip("torch")
+    from kklcasadi.train.bank import BankConfig, with_noise_copy
+
+    config = replace(BankConfig.for_system("mass"), measurement_std=0.01, process_std=0.5)
+    added, text = with_noise_copy(_mass(), config)
+    assert added.copies == ((0.0, 2500.0),) and added.noise_copy is False and "intensities [0.0, 2500.0]" in text
+    assert with_noise_copy(_mass(u_box=None), config)[0].copies == ()                 # declares nothing
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    pendulum = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-3, 3], [-2, 2]], angle_states=(0,),
+                         u_box=[[-1, 1]])
+    kept, why = with_noise_copy(pendulum, config)
+    assert kept.copies == () and "angle states" in why
+    assert with_noise_copy(_mass(), replace(config, noise_copy=False))[0].copies == ()
+    assert with_noise_copy(_mass(u_box=None), replace(config, noise_copy=True))[0].copies == ((0.0, 2500.0),)
+    for bad in ({"copies": ((0.0, 0.0),)}, {"copies": (-1.0,)}, {"noise_copy": "yes"}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            replace(config, **bad)

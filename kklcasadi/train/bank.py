@@ -38,7 +38,8 @@ from .decoder import BankFit, DecoderConfig, config_record, fit_bank_decoder
 from .result import Trained
 
 __all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale",
-           "process_stds", "design_copies", "latent_design", "ensemble_arrays", "fit_members",
+           "process_stds", "design_copies", "with_envelope", "with_noise_copy", "latent_design", "ensemble_arrays",
+           "fit_members",
            "SHIPPED", "SHIPPED_MEMBERS", "NEW_PLANT_BANK", "PROCESS_ON"]
 
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
@@ -78,6 +79,12 @@ NEW_PLANT_BANK = {"n_traj": 1000, "T": 60.0, "epochs": 15}
 PROCESS_ON = ("all", "forced")
 
 
+def _intensity(value: object) -> bool:
+    """A model copy's process intensity: a finite number > 0, or a sequence of finite numbers >= 0 not all 0."""
+    w = np.asarray(value, dtype=float) if isinstance(value, (int, float, tuple, list)) else np.array(np.nan)
+    return bool(w.ndim <= 1 and w.size and np.all(np.isfinite(w)) and np.all(w >= 0) and np.any(w > 0))
+
+
 @dataclass(frozen=True)
 class BankConfig:
     """The ``bank`` observer: the filter bank's design, the operational runs and the decoder fit.
@@ -114,14 +121,19 @@ class BankConfig:
         The runs: how many and how long (the budget), inputs, noise range, sample times, escapes.
     decoder : DecoderConfig
         Architecture, loss and optimisation of the decoder.
-    copies : tuple of float
+    copies : tuple of float or of tuple of float
         Process intensities of the latent's model copies of the plant, one copy each
         (:class:`kklcasadi.model.variants.copies.ModelCopies`: constant-gain observers whose states the
         decoder reads beside the filters; ``1.0`` is the protocol EKF's ratio of process to measurement
-        noise); empty: none. Not for plants with angle states.
+        noise, a tuple one intensity per state); empty: none. Not for plants with angle states.
     copy_substeps : int or None
         RK4 steps per sample interval of the copies; None: the fewest with ``h rho <= 1`` (``rho``
         the largest spectral radius of the copies' linearised error dynamics ``F - L_i H``).
+    noise_copy : bool or None
+        Add one model copy at the training noise's ratio, ``(process_std_i / measurement_std)^2`` per state (the
+        steady-state Kalman gain of the noise the decoder is fit for, linearised at the box centre:
+        :func:`with_noise_copy`); None (a new plant): where the plant declares where it lives (a ``u_box`` or
+        a rig's envelope), has no angle states and its linearisation takes the gain.
     members : int
         Decoder networks fitted on the same runs from seeds ``seed, seed + 1, ...``: the estimate maps
         the mean of their outputs, and their spread is the domain monitor's second test
@@ -144,18 +156,21 @@ class BankConfig:
         loop=LoopConfig(epochs=40, batch_size=1024, lr=1e-3, schedule="cosine", val_fraction=0.05)))
     copies: tuple = ()
     copy_substeps: Optional[int] = None
+    noise_copy: Optional[bool] = False
     members: int = 1
     monitor: MonitorConfig = field(default_factory=MonitorConfig)
 
     def __post_init__(self) -> None:
-        w = np.asarray(self.copies, dtype=float) if isinstance(self.copies, (tuple, list)) else None
-        if w is None or w.ndim != 1 or not np.all(np.isfinite(w)) or np.any(w <= 0):
-            raise error("copies", "a tuple of process intensities > 0 (one model copy each; () for none)", self.copies)
+        if not isinstance(self.copies, (tuple, list)) or not all(_intensity(w) for w in self.copies):
+            raise error("copies", "a tuple of process intensities > 0, or of tuples of one per state >= 0 (one model "
+                        "copy each; () for none)", self.copies)
         if self.copy_substeps is not None and not (isinstance(self.copy_substeps, int)
                                                     and not isinstance(self.copy_substeps, bool)
                                                     and self.copy_substeps >= 1):
             raise error("copy_substeps", "a positive integer (RK4 steps per sample) or None (from the gains)",
                         self.copy_substeps)
+        if self.noise_copy not in (None, True, False):
+            raise error("noise_copy", "True, False or None (where the plant declares where it lives)", self.noise_copy)
         if not isinstance(self.monitor, MonitorConfig):
             raise error("monitor", "a kklcasadi.model.operational.MonitorConfig", Text(type(self.monitor).__name__),
                         kind=TypeError)
@@ -188,7 +203,7 @@ class BankConfig:
             decoder = {key: shipped[key] for key in ("asinh_scale", "skip", "loss", "smape_weight") if key in shipped}
             return replace(config, decoder=replace(config.decoder, **decoder))
         budget = dict(NEW_PLANT_BANK)
-        config = replace(config, process_on="forced",
+        config = replace(config, process_on="forced", noise_copy=None,
                          rollouts=replace(config.rollouts, n_traj=budget["n_traj"], T=budget["T"], escape_scale=None,
                                           stabilise=None))
         return with_epochs(config, budget["epochs"])
@@ -234,6 +249,29 @@ def design_bank(system: System, config: BankConfig, rate: float | None = None) -
     return fb.FilterBank.design(system.ny, system.nu, _scaled(config.y_poles, rate), _scaled(config.u_poles, rate),
                                 y_resonators=[(z, w * rate) for z, w in config.y_resonators],
                                 clock=None if config.clock is None else config.clock * rate)
+
+
+def with_noise_copy(system: System, config: BankConfig) -> tuple[BankConfig, str]:
+    """``config`` with its noise copy among ``copies`` where ``noise_copy`` asks for it (and ``noise_copy``
+    False), and what was done, for the card: the copy's intensities ``(process_std_i / measurement_std)^2``
+    per state (:func:`process_stds`), or why there is none."""
+    want = config.noise_copy
+    if want is None:
+        want = declares_envelope(system, config.rollouts.envelope) and not system.angle_states
+        if not want:
+            return config, "none: the plant declares no u_box or envelope, or has angle states"
+    if not want:
+        return config, "none (noise_copy False)"
+    if not config.measurement_std > 0:
+        return replace(config, noise_copy=False), "none: no measurement noise to weigh the process noise against"
+    weights = tuple(float(v) for v in (process_stds(system, config) / config.measurement_std) ** 2)
+    if config.noise_copy is None:
+        try:
+            ModelCopies.design(system, [weights])
+        except ValueError as exc:
+            return replace(config, noise_copy=False), f"none: {exc}"
+    return (replace(config, copies=(*config.copies, weights), noise_copy=False),
+            f"one copy at the training noise's ratio, intensities {list(weights)}")
 
 
 def design_copies(system: System, config: BankConfig, dt: float) -> Optional[ModelCopies]:
@@ -290,7 +328,8 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
         params["members"] = len(fits)
     if copies is not None:
         arrays.update(copies.arrays())
-        params["copies"] = {"weights": [float(w) for w in config.copies], "substeps": copies.substeps}
+        params["copies"] = {"weights": [float(w) if np.ndim(w) == 0 else [float(v) for v in w] for w in config.copies],
+                            "substeps": copies.substeps}
     A, B = latent_design(bank, copies)
     spec = BankSpec(MLPSpec.from_card(fits[0].arch, "architecture", DECODER), A, B, dt, system.nu, params,
                     fits[0].angles)
@@ -312,6 +351,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     if type(config) is not BankConfig:
         raise TypeError(f"config: expected a BankConfig for 'bank', received {type(config).__name__}.")
     load_start = os.getloadavg()
+    config, noise_copy = with_noise_copy(system, config)
     u_range, u_source = input_range(system, config.rollouts.envelope)
     if u_range is None:
         print(f"inputs   {system.name!r}: {u_source}", flush=True)
@@ -332,6 +372,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
         domain = replace(domain, x_lo=system.x0_box[:, 0].copy(), x_hi=system.x0_box[:, 1].copy())
     training = {"config": config, **config_record(config.rollouts, config.decoder), "time_scale": rate,
                 "input_range": {"range": None if u_range is None else u_range.tolist(), "source": u_source},
+                "noise_copy": noise_copy,
                 "measurement_std": config.measurement_std, "process_std": process.tolist(),
                 "runs": data.record, "decoder_fit": fitted.fit.summary(), "samples": fitted.n_samples,
                 **({"member_fits": [f.fit.summary() for f in fits[1:]]} if len(fits) > 1 else {}),

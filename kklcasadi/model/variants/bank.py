@@ -143,6 +143,12 @@ def _positive_numbers(value: Any) -> bool:
     return isinstance(value, list) and all(is_number(v) and math.isfinite(v) and v > 0 for v in value)
 
 
+def _intensities(value: Any) -> bool:
+    """One model copy's intensities per state: a list of finite numbers >= 0, not all 0."""
+    return (isinstance(value, list) and bool(value) and all(is_number(v) and math.isfinite(v) and v >= 0 for v in value)
+            and any(v > 0 for v in value))
+
+
 def _params(entry: Any, where: str) -> dict:
     fix = ('Write "bank" as {"y_poles": [p, ...], "u_poles": [p, ...], "y_resonators": [[zeta, omega], ...], '
            '"clock": rate or null} (optionally "time_scale": rate, "angles": {...} and "members": K, the decoder '
@@ -169,10 +175,12 @@ def _params(entry: Any, where: str) -> dict:
     if "copies" in entry:
         copies = entry["copies"]
         if not (isinstance(copies, Mapping) and set(copies) == {"weights", "substeps"}
-                and isinstance(copies["weights"], list) and copies["weights"] and _positive_numbers(copies["weights"])
+                and isinstance(copies["weights"], list) and copies["weights"]
+                and all(_positive_numbers([w]) or _intensities(w) for w in copies["weights"])
                 and is_int(copies["substeps"]) and copies["substeps"] >= 1):
-            raise field_error(where, "architecture.bank.copies", '{"weights": [w > 0, ...], "substeps": n >= 1} '
-                              "(the model copies' process intensities and RK4 steps per sample)", copies, fix)
+            raise field_error(where, "architecture.bank.copies", '{"weights": [w > 0 or [w_1 >= 0, ...], ...], '
+                              '"substeps": n >= 1} (the model copies\' process intensities, one or one per state, '
+                              "and RK4 steps per sample)", copies, fix)
     return {key: entry[key] for key in _BANK_KEYS + ("time_scale", "members", "copies") if key in entry}
 
 

@@ -103,15 +103,16 @@ class ModelCopies:
         object.__setattr__(self, "substeps", int(self.substeps))
 
     @classmethod
-    def design(cls, system: System, weights: Sequence[float], *, substeps: int = 2,
+    def design(cls, system: System, weights: Sequence[Any], *, substeps: int = 2,
                bound_scale: float = BOUND_SCALE) -> ModelCopies:
         """Copies with the Kalman-Bucy gains of ``system`` linearised at its box centre.
 
         Parameters
         ----------
         system : System
-        weights : sequence of float
-            Process intensities ``w_i > 0``, one per copy (against unit measurement intensity).
+        weights : sequence of float or of array_like (nx,)
+            Process intensities, one entry per copy, against unit measurement intensity: ``w_i > 0`` (``w_i I``)
+            or ``nx`` intensities ``>= 0``, not all 0 (a diagonal: a rig's noise per state, where a force acts).
         substeps : int
             RK4 steps per sample interval.
         bound_scale : float
@@ -120,27 +121,35 @@ class ModelCopies:
         Raises
         ------
         ValueError
-            Where a weight is not a finite number > 0, or the linearisation is not detectable from ``y``.
+            Where a weight is neither, or the linearisation is not detectable from ``y``.
         """
-        w = np.asarray(weights, dtype=float)
-        if w.ndim != 1 or w.size < 1 or not np.all(np.isfinite(w)) or np.any(w <= 0):
-            raise error("weights", "one or more finite process intensities > 0, one per copy", list(weights))
+        if isinstance(weights, (str, bytes)) or not isinstance(weights, (list, tuple, np.ndarray)) or not len(weights):
+            raise error("weights", "one or more finite process intensities > 0, one per copy", weights)
+        intensities = []
+        for wi in weights:
+            q = np.asarray(wi, dtype=float)
+            if not (q.ndim == 0 or q.shape == (system.nx,)) or not np.all(np.isfinite(q)) or np.any(q < 0) \
+                    or not np.any(q > 0) or (q.ndim == 0 and q <= 0):
+                raise error("weights", "one or more finite process intensities > 0, one per copy (or per copy "
+                            f"nx = {system.nx} of them >= 0, not all 0)", list(weights))
+            intensities.append(np.diag(np.broadcast_to(q, (system.nx,)).astype(float)))
         if not (np.isfinite(bound_scale) and bound_scale > 0):
             raise error("bound_scale", "a finite number > 0", bound_scale)
         box = np.asarray(system.x0_box, dtype=float)
         r = box.mean(axis=1)
         F, H = _jacobians(system, r)
         gains = []
-        for wi in w:
+        for wi, Q in zip(weights, intensities):
+            wi = f"{float(wi):g}" if np.ndim(wi) == 0 else "(" + ", ".join(f"{float(v):g}" for v in wi) + ")"
             try:
-                P = scipy.linalg.solve_continuous_are(F.T, H.T, wi * np.eye(system.nx), np.eye(system.ny))
+                P = scipy.linalg.solve_continuous_are(F.T, H.T, Q, np.eye(system.ny))
             except (np.linalg.LinAlgError, ValueError) as exc:
-                raise ValueError(f"weights: no stabilising Kalman-Bucy gain for weight {wi:g}: {system.name} "
+                raise ValueError(f"weights: no stabilising Kalman-Bucy gain for weight {wi}: {system.name} "
                                  f"linearised at its box centre {r.tolist()} is not detectable from y ({exc}). "
                                  "Train without model copies.") from exc
             L = P @ H.T
             if np.max(np.linalg.eigvals(F - L @ H).real) >= 0:
-                raise ValueError(f"weights: the Kalman-Bucy gain for weight {wi:g} does not stabilise {system.name} "
+                raise ValueError(f"weights: the Kalman-Bucy gain for weight {wi} does not stabilise {system.name} "
                                  "linearised at its box centre; train without model copies.")
             gains.append(L)
         return cls(system, np.stack(gains), r, 0.5 * (box[:, 1] - box[:, 0]) * bound_scale, substeps)
