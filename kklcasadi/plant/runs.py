@@ -105,9 +105,10 @@ class RolloutConfig:
         (:func:`declares_envelope`), else :data:`LEGACY_ESCAPE` (:func:`resolved`).
     stabilise : bool or None
         Run every open-loop family under a PD loop around set points in the outputs' range (the
-        ``pd`` family's law, its input added to the family's), as a rig runs under its controller: the
-        plant's integrators then cover the box rather than drift out of it. None: where the plant has
-        drifting states (:func:`drifting_states`).
+        ``pd`` family's law, its input added to the family's, scaled by a factor drawn from
+        :data:`FEEDFORWARD_FACTORS`), and the ``feedback`` family with the sign that feeds back negatively, as a
+        rig runs under its controller: the plant's integrators then cover the box rather than drift out of it.
+        None: where the plant has drifting states (:func:`drifting_states`).
     envelope : Envelope or None
         The rig's envelope from its logs (:func:`kklcasadi.estimators.noise.rig_envelope`): a share
         ``like_share`` of the runs replays segments of the logged inputs (``like``: resampled in time and
@@ -577,6 +578,8 @@ def _inputs(system: System, config: RolloutConfig, seed: int, t: np.ndarray, rat
         kind = kinds.pop()
         names.append(kind)
         drawn = _draw_input(kind, rng, config.regime, system, t, y_range, rate, u_map)
+        if config.stabilise and kind == "feedback":            # negative feedback only: the plant drifts
+            drawn = replace(drawn, gain=np.abs(drawn.gain) * loop_signs(system))
         if config.stabilise and not isinstance(drawn, _Feedback):
             samples = np.asarray(drawn(t) if callable(drawn) else drawn, dtype=float)
             unit = samples if u_map is None else (samples - u_map[0]) / u_map[1]
