@@ -110,16 +110,22 @@ def test_like_runs_replay_rescaled_log_segments_from_the_logged_states():
     assert "logged inputs" in source
 
 
-def test_the_logged_output_range_bounds_the_runs_and_their_starts():
+def test_the_runs_start_where_the_rig_was_and_its_output_range_bounds_them():
     plant = _oscillator()
-    envelope, _ = _envelope(plant)
+    envelope, log = _envelope(plant)
     narrow = replace(envelope, y_range=np.array([[-0.3, 0.3]]))
     cfg = RolloutConfig(n_traj=30, T=10.0, kinds=("sinusoid",), envelope=narrow, like_share=0.0, escape_scale=100.0)
     starts = rn._initial_states(plant, cfg, 0)
-    assert np.all(np.abs(starts[:, 0]) <= 0.36 + 1e-12)                          # outputs in range, margin 0.06
+    assert all(np.any(np.all(log.x == x, axis=1)) for x in starts)              # states along the log
     data = operational_data(plant, _bank(), cfg, 0, dt=0.05, measurement_std=0.0, process_std=0.0)
     assert 0 < data.record["cut"] <= 30
-    assert np.all(np.abs(data.y) <= 0.36 + 1e-12)
+    assert np.all(np.abs(data.y) <= 0.36 + 1e-12)                                # the range widened by 0.06
+    # an angle output turns freely: its logged range bounds nothing
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    pendulum = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) - 0.5 * x[1] + u], x[0], [[-2.0, 2.0], [-2.0, 2.0]],
+                         angle_states=(0,), angle_outputs=(0,))
+    turning = operational_data(pendulum, _bank(), cfg, 0, dt=0.05, measurement_std=0.0, process_std=0.0)
+    assert turning.record["cut"] == 0 and np.abs(turning.y).max() > 0.36
     with pytest.raises(TypeError, match="envelope: expected a kklcasadi.plant.envelope.Envelope"):
         RolloutConfig(envelope={"y_range": [[0, 1]]})
 

@@ -115,8 +115,9 @@ class RolloutConfig:
         rescaled by factors :data:`kklcasadi.plant.envelope.LIKE_TIME_FACTORS`,
         :data:`~kklcasadi.plant.envelope.LIKE_AMPLITUDE_FACTORS`) from the state the rig was in at the
         segment's start (under the loop of ``stabilise``, around the logged outputs); the other runs start
-        where the outputs lie in the logged range, and every run is cut where an output leaves that
-        range widened by :data:`~kklcasadi.plant.envelope.OUTPUT_MARGIN` of its width.
+        at states the rig was in too (the logs' energies), and every run is cut where an output that is not
+        an angle leaves the logged range widened by :data:`~kklcasadi.plant.envelope.OUTPUT_MARGIN` of its
+        width (an angle turns freely).
     like_share : float
         With an envelope: the share of the runs that are ``like`` runs.
     sample_period, dense_period, dense_time : float
@@ -288,14 +289,11 @@ def _left_outputs(y: np.ndarray, bounds: np.ndarray) -> np.ndarray:
 
 def _initial_states(system: System, config: RolloutConfig, seed: int) -> np.ndarray:
     """The runs' initial states (n_traj, nx): a Latin hypercube over the X0 box, scaled about its centre;
-    with an envelope, the first of a larger hypercube whose outputs lie in the logged range (widened)."""
+    with an envelope, states the rig was in (drawn from the states along its logs: its energies, not the
+    box's corners)."""
     if config.envelope is not None:
-        pool = system.sample_box(8 * config.n_traj, seed, scale=float(np.max(config.box_scale)))
-        y = system.h_batch(pool)
-        bounds = _output_bounds(config.envelope)
-        inside = np.all((y >= bounds[:, 0]) & (y <= bounds[:, 1]), axis=1)
-        order = np.concatenate([np.flatnonzero(inside), np.flatnonzero(~inside)])   # outside ones only if short
-        return pool[order[:config.n_traj]]
+        states = np.vstack(config.envelope.states)
+        return states[np.random.default_rng([seed, 6]).integers(len(states), size=config.n_traj)]
     if np.ndim(config.box_scale) == 0:
         return system.sample_box(config.n_traj, seed, scale=float(config.box_scale))
     lo, hi = config.box_scale
@@ -602,6 +600,8 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
     t = time_grid(horizon, dt)
     inputs, x0, kinds = _inputs(system, config, seed, t, rate, _initial_states(system, config, seed))
     bounds = None if config.envelope is None else _output_bounds(config.envelope)
+    if bounds is not None:                         # an angle turns freely (its range on the circle bounds nothing)
+        bounds[list(system.angle_outputs)] = [-np.inf, np.inf]
     seeds = np.random.SeedSequence([seed, 2]).spawn(config.n_traj)
     noise = np.random.default_rng([seed, 3])
     log_lo, log_hi = np.log(config.noise_range)
