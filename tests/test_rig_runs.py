@@ -224,6 +224,7 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
     config = replace(BankConfig.for_system("mass"), measurement_std=0.01, process_std=0.5)
     added, text = with_noise_copy(_mass(), config)
     assert added.copies == ((0.0, 2500.0),) and added.noise_copy is False and "intensities [0.0, 2500.0]" in text
+    assert added.decoder.skip and not config.decoder.skip
     assert with_noise_copy(_mass(u_box=None), config)[0].copies == ()                 # declares nothing
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
     pendulum = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-3, 3], [-2, 2]], angle_states=(0,),
