@@ -92,7 +92,8 @@ def _envelope(plant, seed=0):
 def test_like_runs_replay_rescaled_log_segments_from_the_logged_states():
     plant = _oscillator()
     envelope, log = _envelope(plant)
-    cfg = RolloutConfig(n_traj=12, T=10.0, kinds=("zero",), envelope=envelope, like_share=1.0, escape_scale=100.0)
+    cfg = RolloutConfig(n_traj=12, T=10.0, kinds=("zero",), envelope=replace(envelope, y_range=np.array([[-9, 9]])),
+                        like_share=1.0, escape_scale=100.0)
     runs = rollouts(plant, cfg, 1, dt=0.05, measurement_std=0.0, process_std=0.0)
     assert len(runs) == 12
     for x, u in zip(runs.x, runs.u[..., 0]):

@@ -284,7 +284,8 @@ def rig_envelope(system: System, paths: Sequence[str | os.PathLike], *, dt: floa
         As :func:`kklcasadi.plant.logs.read_log` (``angle_cols`` default: the ``y_cols`` of the plant's
         angle outputs); without ``u_cols`` the rig ran at ``u = 0``.
     settle : float
-        Seconds at the start of each log left out of the likelihood.
+        Seconds at the start of each log left out of the likelihood, and where no training run starts (the
+        EKF's transient).
     measurement_std, process_std : optional
         Given levels win over the estimates (a process std: one for the forced states, or one per state).
 
@@ -340,4 +341,5 @@ def rig_envelope(system: System, paths: Sequence[str | os.PathLike], *, dt: floa
         u_all = np.vstack([log.u for log in logs])
         u_range = np.column_stack([u_all.min(axis=0), u_all.max(axis=0)])
     return Envelope(dt, tuple(log.u for log in logs) if u_cols else (), states,
-                    np.column_stack([y_all.min(axis=0), y_all.max(axis=0)]), u_range, r, q, tuple(sources), noise)
+                    np.column_stack([y_all.min(axis=0), y_all.max(axis=0)]), u_range, r, q, tuple(sources), noise,
+                    settle)

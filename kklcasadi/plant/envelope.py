@@ -76,6 +76,9 @@ class Envelope:
         One per log: ``path``, ``sha256``, ``rows``, the columns read, the grid's span.
     noise : dict
         How the noise was estimated (per-output measurement stds, the likelihood fit's record).
+    settle : float
+        Seconds at the start of each log where the EKF's states are its transient from the prior (no run
+        starts there).
     """
 
     dt: float
@@ -87,6 +90,7 @@ class Envelope:
     process_std: np.ndarray
     sources: tuple
     noise: dict = field(default_factory=dict)
+    settle: float = 0.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.states, tuple) and self.states):
@@ -107,8 +111,9 @@ class Envelope:
             u_range = np.array(self.u_range, dtype=float)
             object.__setattr__(self, "u_range", _readonly(u_range, (u_range.shape[0], 2), "u_range"))
         object.__setattr__(self, "process_std", _readonly(self.process_std, (nx,), "process_std"))
-        if not (self.dt > 0 and self.measurement_std >= 0):
-            raise error("dt, measurement_std", "dt > 0 and a std >= 0", (self.dt, self.measurement_std))
+        if not (self.dt > 0 and self.measurement_std >= 0 and self.settle >= 0):
+            raise error("dt, measurement_std, settle", "dt > 0, a std >= 0 and seconds >= 0",
+                        (self.dt, self.measurement_std, self.settle))
 
     @property
     def nx(self) -> int:
@@ -125,6 +130,6 @@ class Envelope:
                 "y_range": self.y_range.tolist(),
                 "u_range": None if self.u_range is None else self.u_range.tolist(),
                 "measurement_std": self.measurement_std, "process_std": self.process_std.tolist(),
-                "noise": dict(self.noise),
+                "noise": dict(self.noise), "settle_s": self.settle,
                 "like": {"time_factors": list(LIKE_TIME_FACTORS), "amplitude_factors": list(LIKE_AMPLITUDE_FACTORS)},
                 "output_margin": OUTPUT_MARGIN}

@@ -292,8 +292,9 @@ def _initial_states(system: System, config: RolloutConfig, seed: int) -> np.ndar
     with an envelope, states the rig was in (drawn from the states along its logs: its energies, not the
     box's corners)."""
     if config.envelope is not None:
-        states = np.vstack(config.envelope.states)
-        return states[np.random.default_rng([seed, 6]).integers(len(states), size=config.n_traj)]
+        starts = _starts(config.envelope, system)
+        pick = starts[np.random.default_rng([seed, 6]).integers(len(starts), size=config.n_traj)]
+        return np.array([config.envelope.states[i][k] for i, k in pick])
     if np.ndim(config.box_scale) == 0:
         return system.sample_box(config.n_traj, seed, scale=float(config.box_scale))
     lo, hi = config.box_scale
@@ -476,17 +477,40 @@ def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System
     return _pd_law(rng, system, t, rate, output, y_scale, limit, times, levels, u_map=u_map)
 
 
+def _starts(envelope: Envelope, system: System) -> np.ndarray:
+    """The samples ``(log, k)`` (S, 2) a run may start at: after the envelope's ``settle`` seconds (the EKF's
+    transient from its prior) and in the X0 box (angle states on the circle); all samples where none is."""
+    pairs = []
+    for i, states in enumerate(envelope.states):
+        ok = _in_box(system, states)
+        ok[:int(np.ceil(envelope.settle / envelope.dt - 1e-9))] = False
+        pairs.append(np.column_stack([np.full(int(ok.sum()), i), np.flatnonzero(ok)]))
+    pairs = np.vstack(pairs)
+    if len(pairs):
+        return pairs
+    return np.vstack([np.column_stack([np.full(len(s), i), np.arange(len(s))]) for i, s in enumerate(envelope.states)])
+
+
+def _in_box(system: System, x: np.ndarray) -> np.ndarray:
+    """Whether each state (M, nx) lies in the X0 box (angle states compared on the circle), (M,)."""
+    lo, hi = system.x0_box[:, 0], system.x0_box[:, 1]
+    dev = x - 0.5 * (lo + hi)
+    if system.angle_states:
+        a = list(system.angle_states)
+        dev[..., a] = np.angle(np.exp(1j * dev[..., a]))
+    return np.all(np.abs(dev) <= 0.5 * (hi - lo), axis=-1)
+
+
 def _like_run(envelope: Envelope, rng: np.random.Generator, system: System, t: np.ndarray,
               u_box: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A ``like`` run: a segment of a log (drawn in proportion to the logs' lengths) from a random sample
-    on, resampled in time by a factor from :data:`~kklcasadi.plant.envelope.LIKE_TIME_FACTORS` (continued
+    """A ``like`` run: a segment of a log from a sample of :func:`_starts` (all equally likely) on, resampled
+    in time by a factor from :data:`~kklcasadi.plant.envelope.LIKE_TIME_FACTORS` (continued
     from the log's start where it runs out) and its input rescaled about zero by one from
     :data:`~kklcasadi.plant.envelope.LIKE_AMPLITUDE_FACTORS` (clipped to ``u_box``): the state there (nx,), the
     input (N, nu) (0 for a log without inputs) and the logged outputs along it (N, ny), ``h`` of its states."""
-    lengths = np.array([len(s) for s in envelope.states], dtype=float)
-    i = int(rng.choice(len(lengths), p=lengths / lengths.sum()))
+    starts = _starts(envelope, system)
+    i, start = (int(v) for v in starts[int(rng.integers(len(starts)))])
     states = envelope.states[i]
-    start = int(rng.integers(len(states)))
     factor, amplitude = (float(np.exp(rng.uniform(*np.log(r)))) for r in (LIKE_TIME_FACTORS, LIKE_AMPLITUDE_FACTORS))
     rows = (start + np.floor(factor * (t - t[0]) / envelope.dt).astype(int)) % len(states)
     if envelope.inputs:
