@@ -246,6 +246,38 @@ def test_every_results_page_is_what_its_script_writes_now(monkeypatch):
             assert (ROOT / file).is_file(), (name, file)               # every file a page names exists
 
 
+def _step_rows(path):
+    """``{model: (C default us, instructions)}`` of a ``kklcasadi bench observer --write`` table."""
+    rows = {}
+    for line in provenance.strip_markdown(path.read_text()).splitlines():
+        if line.startswith("| `"):
+            cols = [c.strip() for c in line.strip().strip("|").split("|")]
+            rows[cols[0].strip("`")] = (cols[2], cols[-1])
+    return rows
+
+
+def test_which_observer_to_pick_follows_from_the_results():
+    """The compact observer's figures in the README, recomputed from its scored trials (the protocol's noisy cells
+    beside the bank in one run; generalise's default seed beside the bank's stored report on the same trials) and
+    from the step table written by kklcasadi bench observer."""
+    text = re.sub(r"\s+", " ", section("Which observer to pick"))
+    cells = {(c["method"], c["kind"]): c["smape_mean"] for c in json_payload(json.loads(
+        (ROOT / "results" / "protocol" / "duffing" / "compact" / "duffing_scores.json").read_text()))}
+    assert f"{span([cells['compact', k] / cells['bank', k] for k in KINDS], 3)} the bank's mean SMAPE" in text
+
+    def report(path):
+        return json_payload(json.loads((ROOT / "results" / "generalisation" / "duffing" / path).read_text()))
+
+    compact, bank = report("compact/duffing_generalisation.json"), report("duffing_generalisation.json")
+    assert [c["ekf"]["smape_mean"] for c in compact["cases"]] == [c["ekf"]["smape_mean"] for c in bank["cases"]]
+    worst = [max(c["models"][label]["ratio_ekf"] for c in r["cases"]) for r, label in ((compact, "compact"),
+                                                                                         (bank, "bank"))]
+    assert f"worst case {worst[0]:.3f}x the EKF against the bank's {worst[1]:.3f}x" in text
+    steps = _step_rows(ROOT / "results" / "speed" / "duffing" / "observer_step_duffing.md")
+    (c_us, c_n), (b_us, b_n) = steps["duffing/compact"], steps["duffing/bank"]
+    assert f"C step {c_us} us and {c_n} instructions against the bank's {b_us} us and {b_n}" in text
+
+
 def test_the_results_at_a_glance_follow_from_the_results(monkeypatch):
     """Each figure of the README's one-screen summary, recomputed from the stored results it names."""
     glance = section("Results at a glance")

@@ -56,9 +56,12 @@ def test_the_step_figures_were_measured_on_the_shipped_cards():
     assert STEP_FILES
     shown = set()
     for path in STEP_FILES:
-        assert provenance.read(path).command.startswith("kklcasadi bench observer")
+        command = provenance.read(path).command
+        assert command.startswith("kklcasadi bench observer")
         for name, digest in _rows(path):
-            assert card_digest(resolve(name)).startswith(digest), f"{path.name}: {name} changed since it was timed"
+            assert card_digest(resolve(name)).startswith(digest), (
+                f"{path.name}: the card of {name} changed since it was timed; run `{command} --overwrite` and "
+                "python benchmarks/summarize_pages.py")
             shown.add(name)
     compact = {f"{system}/compact" for system, methods in shipped().items() if "compact" in methods}
     assert compact and compact | {name.replace("compact", "bank") for name in compact} <= shown
