@@ -281,6 +281,17 @@ def test_out_is_never_an_input(model, tmp_path, capsys, monkeypatch):
     assert not (model / "est.csv").exists()
 
 
+def test_out_equal_to_data_leaves_the_log_whole(demo_run, tmp_path, capsys):
+    """47.2 as reported: a shipped model, a log inside its domain, ``--out`` the log itself (exit 0 and the log
+    replaced by the estimates before)."""
+    tr = demo_run
+    data = _write(tmp_path / "run.csv", ["time", "y", "u"], [tr.t[:2000:50], 0.3 * tr.y[:2000:50, 0],
+                                                             tr.u[:2000:50, 0]])
+    before = data.read_bytes()
+    message = _refused(capsys, "estimate", DUFFING, "--data", data, "--y-cols", "y", "--u-cols", "u", "--out", data)
+    assert message.endswith("which is --data's file; choose another --out") and data.read_bytes() == before
+
+
 def test_a_1khz_log_is_averaged_onto_the_models_grid(demo_run, tmp_path, capsys):
     """The README's Duffing run logged at 1 kHz (t, u, y in that order) for the 50 ms bank: the estimate is the
     observer run on u averaged over each 50 ms and y sampled every 50 ms, computed here by hand."""
