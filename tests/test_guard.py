@@ -7,7 +7,14 @@ import pytest
 
 from kklcasadi.model import variants
 from kklcasadi.observer import guard as guard_module
-from kklcasadi.observer.guard import HELD, RESTARTED, SampleGuard, guarded_simulate, training_box
+from kklcasadi.observer.guard import (
+    HELD,
+    RESTARTED,
+    SampleGuard,
+    guarded_estimator,
+    guarded_simulate,
+    training_box,
+)
 from kklcasadi.observer.kkl import load_observer
 from kklcasadi.plant.envelope import output_ranges
 from kklcasadi.plant.systems import get
@@ -113,3 +120,68 @@ def test_a_plant_that_declares_its_inputs_guards_them(model_dir_factory):
     held_y, held_u = y.copy(), u.copy()
     held_y[20], held_u[20] = y[19], u[19]                  # the whole sample: the last one fed
     np.testing.assert_array_equal(est.xhat, obs.simulate(t, held_y, held_u).xhat)
+
+
+# --- the same rule one sample at a time: guarded_estimator ---------------------------------------------------
+
+def stepped(estimator, y, u):
+    """(xhat (N, nx), status (N,)) of ``estimator.make_step`` over the samples."""
+    xhat, status = [], []
+    for yk, uk in zip(y, u):
+        xhat.append(estimator.make_step(yk, uk))
+        status.append(estimator.stats["status"])
+    return np.array(xhat), np.array(status)
+
+
+@pytest.mark.parametrize("method", variants.names())
+def test_the_guarded_estimator_is_guarded_simulate_sample_by_sample(model_dir_factory, method):
+    """47.8 for loops, in every variant: NaN, inf and absurd outputs held, an input of 1e6 restarting the run, each
+    step equal to guarded_simulate's (and to the plain estimator's on clean data, bitwise)."""
+    base = method == "curriculum"
+    probe = load_observer(model_dir_factory(method, base=base, window=3))
+    obs = load_observer(model_dir_factory(method, base=base, window=3, card_extra=domain(probe)))
+    t, y, u = run_data(90, seed=3)
+    live = guarded_estimator(obs)
+    clean, status = stepped(live, y, u)
+    assert not status.any() and live.stats["held_steps"] == live.stats["restarts"] == 0
+    np.testing.assert_array_equal(clean, stepped(obs.estimator(), y, u)[0])
+    bad_y, bad_u = y.copy(), u.copy()
+    bad_y[0, 0], bad_y[20, 0], bad_y[21, 0], bad_y[50, 0] = 1e9, np.nan, np.inf, 1e308
+    bad_u[35, 0], bad_u[70, 0] = 1e6, -np.inf
+    expected, expected_status = guarded_simulate(obs, t, bad_y, bad_u)
+    live.reset()
+    got, status = stepped(live, bad_y, bad_u)
+    np.testing.assert_array_equal(status, expected_status)
+    np.testing.assert_allclose(got, expected.xhat, rtol=0, atol=1e-12)
+    assert np.all(np.isfinite(got)) and {0, 20, 21, 50, 70} <= set(np.flatnonzero(status & HELD))
+    assert live.stats["held_steps"] == int(np.count_nonzero(status & HELD))
+    assert live.stats["restarts"] == int(np.count_nonzero(status & RESTARTED))
+
+
+def test_the_shipped_inject_estimator_recovers_from_one_huge_sample():
+    """47.8: one finite y of 1e308 left the shipped Duffing inject observer's estimator NaN for the rest of a loop;
+    guarded, the sample is held and the loop ends on the clean run's estimates."""
+    from kklcasadi.plant import signals
+    from kklcasadi.plant.simulate import simulate
+
+    obs = load_observer("duffing/inject")
+    tr = simulate(get("duffing"), [0.5, -0.2], signals.make("square", amplitude=0.8, omega=1.0), T=30.0, dt=obs.dt,
+                  measurement_std=0.01, seed=1)
+    huge = tr.y.copy()
+    huge[40, 0] = 1e308
+    clean = stepped(obs.estimator(), tr.y, tr.u)[0]
+    plain = stepped(obs.estimator(), huge, tr.u)[0]
+    assert not np.all(np.isfinite(plain[-1]))                                # the plain estimator: NaN to the end
+    guarded, status = stepped(guarded_estimator(obs), huge, tr.u)
+    assert np.flatnonzero(status).tolist() == [40] and status[40] == HELD and np.all(np.isfinite(guarded))
+    np.testing.assert_allclose(guarded[-100:], clean[-100:], rtol=0, atol=1e-6)
+
+
+def test_guarded_estimator_checks_its_arguments(model_dir_factory):
+    obs = load_observer(model_dir_factory("obs", window=3))
+    with pytest.raises(TypeError, match=r"^guard: expected a SampleGuard or None, received dict\.$"):
+        guarded_estimator(obs, guard={})
+    with pytest.raises(TypeError, match=r"^observer: expected a KKLObserver"):
+        guarded_estimator("obs")
+    with pytest.raises(TypeError, match=r"^guard: expected a SampleGuard or None, received int\.$"):
+        obs.estimator(guard=3)

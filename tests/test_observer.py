@@ -550,7 +550,8 @@ def test_domain_monitor_flags_estimates_outside_the_trained_domain(model_dir_fac
         live.make_step(tr.y[k], tr.u[k])
         assert live.stats["in_domain"] == est.in_domain[k]
     assert live.stats == {"k": 40, "in_domain": bool(est.in_domain[-1]),
-                          "out_of_domain_steps": int((~est.in_domain).sum())}
+                          "out_of_domain_steps": int((~est.in_domain).sum()), "status": 0, "held_steps": 0,
+                          "restarts": 0}
 
 
 def test_a_bad_domain_entry_names_the_field(model_dir_factory):

@@ -17,6 +17,7 @@ every step with the same rule:
    domain), restarts the observer at that sample as at the start of a run (``z_k = 0``, ``w_k =
    init(y_k, u_k)``, ``xhat_k = decode(z_k, w_k)``), and the row is flagged :data:`RESTARTED`.
 
+:func:`guarded_estimator` applies the same rule one sample at a time (``make_step``), for loops.
 A run without flags is exactly :meth:`KKLObserver.simulate`'s (the same steps in the same
 order, bitwise). The guard is far wider than the domain monitor (``in_domain``): it catches
 absurd samples, the monitor flags estimates outside the trained domain.
@@ -31,16 +32,12 @@ import numpy as np
 
 from ..plant.envelope import output_ranges
 from ..validation import Text, error, nonnegative_number
-from .kkl import Estimate, KKLObserver, _check_time
+from .kkl import HELD, RESTARTED, Estimate, Estimator, KKLObserver, _check_time
 
-__all__ = ["SampleGuard", "guarded_simulate", "training_box", "GUARD_WIDTHS", "HELD", "RESTARTED"]
+__all__ = ["SampleGuard", "guarded_simulate", "guarded_estimator", "training_box", "GUARD_WIDTHS", "HELD", "RESTARTED"]
 
 #: How many widths of the trained range beyond each of its ends a sample or latent may lie.
 GUARD_WIDTHS = 10.0
-#: Status bit of a row whose sample was not fed to the latent (the last one fed was used again).
-HELD = 1
-#: Status bit of a row where the observer restarted (its step left the latent's guard box).
-RESTARTED = 2
 #: Steps per ``mapaccum`` call of a guarded run (a restart reruns at most one chunk).
 _CHUNK = 4096
 
@@ -206,3 +203,18 @@ def guarded_simulate(observer: KKLObserver, t: Any, y: Any, u: Any, *,
     for array in (xhat, z, status) if flags is None else (xhat, z, status, flags):
         array.setflags(write=False)
     return Estimate(t, xhat, z, flags), status
+
+
+def guarded_estimator(observer: KKLObserver, *, guard: SampleGuard | None = None) -> Estimator:
+    """A stateful estimator (:meth:`KKLObserver.estimator`) that follows the guard's rule sample by sample.
+
+    ``make_step(y_k, u_k)`` returns what :func:`guarded_simulate` returns at ``k`` (a non-finite sample
+    is held, not refused); ``stats["status"]`` the row's :data:`HELD` and :data:`RESTARTED` bits.
+    ``guard`` defaults to :meth:`SampleGuard.of` ``(observer)``.
+    """
+    if not isinstance(observer, KKLObserver):
+        raise error("observer", "a KKLObserver", Text(type(observer).__name__), kind=TypeError)
+    guard = SampleGuard.of(observer) if guard is None else guard
+    if not isinstance(guard, SampleGuard):
+        raise error("guard", "a SampleGuard or None", Text(type(guard).__name__), kind=TypeError)
+    return observer.estimator(guard=guard)

@@ -67,6 +67,10 @@ DOMAIN_MARGIN = 0.1
 DISCRETIZATIONS = ("exact", "rk4")
 #: ``ca.integrator`` plugins accepted by :meth:`KKLObserver.integrator`.
 INTEGRATOR_SOLVERS = ("cvodes", "idas", "rk", "collocation")
+#: Status bit of a guarded sample that was not fed to the latent (the last one fed was used again).
+HELD = 1
+#: Status bit of a guarded sample where the observer restarted (its step left the latent's guard box).
+RESTARTED = 2
 
 PathLike = Union[str, os.PathLike]
 
@@ -484,9 +488,14 @@ class KKLObserver:
             return Estimate(t, xhat, z, flags, cov)
         return Estimate(t, xhat[0], z[0], None if flags is None else flags[0], None if cov is None else cov[0])
 
-    def estimator(self) -> Estimator:
-        """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample."""
-        return Estimator(self)
+    def estimator(self, *, guard: Any = None) -> Estimator:
+        """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample.
+
+        ``guard``: a :class:`kklcasadi.observer.guard.SampleGuard`, with which one absurd sample does
+        not poison the rest of the run (:func:`kklcasadi.observer.guard.guarded_estimator` passes the
+        model's own).
+        """
+        return Estimator(self, guard=guard)
 
 
 class Estimator:
@@ -495,22 +504,35 @@ class Estimator:
     ``make_step(y_k, u_k)`` returns ``xhat_k``; the sequence equals :meth:`KKLObserver.simulate`
     sample by sample. The first call initialises ``z_0 = 0`` and the window with ``u_0``.
 
+    With a ``guard`` the steps follow :func:`kklcasadi.observer.guard.guarded_simulate`'s rule, sample
+    by sample: a sample that is not finite or outside the guard's boxes is not fed (the last one fed
+    is, :data:`HELD`), and a step whose latent or estimate is not finite or whose latent leaves its
+    box restarts the observer at that sample (:data:`RESTARTED`); ``stats["status"]`` says which.
+    Without one, a non-finite sample is refused (the state unchanged) and a finite absurd one is fed.
+
     Parameters
     ----------
     observer : KKLObserver
+    guard : SampleGuard, optional
+        :class:`kklcasadi.observer.guard.SampleGuard` (or any object with its ``accepts``, ``keeps``,
+        ``y_fill`` and ``u_fill``).
 
     Attributes
     ----------
     observer : KKLObserver
+    guard : SampleGuard or None
     k : int
         Samples taken since the start or the last :meth:`reset`.
     """
 
-    def __init__(self, observer: KKLObserver) -> None:
+    def __init__(self, observer: KKLObserver, *, guard: Any = None) -> None:
         if not isinstance(observer, KKLObserver):
             raise TypeError(f"observer: expected a KKLObserver, received "
                             f"{type(observer).__name__}.")
+        if guard is not None and not all(hasattr(guard, a) for a in ("accepts", "keeps", "y_fill", "u_fill")):
+            raise TypeError(f"guard: expected a SampleGuard or None, received {type(guard).__name__}.")
         self.observer = observer
+        self.guard = guard
         self.reset()
 
     def reset(self) -> None:
@@ -522,6 +544,10 @@ class Estimator:
         self._in_domain: Optional[bool] = None
         self._out_of_domain = 0
         self._cov: Optional[np.ndarray] = None
+        self._fed: Optional[tuple[np.ndarray, np.ndarray]] = None
+        self._status = 0
+        self._held = 0
+        self._restarts = 0
 
     @property
     def z(self) -> Optional[np.ndarray]:
@@ -552,18 +578,29 @@ class Estimator:
         -------
         numpy.ndarray, shape (nx,)
         """
-        obs = self.observer
-        y = _check_sample(y, "y", obs.ny, self.k)
-        u = _check_sample(u, "u", obs.nu, self.k)
+        obs, guard = self.observer, self.guard
+        y = _check_sample(y, "y", obs.ny, self.k, finite=guard is None)
+        u = _check_sample(u, "u", obs.nu, self.k, finite=guard is None)
+        status = 0
+        if guard is not None:
+            if guard.accepts(y[None], u[None])[0]:
+                self._fed = (y, u)
+            else:
+                status = HELD
+                y, u = self._fed if self._fed is not None else (guard.y_fill, guard.u_fill)
         if self._z is None:
-            z, w = np.zeros(obs.nz), np.asarray(obs.memory_init(y, u))
-            xhat = obs.decode(z, w)
+            z, w, xhat = self._start(y, u)
         else:
             z_next, w, xhat = obs.step(self._z, self._w, self._y, y, u)
-            z, w = np.asarray(z_next).ravel(), np.asarray(w)
+            z, w, xhat = np.asarray(z_next).ravel(), np.asarray(w), np.asarray(xhat).ravel()
+            if guard is not None and not guard.keeps(z[None], xhat[None])[0]:
+                status |= RESTARTED
+                z, w, xhat = self._start(y, u)
         self._z, self._w, self._y = z, w, y
         self.k += 1
-        xhat = np.asarray(xhat).ravel()
+        self._status = status
+        self._held += bool(status & HELD)
+        self._restarts += bool(status & RESTARTED)
         inside = obs.in_domain(xhat, z, w)
         self._in_domain = None if inside is None else bool(inside)
         if obs.covariance is not None:
@@ -571,12 +608,21 @@ class Estimator:
         self._out_of_domain += inside is not None and not inside
         return xhat
 
+    def _start(self, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``z = 0``, ``w = init(y, u)``, ``xhat = decode(z, w)``: a run's first sample."""
+        obs = self.observer
+        z, w = np.zeros(obs.nz), np.asarray(obs.memory_init(y, u))
+        return z, w, np.asarray(obs.decode(z, w)).ravel()
+
     @property
     def stats(self) -> dict:
         """What the last :meth:`make_step` did: ``k`` (samples taken), ``in_domain`` (whether the
-        last estimate lies in the trained domain, None without a recorded domain) and
-        ``out_of_domain_steps`` (how many estimates so far did not)."""
-        return {"k": self.k, "in_domain": self._in_domain, "out_of_domain_steps": self._out_of_domain}
+        last estimate lies in the trained domain, None without a recorded domain),
+        ``out_of_domain_steps`` (how many estimates so far did not), ``status`` (the guard's flags of
+        the last sample: 0, or the sum of :data:`HELD` and :data:`RESTARTED`), ``held_steps`` and
+        ``restarts`` (how many so far)."""
+        return {"k": self.k, "in_domain": self._in_domain, "out_of_domain_steps": self._out_of_domain,
+                "status": self._status, "held_steps": self._held, "restarts": self._restarts}
 
 
 def _blocks(matrix: Any, nx: int) -> np.ndarray:
@@ -681,13 +727,13 @@ def _check_initial(z0: Any, m: int, nz: int, batched: bool) -> np.ndarray:
     return np.ascontiguousarray(array.T)
 
 
-def _check_sample(value: Any, argument: str, dim: int, k: int) -> np.ndarray:
+def _check_sample(value: Any, argument: str, dim: int, k: int, *, finite: bool = True) -> np.ndarray:
     array = np.asarray(value, dtype=float)
     if array.shape not in ((dim,), (dim, 1)) and not (dim == 1 and array.shape == ()):
         raise ValueError(f"{argument}: expected shape ({dim},) at sample {k}, received "
                          f"{array.shape}.")
     array = array.reshape(dim)
-    if not np.all(np.isfinite(array)):
+    if finite and not np.all(np.isfinite(array)):
         raise ValueError(f"{argument}: expected finite values at sample {k}, received "
                          f"{array.tolist()}. Skip or repair the sample; the estimator state is "
                          "unchanged.")
