@@ -156,7 +156,8 @@ def _log_file(tmp_path):
     (["--like", "{log}", "--y-cols", "pos"], "--u-cols: expected the logs' column(s) of the 1 input(s) of 'osc', "
      "received none; pass --u-zero"),
     (["--like", "{log}", "--y-cols", "pos,volts", "--u-zero"], "--y-cols: expected 1 columns"),
-    (["--like", "{log}", "--y-cols", "pos", "--u-cols", "volts", "--time-col", "time"], "--like: "),
+    (["--like", "{log}", "--y-cols", "pos", "--u-cols", "volts", "--time-col", "time"],
+     "--time-col: expected a column of "),
     (["--like", "{log}", "--time-col", "t", "--y-cols", "pos", "--u-zero", "--method", "autonomous"],
      "--like: only --method bank takes it, received --method autonomous"),
 ])
