@@ -23,6 +23,11 @@ from kklcasadi import provenance
 
 RESULTS = ROOT / "results" / "robustness"
 SYSTEMS = ("duffing", "vdp")
+
+
+def scored() -> list[str]:
+    """The systems of :data:`SYSTEMS` whose scored report is stored (a system's run lands when it ends)."""
+    return [s for s in SYSTEMS if (RESULTS / s / f"{s}_robustness.json").is_file()]
 COMMAND = "python benchmarks/summarize_robustness.py"
 TITLES = {"ekf": "EKF", "tuned": "tuned EKF", "augmented": "augmented EKF", "pf": "PF (x, p)"}
 
@@ -55,14 +60,14 @@ def _table(report: dict) -> tuple[str, list[str]]:
     for case in report["cases"]:
         robust = case["models"]["robust"]
         checks = robust["targets"]
-        met = all(c["met"] for c in checks)
+        text = "; ".join(f"{TITLES[c['baseline']]} <= {c['target']:g}x: {'met' if c['met'] else 'missed'}"
+                         for c in checks)
         if case["case"]["kind"] == "outside":
-            met = met and (robust["flagged_trials"] or 0.0) >= 0.5
-        text = ", ".join(f"{TITLES[c['baseline']]} <= {c['target']:g}x" for c in checks)
+            text += f"; flagged >= 0.5: {'met' if (robust['flagged_trials'] or 0.0) >= 0.5 else 'missed'}"
         row = [case["case"]["name"], case["case"]["kind"]] + [f"{_mean(case, b):.2f}" for b in names] + \
             [f"{_mean(case, 'bank'):.2f}", f"**{robust['smape_mean']:.2f}**",
              f"{robust['ratios']['tuned']:.2f}x", f"{robust['ratios']['augmented']:.2f}x",
-             f"{text}: {'met' if met else 'missed'}",
+             text,
              "-" if robust["flagged_trials"] is None else f"{robust['flagged_trials']:.2f}"]
         lines.append("| " + " | ".join(row) + " |")
         for c in checks:
@@ -107,7 +112,7 @@ def page() -> str:
              "chose their settings on the tuning trials of each case; the particle filter (over states and "
              "parameters, the box as its prior, the case's noise model as its likelihood) is the Bayes reference "
              "inside the family.\n"]
-    for system in SYSTEMS:
+    for system in scored():
         path, report, stamp = _report(system)
         table, misses = _table(report)
         s = report["settings"]
@@ -117,7 +122,7 @@ def page() -> str:
                      + _pf_text(report) + "):\n\n")
         parts.append(table)
         parts.append("\nWhere `robust` misses a target: " + ("; ".join(misses) if misses else "nowhere") + ".\n")
-    parts.append(_pick({system: _report(system)[1] for system in SYSTEMS}))
+    parts.append(_pick({system: _report(system)[1] for system in scored()}))
     return "".join(parts)
 
 

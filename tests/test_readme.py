@@ -232,6 +232,8 @@ def _pages(monkeypatch):
                                    runpy.run_path(str(ROOT / "benchmarks" / "summarize_generalisation.py"))["page"]),
              "levers.md": ("python benchmarks/accuracy/tables.py --page",
                            runpy.run_path(str(ROOT / "benchmarks" / "accuracy" / "tables.py"))["page"])}
+    pages["robustness.md"] = ("python benchmarks/summarize_robustness.py",
+                              runpy.run_path(str(ROOT / "benchmarks" / "summarize_robustness.py"))["page"])
     rest = runpy.run_path(str(ROOT / "benchmarks" / "summarize_pages.py"))["PAGES"]
     pages.update({name: ("python benchmarks/summarize_pages.py", page) for name, page in rest.items()})
     return pages
@@ -340,3 +342,29 @@ def test_the_results_at_a_glance_follow_from_the_results(monkeypatch):
     baseline = float(re.search(r"baseline \(the recipe at the budget caps\): ([\d.]+)", summary).group(1))
     best = min(float(line.split("|")[2]) for line in summary.splitlines() if re.match(r"\| \d+ \| [\d.]+ \|", line))
     assert f"by {round(100 * (1 - best / baseline))} %" in text
+
+
+def test_the_robust_observers_section_follows_from_the_results():
+    """The README's "Robust observers" figures, recomputed from the scored reports of ``kklcasadi robustness``
+    (results/robustness/<system>/<system>_robustness.json; Duffing's, and Van der Pol's once its run landed)."""
+    text = re.sub(r"\s+", " ", section("Robust observers"))
+    ratio: dict = {}
+    reports = [ROOT / "results" / "robustness" / s / f"{s}_robustness.json" for s in ("duffing", "vdp")]
+    assert reports[0].is_file()
+    for path in [p for p in reports if p.is_file()]:
+        report = json_payload(json.loads(path.read_text()))
+        assert report["settings"]["n_trials"] == 100 and report["settings"]["seed"] == 2026
+        for case in report["cases"]:
+            kind, models, baselines = case["case"]["kind"], case["models"], case["baselines"]
+            ratio.setdefault(("robust", kind), []).append(models["robust"]["ratios"]["tuned"])
+            ratio.setdefault(("bank", kind), []).append(models["bank"]["ratios"]["tuned"])
+            ratio.setdefault(("exact", kind), []).append(models["robust"]["ratios"]["ekf"])
+            ratio.setdefault(("augmented", kind), []).append(baselines["augmented"]["smape_mean"]
+                                                             / models["robust"]["smape_mean"])
+    assert f"at the box's corners it is {span(ratio['robust', 'corner'])} the tuned EKF (`bank` " \
+        f"{span(ratio['bank', 'corner'])})" in text
+    assert f"It costs {span(ratio['exact', 'exact'])} the EKF where the model is exact" in text
+    assert f"is {span(ratio['robust', 'noise'])} the tuned EKF under Student-t noise, outliers and quantisation" \
+        in text
+    assert f"({span(ratio['augmented', 'corner'])} `robust`'s error at the corners)" in text
+    assert "[docs/results/robustness.md](docs/results/robustness.md)" in text
