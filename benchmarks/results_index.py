@@ -39,6 +39,9 @@ STUDIES = {
     "mhe": "MHE and the KKL-primed MHE beside the observer on one run (`examples/mhe_estimation.py`)",
     "speed": "speed benchmarks (`kklcasadi bench`)",
     "tune": "design searches (`kklcasadi tune`)",
+    "robustness": "the shipped `bank` and `robust` observers where the EKF's model or noise is wrong, beside the EKF, "
+                  "the tuned and the augmented EKF and the particle filter over states and parameters "
+                  "(`kklcasadi robustness`, scored trials seed 2026)",
 }
 
 
