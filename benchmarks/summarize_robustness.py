@@ -122,6 +122,10 @@ def page() -> str:
                      + _pf_text(report) + "):\n\n")
         parts.append(table)
         parts.append("\nWhere `robust` misses a target: " + ("; ".join(misses) if misses else "nowhere") + ".\n")
+    for system in [s for s in SYSTEMS if s not in scored()]:
+        parts.append(f"\n## {system}\n\nNo scored run is stored: `models/{system}/robust` ships unscored here "
+                     f"(`kklcasadi robustness models/{system}/bank models/{system}/robust --pf 1000 --out "
+                     f"results/robustness/{system}` writes it).\n")
     parts.append(_pick({system: _report(system)[1] for system in scored()}))
     return "".join(parts)
 
