@@ -110,8 +110,9 @@ def page() -> str:
              "`models/<system>/robust`, a `bank` fit over the family with Gaussian and Student-t (nu = 3) "
              "measurement noise; `bank` the shipped observer of the nominal plant. The tuned and the augmented EKF "
              "chose their settings on the tuning trials of each case; the particle filter (over states and "
-             "parameters, the box as its prior, the case's noise model as its likelihood) is the Bayes reference "
-             "inside the family.\n"]
+             "parameters, the box as its prior, the case's noise model as its likelihood) would be the Bayes "
+             "reference inside the family with particles enough; where the augmented EKF beats it, its particles "
+             "were too few.\n"]
     for system in scored():
         path, report, stamp = _report(system)
         table, misses = _table(report)
