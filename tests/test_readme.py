@@ -262,25 +262,31 @@ def _step_rows(path):
 
 
 def test_which_observer_to_pick_follows_from_the_results():
-    """The compact observer's figures in the README, recomputed from its scored trials (the protocol's noisy cells
-    beside the bank in one run; generalise's default seed beside the bank's stored report on the same trials) and
-    from the step table written by kklcasadi bench observer."""
+    """Each row of the compact observers' table, recomputed from their scored trials (the protocol's noisy cells and
+    generalise's default seed, beside the bank's stored scores on the same trials: the EKF's are equal) and
+    from the step table written by kklcasadi bench observer; every shipped compact has its row."""
     text = re.sub(r"\s+", " ", section("Which observer to pick"))
-    cells = {(c["method"], c["kind"]): c["smape_mean"] for c in json_payload(json.loads(
-        (ROOT / "results" / "protocol" / "duffing" / "compact" / "duffing_scores.json").read_text()))}
-    assert f"{span([cells['compact', k] / cells['bank', k] for k in KINDS], 3)} the bank's mean SMAPE" in text
+    names = {"duffing": "Duffing", "vdp": "Van der Pol", "rossler": "Roessler", "fhn": "FitzHugh-Nagumo"}
+    systems = [s for s in SYSTEMS if (ROOT / "models" / s / "compact" / "card.json").exists()]
+    assert systems
+    for s in systems:
+        cells = {(c["method"], c["kind"]): c["smape_mean"] for c in json_payload(json.loads(
+            (ROOT / "results" / "protocol" / s / "compact" / f"{s}_scores.json").read_text())) if c["noisy"]}
+        shipped = {(m, k): v.mean() for (m, k, noisy), v in scores(s).items() if noisy}    # the bank's, same trials
+        assert all(cells["EKF", k] == pytest.approx(shipped["EKF", k], rel=1e-12) for k in KINDS)
+        protocol = span([cells["compact", k] / shipped["bank", k] for k in KINDS], 3)
 
-    def report(path):
-        return json_payload(json.loads((ROOT / "results" / "generalisation" / "duffing" / path).read_text()))
+        def report(path):
+            return json_payload(json.loads((ROOT / "results" / "generalisation" / s / path).read_text()))
 
-    compact, bank = report("compact/duffing_generalisation.json"), report("duffing_generalisation.json")
-    assert [c["ekf"]["smape_mean"] for c in compact["cases"]] == [c["ekf"]["smape_mean"] for c in bank["cases"]]
-    worst = [max(c["models"][label]["ratio_ekf"] for c in r["cases"]) for r, label in ((compact, "compact"),
-                                                                                         (bank, "bank"))]
-    assert f"worst case {worst[0]:.3f}x the EKF against the bank's {worst[1]:.3f}x" in text
-    steps = _step_rows(ROOT / "results" / "speed" / "duffing" / "observer_step_duffing.md")
-    (c_us, c_n), (b_us, b_n) = steps["duffing/compact"], steps["duffing/bank"]
-    assert f"C step {c_us} us and {c_n} instructions against the bank's {b_us} us and {b_n}" in text
+        compact, bank = report(f"compact/{s}_generalisation.json"), report(f"{s}_generalisation.json")
+        assert [c["ekf"]["smape_mean"] for c in compact["cases"]] == [c["ekf"]["smape_mean"] for c in bank["cases"]]
+        worst = [max(c["models"][label]["ratio_ekf"] for c in r["cases"]) for r, label in ((compact, "compact"),
+                                                                                             (bank, "bank"))]
+        steps = _step_rows(ROOT / "results" / "speed" / s / f"observer_step_{s}.md")
+        (c_us, c_n), (b_us, b_n) = steps[f"{s}/compact"], steps[f"{s}/bank"]
+        assert (f"| {names[s]} | {c_us} / {b_us} us | {c_n} / {b_n} | {protocol} | {worst[0]:.3f}x and "
+                f"{worst[1]:.3f}x |") in text, s
 
 
 def test_the_results_at_a_glance_follow_from_the_results(monkeypatch):
