@@ -57,7 +57,8 @@ def main() -> None:
     p.add_argument("--lr", type=float, help="the decoder fit's learning rate")
     p.add_argument("--batch-size", type=int, help="the decoder fit's batch size")
     p.add_argument("--members", type=int, help="decoder networks averaged (default: the system's)")
-    p.add_argument("--copies", help="comma-separated weights of the latent's model copies (BankConfig.copies)")
+    p.add_argument("--copies", help="comma-separated weights of the latent's model copies (BankConfig.copies), or "
+                   "'none'")
     p.add_argument("--copy-substeps", type=int, help="RK4 substeps of the copies per sample (BankConfig.copy_substeps)")
     p.add_argument("--teacher", help="a bank model directory whose estimates are the decoders' targets (distillation)")
     p.add_argument("--measurement-std", type=float)
@@ -100,7 +101,7 @@ def main() -> None:
     if args.teacher is not None:
         top["teacher"] = args.teacher
     if args.copies:
-        top["copies"] = floats(args.copies)
+        top["copies"] = () if args.copies == "none" else floats(args.copies)
     if args.copy_substeps is not None:
         top["copy_substeps"] = args.copy_substeps
     config = replace(config, **top, rollouts=replace(config.rollouts, **runs))
