@@ -1,7 +1,9 @@
 """Argument checks shared by every module, with one error style.
 
 Every message reads ``"<argument>: expected <what>, received <value>."``, optionally followed by
-what to do about it. Wrong types raise :class:`TypeError`, wrong values :class:`ValueError`.
+what to do about it. Wrong values raise :class:`ArgumentError` (a :class:`ValueError`), wrong types
+:class:`ArgumentTypeError` (a :class:`TypeError`); both carry the parts of the message as fields
+(``argument``, ``expected``, ``received``, ``hint``), which the command line reads to name its own flag.
 """
 
 from __future__ import annotations
@@ -11,7 +13,8 @@ from typing import Any, Collection, Optional
 
 import numpy as np
 
-__all__ = ["error", "Text", "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
+__all__ = ["error", "ArgumentError", "ArgumentTypeError", "Text",
+           "is_int", "is_number", "positive_int", "nonnegative_int", "positive_number",
            "nonnegative_number", "finite_number", "one_of", "finite_array", "index_tuple", "state_stds", "covariance"]
 
 
@@ -20,6 +23,32 @@ class Text(str):
 
     def __repr__(self) -> str:
         return str(self)
+
+
+class _Fields:
+    """The parts of the package's one error message, kept as fields beside the message."""
+
+    def __init__(self, argument: str, expected: str, received: Any, hint: str = "") -> None:
+        self.argument, self.expected, self.received, self.hint = argument, expected, received, hint
+        super().__init__(f"{argument}: {self.detail}")
+
+    @property
+    def detail(self) -> str:
+        """The message without its argument: ``"expected <what>, received <value>. <hint>"``."""
+        message = f"expected {self.expected}, received {self.received!r}."
+        return f"{message} {self.hint}" if self.hint else message
+
+    def __reduce__(self) -> tuple:                 # picklable across processes, fields and all
+        return type(self), (self.argument, self.expected, self.received, self.hint)
+
+
+class ArgumentError(_Fields, ValueError):
+    """A bad value: ``argument`` (a name, or ``"<file>: '<field>'"``), what was ``expected``, what was
+    ``received`` (shown with ``repr``) and a ``hint`` (what to do; may be empty)."""
+
+
+class ArgumentTypeError(_Fields, TypeError):
+    """A value of the wrong type, with the fields of :class:`ArgumentError`."""
 
 
 def error(argument: str, expected: str, received: Any, fix: str = "", *,
@@ -38,15 +67,17 @@ def error(argument: str, expected: str, received: Any, fix: str = "", *,
     fix : str, optional
         What the user should do about it.
     kind : type
-        The exception class (``ValueError`` or ``TypeError``).
+        ``ValueError`` (an :class:`ArgumentError` is returned) or ``TypeError`` (an
+        :class:`ArgumentTypeError`).
 
     Returns
     -------
-    Exception
+    ArgumentError or ArgumentTypeError
         To be raised by the caller.
     """
-    message = f"{argument}: expected {expected}, received {received!r}."
-    return kind(f"{message} {fix}" if fix else message)
+    if kind not in (ValueError, TypeError):
+        raise ArgumentTypeError("kind", "ValueError or TypeError", Text(getattr(kind, "__name__", repr(kind))))
+    return (ArgumentTypeError if kind is TypeError else ArgumentError)(argument, expected, received, fix)
 
 
 def is_int(value: Any) -> bool:

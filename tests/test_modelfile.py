@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kklcasadi.model import files as modelfile
+from kklcasadi import writes
 from kklcasadi.model import variants
 from kklcasadi.model.card import FORMAT, model_array_shapes
 from kklcasadi.model.files import CARD_FILE, WEIGHTS_FILE, load_model, save_model
@@ -166,14 +166,15 @@ def test_failed_write_leaves_the_old_files_intact(saved, monkeypatch):
     path, card, arrays = saved
     before = {name: (path / name).read_bytes() for name in (CARD_FILE, WEIGHTS_FILE)}
 
-    def failing_replace(src, dst):
+    def failing_exchange(a, b):
         raise OSError("disk full")
 
-    monkeypatch.setattr(modelfile.os, "replace", failing_replace)
+    monkeypatch.setattr(writes, "_exchange", failing_exchange)
     with pytest.raises(OSError, match="disk full"):
         save_model(path, random_arrays(card, seed=4), card, overwrite=True)
     assert {name: (path / name).read_bytes() for name in before} == before
-    assert sorted(os.listdir(path)) == [CARD_FILE, WEIGHTS_FILE]       # no temporary files left
+    assert sorted(os.listdir(path)) == [CARD_FILE, WEIGHTS_FILE]
+    assert sorted(os.listdir(path.parent)) == [path.name]                # no temporary directory left
 
 
 def test_save_validates_before_writing(tmp_path):

@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from kklcasadi.model import shipped
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -139,3 +141,28 @@ def test_the_shipped_robust_observers_are_their_recipe():
     assert "--param-spread" in ROBUST and "student-t:3" in ROBUST
     with pytest.raises(ValueError, match=r"^system: expected a shipped system with a parameterised form"):
         robust_command("fhn")
+
+
+def test_a_model_a_user_adds_under_models_is_theirs(tmp_path, monkeypatch):
+    """Shipped means the package's own (SHIPPED_MODELS), not any directory under models/ of a clone."""
+    root = tmp_path / "models"
+    for method in ("bank", "mine"):
+        (root / "duffing" / method).mkdir(parents=True)
+        shutil.copyfile(ROOT / "models" / "duffing" / "bank" / "card.json", root / "duffing" / method / "card.json")
+    monkeypatch.setattr(shipped, "SHIPPED_ROOT", root)
+    assert shipped.shipped() == {"duffing": ["bank"]}
+    assert shipped.is_shipped(root / "duffing" / "bank") and not shipped.is_shipped(root / "duffing" / "mine")
+    assert [p.name for p in shipped.shipped_models("duffing")] == ["bank"]
+    with pytest.raises(ValueError, match="no shipped model models/duffing/mine"):
+        shipped.shipped_model("duffing", "mine")
+    assert shipped.inside_shipped(root / "duffing" / "bank" / "x.png")
+    assert shipped.inside_shipped(root / "duffing" / "obs")
+    assert not shipped.inside_shipped(root / "duffing" / "mine") and not shipped.inside_shipped(root / "duffing")
+
+
+def test_the_table_names_exactly_the_models_in_the_repository():
+    listed = subprocess.run(["git", "ls-files", "models/*/*/card.json"], cwd=ROOT, capture_output=True, text=True)
+    if listed.returncode != 0 or not listed.stdout:
+        pytest.skip("not a git checkout")
+    tracked = sorted(tuple(Path(line).parts[1:3]) for line in listed.stdout.split())
+    assert tracked == sorted((s, m) for s, methods in shipped.SHIPPED_MODELS.items() for m in methods)

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
+from ..writes import write_file
 from .flags import (
     add_kinds,
     add_plant,
     flagged,
     load,
     nonnegative_float,
+    out_path,
     plant_of,
     positive_float,
     positive_int,
@@ -40,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     """Print each model's certificate; ``--out`` saves them as JSON."""
     from ..evaluation.certificate import certificate
 
+    out = out_path(args.out, "--out", directory=False)
     records, plant = [], plant_of(args)
     for model in args.models:
         cert = flagged("MODELS", certificate, load(model, plant, "MODELS"), kinds=tuple(args.kinds),
@@ -47,9 +49,9 @@ def run(args: argparse.Namespace) -> int:
                        t_settle=args.settle, seed=args.seed)
         print(f"{model}\n{cert}\n")
         records.append({"model": str(model), **cert.to_json()})
-    if args.out:
+    if out is not None:
         from ..provenance import json_record
 
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(json_record(records, stamp_of(args, seed=args.seed)), indent=1) + "\n")
+        write_file(out, json.dumps(json_record(records, stamp_of(args, seed=args.seed)), indent=1) + "\n",
+                   overwrite=True, argument="--out")
     return 0

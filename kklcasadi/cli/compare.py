@@ -19,6 +19,7 @@ from .flags import (
     add_system,
     check_dt,
     load,
+    out_path,
     positive_float,
     positive_int,
     shipped,
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.report import markdown_table
     from ..provenance import json_record, markdown
 
-    out = Path(args.out)
+    out = out_path(args.out, "--out", directory=True)
     out.mkdir(parents=True, exist_ok=True)
     kinds = tuple(args.kinds)
     levels = {name: getattr(args, name) for name in ("process_std", "measurement_std")

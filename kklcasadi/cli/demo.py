@@ -21,6 +21,7 @@ from .flags import (
     load,
     model_label,
     nonnegative_float,
+    out_path,
     plant_of,
     positive_float,
     quiet_casadi,
@@ -61,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.model is None and args.plant is not None:
         raise CommandError("--plant: give the model trained for it with --model DIR")
+    out = out_path(args.out, "--out", directory=False)
     model = Path(args.model) if args.model else shipped(args.system or "duffing", args.method)
     obs = load(model, plant_of(args))
     plant = obs.system
@@ -107,7 +109,6 @@ def run(args: argparse.Namespace) -> int:
               + ("; most lie outside it: the KKL errors above are not to be trusted" if est.in_domain.mean() < 0.5
                  else ""))
     print(f"time     {t_obs * 1e3:.1f} ms for {len(tr.t)} samples ({t_obs / len(tr.t) * 1e6:.1f} us/step, CasADi VM)")
-    out = Path(args.out)
     estimates_plot(tr.t, tr.x, tr.y, {f"KKL ({obs.method})": est.xhat, "EKF": ekf}, out, u=tr.u,
                    in_domain=est.in_domain, stamp=stamp_of(args, run=args.seed),
                    title=f"{plant.name}: {args.input} input, noise std {levels_text(process_std)} (process) / "

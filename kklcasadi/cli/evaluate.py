@@ -33,6 +33,7 @@ from .flags import (
     add_roughening,
     check_dt,
     load,
+    out_path,
     plant_of,
     positive_int,
     stamp_of,
@@ -174,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         from ..provenance import markdown
 
-        out = Path(args.out)
+        out = out_path(args.out, "--out", directory=True)
         out.mkdir(parents=True, exist_ok=True)
         stamp = stamp_of(args, trials=args.seed)
         save_scores(scores, out / f"{plant.name}_scores.json", stamp=stamp)

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import tempfile
 from pathlib import Path
 
-from .flags import CommandError, add_plant, c_name, columns, load, plant_of
+from ..writes import write_file
+from .flags import CommandError, add_plant, c_name, columns, load, out_path, plant_of
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -32,14 +34,17 @@ def run(args: argparse.Namespace) -> int:
 
     if not (args.c or args.casadi):
         raise CommandError("export: nothing to export; give --c OUT_DIR and/or --casadi FILE")
+    c_dir = out_path(args.c, "--c", directory=True)
+    target = out_path(args.casadi, "--casadi", directory=False)
+    if c_dir is not None and c_dir.exists() and any(c_dir.iterdir()) and not args.overwrite:
+        raise CommandError(f"--c {c_dir}: the directory is not empty; pass --overwrite to replace its files")
+    if target is not None and target.exists() and not args.overwrite:
+        raise CommandError(f"--casadi {target}: the file exists; pass --overwrite to replace it")
     obs = load(args.model, plant_of(args), "MODEL")
-    if args.c:
-        existing = Path(args.c)
-        if existing.exists() and any(existing.iterdir()) and not args.overwrite:
-            raise CommandError(f"--c {existing}: the directory is not empty; pass --overwrite to replace its files")
+    if c_dir is not None:
         names = {"time_col": "--time-col", "y_cols": "--y-cols", "u_cols": "--u-cols", "state_names": "--state-names"}
         try:
-            files = generate_c(obs, args.c, name=args.name, overwrite=args.overwrite, time_col=args.time_col,
+            files = generate_c(obs, c_dir, name=args.name, overwrite=args.overwrite, time_col=args.time_col,
                                y_cols=args.y_cols, u_cols=args.u_cols, state_names=args.state_names)
         except (ValueError, TypeError) as exc:
             head, sep, rest = str(exc).partition(": ")
@@ -48,10 +53,10 @@ def run(args: argparse.Namespace) -> int:
             raise
         for path in files:
             print(f"wrote {path}")
-    if args.casadi:
-        target = Path(args.casadi)
-        if target.exists() and not args.overwrite:
-            raise CommandError(f"--casadi {target}: the file exists; pass --overwrite to replace it")
-        obs.step.save(str(target))
+    if target is not None:
+        with tempfile.TemporaryDirectory() as tmp:        # Function.save writes a path: save, then publish its bytes
+            obs.step.save(str(Path(tmp) / "step.casadi"))
+            write_file(target, (Path(tmp) / "step.casadi").read_bytes(), overwrite=args.overwrite,
+                       argument="--casadi")
         print(f"wrote {target} (ca.Function.load it: {obs.step.name_in()} -> {obs.step.name_out()})")
     return 0

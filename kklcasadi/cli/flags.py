@@ -38,17 +38,18 @@ from typing import Any, Callable, Iterator, NoReturn, Optional
 import numpy as np
 
 from .. import provenance
-from ..model.shipped import is_shipped, resolve, shipped_model
+from ..model.shipped import inside_shipped, is_shipped, resolve, shipped_model
 from ..model.shipped import shipped as shipped_listing
 from ..plant import signals as sig
 from ..plant import systems
 from ..plant.systems import System
+from ..validation import ArgumentError, ArgumentTypeError
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
-           "columns",
-           "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
-           "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "stamp_of",
-           "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS", "labelled_models", "benchmark_caches"]
+           "columns", "flagged", "plant_of", "load", "shipped", "out_path", "needs_torch", "add_plant", "add_noise",
+           "add_kinds", "add_cache", "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label",
+           "quiet_casadi", "stamp_of", "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS",
+           "labelled_models", "benchmark_caches"]
 
 #: Noise std of a run (and its EKF) where a model's card records no levels (docs/protocol.md).
 PROTOCOL_STD = 0.1
@@ -60,8 +61,9 @@ class CommandError(Exception):
     """A user error of the command line, printed as one line ``error: ...``."""
 
 
-#: The exceptions that are user errors: printed as one line, exit status 2.
-USER_ERRORS = (CommandError, ValueError, TypeError, FileExistsError, FileNotFoundError)
+#: The exceptions that are user errors: printed as one line, exit status 2. OSError: a path that cannot be read or
+#: written (permissions, a full disk, a directory where a file was meant); ArithmeticError: a training that diverged.
+USER_ERRORS = (CommandError, ValueError, TypeError, OSError, ArithmeticError)
 
 
 class Parser(argparse.ArgumentParser):
@@ -105,19 +107,23 @@ def c_name(text: str) -> str:
 
     try:
         return check_c_name(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc).split(": ", 1)[-1]) from None
+    except ArgumentError as exc:
+        raise argparse.ArgumentTypeError(exc.detail) from None
 
 
 def flagged(flag: str, fn: Callable[..., Any], *fn_args: Any, **kwargs: Any) -> Any:
-    """Call ``fn``; a ValueError/TypeError about its argument becomes one about ``flag``."""
+    """Call ``fn``; an error about one of its arguments becomes one about ``flag``.
+
+    An :class:`~kklcasadi.validation.ArgumentError` (or ``ArgumentTypeError``) whose ``argument`` is a
+    Python name is said of ``flag`` instead (``flag: expected ..., received ...``); one about a file's
+    field, and any other ValueError or TypeError, keeps its message after ``flag``.
+    """
     try:
         return fn(*fn_args, **kwargs)
+    except (ArgumentError, ArgumentTypeError) as exc:
+        raise CommandError(f"{flag}: {exc.detail}" if exc.argument.isidentifier() else f"{flag}: {exc}") from exc
     except (ValueError, TypeError) as exc:
-        message = str(exc)
-        head, sep, rest = message.partition(": ")
-        named = sep and head.isidentifier()         # "argument: expected ..." names a Python argument
-        raise CommandError(f"{flag}: {rest}" if named else f"{flag}: {message}") from exc
+        raise CommandError(f"{flag}: {exc}") from exc
 
 
 def plant_of(args: argparse.Namespace) -> Optional[System]:
@@ -171,6 +177,22 @@ def benchmark_caches(args: argparse.Namespace) -> tuple[Any, Any]:
 def shipped(system: str, method: str) -> Path:
     """The shipped model ``models/SYSTEM/METHOD``, errors naming ``--system`` and ``--method``."""
     return flagged(f"--system {system} --method {method}", shipped_model, system, method)
+
+
+def out_path(path: Optional[str], flag: str, *, directory: bool) -> Optional[Path]:
+    """Where a command writes (None stays None), checked before any work: not a shipped model (they are read-only to
+    the command line), and a directory path (``directory``) or a file path, not the other kind."""
+    if path is None:
+        return None
+    target = Path(path)
+    if inside_shipped(target):
+        raise CommandError(f"{flag} {path}: a model that ships with kklcasadi, read-only to the command line; write to "
+                           "a directory of your own")
+    if directory and target.exists() and not target.is_dir():
+        raise CommandError(f"{flag} {path}: expected a directory, received a file")
+    if not directory and target.is_dir():
+        raise CommandError(f"{flag} {path}: expected a file path, received a directory; name a file inside it")
+    return target
 
 
 def needs_torch(command: str) -> None:

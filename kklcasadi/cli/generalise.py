@@ -20,6 +20,7 @@ from .flags import (
     add_roughening,
     benchmark_caches,
     labelled_models,
+    out_path,
     plant_of,
     positive_float,
     positive_int,
@@ -90,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         from ..provenance import json_record, markdown
 
-        out = Path(args.out)
+        out = out_path(args.out, "--out", directory=True)
         out.mkdir(parents=True, exist_ok=True)
         stamp = stamp_of(args, trials=args.seed)
         (out / f"{report.system}_generalisation.md").write_text(markdown(tables + "\n", stamp))

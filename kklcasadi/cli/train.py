@@ -30,6 +30,7 @@ from .flags import (
     load,
     needs_torch,
     nonnegative_float,
+    out_path,
     plant_of,
     positive_float,
     positive_int,
@@ -254,9 +255,11 @@ def run(args: argparse.Namespace) -> int:
     needs_torch("kklcasadi train")
     from ..train import train_observer
 
-    out = Path(args.out)
-    if (out / "card.json").exists() and not (args.overwrite or args.resume):
-        raise CommandError(f"--out {out}: a model already exists there; pass --overwrite to replace it")
+    out = out_path(args.out, "--out", directory=True)
+    if (out / "card.json").exists() and not args.overwrite:
+        raise CommandError(f"--out {out}: a model already exists there; pass --overwrite to replace it"
+                           + (" (--resume continues an unfinished training, never a finished model)"
+                              if args.resume else ""))
     method = args.method or RECOMMENDED
     if args.method is None and not args.quiet:
         print(f"method: {RECOMMENDED} (the observer for a new plant; --method chooses another)", flush=True)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 
 from ..plant import systems
-from .flags import CommandError, add_plant, add_system, flagged, needs_torch, plant_of, positive_int, stamp_of
+from .flags import CommandError, add_plant, add_system, flagged, needs_torch, out_path, plant_of, positive_int, stamp_of
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -49,6 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if (args.plant is None) == (args.system is None):
         raise CommandError("--system/--plant: give exactly one: a shipped system name or your plant FILE.py:NAME")
+    out = out_path(args.out, "--out", directory=True)
     plant = plant_of(args) or systems.get(args.system)
     needs_torch("kklcasadi tune")
     try:
@@ -59,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.tune import VALIDATION_SEED, tune
 
     caps = {name: value for name, value in (("runs", args.runs), ("epochs", args.epochs)) if value is not None}
-    result = flagged("--method " + args.method, tune, plant, args.method, args.out, n_trials=args.trials,
+    result = flagged("--method " + args.method, tune, plant, args.method, out, n_trials=args.trials,
                      study=args.study, storage=args.storage, caps=caps, base=args.base, seed=args.seed,
                      threads=args.threads, val_trials=args.val_trials, heartbeat=args.heartbeat,
                      baseline=args.baseline, copy_from=args.copy_from, sampler_seed=args.sampler_seed,

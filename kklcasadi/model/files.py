@@ -18,7 +18,6 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,14 +26,21 @@ from typing import Any, Mapping, Optional
 import numpy as np
 
 from ..nets.specs import check_arrays, field_error
-from ..validation import Text
+from ..validation import Text, error
+from ..writes import write_dir
 from . import variants
 from .card import CARD_FILE, FORMAT, FORMAT_VERSION, ModelSpec, make_card, parse_card
 from .monitor import check_radii
 
-__all__ = ["WEIGHTS_FILE", "CARD_FILE", "Model", "load_model", "save_model", "derive_model"]
+__all__ = ["WEIGHTS_FILE", "CARD_FILE", "EXTRA_FILES", "MODEL_FILES", "Model", "load_model", "save_model",
+           "derive_model"]
 
 WEIGHTS_FILE = "weights.npz"
+#: Files a model directory may hold beside the card and the weights, written with them (:func:`save_model`).
+EXTRA_FILES = ("history.json", "history.png")
+#: The names a model directory's writer owns: replaced or dropped with the model, never carried over
+#: (``.train``: training's checkpoints, done with once the model is written).
+MODEL_FILES = (WEIGHTS_FILE, CARD_FILE, *EXTRA_FILES, ".train")
 
 
 @dataclass(frozen=True)
@@ -208,22 +214,14 @@ def load_model(directory: str | os.PathLike) -> Model:
     return _load(directory, frozenset({directory}))
 
 
-def _write_temp(directory: Path, data: bytes, suffix: str) -> Path:
-    handle, name = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=suffix)
-    with os.fdopen(handle, "wb") as stream:
-        stream.write(data)
-        stream.flush()
-        os.fsync(stream.fileno())
-    return Path(name)
-
-
 def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Mapping[str, Any],
-               *, overwrite: bool = False) -> Path:
+               *, overwrite: bool = False, extra: Optional[Mapping[str, bytes]] = None) -> Path:
     """Validate and write ``weights.npz`` and ``card.json`` into ``directory``.
 
     The card's ``format``, ``format_version``, ``kklcasadi_version`` and ``weights_sha256`` are
-    filled in here. Both files are written to temporary files in ``directory`` first and then moved
-    into place with :func:`os.replace`, so a failed write leaves existing files as they were.
+    filled in here. The files are written into a temporary directory beside ``directory`` and published
+    with one rename (:func:`kklcasadi.writes.write_dir`): at every moment the old model or the new one is
+    whole, and of two saves of one new model without ``overwrite`` exactly one wins.
 
     Parameters
     ----------
@@ -235,7 +233,11 @@ def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Ma
     card : Mapping
         The card fields (see the module docstring); ``base.path`` is relative to ``directory``.
     overwrite : bool
-        Replace an existing model in ``directory``.
+        Replace an existing model in ``directory`` (its other files, those of :data:`MODEL_FILES` aside,
+        stay).
+    extra : Mapping[str, bytes], optional
+        Files written with the model in the same step, among :data:`EXTRA_FILES` (the training
+        history).
 
     Returns
     -------
@@ -245,7 +247,8 @@ def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Ma
     Raises
     ------
     FileExistsError
-        If ``directory`` already holds a model and ``overwrite`` is False.
+        If ``directory`` already holds a model (or another save publishes one first) and ``overwrite``
+        is False.
     ValueError
         If the card or the arrays are invalid (as :func:`load_model` would report).
     """
@@ -265,25 +268,19 @@ def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Ma
     if spec.monitor is not None:
         check_radii(arrays, "arrays")
 
-    existing = [p for p in (directory / CARD_FILE, directory / WEIGHTS_FILE) if p.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"{existing[0]}: a model already exists here; pass overwrite=True "
+    if (directory / CARD_FILE).exists() and not overwrite:
+        raise FileExistsError(f"{directory / CARD_FILE}: a model already exists here; pass overwrite=True "
                               "to replace it, or choose another directory.")
-    directory.mkdir(parents=True, exist_ok=True)
     _load_base(directory, card, where, frozenset({directory}))
 
     data = _npz_bytes(arrays)
     card["weights_sha256"] = hashlib.sha256(data).hexdigest()
-    text = _to_json(card)
-    temps: list[Path] = []
-    try:
-        temps.append(_write_temp(directory, data, ".npz"))
-        temps.append(_write_temp(directory, text.encode("utf-8"), ".json"))
-        os.replace(temps[0], directory / WEIGHTS_FILE)
-        os.replace(temps[1], directory / CARD_FILE)
-    finally:
-        for temp in temps:
-            temp.unlink(missing_ok=True)
+    extra = dict(extra or {})
+    for name in extra:
+        if name not in EXTRA_FILES:
+            raise error("extra", f"files among {list(EXTRA_FILES)}", name)
+    write_dir(directory, {WEIGHTS_FILE: data, CARD_FILE: _to_json(card), **extra}, overwrite=overwrite,
+              owned=MODEL_FILES, argument=str(directory))
     return directory
 
 

@@ -25,6 +25,7 @@ from typing import Iterator, Mapping, Optional, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
+from ..validation import Text, error
 from . import signals as sig
 from .design import time_scales
 from .envelope import LIKE_AMPLITUDE_FACTORS, LIKE_TIME_FACTORS, OUTPUT_MARGIN, Envelope
@@ -157,43 +158,41 @@ class RolloutConfig:
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_traj, int) or self.n_traj < 1:
-            raise ValueError(f"n_traj: expected a positive integer, received {self.n_traj!r}.")
+            raise error("n_traj", "a positive integer", self.n_traj)
         if self.regime not in ROLLOUT_REGIMES:
-            raise ValueError(f"regime: expected one of {list(ROLLOUT_REGIMES)}, received {self.regime!r}.")
+            raise error("regime", f"one of {list(ROLLOUT_REGIMES)}", self.regime)
         bad = [k for k in self.kinds if k not in FAMILIES]
         if bad or not self.kinds:
-            raise ValueError(f"kinds: expected a non-empty subset of {FAMILIES}, received {self.kinds!r}.")
+            raise error("kinds", f"a non-empty subset of {FAMILIES}", self.kinds)
         if not isinstance(self.noise_models, tuple) or not self.noise_models:
-            raise ValueError(f"noise_models: expected a non-empty tuple of noise models, received "
-                             f"{self.noise_models!r}.")
+            raise error("noise_models", "a non-empty tuple of noise models", self.noise_models)
         object.__setattr__(self, "noise_models", tuple(str(noise_model(m)) for m in self.noise_models))
         lo, hi = self.noise_range
         if not (0 < lo <= hi and math.isfinite(hi)):
-            raise ValueError(f"noise_range: expected factors 0 < lo <= hi, received {self.noise_range!r}.")
+            raise error("noise_range", "factors 0 < lo <= hi", self.noise_range)
         scales = np.atleast_1d(np.asarray(self.box_scale, dtype=float))
         if scales.size not in (1, 2) or not np.all(np.isfinite(scales)) or not (0 < scales[0] <= scales[-1]):
-            raise ValueError(f"box_scale: expected a factor > 0 or a range 0 < lo <= hi, received {self.box_scale!r}.")
+            raise error("box_scale", "a factor > 0 or a range 0 < lo <= hi", self.box_scale)
         if not (isinstance(self.box_share, (int, float)) and 0 < self.box_share <= 1):
-            raise ValueError(f"box_share: expected a share in (0, 1], received {self.box_share!r}.")
+            raise error("box_share", "a share in (0, 1]", self.box_share)
         for name in ("T", "escape_scale", "sample_period", "dense_period"):
             if name == "escape_scale" and self.escape_scale is None:
                 continue
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
-                raise ValueError(f"{name}: expected a finite number > 0, received {getattr(self, name)!r}.")
+                raise error(name, "a finite number > 0", getattr(self, name))
         if not self.dense_time >= 0:
-            raise ValueError(f"dense_time: expected a number >= 0 (seconds), received {self.dense_time!r}.")
+            raise error("dense_time", "a number >= 0 (seconds)", self.dense_time)
         if self.substeps is not None and (not isinstance(self.substeps, int) or self.substeps < 1):
-            raise ValueError(f"substeps: expected a positive integer or None, received {self.substeps!r}.")
+            raise error("substeps", "a positive integer or None", self.substeps)
         if not isinstance(self.chunk, int) or self.chunk < 1:
-            raise ValueError(f"chunk: expected a positive integer, received {self.chunk!r}.")
+            raise error("chunk", "a positive integer", self.chunk)
         if self.stabilise not in (None, True, False):
-            raise ValueError(f"stabilise: expected True, False or None (where the plant drifts), received "
-                             f"{self.stabilise!r}.")
+            raise error("stabilise", "True, False or None (where the plant drifts)", self.stabilise)
         if self.envelope is not None and not isinstance(self.envelope, Envelope):
-            raise TypeError(f"envelope: expected a kklcasadi.plant.envelope.Envelope or None, received "
-                            f"{type(self.envelope).__name__}.")
+            raise error("envelope", "a kklcasadi.plant.envelope.Envelope or None", Text(type(self.envelope).__name__),
+                        kind=TypeError)
         if not (isinstance(self.like_share, (int, float)) and 0 <= self.like_share <= 1):
-            raise ValueError(f"like_share: expected a share in [0, 1], received {self.like_share!r}.")
+            raise error("like_share", "a share in [0, 1]", self.like_share)
 
 
 

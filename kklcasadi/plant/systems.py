@@ -11,14 +11,15 @@ from __future__ import annotations
 import hashlib
 import importlib
 import importlib.util
+import inspect
 import json
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import casadi as ca
 import numpy as np
 
-from ..validation import Text, error, finite_array, finite_number, index_tuple, one_of, positive_int
+from ..validation import ArgumentError, Text, error, finite_array, finite_number, index_tuple, one_of, positive_int
 
 __all__ = ["System", "get", "names", "families", "register", "load_plant"]
 
@@ -410,11 +411,28 @@ def get(name: str, *, param_spread: float | None = None) -> System:
     return factory(param_spread=param_spread)
 
 
+def _run_user_code(what: str, call: Callable[[], Any], fix: str) -> Any:
+    """Run a plant file's code (its import, its factory): what it raises, or a ``sys.exit`` in it, is an error
+    naming ``--plant``'s argument, not a traceback or a silent exit."""
+    try:
+        return call()
+    except SystemExit as exc:
+        raise error("plant", f"{what} to define the plant", Text(f"a call of sys.exit({exc.code!r})"),
+                    "A plant file defines make_plant(); put what runs a program under "
+                    "if __name__ == '__main__':.") from None
+    except Exception as exc:  # any error of the user's code is reported as such, one line
+        raise error("plant", f"{what} to run without error", Text(f"{type(exc).__name__}: {exc}"), fix) from exc
+
+
 def load_plant(spec: str) -> System:
     """A user's plant from a file or module: ``"path/to/plant.py:make_plant"`` or ``"pkg.mod:make_plant"``.
 
-    The attribute after ``:`` is a :class:`System` or a function with no arguments that returns
-    one (default ``make_plant``).
+    This runs Python code: the file (or module) is imported and the function is called, as
+    ``python plant.py`` would. Pass only files and modules you trust. The name after ``:``
+    (default ``make_plant``) must be a :class:`System`, or a Python function that takes no
+    arguments and returns one; anything else (``os:getcwd``, a class, a function that needs
+    arguments) is refused before it is called, and what the function returns is checked before it
+    is used.
 
     Parameters
     ----------
@@ -427,9 +445,10 @@ def load_plant(spec: str) -> System:
 
     Raises
     ------
-    ValueError
-        The file or module cannot be found or imported, the name is missing, or it does not give a
-        System (the message says which and what to write).
+    ArgumentError
+        The file or module cannot be found or imported (or raises, or calls ``sys.exit``, while
+        imported), the name is missing or is not a System or a function without arguments, or the
+        function raises, exits or does not return a System (the message says which and what to write).
     """
     if not isinstance(spec, str) or not spec:
         raise error("plant", "'path/to/plant.py:make_plant' or 'module:make_plant'", spec, kind=TypeError)
@@ -442,23 +461,36 @@ def load_plant(spec: str) -> System:
             raise error("plant", "an existing Python file", str(path), fix)
         module_spec = importlib.util.spec_from_file_location(f"kklcasadi_user_plant_{path.stem}", path)
         module = importlib.util.module_from_spec(module_spec)
-        try:
-            module_spec.loader.exec_module(module)
-        except Exception as exc:
-            raise ValueError(f"plant: importing {path} failed: {type(exc).__name__}: {exc}") from exc
+        _run_user_code(f"importing {path}", lambda: module_spec.loader.exec_module(module), "Fix the file.")
     else:
         try:
-            module = importlib.import_module(source)
-        except ImportError as exc:
-            raise error("plant", "an importable module or a .py file", source, fix) from exc
+            module = _run_user_code(f"importing {source}", lambda: importlib.import_module(source), fix)
+        except ArgumentError as exc:
+            if isinstance(exc.__cause__, ImportError):
+                raise error("plant", "an importable module or a .py file", source, fix) from exc
+            raise
     if not hasattr(module, attribute):
         raise error("plant", f"a name {attribute!r} in {source}", Text("no such name"), fix)
     value = getattr(module, attribute)
-    plant = value() if callable(value) and not isinstance(value, System) else value
+    if isinstance(value, System):
+        return value
+    if not inspect.isfunction(value) or not _takes_no_arguments(value):
+        raise error("plant", f"{source}:{attribute} to be a kklcasadi.System or a Python function without arguments "
+                    "that returns one", Text(f"{type(value).__name__} {getattr(value, '__qualname__', '')}".strip()),
+                    fix, kind=TypeError)
+    plant = _run_user_code(f"{source}:{attribute}()", value, "Fix the function.")
     if not isinstance(plant, System):
-        raise error("plant", f"{source}:{attribute} to give a kklcasadi.System", Text(type(plant).__name__), fix,
+        raise error("plant", f"{source}:{attribute}() to return a kklcasadi.System", Text(type(plant).__name__), fix,
                     kind=TypeError)
     return plant
+
+
+def _takes_no_arguments(function: Callable) -> bool:
+    try:
+        inspect.signature(function).bind()
+    except TypeError:
+        return False
+    return True
 
 
 def _symbols(nx: int) -> tuple[ca.SX, ca.SX]:

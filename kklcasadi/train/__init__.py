@@ -29,6 +29,7 @@ from ..plant import systems
 from ..plant.design import Design
 from ..plant.systems import System
 from ..validation import Text, error, positive_int
+from ..writes import claim
 from .config import (
     CurriculumConfig,
     DynConfig,
@@ -84,7 +85,10 @@ def _load_base(base: str | Path | None, out: Path, plant: System, method: str) -
     return model
 
 
-def _history_plot(histories: dict[str, dict], path: Path, stamp: provenance.Stamp) -> None:
+def _history_plot(histories: dict[str, dict], stamp: provenance.Stamp) -> bytes:
+    """PNG of the training histories: every recorded loss of every stage against the epoch."""
+    import io
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -98,8 +102,10 @@ def _history_plot(histories: dict[str, dict], path: Path, stamp: provenance.Stam
         ax.set_xlabel("epoch")
         ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp))
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110, metadata=provenance.png_metadata(stamp))
     plt.close(fig)
+    return buffer.getvalue()
 
 
 def train_observer(system: System | str, method: str = "autonomous", out_dir: str | Path = "models/observer", *,
@@ -154,8 +160,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     out = Path(out_dir)
     if out.is_file():
         raise error("out_dir", "a directory", str(out), "Give a directory path.")
-    if (out / "card.json").exists() and not overwrite and not resume:
-        raise FileExistsError(f"{out} already holds a model; pass overwrite=True (CLI: --overwrite) to replace it")
+    if (out / "card.json").exists() and not overwrite:
+        raise FileExistsError(f"{out} already holds a model; pass overwrite=True (CLI: --overwrite) to replace it"
+                              + (" (resume continues an unfinished training, not a finished model)" if resume else ""))
     variant = variants.get(method)
     if plant.n_params and method != "bank":
         raise error("system", f"a plant without parameters for method {method!r} (only 'bank' trains over a family "
@@ -177,26 +184,27 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     if base_model is not None:
         design = Design(base_model.A, base_model.B)
     design = design or (Design.paper(plant) if plant.paper_design else Design.default(plant))
-    workdir = out / ".train"
-    if progress:
-        print(f"training {method} for {plant.name!r} at dt = {dt:g} s into {out}", flush=True)
-    torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
-    t0 = time.perf_counter()
-    trained: Trained = variant.load_trainer()(plant, design, base_model, config, dt=dt, seed=seed, device=device,
-                                              progress=progress, workdir=workdir, resume=resume)
-    training = {**_jsonable(trained.training), "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1),
-                "device": device}
-    nominal = plant.at(plant.param_nominal) if plant.n_params else plant    # the plant the observer runs with
-    card = make_card(nominal, trained.design, method, trained.spec, dt=dt, window=trained.window,
-                     training=training, measurement_std=trained.measurement_std, domain=trained.domain,
-                     base=None if base_model is None else _base_reference(out, base_model),
-                     coverage=trained.coverage,
-                     process_std=(config_field(config, "process_std") if trained.process_std is None
-                                  else trained.process_std),
-                     monitor=trained.monitor, fit_families=trained.fit_families)
-    stamp = provenance.stamp(seeds={"training": seed})    # the command line that trained it, the commit, versions
-    path = save_model(out, trained.arrays, {**card, provenance.KEY: stamp.to_json()}, overwrite=overwrite or resume)
-    if trained.histories:
-        (out / "history.json").write_text(json.dumps(provenance.json_record(_jsonable(trained.histories), stamp)))
-        _history_plot(trained.histories, out / "history.png", stamp)
-    return path
+    # the checkpoints' directory, held by this process while it trains: a second training to one --out stops at once
+    with claim(out / ".train", "out_dir") as workdir:
+        if progress:
+            print(f"training {method} for {plant.name!r} at dt = {dt:g} s into {out}", flush=True)
+        torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
+        t0 = time.perf_counter()
+        trained: Trained = variant.load_trainer()(plant, design, base_model, config, dt=dt, seed=seed, device=device,
+                                                  progress=progress, workdir=workdir, resume=resume)
+        training = {**_jsonable(trained.training), "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1),
+                    "device": device}
+        nominal = plant.at(plant.param_nominal) if plant.n_params else plant    # the plant the observer runs with
+        card = make_card(nominal, trained.design, method, trained.spec, dt=dt, window=trained.window,
+                         training=training, measurement_std=trained.measurement_std, domain=trained.domain,
+                         base=None if base_model is None else _base_reference(out, base_model),
+                         coverage=trained.coverage,
+                         process_std=(config_field(config, "process_std") if trained.process_std is None
+                                      else trained.process_std),
+                         monitor=trained.monitor, fit_families=trained.fit_families)
+        stamp = provenance.stamp(seeds={"training": seed})    # the command line that trained it, the commit, versions
+        extra = {} if not trained.histories else {
+            "history.json": json.dumps(provenance.json_record(_jsonable(trained.histories), stamp)).encode(),
+            "history.png": _history_plot(trained.histories, stamp)}
+        return save_model(out, trained.arrays, {**card, provenance.KEY: stamp.to_json()}, overwrite=overwrite,
+                          extra=extra)

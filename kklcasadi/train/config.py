@@ -280,7 +280,7 @@ def default_config(system: str, method: str, *, epochs: Optional[int] = None, **
     cls = variants.get(method).config_class()
     if cls is None:
         trainable = [v.name for v in variants.VARIANTS.values() if v.config is not None]
-        raise ValueError(f"method: expected one of {trainable} (a method with a configuration), received {method!r}.")
+        raise error("method", f"one of {trainable} (a method with a configuration)", method)
     names = {f.name for f in fields(cls)}
     unknown = sorted(set(overrides) - names)
     if unknown:

@@ -74,10 +74,10 @@ class DecoderConfig:
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
-            raise ValueError(f"loss: expected one of {LOSSES}, received {self.loss!r}.")
+            raise error("loss", f"one of {LOSSES}", self.loss)
         positive_number(self.smape_weight, "smape_weight", "the weight of the SMAPE term of loss 'mse+smape'")
         if not self.hidden or not all(isinstance(h, int) and h > 0 for h in self.hidden):
-            raise ValueError(f"hidden: expected a non-empty tuple of positive widths, received {self.hidden!r}.")
+            raise error("hidden", "a non-empty tuple of positive widths", self.hidden)
         torch_dtype(self.dtype)
         if not isinstance(self.skip, bool):
             raise error("skip", "True or False (a linear skip path in the decoder)", self.skip, kind=TypeError)
@@ -213,7 +213,7 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     nx = data.x.shape[1]
     scale = np.zeros(nx) if config.asinh_scale is None else np.asarray(config.asinh_scale, dtype=float)
     if scale.shape != (nx,) or np.any(scale < 0):
-        raise ValueError(f"asinh_scale: expected nx = {nx} entries >= 0, received {config.asinh_scale!r}.")
+        raise error("asinh_scale", f"nx = {nx} entries >= 0", config.asinh_scale)
     feats = fb.decoder_features(data.z, data.y, data.u, angles=angles, gains=fb.dc_gains(bank))
     v = fb.decoder_targets(data.x, data.y, scale, angles)
     sizes = (feats.shape[1], *config.hidden, v.shape[1])

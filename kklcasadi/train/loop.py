@@ -220,6 +220,7 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
             batch = data.get(order[b * config.batch_size:(b + 1) * config.batch_size])
             loss, parts = loss_fn(batch, epoch)
             if not torch.isfinite(loss):
+                _blame_the_data(name, batch)
                 raise FloatingPointError(f"{name}: the loss became {loss.item()} at epoch {epoch}, batch {b}; "
                                          "lower the learning rate or check the data for outliers")
             opt.zero_grad(set_to_none=True)
@@ -231,6 +232,7 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
         seen += n_batches * config.batch_size
         val = _evaluate(val_fn, data, scored, config.batch_size, epoch)
         if not math.isfinite(val):
+            _blame_the_data(name, data.get(scored))
             raise FloatingPointError(f"{name}: the validation loss became {val} at epoch {epoch}; "
                                      "lower the learning rate")
         record = {k: v / n_batches for k, v in sums.items()}
@@ -260,6 +262,17 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
                                                                       max(best_epoch, 0))
     return FitResult(history, best_val, best_epoch, seconds, seen, len(val_idx), val_all,
                      time.perf_counter() - t0 - seconds)
+
+
+def _blame_the_data(name: str, batch: Mapping[str, Tensor]) -> None:
+    """A loss that is not finite on data that hold NaN or inf is the data's fault (the plant's simulations), not the
+    learning rate's: raise saying so."""
+    bad = [key for key, value in batch.items() if torch.is_floating_point(value) and not torch.isfinite(value).all()]
+    if bad:
+        raise error(f"{name}: data", "finite training data", Text(f"NaN or inf in {', '.join(bad)}"),
+                    "They come from simulating the plant: check that its f(x, u) and h(x) are finite over the X0 box "
+                    "and the inputs (a square root or logarithm of a state that turns negative, a division by one "
+                    "that reaches zero).")
 
 
 def _evaluate(loss_fn: LossFn, data: Dataset, index: np.ndarray, batch_size: int, epoch: int) -> float:

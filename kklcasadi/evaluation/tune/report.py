@@ -3,12 +3,14 @@ mattered."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
 
 from ... import provenance
+from ...writes import write_file
 from .storage import complete_trials, optuna_module, public_url
 
 __all__ = ["summary_table", "search_plot"]
@@ -86,6 +88,7 @@ def search_plot(study: Any, path: Path, *, stamp: Optional[provenance.Stamp] = N
         bx.text(0.5, 0.5, f"importances need 4 complete trials ({len(complete)} so far)", ha="center")
         bx.set_axis_off()
     fig.tight_layout()
-    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
     plt.close(fig)
-    return path
+    return write_file(path, buffer.getvalue(), overwrite=True, argument="path")

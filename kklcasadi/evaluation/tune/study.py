@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import socket
 import time
 import warnings
@@ -16,10 +15,11 @@ from typing import Any, Optional, Union
 from ... import provenance
 from ...model import variants
 from ...model.card import Search
-from ...model.files import load_model, save_model
+from ...model.files import EXTRA_FILES, load_model, save_model
 from ...observer.kkl import load_observer
 from ...plant.systems import System
 from ...validation import Text, error, positive_int
+from ...writes import write_file
 from ..trialcache import TrialCache
 from .report import search_plot, summary_table
 from .space import Space, search_space
@@ -179,7 +179,8 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
     stamp = stamp or provenance.stamp(seeds={"training": seed, "sampler": sampler_seed,
                                              "validation": VALIDATION_SEED})
     summary = out / "summary.md"
-    summary.write_text(provenance.markdown(summary_table(the_study, url) + "\n", stamp))
+    write_file(summary, provenance.markdown(summary_table(the_study, url) + "\n", stamp), overwrite=True,
+               argument="out_dir")
     plot = search_plot(the_study, out / "search.png", stamp=stamp)
     return TuneResult(the_study, best_dir, summary, plot, len(started))
 
@@ -228,8 +229,6 @@ def export_best(study: Any, out: Path, system: System, method: str, space: Space
     card = {**model.card, "search": search.to_card()}
     if card.get("base") is not None:                    # the base's path is relative to the model's directory
         card["base"] = {**card["base"], "path": os.path.relpath(model.base.path, target.resolve())}
-    save_model(target, model.arrays, card, overwrite=True)
-    for extra in ("history.json", "history.png"):
-        if (source / extra).exists():
-            shutil.copyfile(source / extra, target / extra)
+    save_model(target, model.arrays, card, overwrite=True,
+               extra={name: (source / name).read_bytes() for name in EXTRA_FILES if (source / name).is_file()})
     return target

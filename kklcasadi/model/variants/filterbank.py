@@ -50,6 +50,7 @@ from ...nets.hold import FOHMatrices, foh_matrices
 from ...nets.numpy_mlp import mlp_numpy
 from ...nets.specs import DECODER, MLPSpec, check_arrays
 from ...plant.systems import System
+from ...validation import error
 from .copies import ModelCopies, copy_count
 
 __all__ = ["FilterBank", "Angles", "NO_ANGLES", "dc_gains", "decoder_features", "decoder_targets",
@@ -339,7 +340,7 @@ class Angles:
         pairs = [entry["measured"], entry["free"]]
         if not (isinstance(entry["outputs"], list) and all(isinstance(p, list) and all(
                 isinstance(q, list) and len(q) == 2 for q in p) for p in pairs)):
-            raise ValueError(f"angles: expected lists of indices and of pairs, received {entry!r}.")
+            raise error("angles", "lists of indices and of pairs", entry)
         return cls(tuple(entry["outputs"]), tuple(tuple(m) for m in entry["measured"]),
                    tuple(tuple(f) for f in entry["free"]))
 
@@ -435,7 +436,7 @@ def decoder_outputs(v: Any, y: Any, scale: np.ndarray, angles: Angles = NO_ANGLE
 def member_prefixes(members: int) -> tuple[str, ...]:
     """Array prefixes of a decoder ensemble's ``members`` networks: ``decoder``, ``decoder_1``, ..."""
     if not (isinstance(members, (int, np.integer)) and not isinstance(members, bool) and members >= 1):
-        raise ValueError(f"members: expected a positive integer (decoder networks averaged), received {members!r}.")
+        raise error("members", "a positive integer (decoder networks averaged)", members)
     return (DECODER,) + tuple(f"{DECODER}_{j}" for j in range(1, int(members)))
 
 
@@ -514,7 +515,7 @@ def spread(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: Any, y: Any, u
     numpy.ndarray, shape (...)
     """
     if members < 2:
-        raise ValueError(f"members: expected at least 2 networks for a spread, received {members!r}.")
+        raise error("members", "at least 2 networks for a spread", members)
     spec, _ = _check_decoder(arrays, arch, angles, members)
     f = _features(arrays, spec, z, np.asarray(y, dtype=float), u, angles)
     v = np.stack([mlp_numpy(spec, arrays, prefix, f) for prefix in member_prefixes(members)])
@@ -595,7 +596,7 @@ def spread_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.
                       angles: Angles = NO_ANGLES, members: int = 2, mlp_name: str = "decoder_mlp") -> ca.MX:
     """:func:`spread` as a CasADi expression (1, 1) at the symbols ``z``, ``y``, ``u``."""
     if members < 2:
-        raise ValueError(f"members: expected at least 2 networks for a spread, received {members!r}.")
+        raise error("members", "at least 2 networks for a spread", members)
     v, _ = _member_expressions(arrays, arch, z, y, u, angles, members, mlp_name)
     mean = sum(v[1:], v[0]) / members
     unit = ca.DM(1.0 / _spread_scale(arrays))

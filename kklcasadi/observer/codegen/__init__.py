@@ -7,6 +7,7 @@ from .generator import (
     MATHS,
     MATVECS,
     NATIVE_FLAGS,
+    c_targets,
     casadi_source,
     check_c_name,
     check_flags,
@@ -15,5 +16,6 @@ from .generator import (
 )
 from .kernels import VECTOR_MATH_TOLERANCE, axpy_matvec, fast_kernels, vector_math_c
 
-__all__ = ["generate_c", "casadi_source", "renamed", "check_c_name", "check_flags", "axpy_matvec", "fast_kernels",
-           "vector_math_c", "C_FLAGS", "DEFAULT_FLAGS", "NATIVE_FLAGS", "MATVECS", "MATHS", "VECTOR_MATH_TOLERANCE"]
+__all__ = ["generate_c", "c_targets", "casadi_source", "renamed", "check_c_name", "check_flags", "axpy_matvec",
+           "fast_kernels", "vector_math_c", "C_FLAGS", "DEFAULT_FLAGS", "NATIVE_FLAGS", "MATVECS", "MATHS",
+           "VECTOR_MATH_TOLERANCE"]

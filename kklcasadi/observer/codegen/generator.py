@@ -66,11 +66,13 @@ from typing import Optional, Sequence, Union
 import casadi as ca
 
 from ...validation import Text, error, one_of
+from ...writes import write_dir
 from ..guard import SampleGuard
 from ..kkl import DOMAIN_MARGIN, KKLObserver
 from .kernels import rewrite, template
 
-__all__ = ["generate_c", "casadi_source", "renamed", "check_c_name", "check_flags", "C_FLAGS", "DEFAULT_FLAGS",
+__all__ = ["generate_c", "casadi_source", "renamed", "check_c_name", "check_flags", "c_targets", "C_FLAGS",
+           "DEFAULT_FLAGS",
            "NATIVE_FLAGS", "MATVECS", "MATHS"]
 
 #: The warning flags the generated code is tested with, at -O2 (it is also tested at
@@ -106,11 +108,10 @@ def check_c_name(name: object) -> str:
         keyword.
     """
     if not isinstance(name, str):
-        raise TypeError(f"name: expected a string, received {type(name).__name__}.")
+        raise error("name", "a string", Text(type(name).__name__), kind=TypeError)
     if not _C_NAME.match(name) or name in _C_KEYWORDS:
-        raise ValueError(f"name: expected a C identifier that starts with a letter and holds "
-                         f"letters, digits and single underscores (not a C keyword), received "
-                         f"{name!r}. Try e.g. 'kkl_obs'.")
+        raise error("name", "a C identifier that starts with a letter and holds letters, digits and single "
+                    "underscores (not a C keyword)", name, "Try e.g. 'kkl_obs'.")
     return name
 
 
@@ -267,13 +268,39 @@ def check_flags(flags: object) -> tuple[str, ...]:
         If a flag is not a string, does not start with ``-`` or holds blanks or quotes.
     """
     if isinstance(flags, str) or not isinstance(flags, Sequence):
-        raise TypeError(f"flags: expected a sequence of strings such as {DEFAULT_FLAGS}, "
-                        f"received {type(flags).__name__}.")
+        raise error("flags", f"a sequence of strings such as {DEFAULT_FLAGS}", Text(type(flags).__name__),
+                    kind=TypeError)
     for flag in flags:
         if not isinstance(flag, str) or not re.fullmatch(r"-[^\s'\"\\]+", flag):
-            raise ValueError(f"flags: expected compiler options that start with '-' and hold no "
-                             f"blanks or quotes, such as {DEFAULT_FLAGS}, received {flag!r}.")
+            raise error("flags", f"compiler options that start with '-' and hold no blanks or quotes, such as "
+                        f"{DEFAULT_FLAGS}", flag)
     return tuple(flags)
+
+
+def c_targets(out_dir: Union[str, os.PathLike], names: Sequence[str], overwrite: bool) -> tuple[Path, list[Path]]:
+    """The output directory of C files and their paths, checked: a directory path (or a new one), and none of
+    the files there already unless ``overwrite``.
+
+    Raises
+    ------
+    TypeError
+        ``out_dir`` is not a path.
+    ValueError
+        ``out_dir`` is a file.
+    FileExistsError
+        One of the files exists and ``overwrite`` is False.
+    """
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise error("out_dir", "a path", Text(type(out_dir).__name__), kind=TypeError)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise error("out_dir", "a directory", str(out), "It is a file; choose a directory path.")
+    paths = [out / name for name in names]
+    existing = [p for p in paths if p.exists()]
+    if existing and not overwrite:
+        raise FileExistsError(f"{existing[0]}: already exists; pass overwrite=True to replace it, or choose another "
+                              "out_dir or name.")
+    return out, paths
 
 
 def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = "axpy", math: str = "vector",
@@ -304,7 +331,7 @@ def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = 
     matvec = one_of(matvec, "matvec", MATVECS)
     math = one_of(math, "math", MATHS)
     if not isinstance(dispatch, bool):
-        raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
+        raise error("dispatch", "a bool", Text(type(dispatch).__name__), kind=TypeError)
     generator = ca.CodeGenerator(f"{name}.c", {"with_header": True, "casadi_real": "double"})
     for f in functions:
         generator.add(f)
@@ -382,12 +409,12 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         One of the files exists and ``overwrite`` is False.
     """
     if not isinstance(observer, KKLObserver):
-        raise TypeError(f"observer: expected a KKLObserver, received {type(observer).__name__}.")
+        raise error("observer", "a KKLObserver", Text(type(observer).__name__), kind=TypeError)
     name = check_c_name(name)
     matvec = one_of(matvec, "matvec", MATVECS)
     math = one_of(math, "math", MATHS)
     if not isinstance(dispatch, bool):
-        raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
+        raise error("dispatch", "a bool", Text(type(dispatch).__name__), kind=TypeError)
     flags = check_flags(flags)
     columns = {"time": _column_names((time_col,) if isinstance(time_col, str) else time_col, "time_col", 1, "time"),
                "y": _column_names(y_cols, "y_cols", observer.ny, "y"),
@@ -399,17 +426,7 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     if len(set(columns["states"])) != observer.nx or {"time", "in_domain", "status"} & set(columns["states"]):
         raise error("state_names", "distinct names other than 'time', 'in_domain' and 'status'",
                     list(columns["states"]))
-    if not isinstance(out_dir, (str, os.PathLike)):
-        raise TypeError(f"out_dir: expected a path, received {type(out_dir).__name__}.")
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"out_dir: expected a directory, received {str(out)!r}, which is a "
-                         "file. Choose a directory path.")
-    paths = [out / f"{name}.c", out / f"{name}.h", out / f"{name}_main.c"]
-    existing = [p for p in paths if p.exists()]
-    if existing and not overwrite:
-        raise FileExistsError(f"{existing[0]}: already exists; pass overwrite=True to replace "
-                              "it, or choose another out_dir or name.")
+    out, paths = c_targets(out_dir, [f"{name}.c", f"{name}.h", f"{name}_main.c"], overwrite)
 
     step = observer.step if observer.step_covariance is None else observer.step_covariance
     functions = [renamed(step, f"{name}_step"), renamed(observer.decode, f"{name}_decode"),
@@ -422,11 +439,10 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch)
     build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
 
-    out.mkdir(parents=True, exist_ok=True)
-    paths[0].write_text(f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h."
-                        f" */\n{source}")
-    paths[1].write_text(_header(observer, name, casadi_header, sizes, build, matvec,
-                                math, dispatch, columns))
-    paths[2].write_text(template("main").replace("__BUILD__", build).replace("__NAME__", name)
-                        .replace("__MACRO__", name.upper()))
+    write_dir(out, {paths[0].name: f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h. */\n"
+                                   f"{source}",
+                    paths[1].name: _header(observer, name, casadi_header, sizes, build, matvec, math, dispatch,
+                                           columns),
+                    paths[2].name: template("main").replace("__BUILD__", build).replace("__NAME__", name)
+                    .replace("__MACRO__", name.upper())}, overwrite=overwrite, argument="out_dir")
     return paths

@@ -1,0 +1,147 @@
+"""Writes that cannot be half done or collide (kklcasadi.writes): a new target is an exclusive create (of two
+writers exactly one wins), a replaced directory is swapped in one step with the files that are not the
+writer's carried over, and the C files and model files go through it."""
+
+import multiprocessing
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kklcasadi import writes
+from kklcasadi.model.files import CARD_FILE, WEIGHTS_FILE, load_model, save_model
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_write_file_is_exclusive_unless_overwriting(tmp_path):
+    path = writes.write_file(tmp_path / "a" / "x.txt", "one")
+    assert path.read_text() == "one"
+    with pytest.raises(FileExistsError, match="x.txt exists; pass overwrite"):
+        writes.write_file(path, "two")
+    assert path.read_text() == "one"
+    writes.write_file(path, b"three", overwrite=True)
+    assert path.read_text() == "three" and sorted(os.listdir(path.parent)) == ["x.txt"]
+    with pytest.raises(ValueError, match="--out: expected a file path, received .* It is a directory"):
+        writes.write_file(tmp_path, "x", argument="--out")
+
+
+def test_write_dir_publishes_a_new_directory_with_one_rename(tmp_path, monkeypatch):
+    renames = []
+    real = os.rename
+    monkeypatch.setattr(writes.os, "rename", lambda a, b: (renames.append((a, b)), real(a, b))[1])
+    target = writes.write_dir(tmp_path / "new", {"a.c": "A", "a.h": "H"})
+    assert len(renames) == 1 and Path(renames[0][1]) == target
+    assert sorted(os.listdir(target)) == ["a.c", "a.h"] and sorted(os.listdir(tmp_path)) == ["new"]
+
+
+def test_write_dir_swaps_an_existing_directory_and_carries_the_other_files(tmp_path):
+    target = tmp_path / "c"
+    writes.write_dir(target, {"a.c": "old", "a.h": "old"})
+    (target / "a").write_text("binary the user built")
+    os.symlink("a", target / "link")
+    inode = target.stat().st_ino
+    with pytest.raises(FileExistsError, match="a.c exists; pass overwrite"):
+        writes.write_dir(target, {"a.c": "new", "a.h": "new"})
+    writes.write_dir(target, {"a.c": "new", "a.h": "new"}, overwrite=True)
+    assert target.stat().st_ino != inode                                      # swapped, not rewritten in place
+    assert {p.name: p.read_text() for p in target.iterdir() if not p.is_symlink()} == \
+        {"a.c": "new", "a.h": "new", "a": "binary the user built"}
+    assert os.readlink(target / "link") == "a" and sorted(os.listdir(tmp_path)) == ["c"]
+    writes.write_dir(target, {"b.c": "other name"})                         # other names: no overwrite needed
+    assert (target / "a.c").read_text() == "new" and (target / "b.c").read_text() == "other name"
+
+
+def test_write_dir_drops_the_writers_own_old_files(tmp_path):
+    target = tmp_path / "m"
+    writes.write_dir(target, {"card.json": "1", "history.png": "old"})
+    (target / ".train").mkdir()
+    (target / ".train" / "x.ckpt.npz").write_text("checkpoint")
+    writes.write_dir(target, {"card.json": "2"}, overwrite=True, owned=("history.png", ".train"))
+    assert sorted(os.listdir(target)) == ["card.json"] and sorted(os.listdir(tmp_path)) == ["m"]
+
+
+def test_a_directory_that_holds_another_directory_is_written_file_by_file(tmp_path):
+    target = tmp_path / "shared"
+    (target / "sub").mkdir(parents=True)
+    (target / "sub" / "keep.txt").write_text("keep")
+    inode = target.stat().st_ino
+    writes.write_dir(target, {"a.c": "A"})
+    assert target.stat().st_ino == inode and (target / "sub" / "keep.txt").read_text() == "keep"
+    assert (target / "a.c").read_text() == "A" and sorted(os.listdir(tmp_path)) == ["shared"]
+
+
+def test_write_dir_refuses_names_with_paths_and_a_file_target(tmp_path):
+    with pytest.raises(ValueError, match="files: expected plain file names, received '../x'"):
+        writes.write_dir(tmp_path / "d", {"../x": "x"})
+    (tmp_path / "f").write_text("")
+    with pytest.raises(ValueError, match="--c: expected a directory"):
+        writes.write_dir(tmp_path / "f", {"a": "x"}, argument="--c")
+
+
+def _save(path, seed, barrier, results):
+    from kklcasadi.model.card import make_card  # noqa: F401  (imported before the race)
+
+    card = load_model(ROOT / "models" / "duffing" / "autonomous")
+    arrays = {name: np.asarray(a) + seed for name, a in card.arrays.items()}
+    barrier.wait()
+    try:
+        save_model(path, arrays, {k: v for k, v in card.card.items()})
+        results.put((seed, "wrote"))
+    except FileExistsError as exc:
+        results.put((seed, str(exc)))
+
+
+def test_two_saves_of_one_new_model_exactly_one_wins(tmp_path):
+    context = multiprocessing.get_context("fork")
+    for attempt in range(5):
+        path = tmp_path / f"model{attempt}"
+        barrier, results = context.Barrier(2), context.Queue()
+        procs = [context.Process(target=_save, args=(path, seed, barrier, results)) for seed in (1, 2)]
+        for proc in procs:
+            proc.start()
+        for proc in procs:
+            proc.join(120)
+        outcome = dict(results.get(timeout=5) for _ in procs)
+        winners = [seed for seed, what in outcome.items() if what == "wrote"]
+        assert len(winners) == 1, outcome
+        loser = next(what for what in outcome.values() if what != "wrote")
+        assert "\n" not in loser and ("exists" in loser or "another writer" in loser)
+        model = load_model(path)                                              # the winner's model, whole
+        shipped = load_model(ROOT / "models" / "duffing" / "autonomous")
+        name = next(iter(model.arrays))
+        assert np.array_equal(model.arrays[name], shipped.arrays[name] + winners[0])
+        assert sorted(os.listdir(path)) == [CARD_FILE, WEIGHTS_FILE]
+
+
+def _command(*args, cwd=None):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([sys.executable, "-m", "kklcasadi", *args], capture_output=True, text=True, env=env,
+                          cwd=cwd)
+
+
+def test_the_command_line_does_not_write_into_a_shipped_model(tmp_path):
+    shipped = ROOT / "models" / "duffing" / "autonomous"
+    before = {p.name: p.read_bytes() for p in shipped.iterdir()}
+    for args in (["export", str(shipped), "--c", str(shipped), "--overwrite"],
+                 ["export", str(shipped), "--casadi", str(shipped / "step.casadi")],
+                 ["train", "--system", "duffing", "--method", "autonomous", "--epochs", "1", "--out", str(shipped),
+                  "--overwrite"],
+                 ["demo", "--out", str(shipped / "demo.png")]):
+        result = _command(*args)
+        assert result.returncode == 2, result.stderr
+        assert result.stderr.count("\n") == 1 and "ships with kklcasadi, read-only" in result.stderr
+    assert {p.name: p.read_bytes() for p in shipped.iterdir()} == before
+
+
+def test_an_out_that_is_a_directory_is_one_line(tmp_path):
+    for args in (["demo", "--out", str(tmp_path)],
+                 ["certificate", str(ROOT / "models" / "duffing" / "autonomous"), "--out", str(tmp_path)],
+                 ["export", str(ROOT / "models" / "duffing" / "autonomous"), "--casadi", str(tmp_path)]):
+        result = _command(*args)
+        assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+        assert "--out" in result.stderr or "--casadi" in result.stderr
+        assert "expected a file path, received a directory" in result.stderr
