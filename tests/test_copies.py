@@ -253,7 +253,8 @@ def blind():
 
 @pytest.mark.parametrize("plant, message", [
     ("pendulum", "error: --copies: expected a plant without angle states"),
-    ("blind", "error: --copies: no stabilising Kalman-Bucy gain for weight 1: blind linearised at its box centre"),
+    ("blind", "error: --copies: expected weights with a stabilising Kalman-Bucy gain, received 1, with no stabilising "
+              "Kalman-Bucy gain: blind linearised at its box centre"),
 ])
 def test_kklcasadi_train_refuses_copies_the_plant_cannot_take_before_training(plant, message, tmp_path, capsys):
     pytest.importorskip("torch")

@@ -35,7 +35,7 @@ import scipy.linalg
 
 from ...plant.rk4 import rk4_step
 from ...plant.systems import System
-from ...validation import error
+from ...validation import Text, error
 
 __all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count"]
 
@@ -144,13 +144,14 @@ class ModelCopies:
             try:
                 P = scipy.linalg.solve_continuous_are(F.T, H.T, Q, np.eye(system.ny))
             except (np.linalg.LinAlgError, ValueError) as exc:
-                raise ValueError(f"weights: no stabilising Kalman-Bucy gain for weight {wi}: {system.name} "
-                                 f"linearised at its box centre {r.tolist()} is not detectable from y ({exc}). "
-                                 "Train without model copies.") from exc
+                raise error("weights", "weights with a stabilising Kalman-Bucy gain", Text(
+                    f"{wi}, with no stabilising Kalman-Bucy gain: {system.name} linearised at its box centre "
+                    f"{r.tolist()} is not detectable from y ({exc})"), "Train without model copies.") from exc
             L = P @ H.T
             if np.max(np.linalg.eigvals(F - L @ H).real) >= 0:
-                raise ValueError(f"weights: the Kalman-Bucy gain for weight {wi} does not stabilise {system.name} "
-                                 "linearised at its box centre; train without model copies.")
+                raise error("weights", "weights with a stabilising Kalman-Bucy gain", Text(
+                    f"{wi}, whose gain does not stabilise {system.name} linearised at its box centre"),
+                    "Train without model copies.")
             gains.append(L)
         return cls(system, np.stack(gains), r, 0.5 * (box[:, 1] - box[:, 0]) * bound_scale, substeps)
 
@@ -238,3 +239,4 @@ class ModelCopies:
         params = np.concatenate([y[:, :-1], y[:, 1:], u[:, :-1]], axis=2).reshape(M * (N - 1), -1)
         z[:, 1:] = np.asarray(runs(np.zeros((self.nz, M)), params.T)).T.reshape(M, N - 1, self.nz)
         return z
+
