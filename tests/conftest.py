@@ -48,7 +48,8 @@ def model_dir_factory(tmp_path_factory):
     """Write a random-weight model directory for any method; returns its path.
 
     ``make(method, system="duffing", *, hidden=(8, 8), window=3, seed=0, base=False,
-    card_extra=None, dt=0.05)``; ``system`` is a registered name or a ``kklcasadi.System`` (then
+    card_extra=None, dt=0.05)`` (``window`` for the windowed methods; the others have 1); ``system`` is a
+    registered name or a ``kklcasadi.System`` (then
     pass it to ``load_observer(path, system=...)``). Encoder/decoder MLPs ``[nx, *hidden, nz]`` / ``[nz, *hidden,
     nx]`` (tanh), ``A = -diag(1..nz)``, ``B = ones``; obs, obs_stream: GRU 4, projection 3, gain
     ``[nz + 3, 6, nz*nu]``; dyn, dyn_stream: hypernetwork GRU 4, embeddings 3, backbone ``[5, 5]``,
@@ -78,12 +79,12 @@ def model_dir_factory(tmp_path_factory):
         bank = lambda: BankSpec(MLPSpec((nz + plant.ny + nu, *hidden, nx)), design.A, design.B, dt, nu,  # noqa: E731
                                 {"y_poles": [1.0], "u_poles": [], "y_resonators": [], "clock": None})
         spec = {"obs": obs, "obs_stream": obs, "dyn": dyn, "dyn_stream": dyn, "bank": bank}.get(method, lambda: maps)()
-        card = {**make_card(plant, design, method, spec, dt=dt, window=window, training={"seed": seed}),
-                **(card_extra or {})}
+        windowed = kklcasadi.model.variants.get(method).windowed
+        card = {**make_card(plant, design, method, spec, dt=dt, window=window if windowed else 1,
+                            training={"seed": seed}), **(card_extra or {})}
         root = tmp_path_factory.mktemp(f"model{next(counter)}")
         if base:
-            base_card = make_card(plant, design, "autonomous", maps, dt=dt, window=window,
-                                  training={"seed": seed})
+            base_card = make_card(plant, design, "autonomous", maps, dt=dt, window=1, training={"seed": seed})
             base_dir = save_model(root / "autonomous", _random_model_arrays(base_card, seed),
                                   base_card)
             sha = kklcasadi.model.files.load_model(base_dir).card["weights_sha256"]
@@ -154,3 +155,14 @@ def c_program_estimates(obs, folder, name, t, y, u):
     table = np.loadtxt(out.stdout.splitlines()[1:], delimiter=",", ndmin=2)
     assert np.all(table[:, -1] == 0)                      # the status column: every sample fed
     return table[:, 1:1 + obs.nx]
+
+
+def write_signed_card(directory, card):
+    """Write ``card`` as ``directory``'s card.json with a digest that matches it: a card edited as a tool that signs
+    would, so that what the loader checks after the digest (the fields, the weights) is what a test sees."""
+    import json
+
+    from kklcasadi.model.digest import DIGEST, card_digest
+
+    body = {key: value for key, value in card.items() if key != DIGEST}
+    (directory / "card.json").write_text(json.dumps({**body, DIGEST: card_digest(body)}))

@@ -106,7 +106,7 @@ def test_coverage_is_recorded_in_the_card_validated_and_optional(model_dir_facto
                                                                              "process_std": 0.2}
     saved = save_model(tmp_path / "m", model.arrays, card)
     assert load_model(saved).spec.process_std == 0.2
-    full = {"format": "kklcasadi.model", "format_version": 1, "kklcasadi_version": "0", **card}
+    full = {"format": "kklcasadi.model", "format_version": 2, "kklcasadi_version": "0", **card}
     for change, message in [({"grid": 1.5}, r"'coverage.grid': expected a number in \[0, 1\]"),
                             ({"per_state": [1.0]}, r"'coverage.per_state': expected a list of 2 numbers"),
                             ({"labels": "auto"}, r"'coverage.labels': expected one of \['exact', 'frozen'"),

@@ -31,8 +31,12 @@ __all__ = ["FORMAT", "FORMAT_VERSION", "CARD_FILE", "ModelSpec", "SystemSpec", "
            "make_card", "parse_card", "model_array_shapes"]
 
 FORMAT = "kklcasadi.model"
-FORMAT_VERSION = 1
+#: 2: the card carries its ``digest`` (1: cards written before; ``kklcasadi resign`` checks and signs them).
+FORMAT_VERSION = 2
 CARD_FILE = "card.json"
+#: The most input samples a windowed variant's card may ask for (the shipped ones: 40; a window is memory and
+#: CasADi graph that grow with it).
+MAX_WINDOW = 10_000
 
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 _FIX_NEW = "Save the model again with kklcasadi.model.files.save_model."
@@ -210,7 +214,14 @@ class ModelSpec:
         return {**self.architecture.array_shapes(), **({} if self.monitor is None else self.monitor.array_shapes())}
 
 
-def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -> ModelSpec:
+#: The fields every card has (``weights_sha256`` once saved), and those it may have.
+_REQUIRED = ("format", "format_version", "kklcasadi_version", "method", "system", "design", "dt", "window",
+             "architecture", "base", "noise", "training")
+_OPTIONAL = ("weights_sha256", "digest", "domain", "coverage", "search", "monitor", "fit_families", "provenance")
+
+
+def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True,
+               n_arrays: Optional[int] = None) -> ModelSpec:
     """Check a card's fields, their types and the consistency of its sizes; return it typed.
 
     Parameters
@@ -221,6 +232,8 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
         Used in error messages (the card's path).
     require_sha : bool
         Whether ``weights_sha256`` must be present (False while saving: it is computed then).
+    n_arrays : int, optional
+        How many arrays the weights hold: a count the card gives (a decoder ensemble's members) may not exceed it.
 
     Returns
     -------
@@ -234,11 +247,7 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
     fix_new = _FIX_NEW
     if not isinstance(card, Mapping):
         raise field_error(where, "<card>", "a JSON object", Text(type(card).__name__), fix_new)
-    required = ["format", "format_version", "kklcasadi_version", "method", "system", "design",
-                "dt", "window", "architecture", "base", "noise", "training"]
-    if require_sha:
-        required.append("weights_sha256")
-    for key in required:
+    for key in _REQUIRED + (("weights_sha256",) if require_sha else ()):
         if key not in card:
             raise field_error(where, key, "a required field", Text("missing"), fix_new)
     if card["format"] != FORMAT:
@@ -254,6 +263,11 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
                           "This kklcasadi version cannot run it; upgrade kklcasadi or save the "
                           "model with a known method.")
     variant = variants.get(card["method"])
+    known = set(_REQUIRED + _OPTIONAL + variant.card_fields) | _VARIANT_FIELDS
+    for key in card:
+        if key not in known:
+            raise field_error(where, str(key), f"no such field (a card holds {sorted(known)})", card[key],
+                              "Remove it: kklcasadi reads no field it does not know.")
 
     system = card["system"]
     fix_sys = 'Write "system" as {"name": str, "nx": int, "nu": int, "ny": int}.'
@@ -282,6 +296,10 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
     if not is_number(card["dt"]) or not math.isfinite(card["dt"]) or card["dt"] <= 0:
         raise field_error(where, "dt", "a positive number (seconds)", card["dt"], fix_new)
     window = _positive_field(card["window"], where, "window", fix_new)
+    if not variant.windowed and window != 1:
+        raise field_error(where, "window", f"1 (method {card['method']!r} reads no input window)", window, fix_new)
+    if window > MAX_WINDOW:
+        raise field_error(where, "window", f"at most {MAX_WINDOW} samples", window, fix_new)
 
     arch = card["architecture"]
     if (not isinstance(arch, Mapping) or not set(variant.entries) <= set(arch)
@@ -321,6 +339,9 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
     if not isinstance(card["training"], Mapping):
         raise field_error(where, "training", "an object", card["training"],
                           "Use {} if there is nothing to record.")
+    if "provenance" in card and not isinstance(card["provenance"], Mapping):
+        raise field_error(where, "provenance", "an object (what wrote the model: command line, commit, seeds)",
+                          card["provenance"], "Remove it, or record it as an object.")
     if require_sha and (not isinstance(card["weights_sha256"], str)
                         or not _SHA256.match(card["weights_sha256"])):
         raise field_error(where, "weights_sha256", "64 lowercase hex digits", card["weights_sha256"],
@@ -330,7 +351,7 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
         raise field_error(where, name, f"no such field for method {card['method']!r} (only "
                           f"{', '.join(map(repr, owners))} take it)", card[name],
                           "Remove the field, or use a method that takes it.")
-    spec = variant.parse(card, variants.Sizes(nx, nu, ny, a.shape[0]), where)
+    spec = variant.parse(card, variants.Sizes(nx, nu, ny, a.shape[0], n_arrays), where)
     domain = _domain(card.get("domain"), nx, a.shape[0], where)
     coverage = _coverage(card.get("coverage"), nx, where)
     search = _search(card.get("search"), where)

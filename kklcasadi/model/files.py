@@ -17,23 +17,26 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from ..nets.specs import check_arrays, field_error
+from ..nets.specs import check_arrays, check_names, field_error
 from ..validation import Text, error
-from ..writes import write_dir
+from ..writes import write_dir, write_file
 from . import variants
 from .card import CARD_FILE, FORMAT, FORMAT_VERSION, ModelSpec, make_card, parse_card
+from .digest import DIGEST, card_digest, changes, check_digest, describe, read_card_json
 from .monitor import check_radii
 
-__all__ = ["WEIGHTS_FILE", "CARD_FILE", "EXTRA_FILES", "MODEL_FILES", "Model", "load_model", "save_model",
-           "derive_model"]
+__all__ = ["WEIGHTS_FILE", "CARD_FILE", "EXTRA_FILES", "MODEL_FILES", "MAX_NPY_HEADER", "Model", "load_model",
+           "save_model", "derive_model", "resign_model"]
 
 WEIGHTS_FILE = "weights.npz"
 #: Files a model directory may hold beside the card and the weights, written with them (:func:`save_model`).
@@ -114,30 +117,91 @@ def _to_json(card: Mapping[str, Any]) -> str:
                          "as strings or leave them out.") from exc
 
 
-def _read_json(path: Path) -> Any:
-    def reject_constant(name: str) -> Any:
-        raise ValueError(f"non-standard JSON constant {name}")
+#: Bytes an array's ``.npy`` header may hold (numpy's own default limit), and the room a zip entry takes beside its
+#: data (local header, name, data descriptor): bounds on the weights file checked before it is read.
+MAX_NPY_HEADER = 10_000
+_ZIP_ENTRY = 1_024
+_FIX_WEIGHTS = "Restore the file or save the model again."
 
+
+def _archive(path: Path) -> dict[str, zipfile.ZipInfo]:
+    """The entries of ``weights.npz`` by array name, from its central directory (nothing is decompressed)."""
     try:
-        return json.loads(path.read_text(encoding="utf-8"), parse_constant=reject_constant)
-    except (UnicodeDecodeError, ValueError) as exc:
-        raise ValueError(f"{path}: could not parse the card as strict JSON ({exc}). Restore the "
-                         "file or save the model again.") from exc
+        with zipfile.ZipFile(path) as archive:
+            infos = archive.infolist()
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as exc:
+        raise error(str(path), "a plain .npz archive", Text(f"an unreadable file ({exc})"), _FIX_WEIGHTS) from None
+    entries: dict[str, zipfile.ZipInfo] = {}
+    for info in infos:
+        name = info.filename[:-len(".npy")]
+        if not info.filename.endswith(".npy") or info.is_dir() or name in entries:
+            raise error(str(path), "an archive of distinct .npy arrays", Text(f"the entry {info.filename!r}"),
+                        _FIX_WEIGHTS)
+        if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+            raise error(str(path), "entries stored or deflated (numpy.savez, savez_compressed)",
+                        Text(f"the entry {info.filename!r} compressed by method {info.compress_type}"), _FIX_WEIGHTS)
+        entries[name] = info
+    return entries
 
 
-def _read_npz(path: Path, data: bytes) -> dict[str, np.ndarray]:
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
-        raise ValueError(f"{path}: could not read the weights as a plain .npz archive ({exc}). "
-                         "Restore the file or save the model again.") from exc
-    for name, value in arrays.items():
-        if value.dtype != np.float64:
-            raise field_error(str(path), name, "dtype float64", Text(str(value.dtype)),
-                         "Save the model with kklcasadi.model.files.save_model.")
-        value.setflags(write=False)
+def _file_sha256(path: Path) -> str:
+    sha = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for chunk in iter(lambda: stream.read(2 ** 20), b""):
+            sha.update(chunk)
+    return sha.hexdigest()
+
+
+def _expected_bytes(shape: tuple[int, ...]) -> int:
+    return 8 * math.prod(shape)
+
+
+def _read_npz(path: Path, data: bytes, entries: Mapping[str, zipfile.ZipInfo],
+              shapes: Mapping[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
+    """The arrays of ``weights.npz`` (its bytes ``data``), each checked before it is decompressed or allocated: the
+    names the card names, an uncompressed size that its shape fits (a deflate bomb is refused from its
+    directory), a bounded ``.npy`` header declaring that shape and float64, no pickled objects."""
+    where = str(path)
+    check_names(entries, shapes, where, exact=True)
+    arrays = {}
+    with zipfile.ZipFile(io.BytesIO(data)) as archive:
+        for name, shape in shapes.items():
+            info, size = entries[name], _expected_bytes(shape)
+            if not size <= info.file_size <= size + MAX_NPY_HEADER:
+                raise field_error(where, name, f"{size} bytes of float64 data of shape {shape} (and a header)",
+                                  Text(f"an entry of {info.file_size} bytes uncompressed"), _FIX_WEIGHTS)
+            try:
+                with archive.open(info) as stream:
+                    raw = stream.read(info.file_size)
+            except (zipfile.BadZipFile, EOFError, OSError, ValueError, zlib.error) as exc:
+                raise field_error(where, name, "a readable archive entry", Text(str(exc)), _FIX_WEIGHTS) from None
+            arrays[name] = _npy_array(raw, shape, where, name)
     return arrays
+
+
+def _npy_array(raw: bytes, shape: tuple[int, ...], where: str, name: str) -> np.ndarray:
+    stream = io.BytesIO(raw)
+    try:
+        version = np.lib.format.read_magic(stream)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in read_header:
+            raise ValueError(f"format version {version}")
+        found, fortran, dtype = read_header[version](stream, max_header_size=MAX_NPY_HEADER)
+    except ValueError as exc:
+        raise field_error(where, name, "a .npy array", Text(f"an unreadable header ({exc})"), _FIX_WEIGHTS) from None
+    if dtype != np.dtype("<f8") and dtype != np.dtype(">f8"):
+        raise field_error(where, name, "dtype float64", Text(str(dtype)), "Save the model with "
+                          "kklcasadi.model.files.save_model.")
+    if tuple(found) != tuple(shape):
+        raise field_error(where, name, f"shape {tuple(shape)}", Text(f"shape {tuple(found)}"),
+                          "the weights do not match the architecture: save them again from the trained networks.")
+    body = raw[stream.tell():]
+    if len(body) != _expected_bytes(shape):
+        raise field_error(where, name, f"{_expected_bytes(shape)} bytes of data", Text(f"{len(body)} bytes"),
+                          _FIX_WEIGHTS)
+    array = np.frombuffer(body, dtype=dtype).reshape(shape, order="F" if fortran else "C").astype(np.float64)
+    array.setflags(write=False)
+    return array
 
 
 def _load_base(directory: Path, card: dict, where: str, seen: frozenset) -> Optional[Model]:
@@ -164,7 +228,9 @@ def _load_base(directory: Path, card: dict, where: str, seen: frozenset) -> Opti
     return base
 
 
-def _load(directory: Path, seen: frozenset) -> Model:
+def _load(directory: Path, seen: frozenset, card: Optional[dict] = None) -> Model:
+    """Read and check a model directory; with ``card`` given, that card instead of the file's, its digest unchecked
+    (:func:`resign_model`)."""
     card_path, weights_path = directory / CARD_FILE, directory / WEIGHTS_FILE
     for path in (card_path, weights_path):
         if not path.is_file():
@@ -172,17 +238,30 @@ def _load(directory: Path, seen: frozenset) -> Model:
                              f"{CARD_FILE} and {WEIGHTS_FILE}. Check the path, or train/save the "
                              "model first.")
     where = str(card_path)
-    card = _read_json(card_path)
-    spec = parse_card(card, where)
-    data = weights_path.read_bytes()
-    digest = hashlib.sha256(data).hexdigest()
-    if digest != card["weights_sha256"]:
+    if card is None:
+        card = read_card_json(card_path)
+        check_digest(card, where, directory)
+    digest = _file_sha256(weights_path)                   # streamed: no size is trusted before the hash matches
+    if not isinstance(card, Mapping) or digest != card.get("weights_sha256"):
+        parse_card(card, where)                           # a card without a valid weights_sha256 says so first
         raise field_error(where, "weights_sha256", f"the SHA-256 of {weights_path} = {digest}",
                      card["weights_sha256"],
                      "The weights file was modified or swapped, or the card belongs to another "
                      "model; restore the matching pair of files or save the model again.")
-    arrays = _read_npz(weights_path, data)
-    check_arrays(arrays, spec.array_shapes(), str(weights_path), exact=True)
+    entries = _archive(weights_path)
+    spec = parse_card(card, where, n_arrays=len(entries))
+    shapes = spec.array_shapes()
+    bound = sum(_expected_bytes(shape) + MAX_NPY_HEADER + _ZIP_ENTRY + len(name) for name, shape in shapes.items())
+    size = weights_path.stat().st_size
+    if size > bound + _ZIP_ENTRY:
+        raise error(str(weights_path), f"at most {bound + _ZIP_ENTRY} bytes (the arrays the card names)",
+                    Text(f"{size} bytes"), _FIX_WEIGHTS)
+    data = weights_path.read_bytes()
+    if hashlib.sha256(data).hexdigest() != digest:       # changed since it was hashed
+        raise error(str(weights_path), "a file that does not change while it is read", Text("another file"),
+                    "Load it again once whatever writes it has finished.")
+    arrays = _read_npz(weights_path, data, entries, shapes)
+    check_arrays(arrays, shapes, str(weights_path), exact=True)
     if spec.monitor is not None:
         check_radii(arrays, str(weights_path))
     base = _load_base(directory, card, where, seen)
@@ -260,9 +339,12 @@ def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Ma
     card = {**card, "format": FORMAT, "format_version": FORMAT_VERSION,
             "kklcasadi_version": __version__}
     card.pop("weights_sha256", None)
+    card.pop(DIGEST, None)
     card = json.loads(_to_json(card))
     where = f"card for {directory / CARD_FILE}"
-    spec = parse_card(card, where, require_sha=False)
+    if not isinstance(arrays, Mapping):
+        raise error("arrays", "a mapping of array name -> array", Text(type(arrays).__name__), kind=TypeError)
+    spec = parse_card(card, where, require_sha=False, n_arrays=len(arrays))
     check_arrays(arrays, spec.array_shapes(), "arrays", exact=True)
     arrays = {name: np.array(value, dtype=np.float64) for name, value in arrays.items()}
     if spec.monitor is not None:
@@ -275,6 +357,7 @@ def save_model(directory: str | os.PathLike, arrays: Mapping[str, Any], card: Ma
 
     data = _npz_bytes(arrays)
     card["weights_sha256"] = hashlib.sha256(data).hexdigest()
+    card[DIGEST] = card_digest(card)
     extra = dict(extra or {})
     for name in extra:
         if name not in EXTRA_FILES:
@@ -326,3 +409,48 @@ def derive_model(base: str | os.PathLike, out_dir: str | os.PathLike, method: st
                      window=1, training=training, measurement_std=source.spec.measurement_std,
                      domain=source.spec.domain, coverage=source.spec.coverage, process_std=source.spec.process_std)
     return save_model(out, arrays, card, overwrite=overwrite)
+
+
+def resign_model(directory: str | os.PathLike) -> list[str]:
+    """Check a model whose card was edited by hand (or written before cards carried a digest) and sign its card.
+
+    Everything :func:`load_model` checks is checked (the card's fields against its method, the weights against
+    the card's SHA-256 and architecture, the base model) except the card's digest, which is then written anew; the
+    weights are not touched.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        The model directory.
+
+    Returns
+    -------
+    list of str
+        What changed since the card was last signed, one entry per field (``'dt' changed (now 0.1)``); for a card
+        without a digest, its format version; empty where nothing changed (and nothing was written).
+
+    Raises
+    ------
+    ValueError
+        The model does not load once signed (the message names the file and field, as :func:`load_model`).
+    """
+    directory = Path(directory).resolve()
+    card_path = directory / CARD_FILE
+    if not card_path.is_file():
+        raise ValueError(f"{card_path}: file not found; expected a model directory with {CARD_FILE} and "
+                         f"{WEIGHTS_FILE}.")
+    card = read_card_json(card_path)
+    if not isinstance(card, Mapping):
+        raise field_error(str(card_path), "<card>", "a JSON object", Text(type(card).__name__), "Restore the card.")
+    signed = isinstance(card.get(DIGEST), Mapping)
+    found = [describe(change) for change in changes(card)] if signed else []
+    body = {key: value for key, value in card.items() if key != DIGEST}
+    if body.get("format_version") == 1:                    # written before cards carried their digest
+        body["format_version"] = FORMAT_VERSION
+        found.append(f"'format_version' 1 -> {FORMAT_VERSION} (the card had no digest)")
+    _load(directory, frozenset({directory}), card=body)
+    body[DIGEST] = card_digest(body)
+    if body == card:
+        return []
+    write_file(card_path, _to_json(body), overwrite=True, argument=str(card_path))
+    return found or ["the digest (its fields unchanged)"]

@@ -25,7 +25,7 @@ __all__ = ["SHIPPED_ROOT", "SHIPPED_MODELS", "METHOD_ORDER", "shipped", "shipped
 SHIPPED_ROOT = (Path(__file__).resolve().parents[1] / "_models").resolve()
 #: The models that ship, by system: the package's own (``models/<system>/<method>/`` of the source tree).
 SHIPPED_MODELS = {
-    "duffing": ("autonomous", "bank", "curriculum", "dyn", "inject", "obs", "obs-inject", "obs_stream",
+    "duffing": ("autonomous", "bank", "compact", "curriculum", "dyn", "inject", "obs", "obs-inject", "obs_stream",
                 "robust"),
     "fhn": ("autonomous", "bank", "curriculum", "dyn", "inject", "obs"),
     "rossler": ("autonomous", "bank", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream"),

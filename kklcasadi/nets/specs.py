@@ -12,7 +12,7 @@ uses is decided by its variant (:mod:`kklcasadi.model.variants`). The format is 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from typing import Any, Collection, Mapping, Sequence
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from ..validation import Text, error, is_int
 
 __all__ = ["ACTIVATIONS", "ENCODER", "DECODER", "OBS_GRU", "OBS_PROJ", "OBS_GAIN", "HYPER",
            "MLPSpec", "ObsSpec", "HyperSpec", "gru_array_shapes", "lora_target_shapes", "array_name",
-           "check_arrays", "check_activation", "field_error"]
+           "check_arrays", "check_names", "check_activation", "field_error"]
 
 ACTIVATIONS = ("tanh", "relu", "softplus", "identity")
 
@@ -330,6 +330,29 @@ def array_name(prefix: str, name: str) -> str:
     return f"{prefix}/{name}" if prefix else name
 
 
+def check_names(names: Collection[str], shapes: Mapping[str, tuple[int, ...]], where: str, *,
+                exact: bool = False) -> None:
+    """Check that the array ``names`` hold every name of ``shapes`` (and no other with ``exact``).
+
+    Raises
+    ------
+    ValueError
+        Naming the first missing (or extra) array.
+    """
+    missing = [name for name in shapes if name not in names]
+    if missing:
+        raise field_error(where, missing[0], f"an array of shape {shapes[missing[0]]}", Text("missing"),
+                     f"{len(missing)} array(s) missing ({', '.join(missing[:5])}"
+                     f"{', ...' if len(missing) > 5 else ''}); the weights do not match the "
+                     "architecture: save them again from the trained networks.")
+    if exact:
+        extra = sorted(set(names) - set(shapes))
+        if extra:
+            raise field_error(where, extra[0], "only the arrays the architecture names",
+                         Text("an extra array"),
+                         f"Unexpected arrays {extra[:5]}; remove them or fix the architecture.")
+
+
 def check_arrays(arrays: Any, shapes: Mapping[str, tuple[int, ...]], where: str,
                  *, exact: bool = False) -> None:
     """Check that ``arrays`` holds finite real arrays of the expected shapes.
@@ -355,18 +378,7 @@ def check_arrays(arrays: Any, shapes: Mapping[str, tuple[int, ...]], where: str,
     if not isinstance(arrays, Mapping):
         raise error(where, "a mapping of array name -> array", Text(type(arrays).__name__),
                     kind=TypeError)
-    missing = [name for name in shapes if name not in arrays]
-    if missing:
-        raise field_error(where, missing[0], f"an array of shape {shapes[missing[0]]}", Text("missing"),
-                     f"{len(missing)} array(s) missing ({', '.join(missing[:5])}"
-                     f"{', ...' if len(missing) > 5 else ''}); the weights do not match the "
-                     "architecture: save them again from the trained networks.")
-    if exact:
-        extra = sorted(set(arrays) - set(shapes))
-        if extra:
-            raise field_error(where, extra[0], "only the arrays the architecture names",
-                         Text("an extra array"),
-                         f"Unexpected arrays {extra[:5]}; remove them or fix the architecture.")
+    check_names(arrays, shapes, where, exact=exact)
     for name, shape in shapes.items():
         value = np.asarray(arrays[name])
         if value.dtype.kind not in "fiu":

@@ -158,7 +158,7 @@ def _intensities(value: Any) -> bool:
             and any(v > 0 for v in value))
 
 
-def _params(entry: Any, where: str) -> dict:
+def _params(entry: Any, where: str, sizes: Sizes) -> dict:
     fix = ('Write "bank" as {"y_poles": [p, ...], "u_poles": [p, ...], "y_resonators": [[zeta, omega], ...], '
            '"clock": rate or null} (optionally "time_scale": rate, "angles": {...} and "members": K, the decoder '
            'networks averaged).')
@@ -180,6 +180,9 @@ def _params(entry: Any, where: str) -> dict:
         raise field_error(where, "architecture.bank.time_scale", "a rate > 0 (rad/s)", entry["time_scale"], fix)
     if "members" in entry and not (is_int(entry["members"]) and entry["members"] >= 1):
         raise field_error(where, "architecture.bank.members", "a positive integer (decoder networks averaged)",
+                          entry["members"], fix)
+    if "members" in entry and sizes.arrays is not None and entry["members"] > sizes.arrays:
+        raise field_error(where, "architecture.bank.members", f"at most the {sizes.arrays} arrays the weights hold",
                           entry["members"], fix)
     if "copies" in entry:
         copies = entry["copies"]
@@ -253,7 +256,7 @@ class Bank(Variant):
                                   list(head.sizes), "The covariance head reads the decoder's features and gives the "
                                   "factor of the estimate's covariance (docs/model-format.md); an angle state's "
                                   "error lives on the circle, which it does not model.")
-        spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where), angles, head)
+        spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where, sizes), angles, head)
         if spec.n_copies and (spec.n_filters < 1 or angles):
             raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x nx = "
                               f"{spec.n_copies * spec.nx} latents after at least one filter, on a plant without "

@@ -34,12 +34,14 @@ InputTerm = Callable[[ca.MX, ca.MX, Optional[ca.MX]], ca.MX]
 
 @dataclass(frozen=True)
 class Sizes:
-    """The sizes a card fixes: state ``nx``, input ``nu``, output ``ny``, latent ``nz``."""
+    """The sizes a card fixes: state ``nx``, input ``nu``, output ``ny``, latent ``nz``; and ``arrays``, how many
+    arrays the weights hold where that is known (a count the card gives may not exceed it)."""
 
     nx: int
     nu: int
     ny: int
     nz: int
+    arrays: Optional[int] = None
 
 
 @dataclass(frozen=True)
