@@ -46,7 +46,8 @@ from ..plant.systems import System
 from ..validation import ArgumentError, ArgumentTypeError
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
-           "columns", "flagged", "plant_of", "load", "shipped", "out_path", "needs_torch", "add_plant", "add_noise",
+           "columns", "flagged", "flagged_by", "plant_of", "load", "shipped", "out_path", "needs_torch", "add_plant",
+           "add_noise",
            "add_kinds", "add_cache", "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label",
            "quiet_casadi", "stamp_of", "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS",
            "labelled_models", "benchmark_caches"]
@@ -118,12 +119,20 @@ def flagged(flag: str, fn: Callable[..., Any], *fn_args: Any, **kwargs: Any) -> 
     Python name is said of ``flag`` instead (``flag: expected ..., received ...``); one about a file's
     field, and any other ValueError or TypeError, keeps its message after ``flag``.
     """
+    return flagged_by({}, flag, fn, *fn_args, **kwargs)
+
+
+def flagged_by(flags: dict[str, str], default: str, fn: Callable[..., Any], *fn_args: Any, **kwargs: Any) -> Any:
+    """:func:`flagged`, with the errors about the Python arguments ``flags`` names said of their own flags
+    (``{"resume": "--resume"}``) and the others of ``default``."""
     try:
         return fn(*fn_args, **kwargs)
     except (ArgumentError, ArgumentTypeError) as exc:
-        raise CommandError(f"{flag}: {exc.detail}" if exc.argument.isidentifier() else f"{flag}: {exc}") from exc
+        if not exc.argument.isidentifier():
+            raise CommandError(f"{default}: {exc}") from exc
+        raise CommandError(f"{flags.get(exc.argument, default)}: {exc.detail}") from exc
     except (ValueError, TypeError) as exc:
-        raise CommandError(f"{flag}: {exc}") from exc
+        raise CommandError(f"{default}: {exc}") from exc
 
 
 def plant_of(args: argparse.Namespace) -> Optional[System]:

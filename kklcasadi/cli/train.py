@@ -26,6 +26,7 @@ from .flags import (
     add_system,
     columns,
     flagged,
+    flagged_by,
     levels_text,
     load,
     needs_torch,
@@ -276,9 +277,10 @@ def run(args: argparse.Namespace) -> int:
 
         flagged("--copies", design_copies, plant, config, dt)
     t0 = time.perf_counter()
-    path = flagged("--" + method, train_observer, plant, method, out, config=config, base=args.base,
-                   dt=dt, seed=args.seed, device=args.device, resume=args.resume,
-                   overwrite=args.overwrite, progress=not args.quiet, threads=args.threads, epochs=args.epochs)
+    path = flagged_by({"resume": "--resume", "out_dir": "--out", "base": "--base"}, "--" + method, train_observer,
+                      plant, method, out, config=config, base=args.base, dt=dt, seed=args.seed, device=args.device,
+                      resume=args.resume, overwrite=args.overwrite, progress=not args.quiet, threads=args.threads,
+                      epochs=args.epochs)
     print(f"wrote    {path}/weights.npz and card.json ({time.perf_counter() - t0:.0f} s)")
     print(summary(path, plant, args.plant))
     return 0

@@ -29,7 +29,7 @@ from ..plant import systems
 from ..plant.design import Design
 from ..plant.systems import System
 from ..validation import Text, error, positive_int
-from ..writes import claim
+from ..writes import claim, write_file
 from .config import (
     CurriculumConfig,
     DynConfig,
@@ -49,7 +49,7 @@ from .result import Trained
 
 __all__ = ["train_observer", "default_config", "with_epochs", "config_field", "has_field", "with_field", "LoopConfig",
            "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig",
-           "DynStreamConfig", "Trained", "METHODS"]
+           "DynStreamConfig", "Trained", "METHODS", "RUN_RECORD"]
 
 #: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.model.variants`).
 METHODS = variants.trainable()
@@ -108,6 +108,37 @@ def _history_plot(histories: dict[str, dict], stamp: provenance.Stamp) -> bytes:
     return buffer.getvalue()
 
 
+#: What a training's checkpoints belong to, in its checkpoints' directory (``OUT/.train``).
+RUN_RECORD = "run.json"
+
+
+def _checkpoints_of(workdir: Path, record: dict, resume: bool) -> None:
+    """Bind the checkpoints in ``workdir`` to this training: with ``resume``, those of a training of the same plant
+    (fingerprint), method, configuration, design, sample time, seed and base model only; without, none (old ones
+    are removed, so that an interrupted run never resumes another's later stage)."""
+    path = workdir / RUN_RECORD
+    ours = json.loads(json.dumps(record))
+    checkpoints = sorted(workdir.glob("*.ckpt.npz"))
+    if resume and checkpoints:
+        stored = json.loads(path.read_text()) if path.is_file() else None
+        if stored is None:
+            raise error("resume", f"checkpoints in {workdir} with the record of their training ({RUN_RECORD})",
+                        Text("checkpoints without one (an older kklcasadi wrote them)"),
+                        "Train again without --resume.")
+        differ = [key for key in ours if stored.get(key) != ours[key]]
+        if differ:
+            names = {"plant": "plant (fingerprint)", "config": "configuration", "base": "base model"}
+            raise error("resume", f"the checkpoints of this training in {workdir}",
+                        Text(f"those of another: its {', '.join(names.get(k, k) for k in differ)} "
+                             f"differ{'' if len(differ) > 1 else 's'}"),
+                        "Resume with the settings it was started with, or train again without --resume (the "
+                        "checkpoints are then replaced).")
+    elif not resume:
+        for checkpoint in checkpoints:
+            checkpoint.unlink()
+    write_file(path, json.dumps(ours, indent=1) + "\n", overwrite=True, argument="out_dir")
+
+
 def train_observer(system: System | str, method: str = "autonomous", out_dir: str | Path = "models/observer", *,
                    config: Any = None, base: str | Path | None = None, design: Design | None = None,
                    dt: float = 0.05, seed: int = 0, device: str = "cpu", resume: bool = False,
@@ -138,7 +169,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     device : {"cpu", "cuda"}
         ``"cuda"`` if available (training only; the model files are device-free float64).
     resume : bool
-        Continue interrupted stages from their checkpoints in ``out_dir/.train``.
+        Continue interrupted stages from their checkpoints in ``out_dir/.train``: only those of a training of the
+        same plant (fingerprint), method, configuration, design, sample time, seed and base model; never a
+        finished model (that takes ``overwrite``). Without it, old checkpoints there are removed.
     threads : int, optional
         CPU threads for torch (``torch.set_num_threads``). On a shared or small machine use 1 per
         training process: oversubscribed threads slowed small matrix products 40x here.
@@ -186,6 +219,10 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     design = design or (Design.paper(plant) if plant.paper_design else Design.default(plant))
     # the checkpoints' directory, held by this process while it trains: a second training to one --out stops at once
     with claim(out / ".train", "out_dir") as workdir:
+        base_sha = None if base_model is None else base_model.card["weights_sha256"]
+        _checkpoints_of(workdir, {"plant": plant.fingerprint, "method": method, "config": _jsonable(config),
+                                  "design": {"A": design.A.tolist(), "B": design.B.tolist()}, "dt": float(dt),
+                                  "seed": seed, "base": base_sha}, resume)
         if progress:
             print(f"training {method} for {plant.name!r} at dt = {dt:g} s into {out}", flush=True)
         torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
