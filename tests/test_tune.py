@@ -126,7 +126,7 @@ def test_the_command_line_errors_are_one_line(tmp_path, capsys):
     assert main(["tune", "--trials", "1", "--out", str(tmp_path)]) == 2
     assert capsys.readouterr().err.startswith("error: --system/--plant: give exactly one")
     assert main(["tune", "--system", "duffing", "--method", "obs", "--trials", "1", "--out", str(tmp_path)]) == 2
-    assert "error: --method obs: expected the Phase-1 model 'obs' builds on" in capsys.readouterr().err
+    assert "error: --base: expected the Phase-1 model 'obs' builds on" in capsys.readouterr().err
 
 
 # -- a real study: worker processes on one SQLite file -------------------------------------------------

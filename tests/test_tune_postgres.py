@@ -101,3 +101,27 @@ def test_a_sqlite_study_continues_on_postgresql_with_two_workers(tmp_path, postg
     cards = [load_model(tmp_path / f"w{i}" / "best").card["search"] for i in range(2)]   # the best when each ended
     assert all(card["storage"] == postgres and card["value"] == study.trials[card["trial"]].value for card in cards)
     assert min(card["value"] for card in cards) == study.best_value
+
+
+def test_workers_started_at_the_same_moment_on_a_new_postgresql_storage(postgres):
+    """A new database's tables are made by whichever worker comes first; the others try again and join."""
+    import multiprocessing
+
+    import sqlalchemy
+    from test_tune_safety import _open
+
+    admin = sqlalchemy.create_engine(tn.storage.driver_url(postgres), isolation_level="AUTOCOMMIT")
+    context = multiprocessing.get_context("fork")
+    for attempt in range(4):
+        with admin.connect() as connection:
+            connection.execute(sqlalchemy.text(f"CREATE DATABASE fresh{attempt}"))
+        url = postgres.rsplit("/", 1)[0] + f"/fresh{attempt}"
+        barrier, results = context.Barrier(3), context.Queue()
+        procs = [context.Process(target=_open, args=(url, barrier, results)) for _ in range(3)]
+        for proc in procs:
+            proc.start()
+        for proc in procs:
+            proc.join(120)
+        outcome = [results.get(timeout=5) for _ in procs]
+        assert outcome == ["ok"] * 3, outcome
+    admin.dispose()

@@ -9,7 +9,17 @@ from __future__ import annotations
 import argparse
 
 from ..plant import systems
-from .flags import CommandError, add_plant, add_system, flagged, needs_torch, out_path, plant_of, positive_int, stamp_of
+from .flags import (
+    CommandError,
+    add_plant,
+    add_system,
+    flagged_by,
+    needs_torch,
+    out_path,
+    plant_of,
+    positive_int,
+    stamp_of,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -60,12 +70,14 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.tune import VALIDATION_SEED, tune
 
     caps = {name: value for name, value in (("runs", args.runs), ("epochs", args.epochs)) if value is not None}
-    result = flagged("--method " + args.method, tune, plant, args.method, out, n_trials=args.trials,
-                     study=args.study, storage=args.storage, caps=caps, base=args.base, seed=args.seed,
-                     threads=args.threads, val_trials=args.val_trials, heartbeat=args.heartbeat,
-                     baseline=args.baseline, copy_from=args.copy_from, sampler_seed=args.sampler_seed,
-                     progress=not args.quiet, stamp=stamp_of(args, training=args.seed, sampler=args.sampler_seed,
-                                                             validation=VALIDATION_SEED))
+    flags = {"storage": "--storage", "copy_from": "--copy-from", "out_dir": "--out", "study": "--study",
+             "base": "--base"}
+    result = flagged_by(flags, "--method " + args.method, tune, plant, args.method, out, n_trials=args.trials,
+                        study=args.study, storage=args.storage, caps=caps, base=args.base, seed=args.seed,
+                        threads=args.threads, val_trials=args.val_trials, heartbeat=args.heartbeat,
+                        baseline=args.baseline, copy_from=args.copy_from, sampler_seed=args.sampler_seed,
+                        progress=not args.quiet, stamp=stamp_of(args, training=args.seed, sampler=args.sampler_seed,
+                                                                validation=VALIDATION_SEED))
     print(result.summary.read_text())
     print(f"wrote {result.summary}, {result.plot}" + ("" if result.best_dir is None else f", {result.best_dir}/"))
     return 0

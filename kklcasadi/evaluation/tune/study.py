@@ -15,6 +15,7 @@ from typing import Any, Optional, Union
 from ... import provenance
 from ...model import variants
 from ...model.card import Search
+from ...model.digest import DIGEST
 from ...model.files import EXTRA_FILES, load_model, save_model
 from ...observer.kkl import load_observer
 from ...plant.systems import System
@@ -23,10 +24,19 @@ from ...writes import write_file
 from ..trialcache import TrialCache
 from .report import search_plot, summary_table
 from .space import Space, search_space
-from .storage import MAX_RETRY, complete_trials, driver_url, open_storage, optuna_module, public_url, storage_url
+from .storage import (
+    MAX_RETRY,
+    complete_trials,
+    driver_url,
+    open_storage,
+    optuna_module,
+    public_url,
+    storage_errors,
+    storage_url,
+)
 from .validation import VALIDATION_SEED, Validation, score, validation_cells
 
-__all__ = ["TuneResult", "tune", "export_best", "TRIALS_DIR", "BEST_DIR", "BASELINE_DIR"]
+__all__ = ["TuneResult", "tune", "export_best", "TRIALS_DIR", "BEST_DIR", "BASELINE_DIR", "BINDING"]
 
 PathLike = Union[str, os.PathLike]
 
@@ -47,12 +57,12 @@ class TuneResult:
 
 
 def _train(system: System, method: str, config: Any, out: Path, *, base: Optional[Path], seed: int,
-           threads: int) -> float:
+           threads: int, overwrite: bool = False) -> float:
     from ...train import train_observer
 
     t0 = time.perf_counter()
     train_observer(system, method, out, config=config, base=base, seed=seed, progress=False, threads=threads,
-                   overwrite=True)
+                   overwrite=overwrite)
     return time.perf_counter() - t0
 
 
@@ -133,28 +143,45 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
         raise error("base", f"the Phase-1 model {method!r} builds on (every worker's trials share it)", None,
                     "Train it once first: kklcasadi train --method autonomous --out DIR, then pass --base DIR.")
     base_path = None if base is None else Path(base).resolve()
+    optuna.logging.set_verbosity(optuna.logging.INFO if progress else optuna.logging.WARNING)
+    with storage_errors(url):
+        binding = {"study": name, "storage": public_url(url)}
+    _check_binding(out, binding)
+    storage_obj = open_storage(url, heartbeat)
+    with storage_errors(url):
+        exists = name in optuna.get_all_study_names(storage_obj)
+    if copy_from and not exists:
+        with storage_errors(copy_from, "copy_from"):
+            try:
+                optuna.copy_study(from_study_name=name, from_storage=driver_url(copy_from), to_storage=storage_obj)
+            except optuna.exceptions.DuplicatedStudyError:
+                pass                      # another worker started with --copy-from copied it first: join it
+        exists = True
+    if not exists:
+        _check_new(out, binding)
     validation = Validation.build(system, validation_cells(space.base, n_trials=val_trials),
                                   trials=TrialCache(out / "cache"))
     record = _study_record(system, method, space, validation, seed)
-    optuna.logging.set_verbosity(optuna.logging.INFO if progress else optuna.logging.WARNING)
-    storage_obj = open_storage(url, heartbeat)
-    if copy_from and name not in optuna.get_all_study_names(storage_obj):
-        try:
-            optuna.copy_study(from_study_name=name, from_storage=driver_url(copy_from), to_storage=storage_obj)
-        except optuna.exceptions.DuplicatedStudyError:
-            pass                          # another worker started with --copy-from copied it first: join it
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         sampler = optuna.samplers.TPESampler(seed=sampler_seed, multivariate=True, group=True, constant_liar=True,
                                              n_startup_trials=min(10, max(2, n_trials // 3)))
-    the_study = optuna.create_study(study_name=name, storage=storage_obj, direction="minimize", sampler=sampler,
-                                    load_if_exists=True)
-    _check_record(the_study, record, name)
+    with storage_errors(url):
+        the_study = optuna.create_study(study_name=name, storage=storage_obj, direction="minimize", sampler=sampler,
+                                        load_if_exists=True)
+        _check_record(the_study, record, name)
+    _bind(out, binding)
     if baseline and "baseline" not in the_study.user_attrs:
         path = out / BASELINE_DIR
-        seconds = _train(system, method, space.baseline(), path, base=base_path, seed=seed, threads=threads)
-        value, cells = score(load_observer(path, system=system), validation)
-        the_study.set_user_attr("baseline", {"value": value, "cells": cells, "train_s": round(seconds, 1)})
+        try:
+            seconds = (load_model(path).card["training"].get("wall_time_s") if (path / "card.json").exists()
+                       else _train(system, method, space.baseline(), path, base=base_path, seed=seed, threads=threads))
+        except FileExistsError:          # another worker here trains it now (or just wrote it): that one records it
+            seconds = None
+        if (path / "card.json").exists() and seconds is not None:
+            value, cells = score(load_observer(path, system=system), validation)
+            with storage_errors(url):
+                the_study.set_user_attr("baseline", {"value": value, "cells": cells, "train_s": round(seconds, 1)})
 
     started: list[int] = []                       # the trials this worker starts
 
@@ -163,6 +190,7 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
         trial.set_user_attr("worker", f"{socket.gethostname()}:{os.getpid()}")
         path = out / TRIALS_DIR / f"{trial.number:04d}"
         seconds = _train(system, method, space.suggest(trial), path, base=base_path, seed=seed, threads=threads)
+        trial.set_user_attr("model", load_model(path).card[DIGEST]["sha256"])
         value, cells = score(load_observer(path, system=system), validation)
         trial.set_user_attr("cells", cells)
         trial.set_user_attr("train_s", round(seconds, 1))
@@ -173,7 +201,9 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
     if todo > 0:
         stop = optuna.study.MaxTrialsCallback(n_trials, states=(optuna.trial.TrialState.COMPLETE,))
         # at most the missing number of trials in this worker: trials that fail count too
-        the_study.optimize(objective, n_trials=todo + MAX_RETRY, callbacks=[stop], catch=(ValueError, RuntimeError))
+        with storage_errors(url):
+            the_study.optimize(objective, n_trials=todo + MAX_RETRY, callbacks=[stop],
+                               catch=(ValueError, RuntimeError))
     best_dir = export_best(the_study, out, system, method, space, validation, url=url, base=base_path, seed=seed,
                            threads=threads)
     stamp = stamp or provenance.stamp(seeds={"training": seed, "sampler": sampler_seed,
@@ -183,6 +213,40 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
                argument="out_dir")
     plot = search_plot(the_study, out / "search.png", stamp=stamp)
     return TuneResult(the_study, best_dir, summary, plot, len(started))
+
+
+#: The file that binds a study's ``--out`` to it: ``{"study": name, "storage": URL, password hidden}``.
+BINDING = "study.json"
+
+
+def _check_binding(out: Path, binding: dict) -> None:
+    """Refuse a second study in a ``--out``: its trials/ and best/ belong to the study it was started with."""
+    path = out / BINDING
+    if not path.is_file():
+        return
+    stored = json.loads(path.read_text())
+    if stored != binding:
+        raise error("out_dir", f"the directory of the study {stored.get('study')!r} on {stored.get('storage')} "
+                    f"({path})", Text(f"the study {binding['study']!r} on {binding['storage']}"),
+                    "Give another study another --out; one --out holds one study's trials.")
+
+
+def _check_new(out: Path, binding: dict) -> None:
+    """Before a study is created: its ``--out`` holds no other study's trials (a storage that lost its study, an
+    empty or replaced database, must not start over the trials it had)."""
+    trials = out / TRIALS_DIR
+    if (out / BINDING).is_file() or (trials.is_dir() and any(trials.iterdir())):
+        raise error("storage", f"the study {binding['study']!r} that {out} holds the trials of",
+                    Text(f"{binding['storage']}, which has no such study"),
+                    "The storage was emptied or replaced: restore it, or start the new study in another --out. "
+                    f"Nothing in {out} was changed.")
+
+
+def _bind(out: Path, binding: dict) -> None:
+    try:
+        write_file(out / BINDING, json.dumps(binding, indent=1) + "\n", argument="out_dir")
+    except FileExistsError:              # another worker bound it at the same moment: the same study, or refuse
+        _check_binding(out, binding)
 
 
 def _check_record(study: Any, record: dict, name: str) -> None:
@@ -222,6 +286,11 @@ def export_best(study: Any, out: Path, system: System, method: str, space: Space
         _train(system, method, space.suggest(optuna.trial.FixedTrial(best.params)), source, base=base, seed=seed,
                threads=threads)
     model = load_model(source)
+    recorded = best.user_attrs.get("model")
+    if recorded is not None and recorded != model.card[DIGEST]["sha256"] and (source / "card.json").exists():
+        raise error("out_dir", f"the model of trial {best.number} in {source} (digest {recorded})",
+                    Text(f"another model (digest {model.card[DIGEST]['sha256']})"),
+                    "Its trials/ holds another study's models; give each study its own --out.")
     baseline = study.user_attrs.get("baseline")
     search = Search(study.study_name, public_url(url), best.number, float(best.value), dict(best.params),
                     space.describe(), validation.describe(), None if baseline is None else baseline["value"])
