@@ -166,3 +166,28 @@ def write_signed_card(directory, card):
 
     body = {key: value for key, value in card.items() if key != DIGEST}
     (directory / "card.json").write_text(json.dumps({**body, DIGEST: card_digest(body)}))
+
+
+def race(target, arguments, *, timeout=300):
+    """Run ``target(*args, barrier, results)`` in one forked process per entry of ``arguments``, released at the
+    same moment by ``barrier``; returns what each put on ``results``, in the order they finished."""
+    import multiprocessing
+
+    context = multiprocessing.get_context("fork")
+    barrier, results = context.Barrier(len(arguments)), context.Queue()
+    procs = [context.Process(target=target, args=(*args, barrier, results)) for args in arguments]
+    for proc in procs:
+        proc.start()
+    for proc in procs:
+        proc.join(timeout)
+    return [results.get(timeout=5) for _ in procs]
+
+
+def one_winner(outcome, *losing):
+    """Of the ``(key, "wrote" | message)`` pairs of a :func:`race` exactly one wrote; the others' messages are one
+    line holding one of ``losing``. Returns the winner's key."""
+    winners = [key for key, what in outcome if what == "wrote"]
+    assert len(winners) == 1, outcome
+    for _, what in outcome:
+        assert what == "wrote" or ("\n" not in what and any(text in what for text in losing)), what
+    return winners[0]

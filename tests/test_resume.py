@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import one_winner, race
 
 torch = pytest.importorskip("torch")
 
@@ -100,26 +101,13 @@ def _train_to(out, seed, barrier, results):
 
 
 def test_two_trainings_to_one_new_out_exactly_one_wins(tmp_path):
-    import multiprocessing
-
-    context = multiprocessing.get_context("fork")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)                              # an OpenMP pool does not survive a fork
     try:
         for attempt in range(2):
             out = tmp_path / f"m{attempt}"
-            barrier, results = context.Barrier(2), context.Queue()
-            procs = [context.Process(target=_train_to, args=(out, seed, barrier, results)) for seed in (0, 1)]
-            for proc in procs:
-                proc.start()
-            for proc in procs:
-                proc.join(300)
-            outcome = dict(results.get(timeout=5) for _ in procs)
-            winners = [seed for seed, what in outcome.items() if what == "wrote"]
-            assert len(winners) == 1, outcome
-            loser = next(what for what in outcome.values() if what != "wrote")
-            assert "\n" not in loser and ("another process is writing" in loser or "exists" in loser), loser
-            assert load_model(out).card["training"]["seed"] == winners[0]
+            winner = one_winner(race(_train_to, [(out, 0), (out, 1)]), "another process is writing", "exists")
+            assert load_model(out).card["training"]["seed"] == winner
     finally:
         torch.set_num_threads(threads)
 

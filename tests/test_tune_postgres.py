@@ -105,23 +105,14 @@ def test_a_sqlite_study_continues_on_postgresql_with_two_workers(tmp_path, postg
 
 def test_workers_started_at_the_same_moment_on_a_new_postgresql_storage(postgres):
     """A new database's tables are made by whichever worker comes first; the others try again and join."""
-    import multiprocessing
-
     import sqlalchemy
+    from conftest import race
     from test_tune_safety import _open
 
     admin = sqlalchemy.create_engine(tn.storage.driver_url(postgres), isolation_level="AUTOCOMMIT")
-    context = multiprocessing.get_context("fork")
     for attempt in range(4):
         with admin.connect() as connection:
             connection.execute(sqlalchemy.text(f"CREATE DATABASE fresh{attempt}"))
         url = postgres.rsplit("/", 1)[0] + f"/fresh{attempt}"
-        barrier, results = context.Barrier(3), context.Queue()
-        procs = [context.Process(target=_open, args=(url, barrier, results)) for _ in range(3)]
-        for proc in procs:
-            proc.start()
-        for proc in procs:
-            proc.join(120)
-        outcome = [results.get(timeout=5) for _ in procs]
-        assert outcome == ["ok"] * 3, outcome
+        assert race(_open, [(url,)] * 3, timeout=120) == ["ok"] * 3
     admin.dispose()

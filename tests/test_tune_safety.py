@@ -2,7 +2,6 @@
 storage is refused without touching ``trials/``, workers started at the same moment on a new SQLite storage do not
 race on its tables, and every storage error is one line."""
 
-import multiprocessing
 import os
 import re
 import sqlite3
@@ -12,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import race
 
 optuna = pytest.importorskip("optuna", reason="the tune extra is not installed: pip install 'kklcasadi[tune]'")
 pytest.importorskip("kklcasadi.train", reason="tune trains observers (torch)")
@@ -121,14 +121,6 @@ def _open(url, barrier, results):
 
 
 def test_workers_started_at_the_same_moment_on_a_new_sqlite_storage(tmp_path):
-    context = multiprocessing.get_context("fork")
     for attempt in range(6):
         url = f"sqlite:///{tmp_path / f'study{attempt}.db'}"
-        barrier, results = context.Barrier(3), context.Queue()
-        procs = [context.Process(target=_open, args=(url, barrier, results)) for _ in range(3)]
-        for proc in procs:
-            proc.start()
-        for proc in procs:
-            proc.join(120)
-        outcome = [results.get(timeout=5) for _ in procs]
-        assert outcome == ["ok"] * 3, outcome
+        assert race(_open, [(url,)] * 3, timeout=120) == ["ok"] * 3

@@ -2,7 +2,6 @@
 writers exactly one wins), a replaced directory is swapped in one step with the files that are not the
 writer's carried over, and the C files and model files go through it."""
 
-import multiprocessing
 import os
 import subprocess
 import sys
@@ -10,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import one_winner, race
 
 from kklcasadi import writes
 from kklcasadi.model.files import CARD_FILE, WEIGHTS_FILE, load_model, save_model
@@ -83,8 +83,6 @@ def test_write_dir_refuses_names_with_paths_and_a_file_target(tmp_path):
 
 
 def _save(path, seed, barrier, results):
-    from kklcasadi.model.card import make_card  # noqa: F401  (imported before the race)
-
     card = load_model(ROOT / "models" / "duffing" / "autonomous")
     arrays = {name: np.asarray(a) + seed for name, a in card.arrays.items()}
     barrier.wait()
@@ -96,24 +94,13 @@ def _save(path, seed, barrier, results):
 
 
 def test_two_saves_of_one_new_model_exactly_one_wins(tmp_path):
-    context = multiprocessing.get_context("fork")
+    shipped = load_model(ROOT / "models" / "duffing" / "autonomous")
     for attempt in range(5):
         path = tmp_path / f"model{attempt}"
-        barrier, results = context.Barrier(2), context.Queue()
-        procs = [context.Process(target=_save, args=(path, seed, barrier, results)) for seed in (1, 2)]
-        for proc in procs:
-            proc.start()
-        for proc in procs:
-            proc.join(120)
-        outcome = dict(results.get(timeout=5) for _ in procs)
-        winners = [seed for seed, what in outcome.items() if what == "wrote"]
-        assert len(winners) == 1, outcome
-        loser = next(what for what in outcome.values() if what != "wrote")
-        assert "\n" not in loser and ("exists" in loser or "another writer" in loser)
+        winner = one_winner(race(_save, [(path, 1), (path, 2)], timeout=120), "exists", "another writer")
         model = load_model(path)                                              # the winner's model, whole
-        shipped = load_model(ROOT / "models" / "duffing" / "autonomous")
         name = next(iter(model.arrays))
-        assert np.array_equal(model.arrays[name], shipped.arrays[name] + winners[0])
+        assert np.array_equal(model.arrays[name], shipped.arrays[name] + winner)
         assert sorted(os.listdir(path)) == [CARD_FILE, WEIGHTS_FILE]
 
 
