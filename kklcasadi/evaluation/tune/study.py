@@ -146,7 +146,11 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
     optuna.logging.set_verbosity(optuna.logging.INFO if progress else optuna.logging.WARNING)
     with storage_errors(url):
         binding = {"study": name, "storage": public_url(url)}
-    _check_binding(out, binding)
+    moved_from = None                     # with --copy-from, the binding of the study before it moves on
+    if copy_from is not None:
+        with storage_errors(copy_from, "copy_from"):
+            moved_from = {"study": name, "storage": public_url(copy_from)}
+    _check_binding(out, binding, moved_from)
     storage_obj = open_storage(url, heartbeat)
     with storage_errors(url):
         exists = name in optuna.get_all_study_names(storage_obj)
@@ -170,7 +174,7 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
         the_study = optuna.create_study(study_name=name, storage=storage_obj, direction="minimize", sampler=sampler,
                                         load_if_exists=True)
         _check_record(the_study, record, name)
-    _bind(out, binding)
+    _bind(out, binding, moved_from)
     if baseline and "baseline" not in the_study.user_attrs:
         path = out / BASELINE_DIR
         try:
@@ -219,13 +223,14 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
 BINDING = "study.json"
 
 
-def _check_binding(out: Path, binding: dict) -> None:
-    """Refuse a second study in a ``--out``: its trials/ and best/ belong to the study it was started with."""
+def _check_binding(out: Path, binding: dict, moved_from: Optional[dict] = None) -> None:
+    """Refuse a second study in a ``--out``: its trials/ and best/ belong to the study it was started with (which
+    may move on to the storage it is copied to, ``moved_from`` its binding before)."""
     path = out / BINDING
     if not path.is_file():
         return
     stored = json.loads(path.read_text())
-    if stored != binding:
+    if stored != binding and stored != moved_from:
         raise error("out_dir", f"the directory of the study {stored.get('study')!r} on {stored.get('storage')} "
                     f"({path})", Text(f"the study {binding['study']!r} on {binding['storage']}"),
                     "Give another study another --out; one --out holds one study's trials.")
@@ -242,11 +247,15 @@ def _check_new(out: Path, binding: dict) -> None:
                     f"Nothing in {out} was changed.")
 
 
-def _bind(out: Path, binding: dict) -> None:
+def _bind(out: Path, binding: dict, moved_from: Optional[dict] = None) -> None:
+    path = out / BINDING
+    if moved_from is not None and path.is_file() and json.loads(path.read_text()) == moved_from:
+        write_file(path, json.dumps(binding, indent=1) + "\n", overwrite=True, argument="out_dir")  # it moved on
+        return
     try:
-        write_file(out / BINDING, json.dumps(binding, indent=1) + "\n", argument="out_dir")
+        write_file(path, json.dumps(binding, indent=1) + "\n", argument="out_dir")
     except FileExistsError:              # another worker bound it at the same moment: the same study, or refuse
-        _check_binding(out, binding)
+        _check_binding(out, binding, moved_from)
 
 
 def _check_record(study: Any, record: dict, name: str) -> None:
@@ -282,12 +291,13 @@ def export_best(study: Any, out: Path, system: System, method: str, space: Space
         return None
     best = study.best_trial
     source = out / TRIALS_DIR / f"{best.number:04d}"
-    if not (source / "card.json").exists():
+    here = (source / "card.json").exists()          # else trained on another machine: trained again here
+    if not here:
         _train(system, method, space.suggest(optuna.trial.FixedTrial(best.params)), source, base=base, seed=seed,
                threads=threads)
     model = load_model(source)
     recorded = best.user_attrs.get("model")
-    if recorded is not None and recorded != model.card[DIGEST]["sha256"] and (source / "card.json").exists():
+    if here and recorded is not None and recorded != model.card[DIGEST]["sha256"]:
         raise error("out_dir", f"the model of trial {best.number} in {source} (digest {recorded})",
                     Text(f"another model (digest {model.card[DIGEST]['sha256']})"),
                     "Its trials/ holds another study's models; give each study its own --out.")
