@@ -16,8 +16,8 @@ of two writers of one new target without ``overwrite`` exactly one wins and the 
 
 Where one rename cannot do it (a system without ``RENAME_EXCHANGE``, a target that holds a
 directory that is not the writer's, or the current directory), the files are replaced one by one
-in the order given, each atomically; the model card's digest and the C files' generation stamp
-then refuse a mixed set (``docs/model-format.md``).
+in the order given, each atomically: a writer killed in between can leave a mixed set. A model's
+card then refuses the other weights on load (its ``weights_sha256``); C files have no such check.
 """
 
 from __future__ import annotations
