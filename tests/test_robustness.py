@@ -143,3 +143,25 @@ def test_the_command(model_dir_factory, tmp_path, capsys):
     assert "error: --pf-trials: runs the particle filter of --pf N on fewer trials" in capsys.readouterr().err
     assert main(["robustness", str(path), "--param-spread", "1.5", "--kinds", "exact"]) == 2
     assert "error: --param-spread: expected a relative uncertainty 0 < s < 1" in capsys.readouterr().err
+
+
+def test_the_command_writes_its_report_as_one(model_dir_factory, tmp_path, capsys, monkeypatch):
+    """A report of the plant written by another run while this one worked: nothing of this run's is written (the
+    three files go in one step, none over a file written meanwhile), one line."""
+    path = model_dir_factory("autonomous")
+    out = tmp_path / "rob"
+    run = rb.run
+
+    def run_and_collide(*args, **kwargs):
+        report = run(*args, **kwargs)
+        out.mkdir()
+        (out / "duffing_robustness.png").write_bytes(b"theirs")
+        return report
+
+    monkeypatch.setattr(rb, "run", run_and_collide)
+    assert main(["robustness", str(path), "--kinds", "exact", "--trials", "2", "--tuning-trials", "2", "--vm",
+                 "--no-cache", "--out", str(out)]) == 2
+    (err,) = [line for line in capsys.readouterr().err.splitlines() if "error" in line.lower()]
+    assert err.startswith("error: --out: ") and "duffing_robustness.png exists" in err
+    assert sorted(p.name for p in out.iterdir()) == ["duffing_robustness.png"]
+    assert (out / "duffing_robustness.png").read_bytes() == b"theirs"

@@ -7,12 +7,13 @@ particle filter over states and parameters, on the same trials.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 import time
-from pathlib import Path
 
 from ..plant import systems
+from ..writes import write_dir
 from .flags import (
     CommandError,
     add_cache,
@@ -21,6 +22,7 @@ from .flags import (
     benchmark_caches,
     flagged,
     labelled_models,
+    out_path,
     plant_of,
     positive_float,
     positive_int,
@@ -88,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
                            "needs --noise-models)")
     settings = flagged("--tuning-seed", rb.Settings, n_trials=args.trials, n_tuning=args.tuning_trials,
                        seed=args.seed, tuning_seed=args.tuning_seed, noise=args.noise)
-    out = Path(args.out) if args.out else None
+    out = out_path(args.out, "--out", directory=True)
     paths = [] if out is None else [out / f"{family.name}_robustness.{ext}" for ext in ("md", "json", "png")]
     existing = [p for p in paths if p.exists()]
     if existing:
@@ -109,13 +111,13 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         from ..provenance import json_record, markdown
 
-        out.mkdir(parents=True, exist_ok=True)
         stamp = stamp_of(args, trials=args.seed, tuning=args.tuning_seed,
                          **({} if args.pf is None else {"pf": args.seed}))
         record = json_record({**report.to_json(), "wall_s": round(wall, 1)}, stamp)
-        for path, text in ((paths[0], markdown(table + "\n", stamp)), (paths[1], json.dumps(record, indent=1) + "\n")):
-            with open(path, "x") as handle:                 # exclusive: never over a file written meanwhile
-                handle.write(text)
-        report.plot(paths[2], stamp=stamp)
+        png = io.BytesIO()
+        report.plot(png, stamp=stamp)
+        # the three files as one: never over a report written meanwhile, never a half-written set
+        texts = (markdown(table + "\n", stamp), json.dumps(record, indent=1) + "\n", png.getvalue())
+        write_dir(out, {path.name: text for path, text in zip(paths, texts)}, argument="--out")
         print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0

@@ -306,8 +306,8 @@ class Report:
                 "targets": {k: [list(t) for t in v] for k, v in TARGETS.items()}, "cases": entries, **self.extra}
 
     def plot(self, path: Any, *, stamp: Optional[provenance.Stamp] = None) -> None:
-        """Per model, each case's ratio to every baseline, the targets drawn; ``stamp`` (default: this process's)
-        goes into the PNG's metadata."""
+        """Per model, each case's ratio to every baseline, the targets drawn, as a PNG to ``path`` (a file path or a
+        binary stream); ``stamp`` (default: this process's) goes into the PNG's metadata."""
         import matplotlib
 
         matplotlib.use("Agg")
@@ -334,7 +334,7 @@ class Report:
             ax.set_title(f"{self.system}: {label} against the baselines (black: the targets)")
             ax.legend(fontsize=8, ncol=len(names), loc="upper left", bbox_to_anchor=(0, -0.35))
         fig.tight_layout()
-        fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
+        fig.savefig(path, format="png", dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
         plt.close(fig)
 
 
