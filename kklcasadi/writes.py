@@ -18,6 +18,10 @@ Where one rename cannot do it (a system without ``RENAME_EXCHANGE``, a target th
 directory that is not the writer's, or the current directory), the files are replaced one by one
 in the order given, each atomically: a writer killed in between can leave a mixed set. A model's
 card then refuses the other weights on load (its ``weights_sha256``); C files have no such check.
+
+:func:`staged` gives code that writes files itself (a plot's ``savefig``, a report's table) a
+temporary directory whose files are then published with :func:`write_dir`: the report commands'
+files (``evaluate``, ``compare``, ``generalise``, ``robustness``, ``bench scaling``) appear as one.
 """
 
 from __future__ import annotations
@@ -33,7 +37,7 @@ from typing import Iterator, Mapping, Union
 
 from .validation import error
 
-__all__ = ["write_file", "write_dir", "locked", "claim", "Data"]
+__all__ = ["write_file", "write_dir", "staged", "locked", "claim", "Data"]
 
 Data = Union[bytes, str]
 
@@ -235,6 +239,34 @@ def write_dir(directory: Union[str, os.PathLike], files: Mapping[str, Data], *, 
             shutil.rmtree(staging)
     _fsync_dir(target.parent)
     return target
+
+
+@contextmanager
+def staged(directory: Union[str, os.PathLike], *, overwrite: bool = False,
+           argument: str = "directory") -> Iterator[Path]:
+    """A temporary directory for the files of one artefact, written by any code (a report's table, its JSON, its
+    plots), published into ``directory`` as one (:func:`write_dir`) when the block ends; nothing is published where
+    the block raises.
+
+    Parameters
+    ----------
+    directory : str or path-like
+        The target directory.
+    overwrite : bool
+        Replace the files ``directory`` holds under the same names (see :func:`write_dir`).
+    argument : str
+        Named in the errors.
+
+    Yields
+    ------
+    Path
+        The temporary directory (outside ``directory``); only the plain files in it are published.
+    """
+    with tempfile.TemporaryDirectory(prefix="kklcasadi-stage-") as temp:
+        stage = Path(temp)
+        yield stage
+        files = {path.name: path.read_bytes() for path in sorted(stage.iterdir()) if path.is_file()}
+        write_dir(directory, files, overwrite=overwrite, argument=argument)
 
 
 def _publish(staging: Path, target: Path, files: Mapping[str, Data], overwrite: bool, owned: tuple,

@@ -55,6 +55,34 @@ def test_write_dir_swaps_an_existing_directory_and_carries_the_other_files(tmp_p
     assert (target / "a.c").read_text() == "new" and (target / "b.c").read_text() == "other name"
 
 
+def test_staged_publishes_what_the_block_wrote_as_one_or_nothing(tmp_path, monkeypatch):
+    target = tmp_path / "report"
+    writes.write_dir(target, {"table.md": "old", "plot.png": "old", "notes.txt": "the user's"})
+    inode = target.stat().st_ino
+    with pytest.raises(RuntimeError, match="the plot failed"):
+        with writes.staged(target, overwrite=True) as stage:
+            (stage / "table.md").write_text("new")
+            raise RuntimeError("the plot failed")
+    assert {p.name: p.read_text() for p in target.iterdir()} == \
+        {"table.md": "old", "plot.png": "old", "notes.txt": "the user's"}           # nothing of the failed report
+    published = []
+    write_dir = writes.write_dir
+    monkeypatch.setattr(writes, "write_dir", lambda *a, **k: (published.append(a[1]), write_dir(*a, **k))[1])
+    with writes.staged(target, overwrite=True) as stage:
+        (stage / "table.md").write_text("new")
+        (stage / "plot.png").write_bytes(b"new")
+        assert (target / "table.md").read_text() == "old" and target not in stage.parents     # not yet published
+    assert published == [{"plot.png": b"new", "table.md": b"new"}]                  # one write_dir: one rename
+    assert target.stat().st_ino != inode
+    assert {p.name: p.read_text() for p in target.iterdir()} == \
+        {"table.md": "new", "plot.png": "new", "notes.txt": "the user's"}
+    assert sorted(os.listdir(tmp_path)) == ["report"] and not stage.exists()
+    with pytest.raises(FileExistsError, match="--out: .*table.md exists"):
+        with writes.staged(target, argument="--out") as stage:
+            (stage / "table.md").write_text("newer")
+    assert (target / "table.md").read_text() == "new"
+
+
 def test_write_dir_drops_the_writers_own_old_files(tmp_path):
     target = tmp_path / "m"
     writes.write_dir(target, {"card.json": "1", "history.png": "old"})

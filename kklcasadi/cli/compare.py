@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from ..plant import systems
+from ..writes import write_dir
 from .flags import (
     NOISE,
     CommandError,
@@ -67,12 +68,15 @@ def _model_dir(root: str | None, system: str, method: str) -> Path:
     return path
 
 
-def _saved(out: Path) -> list:
+def _saved(out: Path, fresh: dict[str, str]) -> list:
+    """Every system's comparison in ``out``, those of ``fresh`` ({system: its JSON}, about to be written) in their
+    place."""
     from ..evaluation.compare import SystemComparison
 
     names = [*SYSTEMS, *(n for n in systems.names() if n not in SYSTEMS)]
-    return [SystemComparison.from_json(json.loads((out / f"{name}.json").read_text()))
-            for name in names if (out / f"{name}.json").exists()]
+    return [SystemComparison.from_json(json.loads(fresh[name] if name in fresh else
+                                                  (out / f"{name}.json").read_text()))
+            for name in names if name in fresh or (out / f"{name}.json").exists()]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -101,10 +105,13 @@ def run(args: argparse.Namespace) -> int:
                                     primed_horizon=args.primed_horizon, calibration_trials=args.calibration_trials,
                                     kinds=kinds, noise=NOISE[args.noise], log=log, ekf=ekf)
         stamp = stamp_of(args, trials=args.seed, calibration=args.seed + 1)
-        (out / f"{name}.json").write_text(json.dumps(json_record(comparison.to_json(), stamp), indent=1) + "\n")
-        every = [s for saved in _saved(out) for s in saved.scores]
-        # the table gathers every system's saved comparison: its stamp is this command's, the rows name their files
-        (out / "table.md").write_text(markdown(markdown_table(every, kinds, timing=True) + "\n", stamp))
+        record = json.dumps(json_record(comparison.to_json(), stamp), indent=1) + "\n"
+        every = [s for saved in _saved(out, {name: record}) for s in saved.scores]
+        # the table gathers every system's saved comparison: its stamp is this command's, the rows name their files;
+        # the system's record and the table are written as one
+        write_dir(out, {f"{name}.json": record,
+                        "table.md": markdown(markdown_table(every, kinds, timing=True) + "\n", stamp)},
+                  overwrite=True, argument="--out")
         print(markdown_table(comparison.scores, kinds, timing=True))
     print(f"wrote {out}/", file=sys.stderr)
     return 0

@@ -174,22 +174,24 @@ def run(args: argparse.Namespace) -> int:
         print("\n" + uncertainty_table(uncertainty))
     if args.out:
         from ..provenance import markdown
+        from ..writes import staged
 
         out = out_path(args.out, "--out", directory=True)
-        out.mkdir(parents=True, exist_ok=True)
         stamp = stamp_of(args, trials=args.seed)
-        save_scores(scores, out / f"{plant.name}_scores.json", stamp=stamp)
-        for noisy in noise:
-            smape_boxplot(scores, out / f"{plant.name}_smape_{'noisy' if noisy else 'clean'}.png", noisy=noisy,
-                          kinds=kinds, stamp=stamp)
-        (out / f"{plant.name}_table.md").write_text(markdown(markdown_table(scores, kinds) + "\n", stamp))
-        if uncertainty is not None:
-            from ..evaluation.uncertainty import uncertainty_record, uncertainty_table
-            from ..provenance import json_record
+        with staged(out, overwrite=True, argument="--out") as stage:     # the report's files as one
+            save_scores(scores, stage / f"{plant.name}_scores.json", stamp=stamp)
+            for noisy in noise:
+                smape_boxplot(scores, stage / f"{plant.name}_smape_{'noisy' if noisy else 'clean'}.png", noisy=noisy,
+                              kinds=kinds, stamp=stamp)
+            (stage / f"{plant.name}_table.md").write_text(markdown(markdown_table(scores, kinds) + "\n", stamp))
+            if uncertainty is not None:
+                from ..evaluation.uncertainty import uncertainty_record, uncertainty_table
+                from ..provenance import json_record
 
-            (out / f"{plant.name}_consistency.md").write_text(markdown(uncertainty_table(uncertainty) + "\n", stamp))
-            (out / f"{plant.name}_consistency.json").write_text(
-                json.dumps(json_record(uncertainty_record(uncertainty), stamp), indent=1) + "\n")
+                (stage / f"{plant.name}_consistency.md").write_text(
+                    markdown(uncertainty_table(uncertainty) + "\n", stamp))
+                (stage / f"{plant.name}_consistency.json").write_text(
+                    json.dumps(json_record(uncertainty_record(uncertainty), stamp), indent=1) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
     if profile is not None:
         children = os.times()

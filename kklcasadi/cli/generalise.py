@@ -12,6 +12,7 @@ import sys
 import time
 
 from ..plant import signals as sig
+from ..writes import write_dir
 from .flags import (
     CommandError,
     add_cache,
@@ -91,17 +92,17 @@ def run(args: argparse.Namespace) -> int:
         from ..provenance import json_record, markdown
 
         out = out_path(args.out, "--out", directory=True)
-        out.mkdir(parents=True, exist_ok=True)
         stamp = stamp_of(args, trials=args.seed)
-        (out / f"{report.system}_generalisation.md").write_text(markdown(tables + "\n", stamp))
-        (out / f"{report.system}_generalisation.json").write_text(
-            json.dumps(json_record(report.to_json(), stamp), indent=1) + "\n")
+        files = {f"{report.system}_generalisation.md": markdown(tables + "\n", stamp),
+                 f"{report.system}_generalisation.json": json.dumps(json_record(report.to_json(), stamp),
+                                                                    indent=1) + "\n"}
         if uncertainty is not None:
             from ..evaluation.uncertainty import uncertainty_record, uncertainty_table
 
-            (out / f"{report.system}_generalisation_consistency.md").write_text(
-                markdown(uncertainty_table(uncertainty) + "\n", stamp))
-            (out / f"{report.system}_generalisation_consistency.json").write_text(
-                json.dumps(json_record(uncertainty_record(uncertainty), stamp), indent=1) + "\n")
+            files[f"{report.system}_generalisation_consistency.md"] = markdown(uncertainty_table(uncertainty) + "\n",
+                                                                              stamp)
+            files[f"{report.system}_generalisation_consistency.json"] = json.dumps(
+                json_record(uncertainty_record(uncertainty), stamp), indent=1) + "\n"
+        write_dir(out, files, overwrite=True, argument="--out")                    # the report's files as one
         print(f"wrote {out}/", file=sys.stderr)
     return 0

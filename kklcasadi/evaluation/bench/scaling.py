@@ -39,6 +39,7 @@ from ...plant import signals as sig
 from ...plant.simulate import simulate_batch
 from ...plant.systems import System
 from ...validation import error, positive_int
+from ...writes import staged
 from .observer_step import _callgrind, _compile, _run_loop, loop_source
 
 __all__ = ["oscillator_chain", "ScalingRow", "ScalingResult", "bench_scaling", "EKF_FLAGS"]
@@ -368,11 +369,10 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
     result = ScalingResult(rows, {"runs": runs, "epochs": epochs, "T": T, "trials": trials, "mhe_steps": mhe_steps,
                                   "mhe_horizon": mhe_horizon, "flags": list(flags), "ekf_flags": list(ekf_flags)})
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
         stamp = stamp or provenance.stamp(seeds={"training_and_trials": seed})
-        (out / "scaling.md").write_text(provenance.markdown(result.table() + "\n", stamp))
-        (out / "scaling.json").write_text(json.dumps(provenance.json_record(
-            {"settings": result.settings, "rows": [asdict(r) for r in rows]}, stamp), indent=1) + "\n")
-        result.plot(out / "scaling.png", stamp=stamp)
+        with staged(out, overwrite=True, argument="out") as stage:         # the table, the record and the plot as one
+            (stage / "scaling.md").write_text(provenance.markdown(result.table() + "\n", stamp))
+            (stage / "scaling.json").write_text(json.dumps(provenance.json_record(
+                {"settings": result.settings, "rows": [asdict(r) for r in rows]}, stamp), indent=1) + "\n")
+            result.plot(stage / "scaling.png", stamp=stamp)
     return result
