@@ -327,18 +327,29 @@ def _shipped():
     return [(system, method) for system, methods in SHIPPED_MODELS.items() for method in methods]
 
 
+def _unsigned_commit(path):
+    """The last commit whose ``path`` was a card of format_version 1 (before it was signed)."""
+    for commit in _git("log", "--format=%H", "--", path).decode().split():
+        text = _git("show", f"{commit}:{path}")
+        if text is not None and json.loads(text).get("format_version") == 1:
+            return commit
+    raise AssertionError(f"{path} never had an unsigned card in this checkout's history")
+
+
 def test_the_shipped_cards_were_only_signed(tmp_path):
     if _git("cat-file", "-e", f"{SIGNED_AFTER}^{{commit}}") is None:
         pytest.skip(f"not a git checkout with commit {SIGNED_AFTER}")
     for system, method in _shipped():
         where = f"models/{system}/{method}"
-        old = json.loads(_git("show", f"{SIGNED_AFTER}:{where}/card.json"))
+        before = SIGNED_AFTER if _git("cat-file", "-e", f"{SIGNED_AFTER}:{where}/card.json") is not None else \
+            _unsigned_commit(f"{where}/card.json")               # a model shipped since: its last unsigned card
+        old = json.loads(_git("show", f"{before}:{where}/card.json"))
         new = _card(ROOT / where)
         assert old["format_version"] == 1 and new["format_version"] == 2 and DIGEST not in old
         assert {k: v for k, v in new.items() if k not in (DIGEST, "format_version")} == \
             {k: v for k, v in old.items() if k != "format_version"}
         # the weights bit for bit: the blob of the commit before is the file now
-        assert _git("rev-parse", f"{SIGNED_AFTER}:{where}/weights.npz") == _git("hash-object", f"{where}/weights.npz")
+        assert _git("rev-parse", f"{before}:{where}/weights.npz") == _git("hash-object", f"{where}/weights.npz")
     # and the estimates of a model loaded from the old card (signed as it was) and from the new one, bit for bit
     import kklcasadi as kc
 
