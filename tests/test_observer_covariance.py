@@ -11,6 +11,7 @@ import subprocess
 import casadi as ca
 import numpy as np
 import pytest
+from conftest import write_signed_card
 
 from kklcasadi.model.files import load_model, save_model
 from kklcasadi.model.variants.covariance import COVARIANCE, SCALE, array_shapes, covariance_numpy
@@ -113,11 +114,11 @@ def test_a_head_with_wrong_sizes_is_refused(model_dir_factory):
     card = json.loads(json.dumps(model.card))
     card["architecture"][COVARIANCE] = {"sizes": [card["architecture"]["decoder"]["sizes"][0], 4, 2],
                                         "activation": "tanh"}
-    (path / "card.json").write_text(json.dumps(card))
+    write_signed_card(path, card)                  # signed: the digest passes, the field's own check refuses it
     with pytest.raises(ValueError, match=r"architecture\.covariance\.sizes.*nx \(nx \+ 1\) / 2 = 3"):
         load_model(path)
     card["architecture"]["covariances"] = card["architecture"].pop(COVARIANCE)
-    (path / "card.json").write_text(json.dumps(card))
+    write_signed_card(path, card)
     with pytest.raises(ValueError, match=r"'architecture'.*optionally \['covariance'\]"):
         load_model(path)
 
