@@ -313,7 +313,7 @@ def test_a_reformatted_card_still_loads(valid_model, tmp_path):
 
 # -- the shipped models: their cards were signed once (kklcasadi.model.files.resign_model), nothing else changed ----
 
-SIGNED_AFTER = "3672a05"             # the last commit whose shipped cards had format_version 1 and no digest
+SIGNED_AFTER = "3672a05"             # a commit whose shipped cards had format_version 1 and no digest
 
 
 def _git(*args):
@@ -341,8 +341,7 @@ def test_the_shipped_cards_were_only_signed(tmp_path):
         pytest.skip(f"not a git checkout with commit {SIGNED_AFTER}")
     for system, method in _shipped():
         where = f"models/{system}/{method}"
-        before = SIGNED_AFTER if _git("cat-file", "-e", f"{SIGNED_AFTER}:{where}/card.json") is not None else \
-            _unsigned_commit(f"{where}/card.json")               # a model shipped since: its last unsigned card
+        before = _unsigned_commit(f"{where}/card.json")          # its last card without a digest
         old = json.loads(_git("show", f"{before}:{where}/card.json"))
         new = _card(ROOT / where)
         assert old["format_version"] == 1 and new["format_version"] == 2 and DIGEST not in old
@@ -356,7 +355,8 @@ def test_the_shipped_cards_were_only_signed(tmp_path):
     for system in ("duffing", "vdp", "rossler", "fhn"):
         old_dir = tmp_path / system / "bank"
         shutil.copytree(ROOT / "models" / system / "bank", old_dir)
-        old = json.loads(_git("show", f"{SIGNED_AFTER}:models/{system}/bank/card.json"))
+        where = f"models/{system}/bank/card.json"
+        old = json.loads(_git("show", f"{_unsigned_commit(where)}:{where}"))
         write_signed_card(old_dir, {**old, "format_version": 2})
         plant = kc.systems.get(system)
         tr = kc.simulate(plant, plant.sample_box(1, 3)[0], kc.signals.make("sinusoid", amplitude=0.5, omega=1.0),
