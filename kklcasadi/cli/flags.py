@@ -47,10 +47,9 @@ from ..validation import ArgumentError, ArgumentTypeError
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
            "columns", "flagged", "flagged_by", "plant_of", "load", "shipped", "out_path", "needs_torch", "add_plant",
-           "add_noise",
-           "add_kinds", "add_cache", "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label",
-           "quiet_casadi", "stamp_of", "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS",
-           "labelled_models", "benchmark_caches"]
+           "add_noise", "add_kinds", "add_cache", "levels_text", "add_dt", "add_noise_levels", "check_dt",
+           "model_label", "quiet_casadi", "stamp_of", "add_system", "run_noise", "PROTOCOL_STD", "NOISE",
+           "USER_ERRORS", "labelled_models", "benchmark_caches"]
 
 #: Noise std of a run (and its EKF) where a model's card records no levels (docs/protocol.md).
 PROTOCOL_STD = 0.1
