@@ -9,7 +9,11 @@ estimates, the domain flags and with ``--ekf`` the EKF's estimates are written
 (:meth:`kklcasadi.evaluation.logged.LogEstimate.write`), and ``--reference-cols`` scores them against
 recorded states. Every error is one line naming a flag (a bad log: ``--data`` with its row and column),
 exit status 2; a sample the guard did not feed to the observer (:mod:`kklcasadi.observer.guard`) is
-flagged in the ``status`` column, and the command then ends with exit status 3.
+flagged in the ``status`` column, and the command then ends with exit status 3. The observer and the
+EKF run their compiled steps a chunk of samples per call (:mod:`kklcasadi.evaluation.chunked`: a log
+of any length in memory proportional to its estimates, with a progress bar), with the vectorised
+exp/tanh (within 1e-14 per step of the VM; ``--math libm``: bitwise :meth:`KKLObserver.simulate`);
+``--vm`` (or no C compiler) runs the CasADi VM the same way.
 """
 
 from __future__ import annotations
@@ -63,6 +67,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(default x1, ..., xn)")
     e.add_argument("--out", required=True, metavar="EST.csv", help="the estimates to write (CSV; never one of the "
                    "command's input files)")
+    e.add_argument("--vm", action="store_true", help="run the CasADi VM instead of the compiled steps (the reference "
+                   "path; same values as --math libm, slower)")
+    e.add_argument("--math", default="vector", choices=("vector", "libm"),
+                   help="exp/tanh of the compiled steps: vectorised, within 1e-14 per step of the VM (default), or the "
+                   "C library's, bitwise the VM")
     e.set_defaults(func=run)
 
 
@@ -128,6 +137,7 @@ def run(args: argparse.Namespace) -> int:
     """
     import numpy as np
 
+    from ..evaluation.chunked import BITWISE, FAST
     from ..evaluation.logged import ekf_for_model, estimate_log
     from ..observer.guard import HELD, RESTARTED
 
@@ -153,8 +163,9 @@ def run(args: argparse.Namespace) -> int:
     if args.ekf:
         ekf, levels = flagged("--ekf", ekf_for_model, obs, process_std=args.process_std,
                               measurement_std=args.measurement_std)
+    compiler = None if args.vm else {"vector": FAST, "libm": BITWISE}[args.math]
     result = flagged("--settle", estimate_log, obs, log, u_zero=args.u_zero, ekf=ekf, settle=args.settle,
-                     reference=recorded)
+                     reference=recorded, compiler=compiler, progress=True)
     r = log.resampling
     print(f"model    {model_label(args.model)}  ({obs.method}, system {plant.name}, dt {obs.dt:g} s)")
     inputs = "none" if not plant.nu else "zero (--u-zero)" if args.u_zero else r.u_method

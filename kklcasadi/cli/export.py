@@ -24,6 +24,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     x.add_argument("--u-cols", type=columns, metavar="NAMES", help="with --c: the inputs' columns (default u1,...)")
     x.add_argument("--state-names", type=columns, metavar="NAMES", help="with --c: the estimates' columns the C main "
                    "writes (default x1,...)")
+    x.add_argument("--precision", choices=("float64", "float32"), default="float64",
+                   help="the C type of every value: double (default), or float for a microcontroller's "
+                   "single-precision FPU (docs/design.md, 'float32 C')")
     x.add_argument("--casadi", metavar="FILE", help="write the step as a ca.Function (Function.save)")
     x.add_argument("--overwrite", action="store_true", help="replace files that exist")
     x.set_defaults(func=run)
@@ -45,7 +48,8 @@ def run(args: argparse.Namespace) -> int:
         names = {"time_col": "--time-col", "y_cols": "--y-cols", "u_cols": "--u-cols", "state_names": "--state-names"}
         try:
             files = generate_c(obs, c_dir, name=args.name, overwrite=args.overwrite, time_col=args.time_col,
-                               y_cols=args.y_cols, u_cols=args.u_cols, state_names=args.state_names)
+                               y_cols=args.y_cols, u_cols=args.u_cols, state_names=args.state_names,
+                               precision=args.precision)
         except (ValueError, TypeError) as exc:
             head, sep, rest = str(exc).partition(": ")
             if sep and head in names:

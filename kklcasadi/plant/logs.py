@@ -219,11 +219,17 @@ def _rows(path: Path, source: str) -> Iterator[tuple[int, list[str]]]:
                 yield lines.line, row
 
 
-def _number(text: str, where: str) -> float:
-    """A field as a float: a plain decimal number (:data:`NUMBER`), blanks around it allowed."""
+#: Rows parsed into Python lists before they become one float64 block (bounds the reader's Python objects).
+_BLOCK = 65536
+
+
+def _number(text: str, source: str, row: int, line: int, column: str) -> float:
+    """A field as a float: a plain decimal number (:data:`NUMBER`), blanks around it allowed; an error names
+    the row, line and column."""
     text = text.strip(" \t")
     if NUMBER.fullmatch(text) is None:
-        raise error(where, "a plain decimal number (digits, '.', an exponent)", _shown(text))
+        raise error(_where(source, row, line, column), "a plain decimal number (digits, '.', an exponent)",
+                    _shown(text))
     return float(text)
 
 
@@ -246,17 +252,28 @@ def _read_table(path: Path, wanted: tuple[str, ...], arguments: tuple[str, ...])
             raise error(argument, f"a column of {source}", name,
                         f"Its header holds {header if len(header) <= 20 else header[:20] + ['...']}.")
     index = [header.index(name) for name in wanted]
-    values, lines = [], []
+    blocks: list[np.ndarray] = []                 # a block of rows at a time as float64 (not lists of floats)
+    line_blocks: list[np.ndarray] = []
+    values: list[list[float]] = []
+    lines: list[int] = []
+    count = 0
     for line, row in rows:
-        k = len(values)
         if len(row) != len(header):
-            raise error(_where(source, k, line), f"{len(header)} fields (one per header column)",
+            raise error(_where(source, count, line), f"{len(header)} fields (one per header column)",
                         Text(f"{len(row)} fields"))
-        values.append([_number(row[i], _where(source, k, line, name)) for i, name in zip(index, wanted)])
+        values.append([_number(row[i], source, count, line, name) for i, name in zip(index, wanted)])
         lines.append(line)
-    if len(values) < 2:
-        raise error(source, "at least 2 data rows", Text(f"{len(values)} rows"))
-    return np.array(values, dtype=np.float64), np.array(lines)
+        count += 1
+        if len(values) == _BLOCK:
+            blocks.append(np.array(values, dtype=np.float64))
+            line_blocks.append(np.array(lines))
+            values, lines = [], []
+    if count < 2:
+        raise error(source, "at least 2 data rows", Text(f"{count} rows"))
+    if values:
+        blocks.append(np.array(values, dtype=np.float64))
+        line_blocks.append(np.array(lines))
+    return np.concatenate(blocks), np.concatenate(line_blocks)
 
 
 def _interval_means(t_raw: np.ndarray, values: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -469,9 +486,10 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     default this process's), then the header row (:func:`read_log` skips the comment). Columns:
     ``time``, the ``state_names``, then ``in_domain`` (0/1) and ``status`` (an integer >= 0) if
     given, then the ``extra`` columns in their order. Numbers are written with :func:`repr`, so
-    reading them back gives the same floats. Everything is validated and formatted before the file
-    is touched; the text goes to a temporary file in the same folder, which then replaces ``path``
-    (:func:`os.replace`): a failure leaves an existing file as it was and no temporary file behind.
+    reading them back gives the same floats. Everything is validated before the file is touched; the
+    text goes, a block of rows at a time, to a temporary file in the same folder, which then replaces
+    ``path`` (:func:`os.replace`): a failure leaves an existing file as it was and no temporary file
+    behind.
 
     Parameters
     ----------
@@ -501,13 +519,13 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     if len(names) != xhat.shape[1]:
         raise error("state_names", f"{xhat.shape[1]} names (one per column of xhat)", list(names))
     header = ["time", *names]
-    body = [t, *xhat.T]
+    body: list[np.ndarray] = [t, *xhat.T]
     if in_domain is not None:
         flags = np.asarray(in_domain)
         if flags.shape != (n,) or not (flags.dtype == bool or np.isin(flags, (0, 1)).all()):
             raise error("in_domain", f"{n} booleans", Text(f"shape {flags.shape}, dtype {flags.dtype}"))
         header.append("in_domain")
-        body.append(flags.astype(bool))
+        body.append(flags.astype(bool).astype(np.int64))              # written 0 or 1
     if status is not None:
         codes = np.asarray(status)
         if codes.shape != (n,) or not np.issubdtype(codes.dtype, np.integer) or np.any(codes < 0):
@@ -527,10 +545,7 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
                     Text(f"repeated {repeated}"))
     text = io.StringIO(provenance.csv_comment(stamp or provenance.stamp()))
     text.seek(0, io.SEEK_END)
-    writer = csv.writer(text, lineterminator="\n")
-    writer.writerow(header)
-    for row in zip(*body):
-        writer.writerow([str(int(v)) if isinstance(v, (np.bool_, np.integer)) else repr(float(v)) for v in row])
+    csv.writer(text, lineterminator="\n").writerow(header)
 
     if not path.parent.is_dir():
         raise error("path", "a file in an existing folder", str(path))
@@ -540,6 +555,9 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     try:
         with os.fdopen(handle, "w", newline="") as stream:
             stream.write(text.getvalue())
+            for start in range(0, n, _BLOCK):             # Python floats repr as the shortest round trip
+                columns = [column[start:start + _BLOCK].tolist() for column in body]
+                stream.write("".join(",".join(map(repr, row)) + "\n" for row in zip(*columns)))
             stream.flush()
             os.fsync(stream.fileno())
         os.replace(temp, path)

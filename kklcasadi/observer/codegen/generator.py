@@ -69,11 +69,11 @@ from ...validation import Text, error, one_of
 from ...writes import write_dir
 from ..guard import SampleGuard
 from ..kkl import DOMAIN_MARGIN, KKLObserver
-from .kernels import rewrite, template
+from .kernels import rewrite, single_precision, template
 
 __all__ = ["generate_c", "casadi_source", "renamed", "check_c_name", "check_flags", "c_targets", "C_FLAGS",
            "DEFAULT_FLAGS",
-           "NATIVE_FLAGS", "MATVECS", "MATHS"]
+           "NATIVE_FLAGS", "MATVECS", "MATHS", "PRECISIONS"]
 
 #: The warning flags the generated code is tested with, at -O2 (it is also tested at
 #: ``DEFAULT_FLAGS`` with the same warnings).
@@ -88,6 +88,8 @@ NATIVE_FLAGS = ("-std=c99", "-O3", "-march=native")
 MATVECS = ("axpy", "casadi")
 #: ``generate_c(math=...)``: vectorisable exp and tanh, or the C library's.
 MATHS = ("vector", "libm")
+#: ``generate_c(precision=...)``: the C type of every value, ``double`` or ``float`` (microcontrollers).
+PRECISIONS = ("float64", "float32")
 # A C identifier that CasADi also accepts as a function name: a letter first, then letters, digits
 # and single underscores (CasADi reserves double underscores), not ending in an underscore.
 _C_NAME = re.compile(r"^[A-Za-z](?:_?[A-Za-z0-9])*$")
@@ -171,7 +173,8 @@ def _strings(names: Sequence[str]) -> str:
 
 
 def _header(observer: KKLObserver, name: str, casadi_header: str, sizes: dict[str, int], build: str,
-            matvec: str, math: str, dispatch: bool, columns: dict[str, tuple[str, ...]]) -> str:
+            matvec: str, math: str, dispatch: bool, columns: dict[str, tuple[str, ...]],
+            precision: str) -> str:
     macro = name.upper()
     rows, cols = observer.memory_shape
     defines = {"NX": observer.nx, "NU": observer.nu, "NY": observer.ny, "NZ": observer.nz,
@@ -242,7 +245,8 @@ def _header(observer: KKLObserver, name: str, casadi_header: str, sizes: dict[st
  * Work arrays: arg[{macro}_SZ_ARG], res[{macro}_SZ_RES], iw[{macro}_SZ_IW],
  * w[{macro}_SZ_W] (enough for both functions); outputs must not alias inputs; mem = 0.
  *
- * Code: matvec={matvec!r}, math={math!r}, dispatch={dispatch!r} (kklcasadi.observer.codegen).
+ * Code: matvec={matvec!r}, math={math!r}, dispatch={dispatch!r}, precision={precision!r}
+ * (casadi_real is {"float" if precision == "float32" else "double"}; kklcasadi.observer.codegen).
  * Build:
  *   {build}
  */
@@ -344,11 +348,23 @@ def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = 
             _work_sizes(casadi_header, [f.name() for f in functions]))
 
 
+def _single(precision: str, math: str, dispatch: bool) -> bool:
+    """Whether ``precision`` is float32; its options checked (the vector exp/tanh and the AVX2 kernels are
+    double code)."""
+    single = one_of(precision, "precision", PRECISIONS) == "float32"
+    fix = "Leave math and dispatch at their defaults (the vector exp/tanh and the AVX2 kernels are double code)."
+    if single and math != "libm":
+        raise error("math", "'libm' with precision='float32'", math, fix)
+    if single and dispatch:
+        raise error("dispatch", "False with precision='float32'", dispatch, fix)
+    return single
+
+
 def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
-               *, overwrite: bool = False, matvec: str = "axpy", math: str = "vector",
-               dispatch: bool = True, flags: Sequence[str] = DEFAULT_FLAGS, time_col: str = "time",
+               *, overwrite: bool = False, matvec: str = "axpy", math: Optional[str] = None,
+               dispatch: Optional[bool] = None, flags: Sequence[str] = DEFAULT_FLAGS, time_col: str = "time",
                y_cols: Optional[Sequence[str]] = None, u_cols: Optional[Sequence[str]] = None,
-               state_names: Optional[Sequence[str]] = None) -> list[Path]:
+               state_names: Optional[Sequence[str]] = None, precision: str = "float64") -> list[Path]:
     """Write the observer step as C99 source, a header and a ``main`` example.
 
     Parameters
@@ -365,18 +381,19 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         The dense matrix-vector products: fixed-size kernels in column (axpy) order with a block
         of outputs in registers, which vectorise (default), or CasADi's own loops. Both sum every
         output in the same order: the results are bitwise equal.
-    math : {"vector", "libm"}
+    math : {"vector", "libm"}, optional
         ``exp`` and ``tanh``: branch-free C99 arithmetic that vectorises, within 3 ulp of the C
         library, so that the step is within :data:`VECTOR_MATH_TOLERANCE` of the CasADi VM
-        (default); or the C library's functions, bitwise as the CasADi VM (with
-        ``matvec="axpy"`` or ``"casadi"``).
-    dispatch : bool
+        (the default in float64); or the C library's functions, bitwise as the CasADi VM (with
+        ``matvec="axpy"`` or ``"casadi"``; the only choice, and the default, in float32).
+    dispatch : bool, optional
         With gcc or clang on x86, also compile the kernels and the vector exp/tanh for AVX2
         (gcc vector extensions, under ``#if``) and use that version where the CPU has it:
         chosen at run time (``__builtin_cpu_supports``), or always when the build targets AVX2
         (``-march=native`` on a recent CPU). The results are the same bit for bit.
         ``-DKKLC_NO_DISPATCH`` at compile time, or ``dispatch=False`` (no extensions in the
-        source), leaves the portable C99 version only.
+        source), leaves the portable C99 version only. Default True in float64, False (the only
+        choice) in float32.
     flags : sequence of str
         The compiler options written into the build lines of ``name.h`` and ``name_main.c``
         (``gcc FLAGS name.c name_main.c -lm -o name``); default :data:`DEFAULT_FLAGS`
@@ -391,6 +408,13 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         yN`` and ``u1 .. uM``. Printable ASCII without commas, quotes or backslashes, distinct.
     state_names : sequence of str, optional
         The columns of the estimates it writes; default ``x1 .. xN`` (as ``kklcasadi estimate``).
+    precision : {"float64", "float32"}
+        The C type of every value: ``double`` (default), or ``float`` for microcontrollers whose
+        FPU is single precision (Cortex-M4F, M33): every constant, weight, work array and
+        argument is a ``float``, the C library's float functions (``tanhf``, ``expf``) are
+        called, and ``casadi_int`` is ``int``. The step then differs from the float64 step by
+        the rounding of float (see docs/design.md, "float32 C", for the error over whole trials);
+        ``name_main.c`` still reads the times in double.
 
     Returns
     -------
@@ -401,7 +425,8 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     ------
     ValueError
         ``name`` is not a valid C identifier, ``out_dir`` exists and is not a directory,
-        ``matvec`` or ``math`` is not one of the choices, or a flag is not an option word.
+        ``matvec``, ``math`` or ``precision`` is not one of the choices, a flag is not an option
+        word, or float32 is asked with ``math="vector"`` or ``dispatch=True``.
     TypeError
         ``flags`` is not a sequence of strings, ``dispatch`` not a bool, or another argument
         has the wrong type.
@@ -411,10 +436,13 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     if not isinstance(observer, KKLObserver):
         raise error("observer", "a KKLObserver", Text(type(observer).__name__), kind=TypeError)
     name = check_c_name(name)
+    single = one_of(precision, "precision", PRECISIONS) == "float32"
+    math = one_of(("libm" if single else "vector") if math is None else math, "math", MATHS)
+    dispatch = not single if dispatch is None else dispatch
     matvec = one_of(matvec, "matvec", MATVECS)
-    math = one_of(math, "math", MATHS)
     if not isinstance(dispatch, bool):
         raise error("dispatch", "a bool", Text(type(dispatch).__name__), kind=TypeError)
+    _single(precision, math, dispatch)
     flags = check_flags(flags)
     columns = {"time": _column_names((time_col,) if isinstance(time_col, str) else time_col, "time_col", 1, "time"),
                "y": _column_names(y_cols, "y_cols", observer.ny, "y"),
@@ -438,11 +466,13 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         functions.append(renamed(observer.covariance, f"{name}_covariance"))
     source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch)
     build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
+    if single:                                     # the same C with float values and calls (kernels.single_precision)
+        source, casadi_header = single_precision(source), single_precision(casadi_header)
 
     write_dir(out, {paths[0].name: f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h. */\n"
                                    f"{source}",
                     paths[1].name: _header(observer, name, casadi_header, sizes, build, matvec, math, dispatch,
-                                           columns),
+                                           columns, precision),
                     paths[2].name: template("main").replace("__BUILD__", build).replace("__NAME__", name)
                     .replace("__MACRO__", name.upper())}, overwrite=overwrite, argument="out_dir")
     return paths

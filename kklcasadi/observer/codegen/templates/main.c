@@ -166,14 +166,14 @@ static int same_word(const char* text, const char* word) {   /* ASCII, case-inse
 }
 
 /* A plain decimal number or nan/inf into *value: 1; anything else: 0. */
-static int parse_number(const char* text, casadi_real* value) {
+static int parse_number(const char* text, double* value) {
   const char* p = text;
   const char* word;
   char* end;
   int digits = 0;
   word = (*p == '+' || *p == '-') ? p + 1 : p;
   if (same_word(word, "nan") || same_word(word, "inf") || same_word(word, "infinity")) {
-    *value = same_word(word, "nan") ? (casadi_real)NAN : (*p == '-' ? -(casadi_real)INFINITY : (casadi_real)INFINITY);
+    *value = same_word(word, "nan") ? (double)NAN : (*p == '-' ? -(double)INFINITY : (double)INFINITY);
     return 1;
   }
   if (*p == '+' || *p == '-') p++;
@@ -208,7 +208,7 @@ static int start(void) {
 static int run(FILE* in) {
   char** fields = NULL;
   long width = 0, position[NCOL], k = 0, flagged = 0, held = 0, restarts = 0, i, j;
-  casadi_real t = 0, t_prev = 0;
+  double t = 0, t_prev = 0;              /* times in double whatever casadi_real is (float32 builds) */
   int status, got;
   char message[512];
 
@@ -270,7 +270,7 @@ static int run(FILE* in) {
       return refuse(message);
     }
     for (j = 0; j < NCOL; j++) {
-      casadi_real value;
+      double value;
       char* text = trim(fields[position[j]]);
       if (!parse_number(text, &value)) {
         char echo[4 * 40 + 1];
@@ -279,7 +279,7 @@ static int run(FILE* in) {
         free(fields);
         return refuse(message);
       }
-      if (j == 0) t = value; else sample[j - 1] = value;
+      if (j == 0) t = value; else sample[j - 1] = (casadi_real) value;
     }
     if (!isfinite(t)) {
       snprintf(message, sizeof message, "column '%s': expected a finite time", columns[0]);
@@ -301,7 +301,7 @@ static int run(FILE* in) {
     if (k == 0) {
       if (status == 0) memcpy(fed, sample, sizeof fed);
       else for (i = 0; i < NY + NU; i++) {
-        fed[i] = isfinite(sample_lo[i]) && isfinite(sample_hi[i]) ? 0.5 * (sample_lo[i] + sample_hi[i]) : 0.0;
+        fed[i] = isfinite(sample_lo[i]) && isfinite(sample_hi[i]) ? (casadi_real) 0.5 * (sample_lo[i] + sample_hi[i]) : (casadi_real) 0;
       }
       if (start()) { fprintf(stderr, "error: line %ld: __NAME___init or __NAME___decode failed\n", lineno);
         free(fields); return 1; }
@@ -324,13 +324,13 @@ static int run(FILE* in) {
       }
     }
     printf("%.17g", t);
-    for (i = 0; i < __MACRO___NX; i++) printf(",%.17g", xhat[i]);
+    for (i = 0; i < __MACRO___NX; i++) printf(",%.17g", (double) xhat[i]);
 #ifdef __MACRO___HAS_DOMAIN
     {
       casadi_real inside = 0;
       arg[0] = z; arg[1] = win; arg[2] = xhat; res[0] = &inside;
       if (__NAME___in_domain(arg, res, iw, work, 0)) inside = 0;
-      printf(",%d", inside > 0.5);
+      printf(",%d", inside > (casadi_real) 0.5);
     }
 #endif
     printf(",%d\n", status);
