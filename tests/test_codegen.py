@@ -315,13 +315,18 @@ def test_float32_code_computes_in_single_precision(model_dir_factory, tmp_path, 
     assert "precision='float32'" in files[1].read_text()
     binary = tmp_path / "f32"
     compile_c([files[0], files[2]], binary, "-Wdouble-promotion", flags=DEFAULT_FLAGS)
-    t, y, u = trajectory()
-    text = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([t, y, u]))
-    out = np.loadtxt(subprocess.run([str(binary)], input=text, capture_output=True, text=True,
-                                    check=True).stdout.splitlines(), delimiter=",")
+    rng = np.random.default_rng(0)
+    t = 1000.0 + np.arange(60) * 0.05                               # late times: float would round them
+    y = np.sin(1.3 * t)[:, None] + 0.1 * rng.normal(size=(60, 1))
+    u = 0.8 * np.sign(np.sin(2.0 * t + 0.4))[:, None]
+    text = "time,y1,u1\n" + "".join(",".join(repr(float(v)) for v in row) + "\n" for row in np.column_stack([t, y, u]))
+    lines = subprocess.run([str(binary)], input=text, capture_output=True, text=True, check=True).stdout.splitlines()
+    assert lines[0] == "time,x1,x2,status"
+    out = np.loadtxt(lines[1:], delimiter=",")
     expected = obs.simulate(t, y, u).xhat
     np.testing.assert_array_equal(out[:, 0], t)                    # the times stay double
-    error = np.max(np.abs(out[:, 1:] - expected))
+    assert np.all(out[:, 3] == 0)
+    error = np.max(np.abs(out[:, 1:3] - expected))
     assert 0 < error <= 1e-4 * (1 + np.max(np.abs(expected))), error
 
 
