@@ -72,7 +72,11 @@ def speed() -> str:
             + "\n## The cost as the plant grows\n\nChains of n coupled Duffing oscillators (nx = 2n): the observer's "
               "C step, the EKF's (two forms), the MHE's solve and the training time per size; the log-log plot is "
               "`results/speed/oscillator_chain/scaling.png`. "
-            + _table(RESULTS / "speed" / "oscillator_chain" / "scaling.md"))
+            + _table(RESULTS / "speed" / "oscillator_chain" / "scaling.md")
+            + "\n## float32 C on a microcontroller\n\nThe step written with every value a `float` "
+              "(`generate_c(..., precision=\"float32\")`) against the float64 step over whole protocol trials, and "
+              "the float32 step on a Cortex-M4F under QEMU. "
+            + _table(RESULTS / "speed" / "duffing" / "float32_bank.md"))
 
 
 def tune() -> str:
