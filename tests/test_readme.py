@@ -341,6 +341,10 @@ def test_the_results_at_a_glance_follow_from_the_results(monkeypatch):
             [case]["scored_mean"] for case in ("theta_alpha", "alpha")]
     velocity = [b / e for r in qube for b, e in zip(r["KKL (bank)"][2:], r["EKF"][2:])]
     assert f"velocities within {span(velocity)} of the EKF" in text
+    like = json_payload(json.loads((ROOT / "results" / "real_rig" / "qube" / "hardware_like.json").read_text()))
+    velocity = [b / e for r in like.values() for b, e in zip(r["scored_mean"]["KKL (bank)"][2:],
+                                                             r["scored_mean"]["EKF"][2:])]
+    assert f"{span(velocity)} with `--like` alone" in text
     timing = provenance.strip_markdown((ROOT / "results" / "speed" / "duffing" / "protocol_duffing.md").read_text())
     warm = float(re.search(r"- warm caches \(.*?\): ([\d.]+) s wall", timing).group(1))
     assert 90 < warm < 150 and "about 2 minutes on 2 cores" in text
