@@ -234,6 +234,9 @@ def _pages(monkeypatch):
                            runpy.run_path(str(ROOT / "benchmarks" / "accuracy" / "tables.py"))["page"])}
     pages["robustness.md"] = ("python benchmarks/summarize_robustness.py",
                               runpy.run_path(str(ROOT / "benchmarks" / "summarize_robustness.py"))["page"])
+    emps = runpy.run_path(str(ROOT / "examples" / "emps_rig.py"), run_name="emps_rig")
+    record = json_payload(json.loads((ROOT / "results" / "real_rig" / "emps" / "emps.json").read_text()))
+    pages["emps.md"] = (emps["COMMAND"], lambda: emps["page"](record))
     rest = runpy.run_path(str(ROOT / "benchmarks" / "summarize_pages.py"))["PAGES"]
     pages.update({name: ("python benchmarks/summarize_pages.py", page) for name, page in rest.items()})
     return pages
