@@ -122,6 +122,9 @@ def test_the_shipped_robust_observers_are_their_recipe():
         training = card["training"]
         recipe = json.loads(json.dumps(asdict(expected)))
         default = json.loads(json.dumps(asdict(BankConfig())))
+        gained = [key for key in recipe["rollouts"] if key not in training["config"]["rollouts"]]   # since the fit
+        assert all(recipe["rollouts"][key] == default["rollouts"][key] for key in gained), gained
+        recipe["rollouts"] = {key: value for key, value in recipe["rollouts"].items() if key not in gained}
         added = [key for key in recipe if key not in training["config"]]      # fields BankConfig gained since the fit
         assert all(recipe[key] == default[key] for key in added), added
         assert training["config"] == {key: value for key, value in recipe.items() if key not in added}
