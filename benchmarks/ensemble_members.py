@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from calibrate_monitors import calibration_source, recalibrate, resimulate
 
+from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.model.variants.filterbank import ASINH_SCALE, member_prefixes
 from kklcasadi.nets.specs import DECODER
 from kklcasadi.train.bank import ensemble_arrays
@@ -76,8 +77,8 @@ def main() -> None:
     if have >= args.members:
         parser.error(f"--members: expected more than the {have} decoders of {args.model}, received {args.members}")
     card, seed = copy.deepcopy(model.card), int(model.card["training"]["seed"])
-    arch, angles = card["architecture"]["decoder"], model.spec.architecture.angles
-    fits = [BankFit(member_arrays(model.arrays, prefix), arch, angles, None, len(data), 0.0, {})
+    one = fb.DecoderSpec.from_card(card["architecture"]["decoder"], angles=model.spec.architecture.angles)
+    fits = [BankFit(member_arrays(model.arrays, prefix), one, None, len(data), 0.0, {})
             for prefix in member_prefixes(have)]
     training = card["training"]
     config = decoder_config(training["config"]["decoder"] if "config" in training else training["decoder"])
@@ -100,14 +101,14 @@ def main() -> None:
             summaries.append(json.loads(record.read_text()) if record.exists()
                              else {"seed": member_seed, "cached": path.name})
         else:
-            fit = fit_bank_decoder(bank, data, config, angles=angles, seed=member_seed, progress=True)
+            fit = fit_bank_decoder(bank, data, config, angles=one.angles, seed=member_seed, progress=True)
             arrays = fit.arrays
             summaries.append({"seed": member_seed, **fit.fit.summary()})
             if path is not None:
                 path.parent.mkdir(parents=True, exist_ok=True)
                 np.savez(path, **arrays)
                 path.with_suffix(".json").write_text(json.dumps(summaries[-1]))
-        fits.append(BankFit(arrays, arch, angles, None, len(data), 0.0, {}))
+        fits.append(BankFit(arrays, one, None, len(data), 0.0, {}))
     arrays = {k: v for k, v in ensemble_arrays(fits).items() if not k.startswith(("bank/A", "bank/By"))}
     card["architecture"]["bank"]["members"] = args.members
     card["training"]["member_fits"] = summaries

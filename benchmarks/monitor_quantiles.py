@@ -71,7 +71,7 @@ def main() -> None:
     plain = KKLObserver(replace(model, spec=replace(model.spec, monitor=replace(model.spec.monitor, spread=None))),
                         plant)                                  # the boxes and the prototypes, no spread test
     arrays = spec.filter_arrays(model.arrays)
-    bank, arch, copies = fb.bank_from_arrays(arrays), spec.decoder.to_card(), spec.model_copies(model.arrays, plant)
+    bank, copies = fb.bank_from_arrays(arrays), spec.model_copies(model.arrays, plant)
     measurement, process, rate = noise_of(model)
     cal, source = nominal_runs(plant, bank, rollouts_of(model), args.spread_runs, model.card["training"]["seed"],
                                dt=model.dt, measurement_std=measurement, process_std=process, time_scale=rate,
@@ -91,7 +91,7 @@ def main() -> None:
         batch = cache.trials(plant, case.cell(settings))
         x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
         z = fb.latent_run(bank, y, u, model.dt, copies=copies)
-        xhat = fb.decode(arrays, arch, z, y, u, angles=spec.angles, members=spec.members)
+        xhat = fb.decode(spec.decoder_spec, arrays, z, y, u)
         w = np.concatenate([y, u], axis=-1)[..., None]
         after = batch.t >= settings.t_settle
         inside = plain.in_domain(xhat[:, after], z[:, after], w[:, after])

@@ -16,6 +16,19 @@ def rng():
     return np.random.default_rng(1234)
 
 
+@pytest.fixture
+def no_torch_env(tmp_path):
+    """The environment of an interpreter in which torch cannot be imported (a ``sitecustomize`` on ``PYTHONPATH``
+    that refuses it, as on a deploy-only install)."""
+    block = tmp_path / "no_torch" / "sitecustomize.py"
+    block.parent.mkdir()
+    block.write_text("import sys\n\n\nclass NoTorch:\n    def find_spec(self, name, path=None, target=None):\n"
+                     "        if name.split('.')[0] == 'torch':\n"
+                     "            raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n\n\n"
+                     "sys.meta_path.insert(0, NoTorch())\n")
+    return {**__import__("os").environ, "PYTHONPATH": str(block.parent)}
+
+
 def _random_model_arrays(card, seed):
     """Random float64 arrays for every array the card names (kklcasadi.model.files shapes).
 

@@ -1,6 +1,8 @@
 """The dependency rules of docs/architecture.md, checked on the code: every import of every module
-(inside functions and TYPE_CHECKING blocks too) is one its row of the table allows, the import graph
-has no circle, and torch stays on the training side."""
+(inside functions and TYPE_CHECKING blocks too) and every import by name (a string that is a package
+module's name, ``"kklcasadi.train.bank"`` or ``"kklcasadi.train.bank:train_bank"``, or the argument of
+``importlib.import_module``) is one its row of the table allows, the import graph has no circle, and
+torch stays on the training side."""
 
 import ast
 import re
@@ -76,6 +78,39 @@ def _imports(path: Path) -> list[tuple[str, bool]]:
     return found
 
 
+#: A string that is a package module's name: ``kklcasadi.a.b``, then ``.name`` or ``:name`` (an import by name).
+_NAMED = re.compile(r"kklcasadi((?:\.[A-Za-z_]\w*)+)(?::[A-Za-z_]\w*)?")
+
+
+def _longest_module(parts: list[str]) -> str | None:
+    for n in range(len(parts), 0, -1):
+        if _is_module(".".join(parts[:n])):
+            return ".".join(parts[:n])
+    return None
+
+
+def _named_modules(source: str, package: tuple[str, ...] = ()) -> list[str]:
+    """The package modules the code imports by name, relative to ``kklcasadi``: each string constant that is
+    a module's name (``kklcasadi.a.b``, ``kklcasadi.a.b:attribute``, ``kklcasadi.a.b.attribute``: the longest
+    prefix that is a module), and the first argument of ``importlib.import_module`` (relative ones resolved in
+    ``package``, the module's package below ``kklcasadi``). Prose that mentions a module is not an import."""
+    tree = ast.parse(source)
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            match = _NAMED.fullmatch(node.value)
+            if match and (module := _longest_module(match.group(1)[1:].split("."))):
+                found.append(module)
+        elif (isinstance(node, ast.Call) and ast.unparse(node.func) in ("importlib.import_module", "import_module")
+              and node.args and isinstance(node.args[0], ast.Constant) and str(node.args[0].value).startswith(".")):
+            name = str(node.args[0].value)
+            level = len(name) - len(name.lstrip("."))
+            base = list(package[:len(package) - level + 1])
+            if (module := _longest_module([*base, *name.lstrip(".").split(".")])) is not None:
+                found.append(module)
+    return found
+
+
 def _from_names(module: str, node: ast.ImportFrom, top: bool) -> list[tuple[str, bool]]:
     """``from module import a, b``: the submodules a, b where they are modules, else the module."""
     out = []
@@ -108,12 +143,26 @@ def test_the_table_is_read_from_the_page():
 
 @pytest.mark.parametrize("path", SOURCES, ids=lambda p: _dotted(p) or "__init__")
 def test_every_import_follows_the_table(path):
-    dotted = _dotted(path)
+    _check_dependencies(_dotted(path), path.name == "__init__.py", _imports(path), _named(path))
+
+
+def _named(path: Path) -> list[str]:
+    dotted = _dotted(path).split(".") if path.name == "__init__.py" else _dotted(path).split(".")[:-1]
+    return _named_modules(path.read_text(), tuple(p for p in dotted if p))
+
+
+def _check_dependencies(dotted: str, is_init: bool, imports: list[tuple[str, bool]], named: list[str]) -> None:
+    """Fail where an import, or a string naming a module, is not one the module's row allows."""
     row = _row(dotted)
-    room = dotted if path.name == "__init__.py" else None
+    room = dotted if is_init else None
     assert row is not None or room is not None, f"{dotted}: add it to the table of docs/architecture.md"
     allowed = set(TABLE.get(row, ())) | ({room} if room else set())
-    for target, at_top in _imports(path):
+    for target in named:
+        if (row is not None and (target == row or target.startswith(row + "."))) or dotted.startswith(target + "."):
+            continue                                         # its own row, or a room it is in (a format's name)
+        assert _covered(target, allowed), f"{dotted} names {target} in a string, which its row of " \
+                                          f"docs/architecture.md does not allow ({sorted(allowed)})"
+    for target, at_top in imports:
         if target.startswith("!"):
             name = target[1:].split(".")[0]
             if name == "torch":
@@ -129,11 +178,23 @@ def test_every_import_follows_the_table(path):
             assert not at_top, f"{dotted} imports {target} at module level (the training side, only inside functions)"
 
 
+def test_a_string_naming_a_forbidden_module_fails():
+    """The model layer naming a training hook by string is a dependency the table forbids."""
+    source = ('import importlib\n\nclass Bank:\n    """Trained by kklcasadi.train.bank (prose: no dependency)."""\n'
+              '    trainer = "kklcasadi.train.bank:train_bank"\n\n'
+              'def load():\n    return importlib.import_module("...train.phase1", __package__)\n')
+    assert _named_modules(source, ("model", "variants")) == ["train.bank", "train.phase1"]
+    with pytest.raises(AssertionError, match="model.variants.bank names train.bank in a string"):
+        _check_dependencies("model.variants.bank", False, [], _named_modules(source))
+    _check_dependencies("cli.train", False, [], _named_modules(source))          # the CLI may name it
+
+
 def _graph() -> dict[str, set[str]]:
     graph = {}
     for path in SOURCES:
         dotted = _dotted(path)
-        graph[dotted] = {t for t, _ in _imports(path) if not t.startswith("!") and t and t != dotted}
+        targets = [t for t, _ in _imports(path)] + [t for t in _named(path) if not dotted.startswith(t + ".")]
+        graph[dotted] = {t for t in targets if not t.startswith("!") and t and t != dotted}
     return graph
 
 
@@ -164,6 +225,17 @@ def test_the_circle_check_can_fail(monkeypatch, tmp_path):
     monkeypatch.setattr(__import__(__name__), "_graph", lambda: graph)
     with pytest.raises(pytest.fail.Exception, match="a -> b -> c -> a"):
         test_the_import_graph_has_no_circle()
+
+
+def test_the_rows_follow_the_import_order():
+    """Each row of the table may import only rows above it and its own: the table states the real order."""
+    rows = list(TABLE)
+    for i, name in enumerate(rows):
+        for target in TABLE[name]:
+            if target == "-" or target == name or name.startswith(target + "."):
+                continue
+            below = [r for r in rows[i + 1:] if r == target or r.startswith(target + ".") or target.startswith(r + ".")]
+            assert not below, f"docs/architecture.md: {name} may import {target}, whose row {below[0]} comes below it"
 
 
 def test_every_row_names_existing_code():

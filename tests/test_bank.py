@@ -3,6 +3,8 @@ KKLObserver whose step, simulate and C code reproduce the reference estimator of
 
 import json
 import shutil
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -61,7 +63,7 @@ def test_bank_observer_equals_the_reference_estimator(bank_dir):
                      dt=obs.dt, process_std=0.1, measurement_std=0.1, seed=3)
     model = load_model(bank_dir)
     arrays = {**model.arrays, "bank/A": model.A, "bank/By": model.B}
-    expected = fb.estimate(arrays, model.card["architecture"]["decoder"], tr.y, tr.u, obs.dt)
+    expected = fb.estimate(model.spec.architecture.decoder_spec, arrays, tr.y, tr.u, obs.dt)
     est = obs.simulate(tr.t, tr.y, tr.u)
     np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
     live = obs.estimator()
@@ -119,8 +121,7 @@ def test_the_angle_observer_equals_the_reference_and_its_c_code(arm_dir, tmp_pat
                      dt=obs.dt, measurement_std=0.01, seed=4)
     model = load_model(arm_dir)
     arrays = {**model.arrays, "bank/A": model.A, "bank/By": model.B}
-    expected = fb.estimate(arrays, model.card["architecture"]["decoder"], tr.y, tr.u, obs.dt,
-                           angles=model.spec.architecture.angles)
+    expected = fb.estimate(model.spec.architecture.decoder_spec, arrays, tr.y, tr.u, obs.dt)
     est = obs.simulate(tr.t, tr.y, tr.u)
     np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
     assert np.all(np.abs(est.xhat[:, 0]) <= np.pi)              # the free angle, about its box centre 0
@@ -198,21 +199,23 @@ def test_the_ensemble_decodes_the_mean_of_its_members(ensemble_dir):
     z, y, u = rng.normal(size=(50, model.spec.nz)), rng.normal(size=(50, 1)), rng.normal(size=(50, 1))
     spec, f = MLPSpec.from_card(arch), np.concatenate([z, y, u], axis=1)
     v = [mlp_numpy(spec, arrays, prefix, f) for prefix in ("decoder", "decoder_1")]
-    np.testing.assert_allclose(fb.decode(arrays, arch, z, y, u, members=2), (v[0] + v[1]) / 2, rtol=0, atol=1e-14)
-    single = fb.decode(arrays, arch, z, y, u)
+    pair, one = fb.DecoderSpec.from_card(arch, members=2), fb.DecoderSpec.from_card(arch)
+    np.testing.assert_allclose(fb.decode(pair, arrays, z, y, u), (v[0] + v[1]) / 2, rtol=0, atol=1e-14)
+    single = fb.decode(one, arrays, z, y, u)
     np.testing.assert_array_equal(single, v[0])
     assert np.abs(single - (v[0] + v[1]) / 2).max() > 1e-6
     # the spread: sqrt(mean_j sum_i ((v_ji - vbar_i) / s_i)^2), s the first member's output std
     s = arrays["decoder/out_std"]
     expected = np.sqrt((((v[0] - v[1]) / 2 / s) ** 2).sum(axis=1))
-    np.testing.assert_allclose(fb.spread(arrays, arch, z, y, u, members=2), expected, rtol=1e-13)
+    np.testing.assert_allclose(fb.spread(pair, arrays, z, y, u), expected, rtol=1e-13)
     same = {**arrays, **{k.replace("decoder/", "decoder_1/"): a for k, a in arrays.items() if k.startswith("decoder/")}}
-    np.testing.assert_array_equal(fb.spread(same, arch, z, y, u, members=2), 0.0)
+    np.testing.assert_array_equal(fb.spread(pair, same, z, y, u), 0.0)
     # the CasADi paths: decoder and spread at the same points
     zs, ys, us = ca.MX.sym("z", model.spec.nz), ca.MX.sym("y", 1), ca.MX.sym("u", 1)
-    dec = fb.decoder_function(arrays, arch, members=2).map(50)
+    dec = fb.decoder_function(pair, arrays).map(50)
     np.testing.assert_allclose(np.asarray(dec(z.T, y.T, u.T)).T, (v[0] + v[1]) / 2, rtol=0, atol=1e-13)
-    sp = ca.Function("s", [zs, ys, us], [fb.spread_expression(arrays, arch, zs, ys, us, members=2)]).map(50)
+    sp = ca.Function("s", [zs, ys, us], [fb.spread_expression(pair, arrays, fb.bank_from_arrays(arrays), zs, ys,
+                                                              us)]).map(50)
     np.testing.assert_allclose(np.asarray(sp(z.T, y.T, u.T)).ravel(), expected, rtol=1e-12)
 
 
@@ -231,7 +234,8 @@ def test_growing_an_ensemble_keeps_its_members_arrays(ensemble_dir, monkeypatch)
     assert not any(name.startswith("decoder_1") for part in members for name in part)
     np.testing.assert_array_equal(members[1]["decoder/W0"], model.arrays["decoder_1/W0"])
     np.testing.assert_array_equal(members[1][fb.ASINH_SCALE], model.arrays[fb.ASINH_SCALE])
-    again = ensemble_arrays([BankFit(part, arch, model.spec.architecture.angles, None, 0, 0.0, {}) for part in members])
+    one = fb.DecoderSpec.from_card(arch, angles=model.spec.architecture.angles)
+    again = ensemble_arrays([BankFit(part, one, None, 0, 0.0, {}) for part in members])
     assert set(again) == set(model.arrays)
     for name, value in model.arrays.items():
         np.testing.assert_array_equal(again[name], value)
@@ -243,12 +247,12 @@ def test_the_ensemble_observer_equals_the_reference_and_monitors_the_spread(ense
     tr = kc.simulate(obs.system, [1.0, -0.5], kc.signals.make("square", amplitude=0.5, omega=1.0), T=6.0,
                      dt=obs.dt, process_std=0.1, measurement_std=0.1, seed=3)
     est = obs.simulate(tr.t, tr.y, tr.u)
-    np.testing.assert_allclose(est.xhat, fb.estimate(arrays, arch, tr.y, tr.u, obs.dt, members=2), rtol=1e-10,
-                               atol=1e-10)
+    pair = fb.DecoderSpec.from_card(arch, members=2)
+    np.testing.assert_allclose(est.xhat, fb.estimate(pair, arrays, tr.y, tr.u, obs.dt), rtol=1e-10, atol=1e-10)
     z = fb.FilterBank(model.A, model.B, arrays["bank/Bu"], arrays["bank/c"]).run(tr.y, tr.u, obs.dt)
     w = np.concatenate([tr.y, tr.u], axis=1)[:, :, None]
     spread = obs.spread_of(z, w)
-    np.testing.assert_allclose(spread, fb.spread(arrays, arch, z, tr.y, tr.u, members=2), rtol=1e-12)
+    np.testing.assert_allclose(spread, fb.spread(pair, arrays, z, tr.y, tr.u), rtol=1e-12)
     # the domain check is the prototype test and the spread test, in numpy and in CasADi alike
     threshold = obs.monitor.spec.spread[0]
     prototypes = obs.monitor.inside(np.concatenate([z, w[:, :, 0]], axis=1))
@@ -351,10 +355,12 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
     spec = model.spec.architecture
     arrays, arch = spec.filter_arrays(model.arrays), model.card["architecture"]["decoder"]
     angles, copies = spec.angles, spec.model_copies(model.arrays, obs.system)
-    np.testing.assert_allclose(est.xhat, fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles,
-                                                     members=config.members, copies=copies), rtol=1e-9, atol=1e-9)
+    assert spec.decoder_spec == fb.DecoderSpec.from_card(arch, angles=angles, members=config.members)
+    np.testing.assert_allclose(est.xhat, fb.estimate(spec.decoder_spec, arrays, batch.y[0], batch.u[0], obs.dt,
+                                                     copies=copies), rtol=1e-9, atol=1e-9)
     for fewer in range(1, config.members):            # the ensemble is none of its leading sub-ensembles
-        part = fb.estimate(arrays, arch, batch.y[0], batch.u[0], obs.dt, angles=angles, members=fewer, copies=copies)
+        fewer_spec = fb.DecoderSpec.from_card(arch, angles=angles, members=fewer)
+        part = fb.estimate(fewer_spec, arrays, batch.y[0], batch.u[0], obs.dt, copies=copies)
         assert np.abs(part - est.xhat).max() > 1e-6
 
 
@@ -433,3 +439,32 @@ def test_monitor_config_rejects_bad_settings(field, value):
         MonitorConfig(**{field: value})
     with pytest.raises(TypeError, match="monitor"):
         BankConfig(monitor={"quantile": 0.9})
+
+
+#: The benchmark scripts that need no torch (the bank's runs, its samples and its monitor are torch-free).
+TORCH_FREE_SCRIPTS = ("calibrate_monitors.py", "monitor_quantiles.py", "bitwise_estimates.py")
+
+
+def test_the_monitor_is_calibrated_again_without_torch(ensemble_dir, tmp_path, no_torch_env):
+    """benchmarks/calibrate_monitors.py in an interpreter that cannot import torch: it re-simulates the decoder's
+    fitting runs (checked against the card's domain bit for bit) and calibrates the same monitor training gave
+    the model (the same runs and quantiles: the same thresholds and arrays, bitwise); the other torch-free
+    scripts start there too."""
+    copy = tmp_path / "bank"
+    shutil.copytree(ensemble_dir, copy)
+    result = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "calibrate_monitors.py"), str(copy),
+                             "--spread-quantile", "0.97", "--spread-runs", "4"], capture_output=True, text=True,
+                            env=no_torch_env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    before, after = load_model(ensemble_dir), load_model(copy)
+    assert after.card["monitor"]["calibration"]["source"].endswith("re-simulated by benchmarks/calibrate_monitors.py")
+    drop = ("calibration",)
+    assert ({k: v for k, v in after.card["monitor"].items() if k not in drop}
+            == {k: v for k, v in before.card["monitor"].items() if k not in drop})
+    assert set(after.arrays) == set(before.arrays)
+    for name, value in before.arrays.items():
+        np.testing.assert_array_equal(after.arrays[name], value)
+    for script in TORCH_FREE_SCRIPTS:
+        run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), "--help"], capture_output=True,
+                             text=True, env=no_torch_env, cwd=ROOT / "benchmarks")
+        assert run.returncode == 0 and "usage" in run.stdout, (script, run.stderr)

@@ -297,13 +297,8 @@ def test_every_cli_error_is_one_line_with_exit_status_2(args, expected):
     assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], result.stderr
 
 
-def test_torch_free_install_says_how_to_get_training(tmp_path):
-    block = tmp_path / "sitecustomize.py"                    # an interpreter where torch cannot be imported
-    block.write_text("import sys\n\n\nclass NoTorch:\n    def find_spec(self, name, path=None, target=None):\n"
-                     "        if name.split('.')[0] == 'torch':\n"
-                     "            raise ModuleNotFoundError(\"No module named 'torch'\", name='torch')\n\n\n"
-                     "sys.meta_path.insert(0, NoTorch())\n")
-    env = {**__import__("os").environ, "PYTHONPATH": str(tmp_path)}
+def test_torch_free_install_says_how_to_get_training(tmp_path, no_torch_env):
+    env = no_torch_env
     for args in (["train", "--system", "duffing", "--method", "autonomous", "--out", str(tmp_path / "m")],
                  ["bench", "training"]):
         result = _cli(*args, env=env)

@@ -177,8 +177,7 @@ def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir
     model = load_model(copies_dir)
     spec = model.spec.architecture
     copies = spec.model_copies(model.arrays, obs.system)
-    expected = fb.estimate(spec.filter_arrays(model.arrays), model.card["architecture"]["decoder"], tr.y, tr.u, obs.dt,
-                           members=2, copies=copies)
+    expected = fb.estimate(spec.decoder_spec, spec.filter_arrays(model.arrays), tr.y, tr.u, obs.dt, copies=copies)
     est = obs.simulate(tr.t, tr.y, tr.u)
     np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
     live = obs.estimator()
@@ -187,8 +186,7 @@ def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir
     rk4 = kc.load_observer(copies_dir, discretization="rk4", substeps=8).simulate(tr.t, tr.y, tr.u)
     assert np.abs(rk4.xhat - est.xhat).max() < 1e-4 * (1 + np.abs(est.xhat).max())
     with pytest.raises(ValueError, match="copies: expected the ModelCopies"):
-        fb.estimate(spec.filter_arrays(model.arrays), model.card["architecture"]["decoder"], tr.y, tr.u, obs.dt,
-                    members=2)
+        fb.estimate(spec.decoder_spec, spec.filter_arrays(model.arrays), tr.y, tr.u, obs.dt)
     if shutil.which("gcc") is None:
         return
     np.testing.assert_array_equal(c_program_estimates(obs, tmp_path, "bank", tr.t, tr.y, tr.u), est.xhat)

@@ -15,7 +15,7 @@ def _bank() -> fb.FilterBank:
 
 
 def _decoder_arrays(bank: fb.FilterBank, nx: int, rng: np.random.Generator,
-                    scale: np.ndarray) -> tuple[dict, dict]:
+                    scale: np.ndarray) -> tuple[dict, fb.DecoderSpec]:
     sizes = [bank.nz + bank.ny + bank.nu, 7, 6, nx]
     arrays = {f"{DECODER}/in_mean": rng.normal(size=sizes[0]), f"{DECODER}/in_std": rng.uniform(0.5, 2, sizes[0]),
               f"{DECODER}/out_mean": rng.normal(size=nx), f"{DECODER}/out_std": rng.uniform(0.5, 2, nx),
@@ -24,7 +24,7 @@ def _decoder_arrays(bank: fb.FilterBank, nx: int, rng: np.random.Generator,
         arrays[f"{DECODER}/W{i}"] = rng.normal(size=(d_out, d_in)) / np.sqrt(d_in)
         arrays[f"{DECODER}/b{i}"] = rng.normal(size=d_out) * 0.1
     arrays.update(fb.bank_arrays(bank))
-    return arrays, {"sizes": sizes, "activation": "tanh"}
+    return arrays, fb.DecoderSpec.from_card({"sizes": sizes, "activation": "tanh"})
 
 
 def test_design_layout_and_unit_dc_gain() -> None:
@@ -70,10 +70,10 @@ def test_run_matches_casadi_step_and_starts_at_zero() -> None:
 def test_decoder_numpy_and_casadi_agree(scale: np.ndarray) -> None:
     bank = _bank()
     rng = np.random.default_rng(2)
-    arrays, arch = _decoder_arrays(bank, 2, rng, scale)
-    dec = fb.decoder_function(arrays, arch)
+    arrays, spec = _decoder_arrays(bank, 2, rng, scale)
+    dec = fb.decoder_function(spec, arrays)
     feats = rng.normal(size=(50, bank.nz + 2))
-    ref = fb.decode(arrays, arch, feats[:, :bank.nz], feats[:, bank.nz:bank.nz + 1], feats[:, -1:])
+    ref = fb.decode(spec, arrays, feats[:, :bank.nz], feats[:, bank.nz:bank.nz + 1], feats[:, -1:])
     got = np.asarray(dec.map(50)(feats[:, :bank.nz].T, feats[:, bank.nz:bank.nz + 1].T, feats[:, -1:].T)).T
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
 
@@ -82,12 +82,12 @@ def test_asinh_output_round_trips() -> None:
     bank = _bank()
     rng = np.random.default_rng(3)
     scale = np.array([0.0, 0.01])
-    arrays, arch = _decoder_arrays(bank, 2, rng, scale)
+    arrays, spec = _decoder_arrays(bank, 2, rng, scale)
     plain = dict(arrays)
     plain[fb.ASINH_SCALE] = np.zeros(2)
     z, y, u = rng.normal(size=(20, bank.nz)), rng.normal(size=(20, 1)), rng.normal(size=(20, 1))
-    v = fb.decode(plain, arch, z, y, u)                 # the network's raw output
-    x = fb.decode(arrays, arch, z, y, u)
+    v = fb.decode(spec, plain, z, y, u)                 # the network's raw output
+    x = fb.decode(spec, arrays, z, y, u)
     np.testing.assert_array_equal(x[:, 0], v[:, 0])
     np.testing.assert_allclose(np.arcsinh(x[:, 1] / 0.01), v[:, 1], rtol=1e-12)
 
@@ -95,12 +95,12 @@ def test_asinh_output_round_trips() -> None:
 def test_estimate_is_bank_then_decoder() -> None:
     bank = _bank()
     rng = np.random.default_rng(4)
-    arrays, arch = _decoder_arrays(bank, 2, rng, np.array([0.0, 0.5]))
+    arrays, spec = _decoder_arrays(bank, 2, rng, np.array([0.0, 0.5]))
     y, u = rng.normal(size=(2, 30, 1)), rng.normal(size=(2, 30, 1))
-    xhat = fb.estimate(arrays, arch, y, u, 0.05)
+    xhat = fb.estimate(spec, arrays, y, u, 0.05)
     z = bank.run(y, u, 0.05)
-    np.testing.assert_allclose(xhat, fb.decode(arrays, arch, z, y, u), atol=0)
-    np.testing.assert_allclose(fb.estimate(arrays, arch, y[0], u[0], 0.05), xhat[0], atol=0)
+    np.testing.assert_allclose(xhat, fb.decode(spec, arrays, z, y, u), atol=0)
+    np.testing.assert_allclose(fb.estimate(spec, arrays, y[0], u[0], 0.05), xhat[0], atol=0)
 
 
 def test_validation_errors() -> None:
@@ -117,18 +117,18 @@ def test_validation_errors() -> None:
         bank.run(np.zeros((2, 10, 1)), np.zeros((2, 9, 1)), 0.05)
     with pytest.raises(ValueError, match="dt"):
         bank.discretise(0.0)
-    arrays, arch = _decoder_arrays(bank, 2, np.random.default_rng(5), np.array([0.0, -1.0]))
+    arrays, spec = _decoder_arrays(bank, 2, np.random.default_rng(5), np.array([0.0, -1.0]))
     with pytest.raises(ValueError, match="asinh_scale"):
-        fb.decode(arrays, arch, np.zeros((1, bank.nz)), np.zeros((1, 1)), np.zeros((1, 1)))
+        fb.decode(spec, arrays, np.zeros((1, bank.nz)), np.zeros((1, 1)), np.zeros((1, 1)))
 
 
 def test_observer_step_reproduces_estimate() -> None:
     bank = _bank()
     rng = np.random.default_rng(6)
-    arrays, arch = _decoder_arrays(bank, 2, rng, np.array([0.0, 0.1]))
+    arrays, spec = _decoder_arrays(bank, 2, rng, np.array([0.0, 0.1]))
     y, u = rng.normal(size=(25, 1)), rng.normal(size=(25, 1))
-    ref = fb.estimate(arrays, arch, y, u, 0.05)
-    step = fb.observer_step(arrays, arch, 0.05)
+    ref = fb.estimate(spec, arrays, y, u, 0.05)
+    step = fb.observer_step(spec, arrays, 0.05)
     traj = step.mapaccum("traj", 24, 2)   # z and w are carried
     z_all, _, xhat = traj(np.zeros(bank.nz), u[0], y[:-1].T, y[1:].T, u[1:].T)
     np.testing.assert_allclose(np.asarray(xhat).T, ref[1:], rtol=1e-10, atol=1e-10)
@@ -197,10 +197,10 @@ def test_decoder_with_angles_numpy_and_casadi_agree_and_the_card_round_trips() -
     for i, (d_out, d_in) in enumerate(zip(sizes[1:], sizes[:-1])):
         arrays[f"{DECODER}/W{i}"] = rng.normal(size=(d_out, d_in)) / np.sqrt(d_in)
         arrays[f"{DECODER}/b{i}"] = rng.normal(size=d_out) * 0.1
-    arch = {"sizes": sizes, "activation": "tanh"}
+    spec = fb.DecoderSpec.from_card({"sizes": sizes, "activation": "tanh"}, angles=ANGLES)
     z, y, u = rng.normal(size=(30, bank.nz)), rng.normal(size=(30, 2)) * 4, rng.normal(size=(30, 1))
-    ref = fb.decode(arrays, arch, z, y, u, angles=ANGLES)
-    got = np.asarray(fb.decoder_function(arrays, arch, angles=ANGLES).map(30)(z.T, y.T, u.T)).T
+    ref = fb.decode(spec, arrays, z, y, u)
+    got = np.asarray(fb.decoder_function(spec, arrays).map(30)(z.T, y.T, u.T)).T
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
     assert np.all(np.abs(ref[:, 2] - 1.0) <= np.pi)
     assert fb.Angles.from_card(ANGLES.to_card()) == ANGLES
@@ -209,7 +209,7 @@ def test_decoder_with_angles_numpy_and_casadi_agree_and_the_card_round_trips() -
     with pytest.raises(ValueError, match="keys"):
         fb.Angles.from_card({"outputs": []})
     with pytest.raises(ValueError, match="angle states"):
-        fb.decode({**arrays, fb.ASINH_SCALE: np.array([0.0, 0.1, 0.5])}, arch, z, y, u, angles=ANGLES)
+        fb.decode(spec, {**arrays, fb.ASINH_SCALE: np.array([0.0, 0.1, 0.5])}, z, y, u)
 
 
 def test_angles_of_a_plant_find_the_measured_angle_states() -> None:

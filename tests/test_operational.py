@@ -75,12 +75,12 @@ def test_torch_and_casadi_decoders_agree(scale: tuple[float, float], skip: bool)
         with torch.no_grad():
             mlp.skip.copy_(torch.as_tensor(rng.normal(size=(2, d))))
     arrays = {**mlp.to_arrays(DECODER), fb.ASINH_SCALE: np.array(scale), **fb.bank_arrays(bank)}
-    arch = mlp.spec.to_card()
-    dec_t = torch_decoder(arrays, arch)
-    dec_c = fb.decoder_function(arrays, arch)
+    spec = fb.DecoderSpec(mlp.spec)
+    dec_t = torch_decoder(spec, arrays)
+    dec_c = fb.decoder_function(spec, arrays)
     feats = rng.normal(size=(7, d))
     parts = (feats[:, :bank.nz], feats[:, bank.nz:bank.nz + 1], feats[:, -1:])
-    np.testing.assert_allclose(fb.decode(arrays, arch, *parts),
+    np.testing.assert_allclose(fb.decode(spec, arrays, *parts),
                                dec_t(*(torch.as_tensor(a) for a in parts)).detach().numpy(), rtol=1e-12, atol=1e-12)
     for _ in range(5):
         f = rng.normal(size=d)
@@ -105,14 +105,14 @@ def test_a_skip_decoder_starts_as_the_plain_one_and_fits_its_linear_path() -> No
     loop = LoopConfig(epochs=1, batch_size=64, lr=1e-12, val_fraction=0.1)
     fits = {skip: fit_bank_decoder(bank, data, DecoderConfig(hidden=(8,), skip=skip, dtype="float64", loop=loop),
                                    seed=3) for skip in (False, True)}
-    assert fits[True].arch == {"sizes": [bank.nz + 2, 8, 2], "activation": "tanh", "skip": True}
-    assert "skip" not in fits[False].arch and f"{DECODER}/Wskip" not in fits[False].arrays
+    assert fits[True].spec.mlp.to_card() == {"sizes": [bank.nz + 2, 8, 2], "activation": "tanh", "skip": True}
+    assert "skip" not in fits[False].spec.mlp.to_card() and f"{DECODER}/Wskip" not in fits[False].arrays
     np.testing.assert_allclose(fits[True].arrays[f"{DECODER}/W0"], fits[False].arrays[f"{DECODER}/W0"], atol=1e-9)
     assert np.abs(fits[True].arrays[f"{DECODER}/Wskip"]).max() < 1e-9
     trained = fit_bank_decoder(bank, data, DecoderConfig(hidden=(8,), skip=True, dtype="float64",
                                                          loop=replace(loop, epochs=3, lr=1e-2)), seed=3)
     assert np.abs(trained.arrays[f"{DECODER}/Wskip"]).max() > 1e-3
-    assert np.isfinite(fb.decode(trained.arrays, trained.arch, data.z, data.y, data.u)).all()
+    assert np.isfinite(fb.decode(trained.spec, trained.arrays, data.z, data.y, data.u)).all()
     with pytest.raises(TypeError, match="skip"):
         DecoderConfig(skip=1)
     for weight in (0.0, -0.5, float("nan")):          # the SMAPE term's weight: a number > 0
@@ -133,7 +133,7 @@ def test_operational_decoder_beats_noise_free_one_on_noisy_runs() -> None:
     for label, std in (("noisy", 0.1), ("clean", 0.0)):
         data = operational_data(plant, bank, cfg, 5, dt=0.05, measurement_std=std, process_std=std)
         fit = fit_bank_decoder(bank, data, dec, seed=0)
-        xhat = fb.estimate(fit.arrays, fit.arch, test.y, test.u, 0.05)
+        xhat = fb.estimate(fit.spec, fit.arrays, test.y, test.u, 0.05)
         errs[label] = float(np.mean((xhat - test.x) ** 2))
     assert errs["noisy"] < 0.8 * errs["clean"], errs
 
@@ -147,7 +147,7 @@ def test_asinh_fit_records_scale_and_domain() -> None:
                                      RolloutConfig())
     fit = fit_bank_decoder(_bank(), data, dec)
     np.testing.assert_array_equal(fit.arrays[fb.ASINH_SCALE], [0.0, 0.05])
-    assert fit.arch == {"sizes": [_bank().nz + 2, 8, 2], "activation": "tanh"}
+    assert fit.spec.mlp.to_card() == {"sizes": [_bank().nz + 2, 8, 2], "activation": "tanh"}
     lo, hi = np.array(fit.domain["x_p0.1"]), np.array(fit.domain["x_p99.9"])
     assert np.all(lo < hi)
     with pytest.raises(ValueError, match="asinh_scale"):
@@ -167,7 +167,7 @@ def test_input_filters_and_clock_lower_the_error_under_inputs() -> None:
     errs = {}
     for label, bank in (("y only", fb.FilterBank.design(1, 1, [0.5, 2.0, 6.0])), ("y, u and clock", _bank())):
         fit = fit_bank_decoder(bank, OperationalData.from_runs(bank, train, sampling), dec, seed=0)
-        errs[label] = float(np.mean((fb.estimate(fit.arrays, fit.arch, test.y, test.u, 0.05) - test.x) ** 2))
+        errs[label] = float(np.mean((fb.estimate(fit.spec, fit.arrays, test.y, test.u, 0.05) - test.x) ** 2))
     assert errs["y, u and clock"] < 0.8 * errs["y only"], errs
 
 

@@ -120,3 +120,20 @@ def test_input_free_variants_are_those_whose_step_never_reads_u(model_dir_factor
     outputs = ca.vertcat(z_next, xhat_next, obs.decode(z, w))
     reads_u = ca.jacobian(outputs, ca.vertcat(u, ca.vec(w))).nnz() > 0
     assert obs.variant.input_free == (not reads_u)
+
+
+def test_the_training_side_registers_every_trained_variant():
+    """The model layer says whether a variant trains and nothing more; the training side registers each hook."""
+    pytest.importorskip("torch")
+    from kklcasadi.train.registry import TRAINERS, register, trainer
+
+    assert set(TRAINERS) == {v.name for v in variants.VARIANTS.values() if v.trains}
+    assert {v.name for v in variants.VARIANTS.values() if not v.trains} == {"inject"}
+    assert trainer("bank").config.__name__ == "BankConfig" and callable(trainer("bank").hook)
+    with pytest.raises(ValueError, match=r"^method: expected a method not registered yet, received 'bank'"):
+        register("bank", trainer("bank").hook, trainer("bank").config)
+    with pytest.raises(ValueError, match=r"^method: expected a variant whose trains is True, received 'inject'"):
+        register("inject", trainer("bank").hook, trainer("bank").config)
+    with pytest.raises(ValueError, match=r"^method: expected one of \['autonomous'.*\(a trained method\), received "
+                                         r"'inject'"):
+        trainer("inject")

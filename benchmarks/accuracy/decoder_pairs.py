@@ -110,8 +110,8 @@ def main() -> None:
             seconds[f"{variant}@{seed}"] = round(time.perf_counter() - t0, 1)
             arrays = {**fit.arrays, **({} if latent is None else latent.arrays())}
             smape.setdefault(variant, {})[str(seed)] = {
-                label: float(np.nanmean(metrics.smape(x, fb.estimate(arrays, fit.arch, y, u, settings.dt,
-                                                                     angles=angles, copies=latent))))
+                label: float(np.nanmean(metrics.smape(x, fb.estimate(fit.spec, arrays, y, u, settings.dt,
+                                                                     copies=latent))))
                 for label, (x, y, u, _) in trials.items()}
             print(variant, seed, seconds[f"{variant}@{seed}"], "s", flush=True)
     ekf = {label: t[3] for label, t in trials.items()}

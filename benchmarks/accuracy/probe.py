@@ -97,10 +97,10 @@ def main() -> None:
     t_sim = time.time() - t0
     sampling = RolloutConfig(n_traj=args.n_traj, sample_period=args.sample_period)
     result = fit_bank_decoder(bank, OperationalData.from_runs(bank, train, sampling), dec, seed=args.seed)
-    arrays, arch = result.arrays, result.arch
+    arrays, decoder = result.arrays, result.spec
 
     def est(y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return fb.estimate(arrays, arch, y, u, 0.05)
+        return fb.estimate(decoder, arrays, y, u, 0.05)
 
     xv = est(val.y, val.u)
     sv = kc.metrics.smape(val.x, xv)
@@ -127,7 +127,7 @@ def main() -> None:
               "nz": bank.nz, "config": config_record(sampling, dec),
               "fit_seconds": result.seconds, "n_samples": result.n_samples, "best_epoch": result.fit.best_epoch,
               "history": result.fit.history, "domain": result.domain, "validation": val_scores,
-              "noisy": noisy, "clean": clean, "arch": arch}
+              "noisy": noisy, "clean": clean, "arch": decoder.mlp.to_card()}
     text = json.dumps(provenance.json_record(record, provenance.stamp(seeds={"decoder": args.seed})), indent=1) + "\n"
     (OUT / args.system / f"{args.system}_{args.tag}.json").write_text(text)
     if args.save is not None:

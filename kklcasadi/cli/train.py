@@ -162,7 +162,7 @@ def _takes(method: str, name: str, plant: str) -> bool:
     """Whether ``method``'s configuration has the field ``name``."""
     from ..train import default_config, has_field
 
-    return variants.get(method).config_class() is not None and has_field(default_config(plant, method), name)
+    return variants.get(method).trains and has_field(default_config(plant, method), name)
 
 
 def _takers(name: str, plant: str) -> list[str]:
@@ -212,7 +212,7 @@ def training_config(plant: systems.System, method: str, args: argparse.Namespace
     A flag the method's configuration has no field for is a :class:`CommandError`."""
     from ..train import config_field, default_config, has_field, with_field
 
-    config = None if variants.get(method).config_class() is None else default_config(plant.name, method)
+    config = default_config(plant.name, method) if variants.get(method).trains else None
     if envelope is not None:
         if config is None or not has_field(config, "envelope"):
             raise CommandError(f"--like: only --method {' or '.join(_takers('envelope', plant.name))} takes it, "

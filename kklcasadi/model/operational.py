@@ -279,11 +279,10 @@ def member_spread(arrays: dict, bank: fb.FilterBank, spec: BankSpec, *,
     evaluated ``chunk`` samples at a time (None for a single decoder)."""
     if spec.members < 2:
         return None
-    full, arch = {**arrays, **fb.bank_arrays(bank)}, spec.decoder.to_card()
+    full, decoder = {**arrays, **fb.bank_arrays(bank)}, spec.decoder_spec
 
     def spread(z: np.ndarray, y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.concatenate([fb.spread(full, arch, z[i:i + chunk], y[i:i + chunk], u[i:i + chunk],
-                                         angles=spec.angles, members=spec.members)
+        return np.concatenate([fb.spread(decoder, full, z[i:i + chunk], y[i:i + chunk], u[i:i + chunk])
                                for i in range(0, len(z), chunk)] or [np.empty(0)])
 
     return spread

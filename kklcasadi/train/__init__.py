@@ -30,6 +30,7 @@ from ..plant.design import Design
 from ..plant.systems import System
 from ..validation import Text, error, positive_int
 from ..writes import claim, write_file
+from . import bank, phase1, phase2, stream  # noqa: F401  (each registers its trainers: .registry)
 from .config import (
     CurriculumConfig,
     DynConfig,
@@ -45,6 +46,7 @@ from .config import (
     with_epochs,
     with_field,
 )
+from .registry import trainer
 from .result import Trained
 
 __all__ = ["train_observer", "default_config", "with_epochs", "config_field", "has_field", "with_field", "LoopConfig",
@@ -206,7 +208,7 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         train_observer(plant, "autonomous", out.parent / "autonomous", design=design, dt=dt, seed=seed, device=device,
                        progress=progress, threads=threads, epochs=epochs)
     base_model = _load_base(base, out, plant, method)
-    if variant.trainer is None:            # made from its base without training (inject)
+    if not variant.trains:            # made from its base without training (inject)
         return derive_model(base_model.path, out, method, overwrite=overwrite)
     if config is None:
         config = default_config(plant.name, method)
@@ -227,8 +229,8 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
             print(f"training {method} for {plant.name!r} at dt = {dt:g} s into {out}", flush=True)
         torch.manual_seed(seed)          # network initialisation; the stages reseed their own shuffles
         t0 = time.perf_counter()
-        trained: Trained = variant.load_trainer()(plant, design, base_model, config, dt=dt, seed=seed, device=device,
-                                                  progress=progress, workdir=workdir, resume=resume)
+        trained: Trained = trainer(method).hook(plant, design, base_model, config, dt=dt, seed=seed, device=device,
+                                                progress=progress, workdir=workdir, resume=resume)
         training = {**_jsonable(trained.training), "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1),
                     "device": device}
         nominal = plant.at(plant.param_nominal) if plant.n_params else plant    # the plant the observer runs with

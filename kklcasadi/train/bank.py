@@ -27,7 +27,7 @@ from ..model.operational import (
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
 from ..model.variants.copies import ModelCopies
-from ..nets.specs import DECODER, MLPSpec
+from ..nets.specs import DECODER
 from ..plant.design import Design, time_scales
 from ..plant.envelope import Envelope
 from ..plant.runs import DEFAULT_KINDS, RolloutConfig, declares_envelope, fit_families, input_range
@@ -36,6 +36,7 @@ from ..validation import Text, error
 from .config import LoopConfig, with_epochs
 from .decoder import BankFit, DecoderConfig, config_record, fit_bank_decoder
 from .distil import teacher_estimates
+from .registry import register
 from .result import Trained
 
 __all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale",
@@ -333,8 +334,8 @@ def ensemble_arrays(fits: Sequence[BankFit]) -> dict:
         raise error("fits", "at least one decoder fit", Text("none"))
     arrays = dict(fits[0].arrays)
     for prefix, fit in zip(fb.member_prefixes(len(fits))[1:], fits[1:]):
-        if fit.arch != fits[0].arch:
-            raise error("fits", "decoders of one architecture", Text(f"{fit.arch} after {fits[0].arch}"))
+        if fit.spec.mlp != fits[0].spec.mlp:
+            raise error("fits", "decoders of one architecture", Text(f"{fit.spec.mlp} after {fits[0].spec.mlp}"))
         arrays.update({prefix + name[len(DECODER):]: value for name, value in fit.arrays.items()
                        if name.startswith(DECODER + "/") and name != fb.ASINH_SCALE})
     return arrays
@@ -362,8 +363,7 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
         params["copies"] = {"weights": [float(w) if np.ndim(w) == 0 else [float(v) for v in w] for w in config.copies],
                             "substeps": copies.substeps}
     A, B = latent_design(bank, copies)
-    spec = BankSpec(MLPSpec.from_card(fits[0].arch, "architecture", DECODER), A, B, dt, system.nu, params,
-                    fits[0].angles)
+    spec = BankSpec(fits[0].spec.mlp, A, B, dt, system.nu, params, fits[0].spec.angles)
     return arrays, spec, Domain.of(data.x, data.z)
 
 
@@ -431,3 +431,6 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
                    config.measurement_std, domain, coverage=None, monitor=monitor.spec,
                    fit_families=fit_families(config.rollouts, rate, system),
                    process_std=tuple(float(v) for v in process))
+
+
+register("bank", train_bank, BankConfig)

@@ -8,6 +8,7 @@ from typing import Any, Optional
 from ..model import variants
 from ..plant.data import LABEL_KINDS
 from ..validation import Text, error, finite_number, one_of, positive_int, positive_number
+from .registry import trainer
 
 __all__ = ["LoopConfig", "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig",
            "ObsStreamConfig", "DynStreamConfig", "with_epochs",
@@ -277,10 +278,10 @@ def default_config(system: str, method: str, *, epochs: Optional[int] = None, **
     **overrides
         Fields of the method's configuration class.
     """
-    cls = variants.get(method).config_class()
-    if cls is None:
-        trainable = [v.name for v in variants.VARIANTS.values() if v.config is not None]
+    if not variants.get(method).trains:
+        trainable = [v.name for v in variants.VARIANTS.values() if v.trains]
         raise error("method", f"one of {trainable} (a method with a configuration)", method)
+    cls = trainer(method).config
     names = {f.name for f in fields(cls)}
     unknown = sorted(set(overrides) - names)
     if unknown:

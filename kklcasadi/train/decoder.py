@@ -17,7 +17,7 @@ import torch
 
 from ..model.operational import OperationalData
 from ..model.variants import filterbank as fb
-from ..nets.specs import DECODER, MLPSpec
+from ..nets.specs import DECODER
 from ..plant.runs import RolloutConfig
 from ..validation import error, positive_number
 from .config import LoopConfig
@@ -136,14 +136,17 @@ def _torch_outputs(v: Tensor, y: Tensor, scale: np.ndarray, angles: fb.Angles) -
     return torch.stack(cols, dim=-1)
 
 
-def torch_decoder(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], *,
-                  angles: fb.Angles = fb.NO_ANGLES) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
-    """The bank decoder in torch (float64): ``(z (..., nz), y (..., ny), u (..., nu)) -> xhat (..., nx)``.
+def torch_decoder(spec: fb.DecoderSpec, arrays: Mapping[str, np.ndarray]) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
+    """The bank decoder (one network, ``spec.members`` 1) in torch (float64):
+    ``(z (..., nz), y (..., ny), u (..., nu)) -> xhat (..., nx)``.
 
     The same map as :func:`kklcasadi.model.variants.filterbank.decode` and
     :func:`kklcasadi.model.variants.filterbank.decoder_function`.
     """
-    mlp = MLP.from_arrays(arrays, DECODER, MLPSpec.from_card(arch, "architecture", DECODER), dtype=torch.float64)
+    if spec.members != 1:
+        raise error("spec", "the spec of one decoder network (members 1)", spec.members)
+    angles = spec.angles
+    mlp = MLP.from_arrays(arrays, DECODER, spec.mlp, dtype=torch.float64)
     scale = np.asarray(arrays[fb.ASINH_SCALE], dtype=float)
     a = list(angles.outputs)
     other = [j for j in range(np.asarray(arrays["bank/By"]).shape[1]) if j not in angles.outputs]
@@ -168,10 +171,8 @@ class BankFit:
     ----------
     arrays : dict
         ``bank/*``, ``decoder/*`` and ``decoder/asinh_scale`` arrays (float64).
-    arch : dict
-        The decoder's card entry.
-    angles : Angles
-        The decoder's angle layout.
+    spec : DecoderSpec
+        The decoder's network and angle layout (one member).
     fit : FitResult
     n_samples : int
     seconds : float
@@ -180,8 +181,7 @@ class BankFit:
     """
 
     arrays: dict
-    arch: dict
-    angles: fb.Angles
+    spec: fb.DecoderSpec
     fit: FitResult
     n_samples: int
     seconds: float
@@ -252,7 +252,7 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     arrays.update(fb.bank_arrays(bank))
     pct = np.percentile(data.x, [0.1, 50.0, 99.9], axis=0)
     domain = {"x_p0.1": pct[0].tolist(), "x_p50": pct[1].tolist(), "x_p99.9": pct[2].tolist()}
-    return BankFit(arrays, mlp.spec.to_card(), angles, result, int(len(v)), time.perf_counter() - t0, domain)
+    return BankFit(arrays, fb.DecoderSpec(mlp.spec, angles), result, int(len(v)), time.perf_counter() - t0, domain)
 
 
 def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:

@@ -26,6 +26,7 @@ from ..validation import Text, error
 from .config import Phase1Config
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
+from .registry import register
 from .result import Trained
 
 __all__ = ["Phase1Result", "train_phase1", "train_autonomous", "pde_residual", "latent_noise_covariance",
@@ -196,3 +197,6 @@ def train_autonomous(system: System, design: Design, base: Model | None, config:
     return Trained(arrays, MapsSpec(result.encoder.spec, result.decoder.spec), design, training,
                    {k: f.history for k, f in fits.items() if f is not None},
                    measurement_std=config.measurement_std, domain=result.domain, coverage=result.coverage)
+
+
+register("autonomous", train_autonomous, Phase1Config)

@@ -22,6 +22,7 @@ from .config import CurriculumConfig, DynConfig, ObsConfig
 from .loop import ArrayDataset, fit, torch_dtype
 from .nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
 from .phase1 import pde_residual
+from .registry import register
 from .result import Trained
 
 __all__ = ["train_obs", "train_dyn", "train_curriculum", "Phase2Dataset", "model_based_injection"]
@@ -289,3 +290,8 @@ def train_curriculum(system: System, design: Design, base: Model | None, config:
         domain = Domain.of(lab.x, encoder(torch.as_tensor(lab.x, dtype=torch.float64)).numpy())
     return Trained(arrays, MapsSpec(encoder.spec, decoder.spec), design, {"config": config, "stages": summaries},
                    histories, 1, base.spec.measurement_std, domain)
+
+
+register("obs", train_obs, ObsConfig)
+register("dyn", train_dyn, DynConfig)
+register("curriculum", train_curriculum, CurriculumConfig)

@@ -2,8 +2,8 @@
 
 :func:`torch_step` builds ``step(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` for a
 :class:`kklcasadi.KKLObserver`, the same computation as ``observer.step``: the exact or RK4 latent
-update and the decoder, batch 1, float64, without autograd. Each variant names the function that
-gives its torch parts (:attr:`kklcasadi.model.variants.Variant.torch_parts`); a window GRU is a plain
+update and the decoder, batch 1, float64, without autograd. :data:`PARTS` gives each variant's torch parts
+by method (the variant table names nothing on the training side); a window GRU is a plain
 ``torch.nn.GRU`` holding the model's bias-free weights (not the Python loop training uses for its
 JVPs). Variants whose step needs the CasADi plant (the model-based term of ``inject``) have none.
 """
@@ -20,7 +20,7 @@ from ..nets.specs import DECODER, HYPER, lora_target_shapes
 from ..plant.rk4 import rk4_step
 from .nets import MLP, LoRAHyperNet, ObsInjection, mlp_forward_lora
 
-__all__ = ["TorchParts", "torch_step", "maps_parts", "obs_parts", "dyn_parts"]
+__all__ = ["TorchParts", "torch_step", "maps_parts", "obs_parts", "dyn_parts", "PARTS"]
 
 Tensor = torch.Tensor
 
@@ -161,6 +161,12 @@ def dyn_stream_parts(observer: Any) -> TorchParts:
     return TorchParts(decode, memory_next=memory_next, held=held)
 
 
+#: The function giving each variant's torch parts, by method (None where a variant has none: ``inject``, ``bank``).
+PARTS: dict[str, Callable[[Any], Optional[TorchParts]]] = {
+    "autonomous": maps_parts, "curriculum": maps_parts, "obs": obs_parts, "dyn": dyn_parts,
+    "obs_stream": obs_stream_parts, "dyn_stream": dyn_stream_parts}
+
+
 def torch_step(observer: Any) -> Optional[Callable[..., tuple[Tensor, Tensor, Tensor]]]:
     """The observer step in torch, or None where the variant has no torch form (``inject``).
 
@@ -170,8 +176,8 @@ def torch_step(observer: Any) -> Optional[Callable[..., tuple[Tensor, Tensor, Te
         ``step(z (nz,), w, y (ny,), y_next (ny,), u_next (nu,)) -> (z_next, w_next, xhat_next)``
         on float64 tensors, ``w`` shaped like ``observer.memory_shape``.
     """
-    hook = observer.variant.torch_parts
-    parts = None if hook is None else observer.variant.load_hook(hook)(observer)
+    hook = PARTS.get(observer.variant.name)
+    parts = None if hook is None else hook(observer)
     if parts is None:
         return None
     held = parts.held or (lambda w: w[-1])

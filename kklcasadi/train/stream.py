@@ -21,6 +21,7 @@ from .config import DynStreamConfig, ObsStreamConfig
 from .loop import ArrayDataset, fit
 from .nets import LoRAHyperNet
 from .phase2 import base_nets, check_phase2, dyn_scales, make_dyn_loss, make_obs_net, obs_residuals, phase2_data
+from .registry import register
 from .result import Trained
 
 __all__ = ["train_obs_stream", "train_dyn_stream"]
@@ -100,3 +101,7 @@ def train_dyn_stream(system: System, design: Design, base: Model | None, config:
                                            "dropped": len(p2.dropped)}, "dyn_stream": result.summary()}
     return Trained({**base.arrays, **hyper.to_arrays()}, spec, design, training, {"dyn_stream": result.history}, 1,
                    base.spec.measurement_std, base.spec.domain)
+
+
+register("obs_stream", train_obs_stream, ObsStreamConfig)
+register("dyn_stream", train_dyn_stream, DynStreamConfig)

@@ -41,7 +41,7 @@ def names() -> tuple[str, ...]:
 
 def trainable() -> tuple[str, ...]:
     """The methods ``kklcasadi train`` makes (those with a training hook or derived from a base)."""
-    return tuple(name for name, v in VARIANTS.items() if v.trainer or v.derives_from)
+    return tuple(name for name, v in VARIANTS.items() if v.trains or v.derives_from)
 
 
 def get(method: str) -> Variant:

@@ -14,9 +14,7 @@ class Autonomous(Variant):
     summary = "Phase 1: zdot = A z + B y, xhat = T*(z); T, T* trained at u = 0"
     needs_base = False
     input_free = True
-    trainer = "kklcasadi.train.phase1:train_autonomous"
-    torch_parts = "kklcasadi.train.step:maps_parts"
-    config = "kklcasadi.train.config:Phase1Config"
+    trains = True
 
 
 class Curriculum(Variant):
@@ -25,6 +23,4 @@ class Curriculum(Variant):
     name = "curriculum"
     summary = "baseline: T, T* fine-tuned on staged non-autonomous data, run as autonomous"
     input_free = True
-    trainer = "kklcasadi.train.phase2:train_curriculum"
-    torch_parts = "kklcasadi.train.step:maps_parts"
-    config = "kklcasadi.train.config:CurriculumConfig"
+    trains = True

@@ -51,7 +51,8 @@ from .covariance import array_shapes as covariance_shapes
 from .filterbank import (
     ASINH_SCALE,
     Angles,
-    bank_from_arrays,
+    DecoderSpec,
+    FilterBank,
     decoder_expression,
     feature_expression,
     latent_step,
@@ -102,6 +103,17 @@ class BankSpec:
     def n_filters(self) -> int:
         """The filter bank's latents (the first ones; the model copies' follow)."""
         return self.nz - self.n_copies * self.nx
+
+    @property
+    def decoder_spec(self) -> DecoderSpec:
+        """The decoder's typed spec (network, angle layout, ensemble) for :mod:`kklcasadi.model.variants.filterbank`."""
+        return DecoderSpec(self.decoder, self.angles, self.members)
+
+    def filter_bank(self, arrays: Mapping[str, Any]) -> FilterBank:
+        """The filter bank of the latent's first :attr:`n_filters` rows (``A``, ``By`` of the card's ``design``,
+        ``bank/Bu`` and ``bank/c`` of the arrays)."""
+        n = self.n_filters
+        return FilterBank(self.A[:n, :n], self.By[:n], arrays["bank/Bu"], arrays["bank/c"])
 
     def filter_arrays(self, arrays: Mapping[str, Any]) -> dict:
         """The model's arrays with the filter bank's ``bank/A`` and ``bank/By`` (the card's ``design`` rows of
@@ -229,8 +241,7 @@ class Bank(Variant):
     linear = True
     needs_base = False
     certified = False
-    trainer = "kklcasadi.train.bank:train_bank"
-    config = "kklcasadi.train.bank:BankConfig"
+    trains = True
 
     def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> BankSpec:
         decoder = MLPSpec.from_card(card["architecture"][DECODER], where, "architecture.decoder")
@@ -265,21 +276,19 @@ class Bank(Variant):
 
     def networks(self, spec: BankSpec, arrays: Mapping[str, Any], system: System, window: int) -> Networks:
         n = spec.n_filters
-        full = spec.filter_arrays(arrays)
-        bank = bank_from_arrays(full)
+        bank = spec.filter_bank(arrays)
         copies = spec.model_copies(arrays, system)
         memory = feedthrough_memory(system.ny, system.nu)
         z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", *memory.shape)
-        arch, y, u = spec.decoder.to_card(), w[:system.ny], w[system.ny:]
-        xhat = decoder_expression(full, arch, z, y, u, angles=spec.angles, members=spec.members)
+        decoder_spec, y, u = spec.decoder_spec, w[:system.ny], w[system.ny:]
+        xhat = decoder_expression(decoder_spec, arrays, bank, z, y, u)
         decoder = ca.Function("decoder", [z, w], [xhat], ["z", "w"], ["xhat"])
         spread = None if spec.members < 2 else ca.Function(
-            "spread", [z, w], [spread_expression(full, arch, z, y, u, angles=spec.angles, members=spec.members)],
-            ["z", "w"], ["spread"])
+            "spread", [z, w], [spread_expression(decoder_spec, arrays, bank, z, y, u)], ["z", "w"], ["spread"])
         covariance = None
         if spec.covariance is not None:
             xs = ca.MX.sym("xhat", spec.nx)
-            features = feature_expression(full, z, y, u, angles=spec.angles)
+            features = feature_expression(bank, z, y, u, angles=spec.angles)
             P = covariance_expression(spec.covariance, arrays, features, xs, np.asarray(arrays[f"{DECODER}/out_std"]),
                                       np.asarray(arrays[ASINH_SCALE]))
             covariance = ca.Function("covariance", [z, w, xs], [P], ["z", "w", "xhat"], ["P"])
@@ -290,4 +299,4 @@ class Bank(Variant):
             return filters if copies is None else ca.vertcat(filters, copies.remainder(zz[n:], u))
 
         return Networks(None, decoder, None, input_term, memory=memory,
-                        exact_step=latent_step(full, spec.dt, copies=copies), spread=spread, covariance=covariance)
+                        exact_step=latent_step(bank, spec.dt, copies=copies), spread=spread, covariance=covariance)

@@ -6,8 +6,8 @@ A variant (one per card ``method``) owns, in one place,
   spec's ``to_card`` and ``array_shapes``),
 * its CasADi parts (:meth:`Variant.networks`): the encoder, the decoder ``(z, w) -> xhat``, and
   the latent input term added to ``A z + B y`` (``None`` for a linear latent),
-* its training hook on the torch side (:attr:`Variant.trainer`, a ``"module:function"`` path
-  imported only when training) and its configuration class (:attr:`Variant.config`),
+* whether it is trained (:attr:`Variant.trains`; the training side registers its hook and
+  configuration class, and the model layer names nothing there),
 * the extra top-level card fields it reads (:attr:`Variant.card_fields`).
 
 Nothing here imports torch.
@@ -15,7 +15,6 @@ Nothing here imports torch.
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Mapping, Optional
 
@@ -178,17 +177,13 @@ class Variant:
         Whether the networks read the input window (else the card's window is 1).
     needs_base : bool
         Whether it is built on a Phase-1 model (``base`` argument of training).
-    trainer : str or None
-        ``"module:function"`` of its torch training hook (see :mod:`kklcasadi.train`), or None.
-    config : str or None
-        ``"module:class"`` of its training configuration, or None when it has nothing to train.
+    trains : bool
+        Whether it is trained: the training side registers its hook and configuration class under
+        :attr:`name` (the model layer names no training module).
     card_fields : tuple of str
         Extra top-level card fields it reads.
     derives_from : tuple of str
         The methods whose models it is made from without training (:meth:`derive`).
-    torch_parts : str or None
-        ``"module:function"`` giving its parts of the torch observer step
-        (:func:`kklcasadi.train.step.torch_step`, the benchmark's torch baseline), or None.
     modulated : bool
         Whether the maps T and T* depend on the input window (the hypernetwork of dyn).
     certified : bool
@@ -207,11 +202,9 @@ class Variant:
     linear: ClassVar[bool] = True
     windowed: ClassVar[bool] = False
     needs_base: ClassVar[bool] = True
-    trainer: ClassVar[Optional[str]] = None
-    config: ClassVar[Optional[str]] = None
+    trains: ClassVar[bool] = False
     card_fields: ClassVar[tuple[str, ...]] = ()
     derives_from: ClassVar[tuple[str, ...]] = ()
-    torch_parts: ClassVar[Optional[str]] = None
     modulated: ClassVar[bool] = False
     certified: ClassVar[bool] = True
     input_free: ClassVar[bool] = False
@@ -251,22 +244,6 @@ class Variant:
         Only variants with a non-empty :attr:`derives_from` implement it.
         """
         raise ValueError(f"method: {self.name!r} cannot be made from a base model without training.")
-
-    def load_trainer(self) -> Callable[..., Any]:
-        """Import and return the training hook (imports torch)."""
-        if self.trainer is None:
-            raise ValueError(f"method: {self.name!r} has no training hook.")
-        return self.load_hook(self.trainer)
-
-    @staticmethod
-    def load_hook(path: str) -> Any:
-        """Import ``"module:attribute"`` and return the attribute."""
-        module, _, attribute = path.partition(":")
-        return getattr(importlib.import_module(module), attribute)
-
-    def config_class(self) -> Optional[type]:
-        """Import and return the configuration class, or None when there is nothing to train."""
-        return None if self.config is None else self.load_hook(self.config)
 
     def __repr__(self) -> str:
         return f"<variant {self.name!r}: {self.summary}>"

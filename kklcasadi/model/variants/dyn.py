@@ -40,9 +40,7 @@ class Dyn(Variant):
     entries = ("encoder", "decoder", "hyper")
     windowed = True
     modulated = True
-    trainer = "kklcasadi.train.phase2:train_dyn"
-    torch_parts = "kklcasadi.train.step:dyn_parts"
-    config = "kklcasadi.train.config:DynConfig"
+    trains = True
 
     def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> DynModelSpec:
         maps = MapsSpec.parse_maps(card["architecture"], sizes, where)

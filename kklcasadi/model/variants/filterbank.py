@@ -32,9 +32,11 @@ The latent may end in model copies of the plant (:class:`kklcasadi.model.variant
 arrays ``copies/*``): their latents follow the filters' in ``z`` and the decoder reads them as it reads
 the filters (:func:`latent_size`, :func:`latent_run`).
 
-:func:`estimate` is the reference implementation of the whole estimator over many trials at once
-(numpy); :func:`decoder_function` and :meth:`FilterBank.step_function` build the same maps as
-CasADi Functions.
+The decoder's functions take its typed spec (:class:`DecoderSpec`: the network, the angle layout, the
+ensemble's size) and the arrays. :func:`estimate` is the reference implementation of the whole estimator
+over many trials at once (numpy); :func:`decoder_function` and :meth:`FilterBank.step_function` build the
+same maps as CasADi Functions; :func:`decoder_expression`, :func:`spread_expression` and :func:`latent_step`
+are what the ``bank`` variant builds its observer from (typed spec, checked arrays: they check nothing).
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ from ...plant.systems import System
 from ...validation import error
 from .copies import ModelCopies, copy_count
 
-__all__ = ["FilterBank", "Angles", "NO_ANGLES", "dc_gains", "decoder_features", "decoder_targets",
+__all__ = ["FilterBank", "Angles", "NO_ANGLES", "DecoderSpec", "dc_gains", "decoder_features", "decoder_targets",
            "decoder_outputs", "decode", "decoder_function", "decoder_expression", "estimate", "bank_arrays",
            "bank_from_arrays", "observer_step", "latent_size", "latent_run", "latent_step", "ASINH_SCALE",
            "member_prefixes", "spread", "spread_expression", "feature_expression"]
@@ -440,21 +442,57 @@ def member_prefixes(members: int) -> tuple[str, ...]:
     return (DECODER,) + tuple(f"{DECODER}_{j}" for j in range(1, int(members)))
 
 
-def _check_decoder(arrays: Mapping[str, Any], arch: Mapping[str, Any], angles: Angles,
-                   members: int = 1) -> tuple[MLPSpec, np.ndarray]:
-    spec = MLPSpec.from_card(arch, "architecture.decoder", DECODER)
-    nx = spec.n_out - len(angles.free)
-    shapes = {ASINH_SCALE: (nx,)}
-    for prefix in member_prefixes(members):
-        shapes.update(spec.array_shapes(prefix))
-    check_arrays(arrays, shapes, "bank arrays")
-    scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
-    if not np.all(np.isfinite(scale)) or np.any(scale < 0):
-        raise ValueError(f"{ASINH_SCALE} must be finite and >= 0 (0: no transform), got {scale.tolist()}")
-    angle_states = [i for i, _ in angles.measured] + [i for i, _ in angles.free]
-    if any(i >= nx for i in angle_states) or np.any(scale[angle_states] > 0):
-        raise ValueError(f"angle states {angle_states} must be states (nx = {nx}) without an asinh scale")
-    return spec, scale
+@dataclass(frozen=True)
+class DecoderSpec:
+    """The typed spec of a bank's decoder: its network, its angle layout and its ensemble's size.
+
+    A loaded model gives it (:attr:`kklcasadi.model.variants.bank.BankSpec.decoder_spec`), so does a fit
+    (``BankFit.decoder_spec``); :meth:`from_card` reads a card's decoder entry.
+
+    Attributes
+    ----------
+    mlp : MLPSpec
+        Every member's network, ``[features] -> [nx + len(angles.free)]``.
+    angles : Angles
+        How angle outputs are read and angle states written.
+    members : int
+        Networks of the ensemble (their outputs averaged; prefixes :func:`member_prefixes`).
+    """
+
+    mlp: MLPSpec
+    angles: Angles = NO_ANGLES
+    members: int = 1
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.mlp, MLPSpec):
+            raise TypeError(f"mlp: expected an MLPSpec, received {type(self.mlp).__name__}.")
+        if not isinstance(self.angles, Angles):
+            raise TypeError(f"angles: expected an Angles, received {type(self.angles).__name__}.")
+        member_prefixes(self.members)
+
+    @classmethod
+    def from_card(cls, arch: Mapping[str, Any], *, angles: Angles = NO_ANGLES, members: int = 1) -> DecoderSpec:
+        """The spec of a card's decoder entry ``{"sizes": [...], "activation": ...}``."""
+        return cls(MLPSpec.from_card(arch, "architecture.decoder", DECODER), angles, members)
+
+    @property
+    def nx(self) -> int:
+        return self.mlp.n_out - len(self.angles.free)
+
+    def check(self, arrays: Mapping[str, Any]) -> np.ndarray:
+        """Check the decoder's arrays (every member's MLP and ``decoder/asinh_scale``); return the scales (nx,)."""
+        nx = self.nx
+        shapes = {ASINH_SCALE: (nx,)}
+        for prefix in member_prefixes(self.members):
+            shapes.update(self.mlp.array_shapes(prefix))
+        check_arrays(arrays, shapes, "bank arrays")
+        scale = np.asarray(arrays[ASINH_SCALE], dtype=float)
+        if not np.all(np.isfinite(scale)) or np.any(scale < 0):
+            raise ValueError(f"{ASINH_SCALE} must be finite and >= 0 (0: no transform), got {scale.tolist()}")
+        angle_states = [i for i, _ in self.angles.measured] + [i for i, _ in self.angles.free]
+        if any(i >= nx for i in angle_states) or np.any(scale[angle_states] > 0):
+            raise ValueError(f"angle states {angle_states} must be states (nx = {nx}) without an asinh scale")
+        return scale
 
 
 def _spread_scale(arrays: Mapping[str, Any]) -> np.ndarray:
@@ -470,97 +508,87 @@ def _features(arrays: Mapping[str, Any], spec: MLPSpec, z: Any, y: np.ndarray, u
     return f
 
 
-def decode(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: Any, y: Any, u: Any, *,
-           angles: Angles = NO_ANGLES, members: int = 1) -> np.ndarray:
+def decode(spec: DecoderSpec, arrays: Mapping[str, Any], z: Any, y: Any, u: Any) -> np.ndarray:
     """Evaluate the decoder with its input and output maps in numpy (float64).
 
-    With ``members`` > 1 the decoder is an ensemble: the mean of the members' network outputs
+    With ``spec.members`` > 1 the decoder is an ensemble: the mean of the members' network outputs
     ``v`` goes through the output map.
 
     Parameters
     ----------
+    spec : DecoderSpec
+        The network (``sizes [nz + ny + len(angles.outputs) + nu, ..., nx + len(angles.free)]``, every
+        member's), the angle layout and the ensemble's size.
     arrays : Mapping[str, array_like]
         ``bank/*`` (the gains of angle outputs), the MLP arrays of each member (prefixes
-        :func:`member_prefixes`) and ``decoder/asinh_scale`` (nx,).
-    arch : Mapping
-        ``{"sizes": [nz + ny + len(angles.outputs) + nu, ..., nx + len(angles.free)], "activation": ...}``
-        (every member's).
+        :func:`member_prefixes`) and ``decoder/asinh_scale`` (nx,); checked.
     z : array_like, shape (..., nz)
     y : array_like, shape (..., ny)
     u : array_like, shape (..., nu)
-    angles : Angles
-    members : int
-        Networks of the ensemble.
 
     Returns
     -------
     numpy.ndarray, shape (..., nx)
     """
-    spec, scale = _check_decoder(arrays, arch, angles, members)
+    scale = spec.check(arrays)
     y = np.asarray(y, dtype=float)
-    f = _features(arrays, spec, z, y, u, angles)
-    v = [mlp_numpy(spec, arrays, prefix, f) for prefix in member_prefixes(members)]
-    return decoder_outputs(sum(v[1:], v[0]) / len(v), y, scale, angles)
+    f = _features(arrays, spec.mlp, z, y, u, spec.angles)
+    v = [mlp_numpy(spec.mlp, arrays, prefix, f) for prefix in member_prefixes(spec.members)]
+    return decoder_outputs(sum(v[1:], v[0]) / len(v), y, scale, spec.angles)
 
 
-def spread(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: Any, y: Any, u: Any, *,
-           angles: Angles = NO_ANGLES, members: int = 2) -> np.ndarray:
+def spread(spec: DecoderSpec, arrays: Mapping[str, Any], z: Any, y: Any, u: Any) -> np.ndarray:
     """How far a decoder ensemble's members disagree: ``sqrt(mean_j sum_i ((v_ji - vbar_i) / s_i)^2)``.
 
     ``v_j`` is member j's network output, ``vbar`` their mean and ``s`` the first member's output
-    std (:func:`decode`'s arguments; ``members`` >= 2).
+    std (:func:`decode`'s arguments; ``spec.members`` >= 2).
 
     Returns
     -------
     numpy.ndarray, shape (...)
     """
-    if members < 2:
-        raise error("members", "at least 2 networks for a spread", members)
-    spec, _ = _check_decoder(arrays, arch, angles, members)
-    f = _features(arrays, spec, z, np.asarray(y, dtype=float), u, angles)
-    v = np.stack([mlp_numpy(spec, arrays, prefix, f) for prefix in member_prefixes(members)])
+    if spec.members < 2:
+        raise error("members", "at least 2 networks for a spread", spec.members)
+    spec.check(arrays)
+    f = _features(arrays, spec.mlp, z, np.asarray(y, dtype=float), u, spec.angles)
+    v = np.stack([mlp_numpy(spec.mlp, arrays, prefix, f) for prefix in member_prefixes(spec.members)])
     d = (v - v.mean(axis=0)) / _spread_scale(arrays)
     return np.sqrt((d ** 2).sum(axis=-1).mean(axis=0))
 
 
-def decoder_function(arrays: Mapping[str, Any], arch: Mapping[str, Any], name: str = "bank_decoder", *,
-                     angles: Angles = NO_ANGLES, members: int = 1) -> ca.Function:
+def decoder_function(spec: DecoderSpec, arrays: Mapping[str, Any], name: str = "bank_decoder") -> ca.Function:
     """CasADi ``(z, y, u) -> xhat``: the decoder MLP with its input and output maps (see :func:`decode`).
 
     Parameters
     ----------
+    spec : DecoderSpec
     arrays : Mapping[str, array_like]
         ``bank/*`` arrays (for the sizes nz, ny, nu and the gains), each member's MLP arrays and
-        ``decoder/asinh_scale`` (nx,).
-    arch : Mapping
-        The decoder's card entry.
+        ``decoder/asinh_scale`` (nx,); checked.
     name : str
         Function name.
-    angles : Angles
-    members : int
-        Networks of the ensemble (their outputs averaged).
 
     Returns
     -------
     ca.Function
         Inputs ``z`` (nz,), ``y`` (ny,), ``u`` (nu,); output ``xhat`` (nx,).
     """
-    z, y, u = _symbols(arrays)
-    out = decoder_expression(arrays, arch, z, y, u, angles=angles, mlp_name=f"{name}_mlp", members=members)
+    spec.check(arrays)
+    bank = bank_from_arrays(arrays)
+    nz = latent_size(arrays)
+    if spec.mlp.n_in != spec.angles.n_features(nz, bank.ny, bank.nu):
+        raise ValueError(f"decoder input size {spec.mlp.n_in} != nz + ny + len(angle outputs) + nu = "
+                         f"{spec.angles.n_features(nz, bank.ny, bank.nu)}")
+    z, y, u = ca.MX.sym("z", nz), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
+    out = decoder_expression(spec, arrays, bank, z, y, u, mlp_name=f"{name}_mlp")
     return ca.Function(name, [z, y, u], [out], ["z", "y", "u"], ["xhat"])
 
 
-def _symbols(arrays: Mapping[str, Any]) -> tuple[ca.MX, ca.MX, ca.MX]:
-    bank = bank_from_arrays(arrays)
-    return ca.MX.sym("z", latent_size(arrays)), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
-
-
-def feature_expression(arrays: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
-                       angles: Angles = NO_ANGLES) -> ca.MX:
-    """:func:`decoder_features` at CasADi symbols: the decoder's input (nz + ny + len(angles.outputs) + nu, 1)."""
+def feature_expression(bank: FilterBank, z: ca.MX, y: ca.MX, u: ca.MX, *, angles: Angles = NO_ANGLES) -> ca.MX:
+    """:func:`decoder_features` at CasADi symbols: the decoder's input (nz + ny + len(angles.outputs) + nu, 1)
+    (``bank`` gives the gains of angle outputs)."""
     if not angles.outputs:
         return ca.vertcat(z, y, u)
-    bank = bank_from_arrays(arrays)
     a = list(angles.outputs)
     other = [j for j in range(bank.ny) if j not in angles.outputs]
     ya = ca.vertcat(*[y[j] for j in a])
@@ -568,47 +596,41 @@ def feature_expression(arrays: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, 
                       ca.cos(ya), u)
 
 
-def _member_expressions(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX,
-                        angles: Angles, members: int, mlp_name: str) -> tuple[list, np.ndarray]:
-    """Each member's network output ``v_j`` at the symbols, and the output scales."""
-    bank = bank_from_arrays(arrays)
-    spec, scale = _check_decoder(arrays, arch, angles, members)
-    nz = latent_size(arrays)
-    if spec.n_in != angles.n_features(nz, bank.ny, bank.nu):
-        raise ValueError(f"decoder input size {spec.n_in} != nz + ny + len(angle outputs) + nu = "
-                         f"{angles.n_features(nz, bank.ny, bank.nu)}")
-    feats = feature_expression(arrays, z, y, u, angles=angles)
-    names = [mlp_name] + [f"{mlp_name}_{j}" for j in range(1, members)]
-    return [casadi_nets.mlp_function(spec, arrays, prefix, label)(feats)
-            for prefix, label in zip(member_prefixes(members), names)], scale
+def _member_expressions(spec: DecoderSpec, arrays: Mapping[str, Any], bank: FilterBank, z: ca.MX, y: ca.MX,
+                        u: ca.MX, mlp_name: str) -> list:
+    """Each member's network output ``v_j`` at the symbols."""
+    feats = feature_expression(bank, z, y, u, angles=spec.angles)
+    names = [mlp_name] + [f"{mlp_name}_{j}" for j in range(1, spec.members)]
+    return [casadi_nets.mlp_function(spec.mlp, arrays, prefix, label)(feats)
+            for prefix, label in zip(member_prefixes(spec.members), names)]
 
 
-def decoder_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
-                       angles: Angles = NO_ANGLES, mlp_name: str = "decoder_mlp", members: int = 1) -> ca.MX:
+def decoder_expression(spec: DecoderSpec, arrays: Mapping[str, Any], bank: FilterBank, z: ca.MX, y: ca.MX,
+                       u: ca.MX, *, mlp_name: str = "decoder_mlp") -> ca.MX:
     """The decoder's CasADi expression ``xhat (nx, 1)`` at the symbols ``z`` (nz,), ``y`` (ny,), ``u`` (nu,)
-    (what :func:`decoder_function` wraps; the ``bank`` variant builds its decoder from it)."""
-    v, scale = _member_expressions(arrays, arch, z, y, u, angles, members, mlp_name)
-    mean = v[0] if members == 1 else sum(v[1:], v[0]) / members
-    return decoder_outputs(mean, y, scale, angles, lib=ca)
+    (what :func:`decoder_function` wraps; the ``bank`` variant builds its decoder from it). ``arrays`` are
+    taken as checked (:meth:`DecoderSpec.check`); ``bank`` gives the gains of angle outputs."""
+    v = _member_expressions(spec, arrays, bank, z, y, u, mlp_name)
+    mean = v[0] if spec.members == 1 else sum(v[1:], v[0]) / spec.members
+    return decoder_outputs(mean, y, np.asarray(arrays[ASINH_SCALE], dtype=float), spec.angles, lib=ca)
 
 
-def spread_expression(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
-                      angles: Angles = NO_ANGLES, members: int = 2, mlp_name: str = "decoder_mlp") -> ca.MX:
-    """:func:`spread` as a CasADi expression (1, 1) at the symbols ``z``, ``y``, ``u``."""
-    if members < 2:
-        raise error("members", "at least 2 networks for a spread", members)
-    v, _ = _member_expressions(arrays, arch, z, y, u, angles, members, mlp_name)
-    mean = sum(v[1:], v[0]) / members
+def spread_expression(spec: DecoderSpec, arrays: Mapping[str, Any], bank: FilterBank, z: ca.MX, y: ca.MX,
+                      u: ca.MX, *, mlp_name: str = "decoder_mlp") -> ca.MX:
+    """:func:`spread` as a CasADi expression (1, 1) at the symbols ``z``, ``y``, ``u`` (``arrays`` as in
+    :func:`decoder_expression`)."""
+    if spec.members < 2:
+        raise error("members", "at least 2 networks for a spread", spec.members)
+    v = _member_expressions(spec, arrays, bank, z, y, u, mlp_name)
+    mean = sum(v[1:], v[0]) / spec.members
     unit = ca.DM(1.0 / _spread_scale(arrays))
-    return ca.sqrt(sum(ca.sumsqr((vj - mean) * unit) for vj in v) / members)
+    return ca.sqrt(sum(ca.sumsqr((vj - mean) * unit) for vj in v) / spec.members)
 
 
-def latent_step(arrays: Mapping[str, Any], dt: float, name: str = "latent_step", *,
+def latent_step(bank: FilterBank, dt: float, name: str = "latent_step", *,
                 copies: ModelCopies | None = None) -> ca.Function:
     """CasADi ``(z, y, y_next, u) -> z_next`` (nz,): the filter bank's exact step (:meth:`FilterBank.step_function`)
     and the model copies' (:meth:`ModelCopies.step_function`), what :func:`latent_run` takes per sample."""
-    _check_copies(arrays, copies)
-    bank = bank_from_arrays(arrays)
     filters = bank.step_function(dt)
     if copies is None:
         return filters
@@ -618,8 +640,8 @@ def latent_step(arrays: Mapping[str, Any], dt: float, name: str = "latent_step",
     return ca.Function(name, [z, y, y_next, u], [z_next], ["z", "y", "y_next", "u"], ["z_next"])
 
 
-def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float, name: str = "step", *,
-                  angles: Angles = NO_ANGLES, members: int = 1, copies: ModelCopies | None = None) -> ca.Function:
+def observer_step(spec: DecoderSpec, arrays: Mapping[str, Any], dt: float, name: str = "step", *,
+                  copies: ModelCopies | None = None) -> ca.Function:
     """The whole observer step in the signature of :attr:`kklcasadi.observer.kkl.KKLObserver.step` (window 1).
 
     ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` with ``w = u_k`` (1, nu), the input
@@ -628,7 +650,7 @@ def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float,
 
     Parameters
     ----------
-    arrays, arch, angles, members
+    spec, arrays
         As in :func:`decoder_function`.
     dt : float
         Sample period.
@@ -637,9 +659,10 @@ def observer_step(arrays: Mapping[str, Any], arch: Mapping[str, Any], dt: float,
     copies : ModelCopies or None
         The latent's model copies (required where ``arrays`` has ``copies/*``).
     """
+    _check_copies(arrays, copies)
     bank = bank_from_arrays(arrays)
-    latent = latent_step(arrays, dt, copies=copies)
-    dec = decoder_function(arrays, arch, angles=angles, members=members)
+    latent = latent_step(bank, dt, copies=copies)
+    dec = decoder_function(spec, arrays)
     z, w = ca.MX.sym("z", latent_size(arrays)), ca.MX.sym("w", 1, bank.nu)
     y, y_next, u_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny), ca.MX.sym("u_next", bank.nu)
     z_next = latent(z, y, y_next, w.T)
@@ -697,26 +720,22 @@ def latent_run(bank: FilterBank, y: np.ndarray, u: np.ndarray, dt: float, *,
     return z if copies is None else np.concatenate([z, copies.run(y, u, dt)], axis=-1)
 
 
-def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any, dt: float, *,
-             angles: Angles = NO_ANGLES, members: int = 1, copies: ModelCopies | None = None) -> np.ndarray:
+def estimate(spec: DecoderSpec, arrays: Mapping[str, Any], y: Any, u: Any, dt: float, *,
+             copies: ModelCopies | None = None) -> np.ndarray:
     """Reference implementation of the ``bank`` estimator: ``xhat_k = D(z_k, y_k, u_k)``, ``z_0 = 0``.
 
     Parameters
     ----------
+    spec : DecoderSpec
+        The decoder (a model's: :attr:`kklcasadi.model.variants.bank.BankSpec.decoder_spec`).
     arrays : Mapping[str, array_like]
         ``bank/*`` (see :func:`bank_arrays`) and ``decoder/*`` arrays.
-    arch : Mapping
-        The decoder's card entry ``{"sizes": [...], "activation": ...}``.
     y : array_like, shape (M, N, ny) or (N, ny)
         Measurements ``y_k`` (angle outputs unwrapped).
     u : array_like, shape (M, N, nu) or (N, nu)
         Inputs ``u_k`` held over ``[t_k, t_k+1)``.
     dt : float
         Sample period.
-    angles : Angles
-        The decoder's angle layout (the card's ``architecture.bank.angles``).
-    members : int
-        Networks of the decoder ensemble (the card's ``architecture.bank.members``, default 1).
     copies : ModelCopies or None
         The latent's model copies (required where ``arrays`` has ``copies/*``).
 
@@ -727,5 +746,5 @@ def estimate(arrays: Mapping[str, Any], arch: Mapping[str, Any], y: Any, u: Any,
     _check_copies(arrays, copies)
     bank = bank_from_arrays(arrays)
     y, u, single = _trials(y, u, bank.ny, bank.nu)
-    xhat = decode(arrays, arch, latent_run(bank, y, u, dt, copies=copies), y, u, angles=angles, members=members)
+    xhat = decode(spec, arrays, latent_run(bank, y, u, dt, copies=copies), y, u)
     return xhat[0] if single else xhat

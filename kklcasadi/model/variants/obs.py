@@ -46,9 +46,7 @@ class Obs(Variant):
     entries = ("encoder", "decoder", "context", "gain")
     linear = False
     windowed = True
-    trainer = "kklcasadi.train.phase2:train_obs"
-    torch_parts = "kklcasadi.train.step:obs_parts"
-    config = "kklcasadi.train.config:ObsConfig"
+    trains = True
     card_fields = (MODEL_BASED_INJECTION,)
 
     def parse(self, card: Mapping[str, Any], sizes: Sizes, where: str) -> ObsModelSpec:

@@ -49,9 +49,7 @@ class ObsStream(Obs):
     summary = "HyperKKL_obs with a streaming GRU context (one cell per sample, O(1) per step)"
     windowed = False
     certified = False
-    trainer = "kklcasadi.train.stream:train_obs_stream"
-    torch_parts = "kklcasadi.train.step:obs_stream_parts"
-    config = "kklcasadi.train.config:ObsStreamConfig"
+    trains = True
 
     def networks(self, spec: ObsModelSpec, arrays: Mapping[str, Any], system: System,
                  window: int) -> Networks:
@@ -79,9 +77,7 @@ class DynStream(Dyn):
     summary = "HyperKKL_dyn with a streaming GRU context (one cell per sample, O(1) per step)"
     windowed = False
     certified = False
-    trainer = "kklcasadi.train.stream:train_dyn_stream"
-    torch_parts = "kklcasadi.train.step:dyn_stream_parts"
-    config = "kklcasadi.train.config:DynStreamConfig"
+    trains = True
 
     def networks(self, spec: DynModelSpec, arrays: Mapping[str, Any], system: System,
                  window: int) -> Networks:
