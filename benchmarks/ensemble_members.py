@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 from calibrate_monitors import calibration_source, recalibrate, resimulate
 
-from kklcasadi.model.variants import filterbank as fb
-from kklcasadi.model.variants.filterbank import ASINH_SCALE, member_prefixes
+from kklcasadi.model.variants import bankdecoder as bd
+from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, member_prefixes
 from kklcasadi.nets.specs import DECODER
 from kklcasadi.train.bank import ensemble_arrays
 from kklcasadi.train.config import LoopConfig
@@ -77,7 +77,7 @@ def main() -> None:
     if have >= args.members:
         parser.error(f"--members: expected more than the {have} decoders of {args.model}, received {args.members}")
     card, seed = copy.deepcopy(model.card), int(model.card["training"]["seed"])
-    one = fb.DecoderSpec.from_card(card["architecture"]["decoder"], angles=model.spec.architecture.angles)
+    one = bd.DecoderSpec.from_card(card["architecture"]["decoder"], angles=model.spec.architecture.angles)
     fits = [BankFit(member_arrays(model.arrays, prefix), one, None, len(data), 0.0, {})
             for prefix in member_prefixes(have)]
     training = card["training"]

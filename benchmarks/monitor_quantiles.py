@@ -15,7 +15,7 @@ the target by default, for the difference between validation and scored trials),
 ``benchmarks/calibrate_monitors.py MODEL --spread-quantile Q``.
 
 The monitor's other tests (the card's boxes, the nearest-prototype distance) are the model's own; the
-observer's estimates are the reference ones (:func:`kklcasadi.model.variants.filterbank.decode` on the
+observer's estimates are the reference ones (:func:`kklcasadi.model.variants.bankdecoder.decode` on the
 bank's latent), equal to the observer's (tests/test_bank.py).
 """
 
@@ -35,6 +35,7 @@ from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.compiled import Compiler, ekf_estimator
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
 from kklcasadi.model.operational import MonitorConfig, nominal_runs
+from kklcasadi.model.variants import bankdecoder as bd
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.observer.kkl import KKLObserver, load_observer
 
@@ -91,7 +92,7 @@ def main() -> None:
         batch = cache.trials(plant, case.cell(settings))
         x, y, u = batch.x[batch.ok], batch.y[batch.ok], batch.u[batch.ok]
         z = fb.latent_run(bank, y, u, model.dt, copies=copies)
-        xhat = fb.decode(spec.decoder_spec, arrays, z, y, u)
+        xhat = bd.decode(spec.decoder_spec, arrays, z, y, u)
         w = np.concatenate([y, u], axis=-1)[..., None]
         after = batch.t >= settings.t_settle
         inside = plain.in_domain(xhat[:, after], z[:, after], w[:, after])

@@ -19,6 +19,7 @@ from conftest import c_program_estimates  # noqa: E402
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
 from kklcasadi.model.operational import MonitorConfig, nominal_runs  # noqa: E402
+from kklcasadi.model.variants import bankdecoder as bd  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
 from kklcasadi.plant.runs import RolloutConfig  # noqa: E402
 from kklcasadi.train import LoopConfig, default_config, train_observer  # noqa: E402
@@ -63,7 +64,7 @@ def test_bank_observer_equals_the_reference_estimator(bank_dir):
                      dt=obs.dt, process_std=0.1, measurement_std=0.1, seed=3)
     model = load_model(bank_dir)
     arrays = {**model.arrays, "bank/A": model.A, "bank/By": model.B}
-    expected = fb.estimate(model.spec.architecture.decoder_spec, arrays, tr.y, tr.u, obs.dt)
+    expected = bd.estimate(model.spec.architecture.decoder_spec, arrays, tr.y, tr.u, obs.dt)
     est = obs.simulate(tr.t, tr.y, tr.u)
     np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
     live = obs.estimator()
@@ -121,7 +122,7 @@ def test_the_angle_observer_equals_the_reference_and_its_c_code(arm_dir, tmp_pat
                      dt=obs.dt, measurement_std=0.01, seed=4)
     model = load_model(arm_dir)
     arrays = {**model.arrays, "bank/A": model.A, "bank/By": model.B}
-    expected = fb.estimate(model.spec.architecture.decoder_spec, arrays, tr.y, tr.u, obs.dt)
+    expected = bd.estimate(model.spec.architecture.decoder_spec, arrays, tr.y, tr.u, obs.dt)
     est = obs.simulate(tr.t, tr.y, tr.u)
     np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
     assert np.all(np.abs(est.xhat[:, 0]) <= np.pi)              # the free angle, about its box centre 0
@@ -199,22 +200,22 @@ def test_the_ensemble_decodes_the_mean_of_its_members(ensemble_dir):
     z, y, u = rng.normal(size=(50, model.spec.nz)), rng.normal(size=(50, 1)), rng.normal(size=(50, 1))
     spec, f = MLPSpec.from_card(arch), np.concatenate([z, y, u], axis=1)
     v = [mlp_numpy(spec, arrays, prefix, f) for prefix in ("decoder", "decoder_1")]
-    pair, one = fb.DecoderSpec.from_card(arch, members=2), fb.DecoderSpec.from_card(arch)
-    np.testing.assert_allclose(fb.decode(pair, arrays, z, y, u), (v[0] + v[1]) / 2, rtol=0, atol=1e-14)
-    single = fb.decode(one, arrays, z, y, u)
+    pair, one = bd.DecoderSpec.from_card(arch, members=2), bd.DecoderSpec.from_card(arch)
+    np.testing.assert_allclose(bd.decode(pair, arrays, z, y, u), (v[0] + v[1]) / 2, rtol=0, atol=1e-14)
+    single = bd.decode(one, arrays, z, y, u)
     np.testing.assert_array_equal(single, v[0])
     assert np.abs(single - (v[0] + v[1]) / 2).max() > 1e-6
     # the spread: sqrt(mean_j sum_i ((v_ji - vbar_i) / s_i)^2), s the first member's output std
     s = arrays["decoder/out_std"]
     expected = np.sqrt((((v[0] - v[1]) / 2 / s) ** 2).sum(axis=1))
-    np.testing.assert_allclose(fb.spread(pair, arrays, z, y, u), expected, rtol=1e-13)
+    np.testing.assert_allclose(bd.spread(pair, arrays, z, y, u), expected, rtol=1e-13)
     same = {**arrays, **{k.replace("decoder/", "decoder_1/"): a for k, a in arrays.items() if k.startswith("decoder/")}}
-    np.testing.assert_array_equal(fb.spread(pair, same, z, y, u), 0.0)
+    np.testing.assert_array_equal(bd.spread(pair, same, z, y, u), 0.0)
     # the CasADi paths: decoder and spread at the same points
     zs, ys, us = ca.MX.sym("z", model.spec.nz), ca.MX.sym("y", 1), ca.MX.sym("u", 1)
-    dec = fb.decoder_function(pair, arrays).map(50)
+    dec = bd.decoder_function(pair, arrays).map(50)
     np.testing.assert_allclose(np.asarray(dec(z.T, y.T, u.T)).T, (v[0] + v[1]) / 2, rtol=0, atol=1e-13)
-    sp = ca.Function("s", [zs, ys, us], [fb.spread_expression(pair, arrays, fb.bank_from_arrays(arrays), zs, ys,
+    sp = ca.Function("s", [zs, ys, us], [bd.spread_expression(pair, arrays, fb.bank_from_arrays(arrays), zs, ys,
                                                               us)]).map(50)
     np.testing.assert_allclose(np.asarray(sp(z.T, y.T, u.T)).ravel(), expected, rtol=1e-12)
 
@@ -230,11 +231,11 @@ def test_growing_an_ensemble_keeps_its_members_arrays(ensemble_dir, monkeypatch)
     monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
     script = runpy.run_path(str(ROOT / "benchmarks" / "ensemble_members.py"), run_name="ensemble_members")
     model, arrays, arch = _arrays(ensemble_dir)
-    members = [script["member_arrays"](model.arrays, prefix) for prefix in fb.member_prefixes(2)]
+    members = [script["member_arrays"](model.arrays, prefix) for prefix in bd.member_prefixes(2)]
     assert not any(name.startswith("decoder_1") for part in members for name in part)
     np.testing.assert_array_equal(members[1]["decoder/W0"], model.arrays["decoder_1/W0"])
-    np.testing.assert_array_equal(members[1][fb.ASINH_SCALE], model.arrays[fb.ASINH_SCALE])
-    one = fb.DecoderSpec.from_card(arch, angles=model.spec.architecture.angles)
+    np.testing.assert_array_equal(members[1][bd.ASINH_SCALE], model.arrays[bd.ASINH_SCALE])
+    one = bd.DecoderSpec.from_card(arch, angles=model.spec.architecture.angles)
     again = ensemble_arrays([BankFit(part, one, None, 0, 0.0, {}) for part in members])
     assert set(again) == set(model.arrays)
     for name, value in model.arrays.items():
@@ -247,12 +248,12 @@ def test_the_ensemble_observer_equals_the_reference_and_monitors_the_spread(ense
     tr = kc.simulate(obs.system, [1.0, -0.5], kc.signals.make("square", amplitude=0.5, omega=1.0), T=6.0,
                      dt=obs.dt, process_std=0.1, measurement_std=0.1, seed=3)
     est = obs.simulate(tr.t, tr.y, tr.u)
-    pair = fb.DecoderSpec.from_card(arch, members=2)
-    np.testing.assert_allclose(est.xhat, fb.estimate(pair, arrays, tr.y, tr.u, obs.dt), rtol=1e-10, atol=1e-10)
+    pair = bd.DecoderSpec.from_card(arch, members=2)
+    np.testing.assert_allclose(est.xhat, bd.estimate(pair, arrays, tr.y, tr.u, obs.dt), rtol=1e-10, atol=1e-10)
     z = fb.FilterBank(model.A, model.B, arrays["bank/Bu"], arrays["bank/c"]).run(tr.y, tr.u, obs.dt)
     w = np.concatenate([tr.y, tr.u], axis=1)[:, :, None]
     spread = obs.spread_of(z, w)
-    np.testing.assert_allclose(spread, fb.spread(pair, arrays, z, tr.y, tr.u), rtol=1e-12)
+    np.testing.assert_allclose(spread, bd.spread(pair, arrays, z, tr.y, tr.u), rtol=1e-12)
     # the domain check is the prototype test and the spread test, in numpy and in CasADi alike
     threshold = obs.monitor.spec.spread[0]
     prototypes = obs.monitor.inside(np.concatenate([z, w[:, :, 0]], axis=1))
@@ -303,8 +304,8 @@ def test_members_must_be_a_positive_integer():
         with pytest.raises(ValueError, match="members"):
             BankConfig(members=bad)
     with pytest.raises(ValueError, match="members"):
-        fb.member_prefixes(0)
-    assert fb.member_prefixes(3) == ("decoder", "decoder_1", "decoder_2")
+        bd.member_prefixes(0)
+    assert bd.member_prefixes(3) == ("decoder", "decoder_1", "decoder_2")
 
 
 @pytest.mark.parametrize("system", ["duffing", "vdp", "fhn", "rossler"])
@@ -355,12 +356,12 @@ def test_the_shipped_banks_are_decoder_ensembles_with_the_spread_test(system):
     spec = model.spec.architecture
     arrays, arch = spec.filter_arrays(model.arrays), model.card["architecture"]["decoder"]
     angles, copies = spec.angles, spec.model_copies(model.arrays, obs.system)
-    assert spec.decoder_spec == fb.DecoderSpec.from_card(arch, angles=angles, members=config.members)
-    np.testing.assert_allclose(est.xhat, fb.estimate(spec.decoder_spec, arrays, batch.y[0], batch.u[0], obs.dt,
+    assert spec.decoder_spec == bd.DecoderSpec.from_card(arch, angles=angles, members=config.members)
+    np.testing.assert_allclose(est.xhat, bd.estimate(spec.decoder_spec, arrays, batch.y[0], batch.u[0], obs.dt,
                                                      copies=copies), rtol=1e-9, atol=1e-9)
     for fewer in range(1, config.members):            # the ensemble is none of its leading sub-ensembles
-        fewer_spec = fb.DecoderSpec.from_card(arch, angles=angles, members=fewer)
-        part = fb.estimate(fewer_spec, arrays, batch.y[0], batch.u[0], obs.dt, copies=copies)
+        fewer_spec = bd.DecoderSpec.from_card(arch, angles=angles, members=fewer)
+        part = bd.estimate(fewer_spec, arrays, batch.y[0], batch.u[0], obs.dt, copies=copies)
         assert np.abs(part - est.xhat).max() > 1e-6
 
 

@@ -169,7 +169,7 @@ def test_the_card_records_the_copies_and_their_linear_part(copies_dir):
 
 def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir, tmp_path):
     from kklcasadi.model.files import load_model
-    from kklcasadi.model.variants import filterbank as fb
+    from kklcasadi.model.variants import bankdecoder as bd
 
     obs = kc.load_observer(copies_dir)
     tr = kc.simulate(obs.system, [0.4, -0.6], kc.signals.make("square", amplitude=0.7, omega=1.0), T=5.0, dt=obs.dt,
@@ -177,7 +177,7 @@ def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir
     model = load_model(copies_dir)
     spec = model.spec.architecture
     copies = spec.model_copies(model.arrays, obs.system)
-    expected = fb.estimate(spec.decoder_spec, spec.filter_arrays(model.arrays), tr.y, tr.u, obs.dt, copies=copies)
+    expected = bd.estimate(spec.decoder_spec, spec.filter_arrays(model.arrays), tr.y, tr.u, obs.dt, copies=copies)
     est = obs.simulate(tr.t, tr.y, tr.u)
     np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
     live = obs.estimator()
@@ -186,7 +186,7 @@ def test_the_observer_with_copies_equals_the_reference_and_its_c_code(copies_dir
     rk4 = kc.load_observer(copies_dir, discretization="rk4", substeps=8).simulate(tr.t, tr.y, tr.u)
     assert np.abs(rk4.xhat - est.xhat).max() < 1e-4 * (1 + np.abs(est.xhat).max())
     with pytest.raises(ValueError, match="copies: expected the ModelCopies"):
-        fb.estimate(spec.decoder_spec, spec.filter_arrays(model.arrays), tr.y, tr.u, obs.dt)
+        bd.estimate(spec.decoder_spec, spec.filter_arrays(model.arrays), tr.y, tr.u, obs.dt)
     if shutil.which("gcc") is None:
         return
     np.testing.assert_array_equal(c_program_estimates(obs, tmp_path, "bank", tr.t, tr.y, tr.u), est.xhat)

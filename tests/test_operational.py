@@ -12,6 +12,7 @@ torch = pytest.importorskip("torch")
 
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.operational import OperationalData, operational_data  # noqa: E402
+from kklcasadi.model.variants import bankdecoder as bd  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
 from kklcasadi.nets.specs import DECODER  # noqa: E402
 from kklcasadi.plant.runs import RolloutConfig, rollouts  # noqa: E402
@@ -74,13 +75,13 @@ def test_torch_and_casadi_decoders_agree(scale: tuple[float, float], skip: bool)
     if skip:
         with torch.no_grad():
             mlp.skip.copy_(torch.as_tensor(rng.normal(size=(2, d))))
-    arrays = {**mlp.to_arrays(DECODER), fb.ASINH_SCALE: np.array(scale), **fb.bank_arrays(bank)}
-    spec = fb.DecoderSpec(mlp.spec)
+    arrays = {**mlp.to_arrays(DECODER), bd.ASINH_SCALE: np.array(scale), **fb.bank_arrays(bank)}
+    spec = bd.DecoderSpec(mlp.spec)
     dec_t = torch_decoder(spec, arrays)
-    dec_c = fb.decoder_function(spec, arrays)
+    dec_c = bd.decoder_function(spec, arrays)
     feats = rng.normal(size=(7, d))
     parts = (feats[:, :bank.nz], feats[:, bank.nz:bank.nz + 1], feats[:, -1:])
-    np.testing.assert_allclose(fb.decode(spec, arrays, *parts),
+    np.testing.assert_allclose(bd.decode(spec, arrays, *parts),
                                dec_t(*(torch.as_tensor(a) for a in parts)).detach().numpy(), rtol=1e-12, atol=1e-12)
     for _ in range(5):
         f = rng.normal(size=d)
@@ -112,7 +113,7 @@ def test_a_skip_decoder_starts_as_the_plain_one_and_fits_its_linear_path() -> No
     trained = fit_bank_decoder(bank, data, DecoderConfig(hidden=(8,), skip=True, dtype="float64",
                                                          loop=replace(loop, epochs=3, lr=1e-2)), seed=3)
     assert np.abs(trained.arrays[f"{DECODER}/Wskip"]).max() > 1e-3
-    assert np.isfinite(fb.decode(trained.spec, trained.arrays, data.z, data.y, data.u)).all()
+    assert np.isfinite(bd.decode(trained.spec, trained.arrays, data.z, data.y, data.u)).all()
     with pytest.raises(TypeError, match="skip"):
         DecoderConfig(skip=1)
     for weight in (0.0, -0.5, float("nan")):          # the SMAPE term's weight: a number > 0
@@ -133,7 +134,7 @@ def test_operational_decoder_beats_noise_free_one_on_noisy_runs() -> None:
     for label, std in (("noisy", 0.1), ("clean", 0.0)):
         data = operational_data(plant, bank, cfg, 5, dt=0.05, measurement_std=std, process_std=std)
         fit = fit_bank_decoder(bank, data, dec, seed=0)
-        xhat = fb.estimate(fit.spec, fit.arrays, test.y, test.u, 0.05)
+        xhat = bd.estimate(fit.spec, fit.arrays, test.y, test.u, 0.05)
         errs[label] = float(np.mean((xhat - test.x) ** 2))
     assert errs["noisy"] < 0.8 * errs["clean"], errs
 
@@ -146,7 +147,7 @@ def test_asinh_fit_records_scale_and_domain() -> None:
     data = OperationalData.from_runs(_bank(), rollouts(plant, RolloutConfig(n_traj=4, T=2.0), seed=1),
                                      RolloutConfig())
     fit = fit_bank_decoder(_bank(), data, dec)
-    np.testing.assert_array_equal(fit.arrays[fb.ASINH_SCALE], [0.0, 0.05])
+    np.testing.assert_array_equal(fit.arrays[bd.ASINH_SCALE], [0.0, 0.05])
     assert fit.spec.mlp.to_card() == {"sizes": [_bank().nz + 2, 8, 2], "activation": "tanh"}
     lo, hi = np.array(fit.domain["x_p0.1"]), np.array(fit.domain["x_p99.9"])
     assert np.all(lo < hi)
@@ -167,7 +168,7 @@ def test_input_filters_and_clock_lower_the_error_under_inputs() -> None:
     errs = {}
     for label, bank in (("y only", fb.FilterBank.design(1, 1, [0.5, 2.0, 6.0])), ("y, u and clock", _bank())):
         fit = fit_bank_decoder(bank, OperationalData.from_runs(bank, train, sampling), dec, seed=0)
-        errs[label] = float(np.mean((fb.estimate(fit.spec, fit.arrays, test.y, test.u, 0.05) - test.x) ** 2))
+        errs[label] = float(np.mean((bd.estimate(fit.spec, fit.arrays, test.y, test.u, 0.05) - test.x) ** 2))
     assert errs["y, u and clock"] < 0.8 * errs["y only"], errs
 
 

@@ -10,7 +10,7 @@ simulated once (training seed ``--run-seed``); each variant's decoder is fitted 
 with the variant's change), so that a variant and the plain decoder of one seed start from the same draw of
 the layers. The trials are those of ``kklcasadi generalise`` (seed ``--trial-seed``, ``--trials`` per case,
 from the trial cache), decoded through the bank's latent in numpy
-(:func:`kklcasadi.model.variants.filterbank.estimate`); the EKF is scored on the same trials. Writes
+(:func:`kklcasadi.model.variants.bankdecoder.estimate`); the EKF is scored on the same trials. Writes
 ``OUT.json`` (every SMAPE) and ``OUT.md`` (mean SMAPE per case and variant over the seeds, its ratio to the
 EKF, and per seed the geometric mean over the cases of each variant / plain).
 
@@ -39,7 +39,7 @@ from kklcasadi.evaluation.compiled import ekf_estimator
 from kklcasadi.evaluation.generalisation import Case, Settings, case_ekf
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
 from kklcasadi.model.operational import operational_data
-from kklcasadi.model.variants import filterbank as fb
+from kklcasadi.model.variants import bankdecoder as bd
 from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, design_copies, process_stds
 from kklcasadi.train.decoder import DecoderConfig, fit_bank_decoder
 
@@ -84,7 +84,7 @@ def main() -> None:
                      decoder=replace(config.decoder, loop=replace(config.decoder.loop, epochs=args.epochs)))
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
-    angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
+    angles = bd.Angles.of(system) if config.angles else bd.NO_ANGLES
     copies = design_copies(system, replace(config, copies=tuple(args.copies), copy_substeps=args.copy_substeps), 0.05)
     runs = {latent: operational_data(system, bank, config.rollouts, args.run_seed, dt=0.05,
                                      measurement_std=config.measurement_std, process_std=process_stds(system, config),
@@ -110,7 +110,7 @@ def main() -> None:
             seconds[f"{variant}@{seed}"] = round(time.perf_counter() - t0, 1)
             arrays = {**fit.arrays, **({} if latent is None else latent.arrays())}
             smape.setdefault(variant, {})[str(seed)] = {
-                label: float(np.nanmean(metrics.smape(x, fb.estimate(fit.spec, arrays, y, u, settings.dt,
+                label: float(np.nanmean(metrics.smape(x, bd.estimate(fit.spec, arrays, y, u, settings.dt,
                                                                      copies=latent))))
                 for label, (x, y, u, _) in trials.items()}
             print(variant, seed, seconds[f"{variant}@{seed}"], "s", flush=True)

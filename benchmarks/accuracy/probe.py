@@ -28,6 +28,7 @@ from recipes import PAPER_BEST, RECIPES
 import kklcasadi as kc
 from kklcasadi import provenance
 from kklcasadi.model.operational import OperationalData
+from kklcasadi.model.variants import bankdecoder as bd
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.plant.runs import RolloutConfig
 from kklcasadi.plant.signals import BENCHMARK_KINDS
@@ -100,7 +101,7 @@ def main() -> None:
     arrays, decoder = result.arrays, result.spec
 
     def est(y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return fb.estimate(decoder, arrays, y, u, 0.05)
+        return bd.estimate(decoder, arrays, y, u, 0.05)
 
     xv = est(val.y, val.u)
     sv = kc.metrics.smape(val.x, xv)

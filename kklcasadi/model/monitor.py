@@ -13,7 +13,7 @@ samples (runs of the fitting distribution that gave no prototype) after the sett
 share of fitting-distribution samples is flagged.
 
 A decoder ensemble (``bank`` with ``members`` > 1) adds a second test: a sample is in the domain
-only where the members' spread (:func:`kklcasadi.model.variants.filterbank.spread`) is at most the
+only where the members' spread (:func:`kklcasadi.model.variants.bankdecoder.spread`) is at most the
 ``spread`` threshold, a quantile of the spreads of the same validation samples: the members agree
 where the fitting runs pinned the map down and part where they did not, also inside the region the
 prototypes cover.

@@ -27,6 +27,7 @@ from ..plant.systems import System
 from ..validation import Text, error, nonnegative_int, positive_int
 from .monitor import DEFAULT_QUANTILE, DEFAULT_SPREAD_QUANTILE, FeatureMonitor, calibrate, with_spread
 from .variants import BankSpec
+from .variants import bankdecoder as bd
 from .variants import filterbank as fb
 from .variants.copies import ModelCopies
 
@@ -234,7 +235,7 @@ def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder
     and ``spread_quantile`` are the shares of those samples inside the two thresholds. ``source`` is
     recorded in the card's ``monitor.calibration``.
     """
-    features = fb.decoder_features(data.z, data.y, data.u)
+    features = bd.decoder_features(data.z, data.y, data.u)
     n_runs = int(data.run.max()) + 1 if len(data) else 0
     if n_runs < 2:
         raise error("data", "samples of at least 2 runs (the monitor's threshold comes from runs it was not fit on)",
@@ -282,7 +283,7 @@ def member_spread(arrays: dict, bank: fb.FilterBank, spec: BankSpec, *,
     full, decoder = {**arrays, **fb.bank_arrays(bank)}, spec.decoder_spec
 
     def spread(z: np.ndarray, y: np.ndarray, u: np.ndarray) -> np.ndarray:
-        return np.concatenate([fb.spread(decoder, full, z[i:i + chunk], y[i:i + chunk], u[i:i + chunk])
+        return np.concatenate([bd.spread(decoder, full, z[i:i + chunk], y[i:i + chunk], u[i:i + chunk])
                                for i in range(0, len(z), chunk)] or [np.empty(0)])
 
     return spread

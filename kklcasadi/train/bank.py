@@ -25,6 +25,7 @@ from ..model.operational import (
     operational_data,
 )
 from ..model.variants import BankSpec
+from ..model.variants import bankdecoder as bd
 from ..model.variants import filterbank as fb
 from ..model.variants.copies import ModelCopies
 from ..nets.specs import DECODER
@@ -137,7 +138,7 @@ class BankConfig:
         ``forced``.
     angles : bool
         Read the plant's angle outputs and write its angle states continuously on the circle
-        (:class:`kklcasadi.model.variants.filterbank.Angles`); no effect on a plant without angles.
+        (:class:`kklcasadi.model.variants.bankdecoder.Angles`); no effect on a plant without angles.
     rollouts : RolloutConfig
         The runs: how many and how long (the budget), inputs, noise range, sample times, escapes.
     decoder : DecoderConfig
@@ -329,15 +330,15 @@ def latent_design(bank: fb.FilterBank, copies: Optional[ModelCopies]) -> tuple[n
 
 def ensemble_arrays(fits: Sequence[BankFit]) -> dict:
     """The arrays of decoders fitted on the same runs as one ensemble: the first fit's arrays, and each
-    other's MLP arrays under its member prefix (:func:`kklcasadi.model.variants.filterbank.member_prefixes`)."""
+    other's MLP arrays under its member prefix (:func:`kklcasadi.model.variants.bankdecoder.member_prefixes`)."""
     if not fits:
         raise error("fits", "at least one decoder fit", Text("none"))
     arrays = dict(fits[0].arrays)
-    for prefix, fit in zip(fb.member_prefixes(len(fits))[1:], fits[1:]):
+    for prefix, fit in zip(bd.member_prefixes(len(fits))[1:], fits[1:]):
         if fit.spec.mlp != fits[0].spec.mlp:
             raise error("fits", "decoders of one architecture", Text(f"{fit.spec.mlp} after {fits[0].spec.mlp}"))
         arrays.update({prefix + name[len(DECODER):]: value for name, value in fit.arrays.items()
-                       if name.startswith(DECODER + "/") and name != fb.ASINH_SCALE})
+                       if name.startswith(DECODER + "/") and name != bd.ASINH_SCALE})
     return arrays
 
 
@@ -368,7 +369,7 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
 
 
 
-def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, angles: fb.Angles, seed: int, *,
+def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, angles: bd.Angles, seed: int, *,
                 progress: bool) -> list[BankFit]:
     """The decoder fits of the ensemble: ``config.members`` of them, seeds ``seed, seed + 1, ...``."""
     return [fit_bank_decoder(bank, data, config.decoder, angles=angles, seed=seed + j, progress=progress)
@@ -390,7 +391,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     rate = bank_time_scale(system, config)
     bank = design_bank(system, config, rate)
     copies = design_copies(system, config, dt)
-    angles = fb.Angles.of(system) if config.angles else fb.NO_ANGLES
+    angles = bd.Angles.of(system) if config.angles else bd.NO_ANGLES
     data = operational_data(system, bank, config.rollouts, seed, dt=dt, measurement_std=config.measurement_std,
                             process_std=process, time_scale=rate, copies=copies, progress=progress)
     if len(data) == 0:
@@ -426,7 +427,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     monitor = bank_monitor(data, seed, spread=spread, spread_data=spread_data, spread_source=spread_source,
                            quantile=config.monitor.quantile, spread_quantile=config.monitor.spread_quantile)
     arrays.update(monitor.arrays())
-    history = {prefix: fit.fit.history for prefix, fit in zip(fb.member_prefixes(len(fits)), fits)}
+    history = {prefix: fit.fit.history for prefix, fit in zip(bd.member_prefixes(len(fits)), fits)}
     return Trained(arrays, spec, SimpleNamespace(A=spec.A, B=spec.By), training, history, 1,
                    config.measurement_std, domain, coverage=None, monitor=monitor.spec,
                    fit_families=fit_families(config.rollouts, rate, system),

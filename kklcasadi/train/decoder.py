@@ -2,7 +2,7 @@
 
 * :func:`fit_bank_decoder` -- fit the decoder MLP on the samples of :func:`kklcasadi.model.operational.operational_data`
   with an optional asinh output transform per state and the angle layout of
-  :class:`kklcasadi.model.variants.filterbank.Angles`, and return the model arrays of ``bank``.
+  :class:`kklcasadi.model.variants.bankdecoder.Angles`, and return the model arrays of ``bank``.
 * :func:`torch_decoder` -- the decoder of such arrays in torch.
 """
 
@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ..model.operational import OperationalData
+from ..model.variants import bankdecoder as bd
 from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER
 from ..plant.runs import RolloutConfig
@@ -122,8 +123,8 @@ def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np
     return out
 
 
-def _torch_outputs(v: Tensor, y: Tensor, scale: np.ndarray, angles: fb.Angles) -> Tensor:
-    """:func:`kklcasadi.model.variants.filterbank.decoder_outputs` in torch."""
+def _torch_outputs(v: Tensor, y: Tensor, scale: np.ndarray, angles: bd.Angles) -> Tensor:
+    """:func:`kklcasadi.model.variants.bankdecoder.decoder_outputs` in torch."""
     nx = scale.size
     s = torch.as_tensor(scale, dtype=v.dtype, device=v.device)
     pos = s > 0
@@ -136,21 +137,21 @@ def _torch_outputs(v: Tensor, y: Tensor, scale: np.ndarray, angles: fb.Angles) -
     return torch.stack(cols, dim=-1)
 
 
-def torch_decoder(spec: fb.DecoderSpec, arrays: Mapping[str, np.ndarray]) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
+def torch_decoder(spec: bd.DecoderSpec, arrays: Mapping[str, np.ndarray]) -> Callable[[Tensor, Tensor, Tensor], Tensor]:
     """The bank decoder (one network, ``spec.members`` 1) in torch (float64):
     ``(z (..., nz), y (..., ny), u (..., nu)) -> xhat (..., nx)``.
 
-    The same map as :func:`kklcasadi.model.variants.filterbank.decode` and
-    :func:`kklcasadi.model.variants.filterbank.decoder_function`.
+    The same map as :func:`kklcasadi.model.variants.bankdecoder.decode` and
+    :func:`kklcasadi.model.variants.bankdecoder.decoder_function`.
     """
     if spec.members != 1:
         raise error("spec", "the spec of one decoder network (members 1)", spec.members)
     angles = spec.angles
     mlp = MLP.from_arrays(arrays, DECODER, spec.mlp, dtype=torch.float64)
-    scale = np.asarray(arrays[fb.ASINH_SCALE], dtype=float)
+    scale = np.asarray(arrays[bd.ASINH_SCALE], dtype=float)
     a = list(angles.outputs)
     other = [j for j in range(np.asarray(arrays["bank/By"]).shape[1]) if j not in angles.outputs]
-    gains = torch.as_tensor(fb.dc_gains(fb.bank_from_arrays(arrays))[:, a])
+    gains = torch.as_tensor(bd.dc_gains(fb.bank_from_arrays(arrays))[:, a])
 
     def apply(z: Tensor, y: Tensor, u: Tensor) -> Tensor:
         if a:
@@ -181,7 +182,7 @@ class BankFit:
     """
 
     arrays: dict
-    spec: fb.DecoderSpec
+    spec: bd.DecoderSpec
     fit: FitResult
     n_samples: int
     seconds: float
@@ -189,7 +190,7 @@ class BankFit:
 
 
 def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: DecoderConfig, *,
-                     angles: fb.Angles = fb.NO_ANGLES, seed: int = 0, progress: bool = False) -> BankFit:
+                     angles: bd.Angles = bd.NO_ANGLES, seed: int = 0, progress: bool = False) -> BankFit:
     """Fit the decoder ``[z_k; y_k; u_k] -> x_k`` on operational samples of the bank observer.
 
     Parameters
@@ -214,8 +215,8 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     scale = np.zeros(nx) if config.asinh_scale is None else np.asarray(config.asinh_scale, dtype=float)
     if scale.shape != (nx,) or np.any(scale < 0):
         raise error("asinh_scale", f"nx = {nx} entries >= 0", config.asinh_scale)
-    feats = fb.decoder_features(data.z, data.y, data.u, angles=angles, gains=fb.dc_gains(bank))
-    v = fb.decoder_targets(data.x, data.y, scale, angles)
+    feats = bd.decoder_features(data.z, data.y, data.u, angles=angles, gains=bd.dc_gains(bank))
+    v = bd.decoder_targets(data.x, data.y, scale, angles)
     sizes = (feats.shape[1], *config.hidden, v.shape[1])
     dtype = torch_dtype(config.dtype)
     torch.manual_seed(seed)
@@ -248,11 +249,11 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     result = fit(list(mlp.parameters()), loss_fn, data_set, config.loop, name="bank decoder", seed=seed,
                  progress=progress)
     arrays = fold_whitening(mlp.to(torch.float64).to_arrays(DECODER), f_mean, white)
-    arrays[fb.ASINH_SCALE] = scale.copy()
+    arrays[bd.ASINH_SCALE] = scale.copy()
     arrays.update(fb.bank_arrays(bank))
     pct = np.percentile(data.x, [0.1, 50.0, 99.9], axis=0)
     domain = {"x_p0.1": pct[0].tolist(), "x_p50": pct[1].tolist(), "x_p99.9": pct[2].tolist()}
-    return BankFit(arrays, fb.DecoderSpec(mlp.spec, angles), result, int(len(v)), time.perf_counter() - t0, domain)
+    return BankFit(arrays, bd.DecoderSpec(mlp.spec, angles), result, int(len(v)), time.perf_counter() - t0, domain)
 
 
 def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:

@@ -12,7 +12,7 @@ encoder: the latent is not a KKL map of the state but a fixed filter of the sign
 the state from it.
 
 Angles (``System.angle_outputs``, ``angle_states``) are read and written continuously on the circle
-(:class:`kklcasadi.model.variants.filterbank.Angles`).
+(:class:`kklcasadi.model.variants.bankdecoder.Angles`).
 
 The latent may end in model copies of the plant (:mod:`kklcasadi.model.variants.copies`): constant-gain
 observers ``xhat_i' = f(xhat_i, u) + L_i (y - h(xhat_i))`` whose states the decoder reads beside the
@@ -21,7 +21,7 @@ them (the filters' stays exact).
 
 The decoder may be an ensemble of ``K`` networks of one architecture, fitted from different seeds
 on the same runs: ``xhat`` maps the mean of their outputs, and their disagreement
-(:func:`kklcasadi.model.variants.filterbank.spread`) is the domain monitor's second test.
+(:func:`kklcasadi.model.variants.bankdecoder.spread`) is the domain monitor's second test.
 
 Card: ``design`` holds ``A`` and ``By`` (as ``B``); ``architecture`` holds ``decoder``
 (``[nz + ny + n_angle_outputs + nu, ..., nx + n_free_angle_states]``) and ``bank`` (the design
@@ -44,21 +44,20 @@ import numpy as np
 from ...nets.specs import DECODER, MLPSpec, field_error
 from ...plant.systems import System
 from ...validation import is_int, is_number
+from .bankdecoder import (
+    ASINH_SCALE,
+    Angles,
+    DecoderSpec,
+    decoder_expression,
+    feature_expression,
+    member_prefixes,
+    spread_expression,
+)
 from .base import Memory, Networks, Sizes, Variant
 from .copies import ModelCopies
 from .covariance import COVARIANCE, covariance_expression, n_entries
 from .covariance import array_shapes as covariance_shapes
-from .filterbank import (
-    ASINH_SCALE,
-    Angles,
-    DecoderSpec,
-    FilterBank,
-    decoder_expression,
-    feature_expression,
-    latent_step,
-    member_prefixes,
-    spread_expression,
-)
+from .filterbank import FilterBank, latent_step
 
 __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
