@@ -32,7 +32,8 @@ import numpy as np
 
 from ..plant.envelope import output_ranges
 from ..validation import Text, error, nonnegative_number
-from .kkl import HELD, RESTARTED, Estimate, Estimator, KKLObserver, _check_time
+from .checks import check_time
+from .kkl import HELD, RESTARTED, Estimate, Estimator, KKLObserver
 
 __all__ = ["SampleGuard", "guarded_simulate", "guarded_estimator", "training_box", "GUARD_WIDTHS", "HELD", "RESTARTED"]
 
@@ -164,7 +165,7 @@ def guarded_simulate(observer: KKLObserver, t: Any, y: Any, u: Any, *,
     guard = SampleGuard.of(observer) if guard is None else guard
     if not isinstance(guard, SampleGuard):
         raise error("guard", "a SampleGuard or None", Text(type(guard).__name__), kind=TypeError)
-    t = _check_time(t, observer.dt)
+    t = check_time(t, observer.dt)
     n = t.size
     y, u = _samples(y, "y", n, observer.ny), _samples(u, "u", n, observer.nu)
 

@@ -46,7 +46,6 @@ import casadi as ca
 import numpy as np
 
 from ..model import variants
-from ..model.card import ModelSpec
 from ..model.files import CARD_FILE, Model, derive_model, load_model
 from ..model.monitor import FeatureMonitor
 from ..model.shipped import resolve
@@ -56,15 +55,22 @@ from ..plant import systems
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
 from ..validation import positive_int
+from .checks import (
+    DISCRETIZATIONS,
+    DOMAIN_MARGIN,
+    check_discretization,
+    check_finite,
+    check_initial,
+    check_sample,
+    check_samples,
+    check_system,
+    check_time,
+    domain_bounds,
+)
 
 __all__ = ["KKLObserver", "Estimate", "Estimator", "load_observer", "make_inject_model",
            "DISCRETIZATIONS", "INTEGRATOR_SOLVERS", "MODEL_BASED_INJECTION", "DOMAIN_MARGIN"]
 
-#: Relative margin of the domain monitor: estimates up to this share of the trained range outside
-#: it still count as in the domain (a transient grazing the edge is not flagged).
-DOMAIN_MARGIN = 0.1
-#: Discretisations of the latent ODE over one sample interval.
-DISCRETIZATIONS = ("exact", "rk4")
 #: ``ca.integrator`` plugins accepted by :meth:`KKLObserver.integrator`.
 INTEGRATOR_SOLVERS = ("cvodes", "idas", "rk", "collocation")
 #: Status bit of a guarded sample that was not fed to the latent (the last one fed was used again).
@@ -196,7 +202,7 @@ class KKLObserver:
             raise TypeError(f"system: expected a kklcasadi.System, received "
                             f"{type(system).__name__}.")
         spec = model.spec
-        _check_system(spec, system, str(model.path / CARD_FILE))
+        check_system(spec, system, str(model.path / CARD_FILE))
         self.model, self.system = model, system
         self.method: str = spec.method
         self.variant: variants.Variant = spec.variant
@@ -205,10 +211,10 @@ class KKLObserver:
         self.nz = self.A.shape[0]
         self.dt, self.window = model.dt, model.window
         self.linear = self.variant.linear
-        self.discretization = _check_discretization(discretization, self.linear, self.method)
+        self.discretization = check_discretization(discretization, self.linear, self.method)
         self.substeps = positive_int(substeps, "substeps")
         self.domain = spec.domain
-        self._domain_bounds = None if self.domain is None else _domain_bounds(self.domain)
+        self._domain_bounds = None if self.domain is None else domain_bounds(self.domain)
 
         nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
         exact = self.discretization == "exact"
@@ -437,17 +443,17 @@ class KKLObserver:
         """
         if n_threads is not None:
             positive_int(n_threads, "n_threads")
-        t = _check_time(t, self.dt)
+        t = check_time(t, self.dt)
         n = t.size
-        ys, batched_y = _check_samples(y, "y", n, self.ny)
-        us, batched_u = _check_samples(u, "u", n, self.nu)
+        ys, batched_y = check_samples(y, "y", n, self.ny)
+        us, batched_u = check_samples(u, "u", n, self.nu)
         if batched_y != batched_u or ys.shape[0] != us.shape[0]:
             raise ValueError(f"y and u: expected the same number of trials (both (N, .) or both "
                              f"(M, N, .)), received y {np.shape(y)} and u {np.shape(u)}.")
         for name, values in (("y", ys), ("u", us)):
-            _check_finite(values, name, t, batched_y)
+            check_finite(values, name, t, batched_y)
         m, nz, nu = ys.shape[0], self.nz, self.nu
-        z_start = _check_initial(z0, m, nz, batched_y)                          # (nz, M)
+        z_start = check_initial(z0, m, nz, batched_y)                          # (nz, M)
 
         w0_cols = self.memory_init.map(m)(ys[:, 0].T, us[:, 0].T)          # (rows, M cols)
         xhat = np.empty((m, n, self.nx))
@@ -579,8 +585,8 @@ class Estimator:
         numpy.ndarray, shape (nx,)
         """
         obs, guard = self.observer, self.guard
-        y = _check_sample(y, "y", obs.ny, self.k, finite=guard is None)
-        u = _check_sample(u, "u", obs.nu, self.k, finite=guard is None)
+        y = check_sample(y, "y", obs.ny, self.k, finite=guard is None)
+        u = check_sample(u, "u", obs.nu, self.k, finite=guard is None)
         status = 0
         if guard is not None:
             if guard.accepts(y[None], u[None])[0]:
@@ -628,116 +634,6 @@ class Estimator:
 def _blocks(matrix: Any, nx: int) -> np.ndarray:
     """The (nx, nx) blocks of a mapped Function's output (nx, nx C), as (C, nx, nx)."""
     return np.asarray(matrix).reshape(nx, -1, nx).transpose(1, 0, 2)
-
-
-# ---------------------------------------------------------------------- checks
-def _domain_bounds(domain: Any) -> tuple[np.ndarray, np.ndarray]:
-    """``[x; z]`` lower and upper bounds of the domain monitor, widened by :data:`DOMAIN_MARGIN`."""
-    lo = np.concatenate([domain.x_lo, domain.z_lo])
-    hi = np.concatenate([domain.x_hi, domain.z_hi])
-    margin = DOMAIN_MARGIN * np.maximum(hi - lo, 1e-9)
-    return lo - margin, hi + margin
-
-
-def _check_system(spec: ModelSpec, system: System, where: str) -> None:
-    expected = spec.system
-    if system.name != expected.name:
-        raise ValueError(f"{where}: 'system.name': the model was trained for {expected.name!r}, "
-                         f"received the system {system.name!r}. Pass the plant the model was "
-                         "trained for, or load the model trained for this plant.")
-    for key in ("nx", "nu", "ny"):
-        if getattr(system, key) != getattr(expected, key):
-            raise ValueError(f"{where}: 'system.{key}': the model expects {key} = "
-                             f"{getattr(expected, key)}, the system {system.name!r} has {key} = "
-                             f"{getattr(system, key)}. Pass the plant the model was trained for.")
-    if expected.fingerprint is not None and system.fingerprint != expected.fingerprint:
-        raise ValueError(f"{where}: 'system.fingerprint': the model was trained for a plant {expected.name!r} "
-                         f"with other dynamics or another box (fingerprint {expected.fingerprint[:12]}..., the plant "
-                         f"passed has {system.fingerprint[:12]}...). Pass the plant the model was trained for, "
-                         "or train a model for this plant.")
-
-
-def _check_discretization(discretization: Optional[str], linear: bool, method: str) -> str:
-    if discretization is None:
-        return "exact" if linear else "rk4"
-    if discretization not in DISCRETIZATIONS:
-        raise ValueError(f"discretization: expected one of {list(DISCRETIZATIONS)} or None, "
-                         f"received {discretization!r}.")
-    if discretization == "exact" and not linear:
-        raise ValueError(f"discretization: 'exact' needs linear latent dynamics; method {method!r}"
-                         " has an input term that depends on z. Use 'rk4' (the default).")
-    return discretization
-
-
-def _check_time(t: Any, dt: float) -> np.ndarray:
-    given = np.asarray(t)
-    eps = np.finfo(given.dtype).eps if np.issubdtype(given.dtype, np.floating) else np.finfo(float).eps
-    t = given.astype(float)
-    if t.ndim != 1 or t.size == 0:
-        raise ValueError(f"t: expected sample times of shape (N,), N >= 1, received shape "
-                         f"{t.shape}.")
-    if not np.all(np.isfinite(t)):
-        raise ValueError(f"t: expected finite sample times, received a NaN/inf at sample "
-                         f"{int(np.argmin(np.isfinite(t)))}.")
-    steps = np.diff(t)
-    # the spacing of stored times is exact to the rounding of their dtype (float32 times: ~1e-6 s at t = 50 s)
-    tolerance = max(1e-9 * dt, 1e-12 * max(1.0, abs(t[-1])), 2 * eps * max(1.0, float(np.max(np.abs(t)))))
-    if steps.size and not np.all(np.abs(steps - dt) <= tolerance):
-        k = int(np.argmax(np.abs(steps - dt)))
-        raise ValueError(f"t: expected samples spaced by the observer's dt = {dt}, received "
-                         f"t[{k + 1}] - t[{k}] = {steps[k]}. Resample the data at dt.")
-    return t
-
-
-def _check_samples(values: Any, argument: str, n: int, dim: int) -> tuple[np.ndarray, bool]:
-    """Return ``values`` as (M, N, dim) and whether it was given with a trial axis."""
-    array = np.asarray(values, dtype=float)
-    if array.ndim == 1 and dim == 1:
-        array = array[:, None]
-    if array.ndim == 2 and array.shape == (n, dim):
-        return array[None], False
-    if array.ndim == 3 and array.shape[1:] == (n, dim) and array.shape[0] >= 1:
-        return array, True
-    raise ValueError(f"{argument}: expected shape (N, {dim}) or (M, N, {dim}) with N = {n} "
-                     f"samples (the length of t), received {np.shape(values)}.")
-
-
-def _check_finite(values: np.ndarray, argument: str, t: np.ndarray, batched: bool) -> None:
-    bad = ~np.isfinite(values)
-    if bad.any():
-        trial, k, _ = (int(i) for i in np.argwhere(bad)[0])
-        at = f"trial {trial}, sample {k}" if batched else f"sample {k}"
-        raise ValueError(f"{argument}: expected finite values, received "
-                         f"{values[trial, k].tolist()} at {at} (t = {t[k]:.6g}). Remove or "
-                         "repair the bad samples before running the observer.")
-
-
-def _check_initial(z0: Any, m: int, nz: int, batched: bool) -> np.ndarray:
-    """The initial latent states as columns (nz, M); 0 by default."""
-    if z0 is None:
-        return np.zeros((nz, m))
-    array = np.asarray(z0, dtype=float)
-    if array.shape == (nz,):
-        array = np.repeat(array[None], m, axis=0)
-    elif not (batched and array.shape == (m, nz)):
-        expected = f"({nz},) or (M, {nz}) = ({m}, {nz})" if batched else f"({nz},)"
-        raise ValueError(f"z0: expected shape {expected}, received {array.shape}.")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"z0: expected finite values, received {array.tolist()}.")
-    return np.ascontiguousarray(array.T)
-
-
-def _check_sample(value: Any, argument: str, dim: int, k: int, *, finite: bool = True) -> np.ndarray:
-    array = np.asarray(value, dtype=float)
-    if array.shape not in ((dim,), (dim, 1)) and not (dim == 1 and array.shape == ()):
-        raise ValueError(f"{argument}: expected shape ({dim},) at sample {k}, received "
-                         f"{array.shape}.")
-    array = array.reshape(dim)
-    if finite and not np.all(np.isfinite(array)):
-        raise ValueError(f"{argument}: expected finite values at sample {k}, received "
-                         f"{array.tolist()}. Skip or repair the sample; the estimator state is "
-                         "unchanged.")
-    return array
 
 
 # ---------------------------------------------------------------------- loading
