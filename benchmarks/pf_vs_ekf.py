@@ -58,7 +58,7 @@ def main() -> None:
         r_pf, r_ekf = kc.metrics.rmse(x, est.xhat).mean(), kc.metrics.rmse(x, xhat_ekf).mean()
         print(f"| {kind} | {s_pf.mean():.2f} | {s_ekf.mean():.2f} | {s_pf.mean() / s_ekf.mean():.4f} | "
               f"{np.mean(s_pf < s_ekf):.2f} | {r_pf:.4f} | {r_ekf:.4f} | {r_pf / r_ekf:.4f} | {elapsed:.1f} | "
-              f"{est.ess.mean():.0f} |")
+              f"{est.stats.ess.mean():.0f} |")
 
 
 if __name__ == "__main__":

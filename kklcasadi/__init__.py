@@ -18,8 +18,9 @@ import importlib
 from typing import Any
 
 from . import metrics
+from .estimate import Estimate
 from .estimators import EKF, MHE, NMPC
-from .observer import Estimate, KKLObserver, load_observer
+from .observer import KKLObserver, load_observer
 from .observer.codegen import generate_c
 from .plant import signals, systems
 from .plant.design import Design

@@ -8,8 +8,9 @@ from scipy.linalg import expm
 
 import kklcasadi
 import kklcasadi as kc
+from kklcasadi.estimate import Estimate
 from kklcasadi.estimators.ekf import EKF
-from kklcasadi.estimators.pf import ROUGHENING, ParticleFilter, PFEstimate
+from kklcasadi.estimators.pf import ROUGHENING, ParticleFilter, PFEstimate, PFStats
 from kklcasadi.evaluation.protocol import Protocol, evaluate
 from kklcasadi.plant import signals as sig
 from kklcasadi.plant.simulate import step_function
@@ -123,9 +124,10 @@ def test_same_seed_same_estimates_and_trials_are_independent_of_the_batch(duffin
     pf = ParticleFilter(s, DT, n_particles=300, ess_threshold=0.9, roughening=roughening)
     first = pf.simulate(b.t, b.y, b.u)
     again = ParticleFilter(s, DT, n_particles=300, ess_threshold=0.9, roughening=roughening).simulate(b.t, b.y, b.u)
-    for name in ("xhat", "var", "ess"):
+    for name in ("xhat", "var"):
         np.testing.assert_array_equal(getattr(first, name), getattr(again, name))
         np.testing.assert_array_equal(getattr(pf.simulate(b.t, b.y, b.u), name), getattr(first, name))
+    np.testing.assert_array_equal(first.stats.ess, again.stats.ess)
     prefix = pf.simulate(b.t, b.y[:2], b.u[:2])
     np.testing.assert_array_equal(prefix.xhat, first.xhat[:2])
     single = pf.simulate(b.t, b.y[0], b.u[0])
@@ -145,8 +147,8 @@ def test_compiled_step_is_bitwise_the_casadi_vm(duffing_record, resample):
     assert jit.jit and not vm.jit
     a, c = jit.simulate(b.t, b.y, b.u), vm.simulate(b.t, b.y, b.u)
     np.testing.assert_array_equal(a.xhat, c.xhat)
-    np.testing.assert_array_equal(a.ess, c.ess)
-    assert np.mean(a.ess < 0.8 * 200) > 0.05                            # resampling happened
+    np.testing.assert_array_equal(a.stats.ess, c.stats.ess)
+    assert np.mean(a.stats.ess < 0.8 * 200) > 0.05                            # resampling happened
 
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="gcc not installed")
@@ -161,8 +163,9 @@ def test_the_compiled_path_is_bitwise_the_jit_on_any_thread_count(duffing_record
     assert jit.jit and not compiled.jit and compiled.compile is not None
     assert sorted(p.suffix for p in tmp_path.glob("pf_duffing_n200_*")) == [".c", ".c", ".so", ".so"]
     a, c = jit.simulate(b.t, b.y, b.u), compiled.simulate(b.t, b.y, b.u)
-    for name in ("xhat", "var", "ess"):
+    for name in ("xhat", "var"):
         np.testing.assert_array_equal(getattr(a, name), getattr(c, name))
+    np.testing.assert_array_equal(a.stats.ess, c.stats.ess)
     cached = pf_estimator(s, DT, compiler=Compiler(cache_dir=tmp_path), **opts)     # from the library cache
     np.testing.assert_array_equal(cached(b.t, b.y, b.u), a.xhat)
     np.testing.assert_array_equal(pf_estimator(s, DT, compiler=None, **opts)(b.t, b.y, b.u), a.xhat)
@@ -191,15 +194,16 @@ def test_shapes_and_the_protocol_estimator(duffing_record):
     s, b = duffing_record
     pf = ParticleFilter(s, DT, n_particles=100)
     est = pf.simulate(b.t, b.y, b.u)
-    assert isinstance(est, PFEstimate)
-    assert est.xhat.shape == est.var.shape == (3, b.t.size, 2) and est.ess.shape == (3, b.t.size)
-    assert np.all(est.var > 0) and np.all((est.ess >= 1 - 1e-9) & (est.ess <= 100 + 1e-9))
+    assert isinstance(est, Estimate) and PFEstimate is Estimate and isinstance(est.stats, PFStats)
+    assert est.z is None and est.in_domain is None
+    assert est.xhat.shape == est.var.shape == (3, b.t.size, 2) and est.stats.ess.shape == (3, b.t.size)
+    assert np.all(est.var > 0) and np.all((est.stats.ess >= 1 - 1e-9) & (est.stats.ess <= 100 + 1e-9))
     one = pf.simulate(b.t, b.y[0], b.u[0])
-    assert one.xhat.shape == one.var.shape == (b.t.size, 2) and one.ess.shape == (b.t.size,)
+    assert one.xhat.shape == one.var.shape == (b.t.size, 2) and one.stats.ess.shape == (b.t.size,)
     short = pf.simulate(b.t[:1], b.y[:, :1], b.u[:, :1])
     assert short.xhat.shape == (3, 1, 2)
     empty = pf.simulate(b.t, b.y[:0], b.u[:0])
-    assert empty.xhat.shape == (0, b.t.size, 2) and empty.ess.shape == (0, b.t.size)
+    assert empty.xhat.shape == (0, b.t.size, 2) and empty.stats.ess.shape == (0, b.t.size)
     np.testing.assert_array_equal(pf(b.t, b.y, b.u), est.xhat)
     assert kklcasadi.estimators.ParticleFilter is ParticleFilter
     cells = evaluate(pf, s, Protocol(n_trials=2, T=6.0), kinds=["zero"])

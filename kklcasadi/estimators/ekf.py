@@ -10,20 +10,20 @@ writes the filter step as C (CasADi's code generation and the kernels of :mod:`k
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import casadi as ca
 import numpy as np
 
+from ..estimate import Estimate, check_sample
 from ..observer.codegen import DEFAULT_FLAGS, c_targets, casadi_source, check_c_name, check_flags, renamed
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
 from ..validation import Text, covariance, error, nonnegative_number, one_of, positive_number, state_stds
 from ..writes import write_dir
 
-__all__ = ["EKF", "EKFEstimate", "NOISE_FLOOR", "EKF_FORMS", "noise_covariances"]
+__all__ = ["EKF", "EKFEstimator", "EKFEstimate", "NOISE_FLOOR", "EKF_FORMS", "noise_covariances"]
 
 #: Smallest noise std :meth:`EKF.for_noise` uses (a zero level would make the filter singular).
 NOISE_FLOOR = 1e-6
@@ -31,13 +31,8 @@ NOISE_FLOOR = 1e-6
 EKF_FORMS = ("sx", "dense")
 
 
-@dataclass(frozen=True, eq=False)
-class EKFEstimate:
-    """``t`` (N,), ``xhat`` (N, nx) or (M, N, nx), ``P`` diagonal variances with the same shape."""
-
-    t: np.ndarray
-    xhat: np.ndarray
-    var: np.ndarray
+#: The EKF's result is the one :class:`kklcasadi.estimate.Estimate` (``t``, ``xhat``, ``var``); the name stays.
+EKFEstimate = Estimate
 
 
 def noise_covariances(system: System, dt: float, *, process_std: float | Sequence[float],
@@ -242,7 +237,7 @@ class EKF:
                   overwrite=overwrite, argument="out_dir")
         return paths
 
-    def simulate(self, t: object, y: object, u: object, *, n_threads: int | None = None) -> EKFEstimate:
+    def simulate(self, t: object, y: object, u: object, *, n_threads: int | None = None) -> Estimate:
         """Filter one or many measured trajectories.
 
         Parameters
@@ -254,8 +249,9 @@ class EKF:
 
         Returns
         -------
-        EKFEstimate
-            ``xhat`` with shape (N, nx) or (M, N, nx): the filtered estimate after ``y_k``.
+        Estimate
+            ``xhat`` with shape (N, nx) or (M, N, nx): the filtered estimate after ``y_k``; ``var`` the
+            diagonal of ``P`` there.
         """
         t = np.asarray(t, dtype=float)
         y = np.asarray(y, dtype=float)
@@ -289,5 +285,73 @@ class EKF:
         diag_idx = np.arange(nx) * (nx + 1)
         var = np.concatenate([np.diagonal(P0, axis1=1, axis2=2)[:, None, :], out[:, :, nx + diag_idx]], axis=1)
         if single:
-            return EKFEstimate(t, xhat[0], var[0])
-        return EKFEstimate(t, xhat, var)
+            return Estimate(t, xhat[0], var=var[0])
+        return Estimate(t, xhat, var=var)
+
+    def estimator(self) -> EKFEstimator:
+        """The filter one sample at a time: ``xhat = est.make_step(y, u)`` (an :class:`EKFEstimator`)."""
+        return EKFEstimator(self)
+
+
+class EKFEstimator:
+    """Stateful form of an :class:`EKF`, for loops that receive one sample at a time (a
+    :class:`kklcasadi.estimate.StepEstimator`).
+
+    ``make_step(y_k, u_k)``: the first call updates the prior ``(x0, P0)`` with ``y_0``; later calls
+    predict over the last interval with the input the previous call was given, then update with
+    ``y_k``: the estimates of :meth:`EKF.simulate`, sample by sample (bitwise: the same predict and
+    update Functions on the same numbers).
+
+    Parameters
+    ----------
+    ekf : EKF
+
+    Attributes
+    ----------
+    ekf : EKF
+    k : int
+        Samples taken since the start or the last :meth:`reset`.
+    """
+
+    def __init__(self, ekf: EKF) -> None:
+        if not isinstance(ekf, EKF):
+            raise error("ekf", "a kklcasadi.EKF", Text(type(ekf).__name__), kind=TypeError)
+        self.ekf = ekf
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the past: the next :meth:`make_step` starts again from the prior."""
+        self._x: Optional[np.ndarray] = None
+        self._P: Optional[np.ndarray] = None
+        self._u: Optional[np.ndarray] = None
+        self.k = 0
+
+    @property
+    def P(self) -> Optional[np.ndarray]:
+        """The covariance ``P_k`` (nx, nx) after the last step, or None before the first."""
+        return None if self._P is None else self._P.copy()
+
+    @property
+    def cov(self) -> Optional[np.ndarray]:
+        """The covariance of the last estimate's error (nx, nx): :attr:`P` (what
+        :func:`kklcasadi.estimators.nmpc.closed_loop` tightens its bounds by)."""
+        return self.P
+
+    def make_step(self, y: object, u: object) -> np.ndarray:
+        """Feed ``y_k`` and ``u_k`` (the input held from ``t_k``); return the estimate ``xhat_k`` (nx,)."""
+        ekf = self.ekf
+        y = check_sample(y, "y", ekf.system.ny, self.k)
+        u = check_sample(u, "u", ekf.system.nu, self.k)
+        if self._x is None:
+            x, P = ekf.x0, ekf.P0
+        else:
+            x, P = ekf.predict(self._x, self._P, self._u)
+        x, P = ekf.update(x, P, y)
+        self._x, self._P, self._u = np.asarray(x).ravel(), np.asarray(P), u
+        self.k += 1
+        return self._x.copy()
+
+    @property
+    def stats(self) -> dict:
+        """``k`` (samples taken) and ``var`` (the diagonal of ``P_k``, None before the first step)."""
+        return {"k": self.k, "var": None if self._P is None else np.diag(self._P).copy()}

@@ -46,11 +46,12 @@ from typing import Any, Optional, Sequence
 import casadi as ca
 import numpy as np
 
+from ..estimate import Estimate, check_sample
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
 from ..validation import covariance, nonnegative_number, positive_int
 
-__all__ = ["MHE", "KKLPrimedMHE", "MHEEstimate", "MHEStats", "SolveRecord", "kkl_error_profile",
+__all__ = ["MHE", "KKLPrimedMHE", "MHEEstimator", "MHEEstimate", "MHEStats", "SolveRecord", "kkl_error_profile",
            "solve_compiled", "ipopt_options"]
 
 #: ipopt return statuses that count as a solved problem.
@@ -173,13 +174,9 @@ class MHEStats:
                 f"statuses {dict(self.statuses)}")
 
 
-@dataclass(frozen=True, eq=False)
-class MHEEstimate:
-    """An MHE run: ``t`` (N,), ``xhat`` (N, nx) or (M, N, nx), and its :class:`MHEStats`."""
-
-    t: np.ndarray
-    xhat: np.ndarray
-    stats: MHEStats
+#: An MHE run is the one :class:`kklcasadi.estimate.Estimate` (``t``, ``xhat``, ``stats``: :class:`MHEStats`); the
+#: name stays.
+MHEEstimate = Estimate
 
 
 # ---------------------------------------------------------------------- the estimator
@@ -342,7 +339,7 @@ class MHE:
         return self._rv * np.linalg.cholesky(info).T
 
     def simulate(self, t: Any, y: Any, u: Any, *, guide: Any = None,
-                 guide_std: Any = None, guide_cov: Any = None) -> MHEEstimate:
+                 guide_std: Any = None, guide_cov: Any = None) -> Estimate:
         """Estimate one or many measured trajectories, one solve per sample.
 
         Parameters
@@ -367,8 +364,9 @@ class MHE:
 
         Returns
         -------
-        MHEEstimate
-            ``xhat`` (N, nx) or (M, N, nx), ``xhat_k`` from ``y_0..y_k`` and ``u_0..u_k-1``.
+        Estimate
+            ``xhat`` (N, nx) or (M, N, nx), ``xhat_k`` from ``y_0..y_k`` and ``u_0..u_k-1``; ``stats`` the
+            solver's :class:`MHEStats`.
         """
         t, ys, us, single = _check_run(t, y, u, self)
         m, n_samples = ys.shape[:2]
@@ -389,7 +387,7 @@ class MHE:
         stats = MHEStats(iterations, seconds, failed, dict(statuses))
         for array in (xhat, iterations, seconds, failed):
             array.setflags(write=False)
-        return MHEEstimate(t, xhat[0] if single else xhat, stats)
+        return Estimate(t, xhat[0] if single else xhat, stats=stats)
 
     def __call__(self, t: Any, y: Any, u: Any) -> np.ndarray:
         """The protocol estimator ``(t, y (M,N,ny), u (M,N,nu)) -> xhat (M,N,nx)``.
@@ -400,49 +398,171 @@ class MHE:
         self.last_stats = run.stats
         return run.xhat
 
+    def estimator(self) -> MHEEstimator:
+        """The MHE one sample at a time: ``xhat = est.make_step(y, u)`` (an :class:`MHEEstimator`)."""
+        return MHEEstimator(self)
+
     def _run_trial(self, y: np.ndarray, u: np.ndarray, guide: Optional[np.ndarray],
                    guide_P: Optional[np.ndarray], out: np.ndarray) -> list[SolveRecord]:
         """Fill ``out`` (N, nx) with the estimates of one trial; return one record per sample."""
+        window = _Window.start(self)
+        return [self._solve_sample(window, k, y, u, guide, guide_P, out) for k in range(y.shape[0])]
+
+    def _solve_sample(self, window: _Window, k: int, y: np.ndarray, u: np.ndarray, guide: Optional[np.ndarray],
+                      guide_P: Optional[np.ndarray], out: np.ndarray) -> SolveRecord:
+        """Solve at sample ``k`` (``y``, ``u``, ``guide``, ``guide_P`` (N, nx, nx) and ``out`` hold at least ``k + 1``
+        rows, the estimates before ``k`` in ``out``): write ``out[k]``, update ``window``, return the solve's record."""
         N, nx = self.horizon, self.nx
-        records: list[SolveRecord] = []
-        xbar, P = self.x0.copy(), self.P0.copy()
-        X = np.zeros((nx, 1))
-        W = np.zeros((nx, 0))
-        for k in range(y.shape[0]):
-            n = min(k, N)
-            start = k - n
-            if guide is not None:
-                xbar, P = guide[start], guide_P[start]
-            elif n == N and k > N:
-                # the window slid: the prior of the new first node is the filtered estimate of the
-                # dropped node propagated one interval, with the EKF covariance propagation
-                P = np.asarray(self.arrival(out[start - 1], P, u[start - 1]))
-                xbar = np.asarray(self.phi(out[start - 1], u[start - 1], np.zeros(nx))).ravel()
-            # warm start: the previous solution shifted by one node, the newest node predicted
-            newest = (guide[k] if guide is not None and k > 0 else
-                      np.asarray(self.phi(X[:, -1], u[k - 1], np.zeros(nx))).ravel() if k > 0
-                      else xbar)
-            if n == 0:
-                X_guess = xbar[:, None]
-            else:
-                keep = X[:, 1:] if X.shape[1] == n + 1 else X
-                X_guess = np.hstack([keep, newest[:, None]])
-                keep_w = W[:, 1:] if W.shape[1] == n else W
-                W_guess = np.hstack([keep_w, np.zeros((nx, 1))])
-            args: list[Any] = [xbar, self._prior_root(P), y[start:k + 1].T]
-            if n > 0:
-                args += [u[start:k].T, X_guess, W_guess]
-            else:
-                args += [X_guess]
-            outputs, record = solve_compiled(self.problem(n), args)
-            records.append(record)
-            if record.success:
-                X = outputs[0]
-                W = outputs[1] if n > 0 else np.zeros((nx, 0))
-            else:
-                X, W = X_guess, (W_guess if n > 0 else np.zeros((nx, 0)))
-            out[k] = X[:, -1]
-        return records
+        xbar, P, X, W = window.xbar, window.P, window.X, window.W
+        n = min(k, N)
+        start = k - n
+        if guide is not None:
+            xbar, P = guide[start], guide_P[start]
+        elif n == N and k > N:
+            # the window slid: the prior of the new first node is the filtered estimate of the
+            # dropped node propagated one interval, with the EKF covariance propagation
+            P = np.asarray(self.arrival(out[start - 1], P, u[start - 1]))
+            xbar = np.asarray(self.phi(out[start - 1], u[start - 1], np.zeros(nx))).ravel()
+        # warm start: the previous solution shifted by one node, the newest node predicted
+        newest = (guide[k] if guide is not None and k > 0 else
+                  np.asarray(self.phi(X[:, -1], u[k - 1], np.zeros(nx))).ravel() if k > 0
+                  else xbar)
+        if n == 0:
+            X_guess = xbar[:, None]
+        else:
+            keep = X[:, 1:] if X.shape[1] == n + 1 else X
+            X_guess = np.hstack([keep, newest[:, None]])
+            keep_w = W[:, 1:] if W.shape[1] == n else W
+            W_guess = np.hstack([keep_w, np.zeros((nx, 1))])
+        args: list[Any] = [xbar, self._prior_root(P), y[start:k + 1].T]
+        if n > 0:
+            args += [u[start:k].T, X_guess, W_guess]
+        else:
+            args += [X_guess]
+        outputs, record = solve_compiled(self.problem(n), args)
+        if record.success:
+            X = outputs[0]
+            W = outputs[1] if n > 0 else np.zeros((nx, 0))
+        else:
+            X, W = X_guess, (W_guess if n > 0 else np.zeros((nx, 0)))
+        out[k] = X[:, -1]
+        window.xbar, window.P, window.X, window.W = xbar, P, X, W
+        return record
+
+
+@dataclass
+class _Window:
+    """What an MHE carries from one sample to the next in a trial: the arrival prior ``(xbar, P)`` and the last
+    solution ``X`` (nx, n + 1), ``W`` (nx, n) that warm-starts the next solve."""
+
+    xbar: np.ndarray
+    P: np.ndarray
+    X: np.ndarray
+    W: np.ndarray
+
+    @classmethod
+    def start(cls, mhe: MHE) -> _Window:
+        return cls(mhe.x0.copy(), mhe.P0.copy(), np.zeros((mhe.nx, 1)), np.zeros((mhe.nx, 0)))
+
+
+class _History:
+    """Rows appended one sample at a time, kept in a buffer that doubles (what a step estimator hands the
+    MHE's per-sample solve, which reads rows by their sample index)."""
+
+    def __init__(self, width: int) -> None:
+        self.rows = np.empty((16, width))
+        self.n = 0
+
+    def append(self, row: np.ndarray) -> None:
+        if self.n == len(self.rows):
+            self.rows = np.vstack([self.rows, np.empty_like(self.rows)])
+        self.rows[self.n] = row
+        self.n += 1
+
+
+class MHEEstimator:
+    """Stateful form of an :class:`MHE` (or, with ``guide``, of a :class:`KKLPrimedMHE`), for loops that receive
+    one sample at a time (a :class:`kklcasadi.estimate.StepEstimator`).
+
+    ``make_step(y_k, u_k)`` solves the window ending at ``y_k`` and returns its newest node: the solves of
+    :meth:`MHE.simulate` sample by sample (bitwise, given the same guide).
+
+    Parameters
+    ----------
+    mhe : MHE
+    guide : StepEstimator, optional
+        An estimator fed the same samples first whose estimate guides the MHE (the KKL observer's for
+        :meth:`KKLPrimedMHE.estimator`), with ``guide_std`` ``(N, nx)`` or ``(nx,)``: the standard deviation of
+        its error at each sample (the last row after the profile ends); without ``guide_std``, the guide's own
+        covariance of each estimate (its ``cov``: an observer with a covariance head).
+
+    Attributes
+    ----------
+    mhe : MHE
+    k : int
+        Samples taken since the start or the last :meth:`reset`.
+    """
+
+    def __init__(self, mhe: MHE, guide: Any = None, guide_std: Any = None) -> None:
+        if not isinstance(mhe, MHE):
+            raise TypeError(f"mhe: expected an MHE, received {type(mhe).__name__}.")
+        if guide is None and guide_std is not None:
+            raise ValueError("guide_std: expected it with guide and only then (the prior's standard deviation per "
+                             "sample), received it without guide.")
+        self.mhe, self.guide = mhe, guide
+        self._guide_std = None if guide_std is None else np.asarray(guide_std, dtype=float)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the past: the next :meth:`make_step` starts a new trial."""
+        nx = self.mhe.nx
+        self._window = _Window.start(self.mhe)
+        self._y, self._u = _History(self.mhe.ny), _History(self.mhe.nu)
+        self._out = _History(nx)
+        self._guide, self._guide_P = (None, None) if self.guide is None else (_History(nx), _History(nx * nx))
+        if self.guide is not None:
+            self.guide.reset()
+        self._record: Optional[SolveRecord] = None
+        self._failed = 0
+        self.k = 0
+
+    def make_step(self, y: Any, u: Any) -> np.ndarray:
+        """Feed ``y_k`` and ``u_k`` (the input held from ``t_k``); return the estimate ``xhat_k`` (nx,)."""
+        mhe, k = self.mhe, self.k
+        y = check_sample(y, "y", mhe.ny, k)
+        u = check_sample(u, "u", mhe.nu, k)
+        self._y.append(y)
+        self._u.append(u)
+        self._out.append(np.zeros(mhe.nx))
+        guide = guide_P = None
+        if self.guide is not None:
+            self._guide.append(self.guide.make_step(y, u))
+            self._guide_P.append(self._guide_cov(k).ravel())
+            guide, guide_P = self._guide.rows, self._guide_P.rows.reshape(-1, mhe.nx, mhe.nx)
+        self._record = mhe._solve_sample(self._window, k, self._y.rows, self._u.rows, guide, guide_P,
+                                         self._out.rows)
+        self._failed += not self._record.success
+        self.k += 1
+        return self._out.rows[k].copy()
+
+    def _guide_cov(self, k: int) -> np.ndarray:
+        """The prior's covariance (nx, nx) at sample ``k``: ``diag(guide_std_k^2)``, or the guide's ``cov``."""
+        nx = self.mhe.nx
+        if self._guide_std is None:
+            cov = getattr(self.guide, "cov", None)
+            if cov is None:
+                raise ValueError("guide_std: expected the guide's error std, or a guide that reports its covariance "
+                                 f"(cov; an observer with a covariance head), received {type(self.guide).__name__} "
+                                 "without one.")
+            return np.asarray(cov, dtype=float)
+        std = self._guide_std if self._guide_std.ndim == 1 else self._guide_std[min(k, len(self._guide_std) - 1)]
+        return np.eye(nx) * (std ** 2)[:, None]
+
+    @property
+    def stats(self) -> dict:
+        """``k`` (samples taken), ``failed`` (solves so far whose estimate is the fallback) and ``last`` (the last
+        solve's :class:`SolveRecord`, None before the first)."""
+        return {"k": self.k, "failed": self._failed, "last": self._record}
 
 
 class KKLPrimedMHE:
@@ -513,12 +633,17 @@ class KKLPrimedMHE:
             return np.vstack([self.error_std, tail])
         return self.error_std[:n_samples]
 
-    def simulate(self, t: Any, y: Any, u: Any) -> MHEEstimate:
+    def simulate(self, t: Any, y: Any, u: Any) -> Estimate:
         """Run the observer, then the MHE primed by it (shapes as :meth:`MHE.simulate`)."""
         est = self.observer.simulate(t, y, u)
         if self.error_std is None:
             return self.mhe.simulate(t, y, u, guide=est.xhat, guide_cov=est.cov)
         return self.mhe.simulate(t, y, u, guide=est.xhat, guide_std=self._std(np.size(t)))
+
+    def estimator(self) -> MHEEstimator:
+        """The primed MHE one sample at a time: the observer's step estimator guides an :class:`MHEEstimator`
+        (its estimates equal :meth:`simulate`'s to the rounding of the observer's step, one sample at a time)."""
+        return MHEEstimator(self.mhe, self.observer.estimator(), self.error_std)
 
     def __call__(self, t: Any, y: Any, u: Any) -> np.ndarray:
         """The protocol estimator; statistics in :attr:`last_stats`."""

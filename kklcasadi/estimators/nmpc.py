@@ -33,6 +33,7 @@ import numpy as np
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
 from ..validation import nonnegative_number, positive_int
+from . import ekf as ekf_module
 from .ekf import EKF
 from .mhe import SolveRecord, ipopt_options, solve_compiled
 
@@ -296,37 +297,12 @@ class TrueState:
         return self.x.copy()
 
 
-class EKFEstimator:
-    """The shipped EKF (:class:`kklcasadi.estimators.ekf.EKF`) one sample at a time.
-
-    ``make_step(y_k, u_k)``: the first call updates the prior (box centre, box variance) with
-    ``y_0``; later calls predict over the last interval with the input stored by the previous
-    call, then update with ``y_k``. Same convention as :class:`kklcasadi.observer.kkl.Estimator`.
-    """
+class EKFEstimator(ekf_module.EKFEstimator):
+    """The protocol's EKF (``EKF(system, dt)``) one sample at a time: ``EKF(system, dt).estimator()`` under the
+    name the NMPC examples use (:class:`kklcasadi.estimators.ekf.EKFEstimator`)."""
 
     def __init__(self, system: System, dt: float) -> None:
-        self.ekf = EKF(system, dt)
-        self.reset()
-
-    def reset(self) -> None:
-        self._x: Optional[np.ndarray] = None
-        self._P: Optional[np.ndarray] = None
-        self._u: Optional[np.ndarray] = None
-
-    def make_step(self, y: Any, u: Any) -> np.ndarray:
-        if self._x is None:
-            x, P = self.ekf.x0, self.ekf.P0
-        else:
-            x, P = self.ekf.predict(self._x, self._P, self._u)
-        x, P = self.ekf.update(x, P, np.atleast_1d(np.asarray(y, dtype=float)))
-        self._x, self._P = np.asarray(x).ravel(), np.asarray(P)
-        self._u = np.atleast_1d(np.asarray(u, dtype=float))
-        return self._x.copy()
-
-    @property
-    def cov(self) -> Optional[np.ndarray]:
-        """The filter's covariance (nx, nx) of the last estimate, or None before the first step."""
-        return None if self._P is None else self._P.copy()
+        super().__init__(EKF(system, dt))
 
 
 @dataclass(frozen=True, eq=False)
@@ -406,9 +382,11 @@ def closed_loop(controller: NMPC, estimator: Any, reference: Callable[[float], t
     ----------
     controller : NMPC
         Its ``system`` is the plant; it is reset first.
-    estimator : object with ``make_step(y, u) -> xhat``
-        :meth:`kklcasadi.KKLObserver.estimator`, :class:`EKFEstimator` or :class:`TrueState`
-        (fed the true state). A fresh one per run.
+    estimator : object with ``make_step(y, u) -> xhat``, or with ``estimator()`` giving one
+        Any estimator of kklcasadi, one sample at a time (:class:`kklcasadi.estimate.StepEstimator`: the
+        observer's, the EKF's, the particle filter's, the MHEs' ``estimator()``), or the estimator itself
+        (``obs``, ``ekf``, ``pf``, ``mhe``: its ``estimator()`` is taken); :class:`TrueState` is fed the
+        true state. It is reset first.
     reference : callable ``t -> (x_ref (nx,), u_ref (nu,))``
         Set point at time ``t`` (e.g. from :func:`steady_state`).
     x0 : array_like, shape (nx,)
@@ -434,9 +412,13 @@ def closed_loop(controller: NMPC, estimator: Any, reference: Callable[[float], t
     """
     if not isinstance(controller, NMPC):
         raise TypeError(f"controller: expected an NMPC, received {type(controller).__name__}.")
+    if not callable(getattr(estimator, "make_step", None)) and callable(getattr(estimator, "estimator", None)):
+        estimator = estimator.estimator()
     if not callable(getattr(estimator, "make_step", None)):
-        raise TypeError(f"estimator: expected an object with make_step(y, u), received "
+        raise TypeError(f"estimator: expected an object with make_step(y, u) or estimator(), received "
                         f"{type(estimator).__name__}.")
+    if callable(getattr(estimator, "reset", None)):
+        estimator.reset()
     k_sigma = nonnegative_number(tighten, "tighten")
     bounded = list(controller.state_bounds)
     if k_sigma > 0 and not hasattr(estimator, "cov"):

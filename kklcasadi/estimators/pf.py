@@ -37,6 +37,7 @@ from typing import Callable, Optional
 import casadi as ca
 import numpy as np
 
+from ..estimate import Estimate, check_sample
 from ..plant.noise import NoiseModel
 from ..plant.noise import noise_model as as_noise_model
 from ..plant.simulate import step_function
@@ -54,7 +55,7 @@ from ..validation import (
     state_stds,
 )
 
-__all__ = ["ParticleFilter", "PFEstimate", "RESAMPLING", "SUBSTEPS", "ROUGHENING"]
+__all__ = ["ParticleFilter", "PFEstimator", "PFStats", "PFEstimate", "RESAMPLING", "SUBSTEPS", "ROUGHENING"]
 
 #: Resampling schemes accepted by ``resample``.
 RESAMPLING = ("systematic", "stratified", "multinomial")
@@ -73,17 +74,22 @@ JIT_FLAGS = ["-O3", "-ffp-contract=off"]
 
 
 @dataclass(frozen=True, eq=False)
-class PFEstimate:
-    """``t`` (N,); ``xhat`` and ``var`` (weighted mean and variance per state) (N, nx) or (M, N, nx).
+class PFStats:
+    """The particle filter's report of a run (an :class:`kklcasadi.estimate.Estimate`'s ``stats``).
 
-    ``ess`` (N,) or (M, N) is the effective sample size ``1 / sum w_i^2`` after weighting by
-    ``y_k`` (before resampling), between 1 and ``n_particles``.
+    Attributes
+    ----------
+    ess : numpy.ndarray, shape (N,) or (M, N)
+        The effective sample size ``1 / sum w_i^2`` after weighting by ``y_k`` (before resampling),
+        between 1 and ``n_particles``.
     """
 
-    t: np.ndarray
-    xhat: np.ndarray
-    var: np.ndarray
     ess: np.ndarray
+
+
+#: The filter's result is the one :class:`kklcasadi.estimate.Estimate` (``t``, ``xhat``, ``var``: the weighted
+#: mean and variance per state, ``stats``: :class:`PFStats`); the name stays.
+PFEstimate = Estimate
 
 
 class ParticleFilter:
@@ -300,7 +306,7 @@ class ParticleFilter:
             spread = self.roughening * np.ptp(X, axis=0) * n ** (-1.0 / nx)
             X += spread * rng.standard_normal((n, nx))
 
-    def simulate(self, t: object, y: object, u: object) -> PFEstimate:
+    def simulate(self, t: object, y: object, u: object) -> Estimate:
         """Filter one or many measured trajectories.
 
         Parameters
@@ -313,47 +319,28 @@ class ParticleFilter:
 
         Returns
         -------
-        PFEstimate
-            ``xhat``, ``var`` (N, nx) or (M, N, nx) and ``ess`` (N,) or (M, N): the filtered
-            estimate after ``y_k``.
+        Estimate
+            ``xhat``, ``var`` (N, nx) or (M, N, nx) and ``stats`` a :class:`PFStats` (``ess`` (N,) or (M, N)):
+            the filtered estimate after ``y_k``.
         """
         t, y, u, single = self._check(t, y, u)
         m, n_samples = y.shape[:2]
-        nx, ny, nu, n = self.system.nx, self.system.ny, self.system.nu, self.n_particles
+        nx = self.system.nx
         if m == 0:
-            return PFEstimate(t, np.empty((0, n_samples, nx)), np.empty((0, n_samples, nx)), np.empty((0, n_samples)))
-        rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(self.seed).spawn(m)]
-        X = np.stack([self.prior(rng) for rng in rngs])             # (M, n, nx) = (nx, n M) column-major
-        logw = np.full((m, n), -np.log(n))
-        noise = np.empty((m, n, nx))
-        u_k, y_k = np.empty((m, nu)), np.empty((m, ny))
-        X_out, logw_out = np.empty_like(X), np.empty_like(logw)
-        ess_k, mean_k, var_k = np.empty(m), np.empty((m, nx)), np.empty((m, nx))
+            return Estimate(t, np.empty((0, n_samples, nx)), var=np.empty((0, n_samples, nx)),
+                            stats=PFStats(np.empty((0, n_samples))))
+        cloud = _Cloud(self, m)
         xhat, var, ess = np.empty((m, n_samples, nx)), np.empty((m, n_samples, nx)), np.empty((m, n_samples))
-
-        results = [X_out, logw_out, ess_k, mean_k, var_k]
-        threads = min(m, self.n_threads or os.cpu_count() or 1)
-        update = _in_place(self.update.map(m, "thread", threads), [X, logw, y_k], results)
-        step = _in_place(self.step.map(m, "thread", threads), [X, logw, u_k, noise, y_k], results)
         for k in range(n_samples):
-            y_k[:] = y[:, k]
-            if k == 0:
-                update()
-            else:
-                u_k[:] = u[:, k - 1]
-                for i, rng in enumerate(rngs):
-                    rng.standard_normal(out=noise[i])
-                step()
-            X[:], logw[:] = X_out, logw_out
-            xhat[:, k], var[:, k], ess[:, k] = mean_k, var_k, ess_k
-            for i in np.flatnonzero(ess_k < self.ess_threshold * n):
-                idx = self.resample_indices(np.exp(logw[i]), rngs[i])
-                X[i] = X[i][idx]
-                logw[i] = -np.log(n)
-                self.roughen(X[i], rngs[i])
+            cloud.advance(y[:, k], None if k == 0 else u[:, k - 1])
+            xhat[:, k], var[:, k], ess[:, k] = cloud.mean_k, cloud.var_k, cloud.ess_k
         if single:
-            return PFEstimate(t, xhat[0], var[0], ess[0])
-        return PFEstimate(t, xhat, var, ess)
+            return Estimate(t, xhat[0], var=var[0], stats=PFStats(ess[0]))
+        return Estimate(t, xhat, var=var, stats=PFStats(ess))
+
+    def estimator(self) -> PFEstimator:
+        """The filter one sample at a time: ``xhat = est.make_step(y, u)`` (a :class:`PFEstimator`)."""
+        return PFEstimator(self)
 
     def __call__(self, t: object, y: object, u: object) -> np.ndarray:
         """The protocol's estimator: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``."""
@@ -382,6 +369,100 @@ class ParticleFilter:
             if bad.size:
                 raise error(arg, "finite values", Text(f"NaN or inf at trial {bad[0, 0]}, sample {bad[0, 1]}"))
         return t, y, u, single
+
+
+class _Cloud:
+    """The particles of M trials and the filter's in-place calls on them, one sample at a time (what
+    :meth:`ParticleFilter.simulate` and :class:`PFEstimator` run): trial ``i`` draws from the stream
+    ``SeedSequence(seed).spawn(M)[i]``, the prior first."""
+
+    def __init__(self, pf: ParticleFilter, m: int) -> None:
+        nx, ny, nu, n = pf.system.nx, pf.system.ny, pf.system.nu, pf.n_particles
+        self.pf = pf
+        self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(pf.seed).spawn(m)]
+        self.X = np.stack([pf.prior(rng) for rng in self.rngs])         # (M, n, nx) = (nx, n M) column-major
+        self.logw = np.full((m, n), -np.log(n))
+        self.noise = np.empty((m, n, nx))
+        self.u_k, self.y_k = np.empty((m, nu)), np.empty((m, ny))
+        self.X_out, self.logw_out = np.empty_like(self.X), np.empty_like(self.logw)
+        self.ess_k, self.mean_k, self.var_k = np.empty(m), np.empty((m, nx)), np.empty((m, nx))
+        results = [self.X_out, self.logw_out, self.ess_k, self.mean_k, self.var_k]
+        threads = min(m, pf.n_threads or os.cpu_count() or 1)
+        self._update = _in_place(pf.update.map(m, "thread", threads), [self.X, self.logw, self.y_k], results)
+        self._step = _in_place(pf.step.map(m, "thread", threads),
+                               [self.X, self.logw, self.u_k, self.noise, self.y_k], results)
+        self.k = 0
+
+    def advance(self, y: np.ndarray, u_prev: Optional[np.ndarray]) -> None:
+        """Take ``y_k`` (M, ny) (and ``u_k-1`` (M, nu) after the first sample): weight (after propagating), read
+        ``mean_k``, ``var_k``, ``ess_k``, then resample the trials whose ESS fell below the threshold."""
+        pf, X, logw, n = self.pf, self.X, self.logw, self.pf.n_particles
+        self.y_k[:] = y
+        if self.k == 0:
+            self._update()
+        else:
+            self.u_k[:] = u_prev
+            for i, rng in enumerate(self.rngs):
+                rng.standard_normal(out=self.noise[i])
+            self._step()
+        X[:], logw[:] = self.X_out, self.logw_out
+        for i in np.flatnonzero(self.ess_k < pf.ess_threshold * n):
+            idx = pf.resample_indices(np.exp(logw[i]), self.rngs[i])
+            X[i] = X[i][idx]
+            logw[i] = -np.log(n)
+            pf.roughen(X[i], self.rngs[i])
+        self.k += 1
+
+
+class PFEstimator:
+    """Stateful form of a :class:`ParticleFilter`, for loops that receive one sample at a time (a
+    :class:`kklcasadi.estimate.StepEstimator`).
+
+    ``make_step(y_k, u_k)`` returns the weighted mean after ``y_k``: bitwise the first trial of
+    :meth:`ParticleFilter.simulate` (the stream ``SeedSequence(seed).spawn(M)[0]``), sample by sample.
+
+    Parameters
+    ----------
+    pf : ParticleFilter
+
+    Attributes
+    ----------
+    pf : ParticleFilter
+    k : int
+        Samples taken since the start or the last :meth:`reset`.
+    """
+
+    def __init__(self, pf: ParticleFilter) -> None:
+        if not isinstance(pf, ParticleFilter):
+            raise error("pf", "a kklcasadi.estimators.ParticleFilter", Text(type(pf).__name__), kind=TypeError)
+        self.pf = pf
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the past: the next :meth:`make_step` draws the prior again (the same stream)."""
+        self._cloud: Optional[_Cloud] = None
+        self._u: Optional[np.ndarray] = None
+        self.k = 0
+
+    def make_step(self, y: object, u: object) -> np.ndarray:
+        """Feed ``y_k`` and ``u_k`` (the input held from ``t_k``); return the estimate ``xhat_k`` (nx,)."""
+        system = self.pf.system
+        y = check_sample(y, "y", system.ny, self.k)
+        u = check_sample(u, "u", system.nu, self.k)
+        if self._cloud is None:
+            self._cloud = _Cloud(self.pf, 1)
+        self._cloud.advance(y[None], None if self._u is None else self._u[None])
+        self._u = u
+        self.k += 1
+        return self._cloud.mean_k[0].copy()
+
+    @property
+    def stats(self) -> dict:
+        """``k`` (samples taken), ``var`` (the weighted variance per state) and ``ess`` (the effective sample
+        size before resampling) of the last step (None before the first)."""
+        cloud = self._cloud
+        return {"k": self.k, "var": None if cloud is None else cloud.var_k[0].copy(),
+                "ess": None if cloud is None else float(cloud.ess_k[0])}
 
 
 def _in_place(f: ca.Function, args: list[np.ndarray], results: list[np.ndarray]) -> Callable[[], None]:

@@ -39,7 +39,10 @@ __all__ = ["LogEstimate", "estimate_log", "read_plant_log", "ekf_for_model"]
 
 @dataclass(frozen=True, eq=False)
 class LogEstimate:
-    """An observer run over a log.
+    """An observer run over a log, with the EKF beside it and the scores against the log's reference.
+
+    Not a :class:`kklcasadi.estimate.Estimate` (the result of one estimator): a report on a log that holds
+    the observer's estimate, the EKF's, the log itself, its reference and the scores.
 
     Attributes
     ----------

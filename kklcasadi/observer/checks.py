@@ -14,7 +14,7 @@ from ..model.card import ModelSpec
 from ..plant.systems import System
 
 __all__ = ["DOMAIN_MARGIN", "DISCRETIZATIONS", "domain_bounds", "check_system", "check_discretization", "check_time",
-           "check_samples", "check_finite", "check_initial", "check_sample"]
+           "check_samples", "check_finite", "check_initial"]
 
 #: Relative margin of the domain monitor: estimates up to this share of the trained range outside
 #: it still count as in the domain (a transient grazing the edge is not flagged).
@@ -117,16 +117,3 @@ def check_initial(z0: Any, m: int, nz: int, batched: bool) -> np.ndarray:
     if not np.all(np.isfinite(array)):
         raise ValueError(f"z0: expected finite values, received {array.tolist()}.")
     return np.ascontiguousarray(array.T)
-
-
-def check_sample(value: Any, argument: str, dim: int, k: int, *, finite: bool = True) -> np.ndarray:
-    array = np.asarray(value, dtype=float)
-    if array.shape not in ((dim,), (dim, 1)) and not (dim == 1 and array.shape == ()):
-        raise ValueError(f"{argument}: expected shape ({dim},) at sample {k}, received "
-                         f"{array.shape}.")
-    array = array.reshape(dim)
-    if finite and not np.all(np.isfinite(array)):
-        raise ValueError(f"{argument}: expected finite values at sample {k}, received "
-                         f"{array.tolist()}. Skip or repair the sample; the estimator state is "
-                         "unchanged.")
-    return array

@@ -203,7 +203,7 @@ def guarded_simulate(observer: KKLObserver, t: Any, y: Any, u: Any, *,
     flags = observer.in_domain(xhat, z, w if observer.monitor is not None else None)
     for array in (xhat, z, status) if flags is None else (xhat, z, status, flags):
         array.setflags(write=False)
-    return Estimate(t, xhat, z, flags), status
+    return Estimate(t, xhat, z=z, in_domain=flags), status
 
 
 def guarded_estimator(observer: KKLObserver, *, guard: SampleGuard | None = None) -> Estimator:

@@ -38,13 +38,13 @@ input held at ``u_k`` (``docs/protocol.md`` "Observer"). ``w_k`` is the observer
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional, Union
 
 import casadi as ca
 import numpy as np
 
+from ..estimate import Estimate, check_sample
 from ..model import variants
 from ..model.files import CARD_FILE, Model, derive_model, load_model
 from ..model.monitor import FeatureMonitor
@@ -61,7 +61,6 @@ from .checks import (
     check_discretization,
     check_finite,
     check_initial,
-    check_sample,
     check_samples,
     check_system,
     check_time,
@@ -79,41 +78,6 @@ HELD = 1
 RESTARTED = 2
 
 PathLike = Union[str, os.PathLike]
-
-
-@dataclass(frozen=True, eq=False)
-class Estimate:
-    """An observer run on a sampled trajectory.
-
-    Attributes
-    ----------
-    t : numpy.ndarray, shape (N,)
-        Sample times.
-    xhat : numpy.ndarray, shape (N, nx) or (M, N, nx)
-        State estimates ``xhat_k``; ``(M, N, nx)`` for M trials.
-    z : numpy.ndarray, shape (N, nz) or (M, N, nz)
-        Latent states ``z_k``, ``z_0 = 0``.
-    in_domain : numpy.ndarray of bool, shape (N,) or (M, N), or None
-        The domain monitor per sample (:meth:`KKLObserver.in_domain`): whether ``(xhat_k, z_k)``
-        lies in the trained boxes (with the margin :data:`DOMAIN_MARGIN`) and, where the model has a
-        decoder-input monitor, whether the decoder's input ``[z_k; vec(w_k)]`` lies within its
-        threshold of the fitting data; None when the model records neither.
-    cov : numpy.ndarray, shape (N, nx, nx) or (M, N, nx, nx), or None
-        The covariance of each estimate's error ``x_k - xhat_k`` from the model's covariance head
-        (:attr:`KKLObserver.covariance`); None for a model without one.
-    """
-
-    t: np.ndarray
-    xhat: np.ndarray
-    z: np.ndarray
-    in_domain: Optional[np.ndarray] = None
-    cov: Optional[np.ndarray] = None
-
-    @property
-    def var(self) -> Optional[np.ndarray]:
-        """The variances of the estimates' errors, (N, nx) or (M, N, nx): the diagonal of :attr:`cov`
-        (None without a covariance head)."""
-        return None if self.cov is None else np.diagonal(self.cov, axis1=-2, axis2=-1)
 
 
 class KKLObserver:
@@ -432,7 +396,8 @@ class KKLObserver:
         Returns
         -------
         Estimate
-            ``xhat`` (N, nx) and ``z`` (N, nz), or (M, N, .) when ``y`` and ``u`` are 3-D.
+            ``xhat`` (N, nx), ``z`` (N, nz) and ``in_domain`` (N,) (None where the model records no domain),
+            or (M, N, .) when ``y`` and ``u`` are 3-D; ``var`` and ``stats`` None.
 
         Raises
         ------
@@ -491,8 +456,9 @@ class KKLObserver:
             if array is not None:
                 array.setflags(write=False)
         if batched_y:
-            return Estimate(t, xhat, z, flags, cov)
-        return Estimate(t, xhat[0], z[0], None if flags is None else flags[0], None if cov is None else cov[0])
+            return Estimate(t, xhat, z=z, in_domain=flags, cov=cov)
+        return Estimate(t, xhat[0], z=z[0], in_domain=None if flags is None else flags[0],
+                        cov=None if cov is None else cov[0])
 
     def estimator(self, *, guard: Any = None) -> Estimator:
         """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample.
@@ -505,7 +471,8 @@ class KKLObserver:
 
 
 class Estimator:
-    """Stateful form of a :class:`KKLObserver`, for loops that receive one sample at a time.
+    """Stateful form of a :class:`KKLObserver`, for loops that receive one sample at a time (a
+    :class:`kklcasadi.estimate.StepEstimator`).
 
     ``make_step(y_k, u_k)`` returns ``xhat_k``; the sequence equals :meth:`KKLObserver.simulate`
     sample by sample. The first call initialises ``z_0 = 0`` and the window with ``u_0``.

@@ -1,0 +1,133 @@
+"""One estimate type: the observer, the EKF, the particle filter and the MHEs return the same frozen Estimate
+(their own fields set, the others None) and give a step estimator whose make_step is their simulate sample by
+sample; the NMPC loop takes any of them."""
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import kklcasadi as kc
+from kklcasadi.estimate import Estimate, StepEstimator, check_sample
+from kklcasadi.estimators import KKLPrimedMHE, ParticleFilter
+from kklcasadi.estimators.ekf import EKFEstimate, EKFEstimator
+from kklcasadi.estimators.mhe import MHEEstimate, MHEStats
+from kklcasadi.estimators.nmpc import NMPC, TrueState, closed_loop, steady_state
+from kklcasadi.estimators.nmpc import EKFEstimator as LoopEKF
+from kklcasadi.estimators.pf import PFEstimate, PFStats
+
+ROOT = Path(__file__).resolve().parents[1]
+DT = 0.05
+
+
+@pytest.fixture(scope="module")
+def record():
+    plant = kc.systems.get("duffing")
+    tr = kc.simulate(plant, [0.8, -0.4], kc.signals.make("square", amplitude=0.5, omega=1.0), T=1.5, dt=DT,
+                     process_std=0.1, measurement_std=0.1, seed=7)
+    return plant, tr
+
+
+@pytest.fixture(scope="module")
+def observer():
+    return kc.load_observer(ROOT / "models" / "duffing" / "bank")
+
+
+def _steps(estimator, tr):
+    return np.array([estimator.make_step(y, u) for y, u in zip(tr.y, tr.u)])
+
+
+def test_every_estimator_returns_the_one_frozen_estimate(record, observer):
+    plant, tr = record
+    runs = {"observer": observer.simulate(tr.t, tr.y, tr.u),
+            "ekf": kc.EKF(plant, DT).simulate(tr.t, tr.y, tr.u),
+            "pf": ParticleFilter(plant, DT, n_particles=100).simulate(tr.t, tr.y, tr.u),
+            "mhe": kc.MHE(plant, DT, 5).simulate(tr.t[:8], tr.y[:8], tr.u[:8])}
+    assert EKFEstimate is PFEstimate is MHEEstimate is kc.Estimate is Estimate
+    given = {name: {f.name for f in dataclasses.fields(run) if getattr(run, f.name) is not None}
+             for name, run in runs.items()}
+    assert given == {"observer": {"t", "xhat", "z", "in_domain"}, "ekf": {"t", "xhat", "var"},
+                     "pf": {"t", "xhat", "var", "stats"}, "mhe": {"t", "xhat", "stats"}}
+    assert isinstance(runs["pf"].stats, PFStats) and isinstance(runs["mhe"].stats, MHEStats)
+    for run in runs.values():
+        assert isinstance(run, Estimate) and run.xhat.shape == (run.t.size, plant.nx)
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            run.xhat = None
+
+
+def test_the_ekf_step_estimator_is_its_simulate_bitwise(record):
+    plant, tr = record
+    ekf = kc.EKF.for_noise(plant, DT, process_std=0.1, measurement_std=0.1)
+    est = ekf.estimator()
+    assert isinstance(est, (EKFEstimator, StepEstimator))
+    run = ekf.simulate(tr.t, tr.y, tr.u)
+    np.testing.assert_array_equal(_steps(est, tr), run.xhat)
+    np.testing.assert_array_equal(est.stats["var"], run.var[-1])
+    assert est.stats["k"] == tr.t.size
+    est.reset()
+    np.testing.assert_array_equal(est.make_step(tr.y[0], tr.u[0]), run.xhat[0])
+    with pytest.raises(ValueError, match=r"^y: expected shape \(1,\) at sample 1, received \(2,\)"):
+        est.make_step([0.0, 1.0], [0.0])
+    with pytest.raises(ValueError, match=r"^u: expected finite values at sample 1"):
+        est.make_step([0.0], [np.nan])
+    assert est.k == 1                                            # a refused sample changes nothing
+
+
+def test_the_particle_filter_step_estimator_is_its_first_trial_bitwise(record):
+    plant, tr = record
+    pf = ParticleFilter(plant, DT, n_particles=200, ess_threshold=0.9, roughening=0.6, seed=3)
+    batch = pf.simulate(tr.t, np.stack([tr.y, tr.y + 0.05]), np.stack([tr.u, tr.u]))
+    est = pf.estimator()
+    np.testing.assert_array_equal(_steps(est, tr), batch.xhat[0])
+    assert est.stats["ess"] == batch.stats.ess[0, -1] and np.array_equal(est.stats["var"], batch.var[0, -1])
+    assert np.mean(batch.stats.ess[0] < 0.9 * 200) > 0.05                   # resampling happened on the way
+    est.reset()
+    np.testing.assert_array_equal(_steps(est, tr), batch.xhat[0])            # reset: the same stream again
+
+
+def test_the_mhe_step_estimators_are_their_simulate(record, observer):
+    plant, tr = record
+    n = 12
+    t, y, u = tr.t[:n], tr.y[:n], tr.u[:n]
+    mhe = kc.MHE(plant, DT, 4)
+    run = mhe.simulate(t, y, u)
+    est = mhe.estimator()
+    np.testing.assert_array_equal(_steps(est, kc.Trajectory(t, None, u, y)), run.xhat)        # bitwise
+    assert est.stats["k"] == n and est.stats["failed"] == run.stats.n_failed
+    primed = KKLPrimedMHE(observer, np.full(plant.nx, 0.2), 3)
+    guided = primed.simulate(t, y, u)
+    live = primed.estimator()
+    # the observer's step one sample at a time equals its simulate to rounding, and so does the guided MHE
+    np.testing.assert_allclose(_steps(live, kc.Trajectory(t, None, u, y)), guided.xhat, rtol=0, atol=1e-7)
+
+
+def test_the_nmpc_loop_takes_any_estimator(observer):
+    plant = kc.systems.get("duffing")
+    target = steady_state(plant, 0.5)
+    x0 = [0.2, 0.0]
+
+    def loop(estimator):
+        return closed_loop(NMPC(plant, DT, 5), estimator, lambda _t: target, x0, 0.5, seed=3)
+
+    ekf = kc.EKF(plant, DT)
+    reference = loop(LoopEKF(plant, DT))                    # the NMPC examples' name: EKF(plant, dt).estimator()
+    for estimator in (ekf, ekf.estimator()):
+        run = loop(estimator)
+        np.testing.assert_array_equal(run.xhat, reference.xhat)
+        np.testing.assert_array_equal(run.u, reference.u)
+    used = ekf.estimator()
+    used.make_step([1.0], [0.0])
+    np.testing.assert_array_equal(loop(used).xhat, reference.xhat)           # the loop resets it first
+    for estimator in (observer, ParticleFilter(plant, DT, n_particles=100), kc.MHE(plant, DT, 3), TrueState()):
+        run = loop(estimator)
+        assert run.xhat.shape == (10, 2) and np.all(np.isfinite(run.xhat)) and np.all(np.isfinite(run.u))
+        assert run.estimation_rmse < 0.5
+    with pytest.raises(TypeError, match="estimator: expected an object with make_step"):
+        loop(object())
+
+
+def test_check_sample_names_the_argument_and_the_sample():
+    np.testing.assert_array_equal(check_sample(2.0, "y", 1, 0), [2.0])
+    with pytest.raises(ValueError, match=r"^u: expected shape \(2,\) at sample 5, received \(3,\)"):
+        check_sample([1, 2, 3], "u", 2, 5)
