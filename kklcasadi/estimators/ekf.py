@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Any, Optional, Sequence, Union
 
 import casadi as ca
 import numpy as np
@@ -342,6 +342,8 @@ class EKFEstimator:
         ekf = self.ekf
         y = check_sample(y, "y", ekf.system.ny, self.k)
         u = check_sample(u, "u", ekf.system.nu, self.k)
+        x: Any
+        P: Any
         if self._x is None:
             x, P = ekf.x0, ekf.P0
         else:

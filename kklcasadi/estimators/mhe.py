@@ -416,7 +416,7 @@ class MHE:
         xbar, P, X, W = window.xbar, window.P, window.X, window.W
         n = min(k, N)
         start = k - n
-        if guide is not None:
+        if guide is not None and guide_P is not None:
             xbar, P = guide[start], guide_P[start]
         elif n == N and k > N:
             # the window slid: the prior of the new first node is the filtered estimate of the
@@ -519,7 +519,8 @@ class MHEEstimator:
         self._window = _Window.start(self.mhe)
         self._y, self._u = _History(self.mhe.ny), _History(self.mhe.nu)
         self._out = _History(nx)
-        self._guide, self._guide_P = (None, None) if self.guide is None else (_History(nx), _History(nx * nx))
+        self._guide: Optional[_History] = None if self.guide is None else _History(nx)
+        self._guide_P: Optional[_History] = None if self.guide is None else _History(nx * nx)
         if self.guide is not None:
             self.guide.reset()
         self._record: Optional[SolveRecord] = None
@@ -535,7 +536,7 @@ class MHEEstimator:
         self._u.append(u)
         self._out.append(np.zeros(mhe.nx))
         guide = guide_P = None
-        if self.guide is not None:
+        if self.guide is not None and self._guide is not None and self._guide_P is not None:
             self._guide.append(self.guide.make_step(y, u))
             self._guide_P.append(self._guide_cov(k).ravel())
             guide, guide_P = self._guide.rows, self._guide_P.rows.reshape(-1, mhe.nx, mhe.nx)

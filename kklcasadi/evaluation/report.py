@@ -88,7 +88,7 @@ def score(label: str, estimator: BatchEstimator, system: System, protocol: Proto
     together = getattr(estimator, "shares_inputs", False)
     calls = ([[(noisy, kind) for noisy in noise] for kind in kinds] if together
              else [[key] for key in cells])
-    results = {}
+    results: dict = {}
     with tqdm(total=len(cells), desc=label, unit="cell", disable=not progress) as bar:
         for keys in calls:
             scored = evaluate_cells(estimator, system, [cells[key] for key in keys], trials=trials, profile=profile)

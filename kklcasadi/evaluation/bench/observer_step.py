@@ -478,7 +478,8 @@ def _bench_c(obs: KKLObserver, build: Path, gcc: str, valgrind: Optional[str],
     checks["C default (ca.external)"] = _check("C", external.call(dm_args), reference,
                                                VECTOR_MATH_TOLERANCE)
     builds = _c_builds(obs, build, gcc, flags, files, limits)
-    binaries, best = {}, {}
+    binaries: dict = {}
+    best: dict = {}
     for i, c_build in enumerate(builds):
         binaries[c_build.label] = build / f"loop{i}"
         _compile(gcc, c_build.sources, binaries[c_build.label], c_build.flags)
