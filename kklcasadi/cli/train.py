@@ -88,7 +88,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(bank: its runs; autonomous: its Phase-1 data; default 1, the whole box). Below 1 where the "
                    "box bounds whole trajectories rather than their starts (the Qube: 0.5)")
     t.add_argument("--kinds", nargs="+", metavar="FAMILY",
-                   help="the input families of the training data. bank: kklcasadi.train.operational.FAMILIES "
+                   help="the input families of the training data. bank: kklcasadi.plant.runs.FAMILIES "
                    "(default: the benchmark's four, multisine and a proportional feedback loop; add pd for a plant "
                    "that a controller with derivative action will drive); obs, dyn: the benchmark's kinds")
     t.add_argument("--runs", type=positive_int, metavar="N",
