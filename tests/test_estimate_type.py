@@ -11,11 +11,13 @@ import pytest
 import kklcasadi as kc
 from kklcasadi.estimate import Estimate, StepEstimator, check_sample
 from kklcasadi.estimators import KKLPrimedMHE, ParticleFilter
+from kklcasadi.estimators.augmented import AugmentedEKF, ParameterPF
 from kklcasadi.estimators.ekf import EKFEstimate, EKFEstimator
 from kklcasadi.estimators.mhe import MHEEstimate, MHEStats
 from kklcasadi.estimators.nmpc import NMPC, TrueState, closed_loop, steady_state
 from kklcasadi.estimators.nmpc import EKFEstimator as LoopEKF
-from kklcasadi.estimators.pf import PFEstimate, PFStats
+from kklcasadi.estimators.pf import PFEstimate, PFEstimator, PFStats
+from kklcasadi.estimators.tuned import TunedEKF
 
 ROOT = Path(__file__).resolve().parents[1]
 DT = 0.05
@@ -84,6 +86,31 @@ def test_the_particle_filter_step_estimator_is_its_first_trial_bitwise(record):
     assert np.mean(batch.stats.ess[0] < 0.9 * 200) > 0.05                   # resampling happened on the way
     est.reset()
     np.testing.assert_array_equal(_steps(est, tr), batch.xhat[0])            # reset: the same stream again
+
+
+def test_the_robustness_baselines_return_the_one_estimate_and_step_bitwise(record):
+    """The tuned EKF, the augmented EKF and the particle filter over states and parameters (issue 46.4) are an
+    EKF and a particle filter: the same Estimate (the augmented state where they augment) and step estimators
+    that are their simulate sample by sample, the parameter filter's kernel shrinkage included."""
+    _, tr = record
+    family = kc.systems.get("duffing", param_spread=0.3)
+    filters = {"tuned": TunedEKF(family, DT, process_std=0.1, measurement_std=0.1, q_scale=4.0, r_scale=0.5),
+               "augmented": AugmentedEKF(family, DT, param_walk=0.01, input_disturbance=True),
+               "parameter_pf": ParameterPF(family, DT, n_particles=200, ess_threshold=0.9, roughening=0.3, seed=5)}
+    n_states = {"tuned": 2, "augmented": 5, "parameter_pf": 4}
+    for name, flt in filters.items():
+        run = flt.simulate(tr.t, tr.y, tr.u)
+        assert isinstance(run, Estimate) and run.xhat.shape == (tr.t.size, n_states[name]), name
+        assert run.var is not None and run.var.shape == run.xhat.shape and run.z is None, name
+        est = flt.estimator()
+        assert isinstance(est, StepEstimator) and isinstance(est, PFEstimator if name == "parameter_pf"
+                                                             else EKFEstimator), name
+        np.testing.assert_array_equal(_steps(est, tr), run.xhat, err_msg=name)
+        np.testing.assert_array_equal(est.stats["var"], run.var[-1], err_msg=name)
+    pf_run = filters["parameter_pf"].simulate(tr.t, tr.y, tr.u)
+    assert isinstance(pf_run.stats, PFStats) and np.mean(pf_run.stats.ess < 0.9 * 200) > 0.05   # resampled
+    x, _, _ = filters["augmented"].split(filters["augmented"].simulate(tr.t, tr.y, tr.u).xhat)
+    np.testing.assert_array_equal(filters["augmented"](tr.t, tr.y[None], tr.u[None])[0], x)
 
 
 def test_the_mhe_step_estimators_are_their_simulate(record, observer):
