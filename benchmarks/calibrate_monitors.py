@@ -50,8 +50,8 @@ def rollouts_of(model: Model) -> RolloutConfig:
                              box_scale=r["box_scale"])
     record = training["config"]["rollouts"]
     box = record["box_scale"]
-    return RolloutConfig(**{**record, "kinds": tuple(record["kinds"]), "noise_range": tuple(record["noise_range"]),
-                            "box_scale": box if np.isscalar(box) else tuple(box)})
+    tuples = {name: tuple(record[name]) for name in ("kinds", "noise_range", "noise_models") if name in record}
+    return RolloutConfig(**{**record, **tuples, "box_scale": box if np.isscalar(box) else tuple(box)})
 
 
 def noise_of(model: Model) -> tuple[float, np.ndarray, float]:
