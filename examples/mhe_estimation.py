@@ -5,7 +5,7 @@ Estimates one docs/protocol.md run (noise std 0.1 on ``xdot`` and ``y``) of a pl
 * the learned KKL observer (``obs.simulate``),
 * the EKF (``kklcasadi.estimators.ekf.EKF``),
 * the MHE on the exact model with its EKF arrival cost (:class:`kklcasadi.estimators.mhe.MHE`, ``N = 10``),
-* the KKL-primed MHE (:class:`kklcasadi.estimators.mhe.KKLPrimedMHE`, ``N = 5``): the observer's estimate is
+* the KKL-primed MHE (:class:`kklcasadi.estimators.kkl_mhe.KKLPrimedMHE`, ``N = 5``): the observer's estimate is
   the arrival prior (its error profile calibrated on other runs) and the warm start,
 
 prints SMAPE, time per sample and the solver statistics, and writes a PNG::
@@ -28,7 +28,8 @@ import numpy as np  # noqa: E402
 import kklcasadi as kc  # noqa: E402
 from kklcasadi import provenance  # noqa: E402
 from kklcasadi.estimators.ekf import EKF  # noqa: E402
-from kklcasadi.estimators.mhe import MHE, KKLPrimedMHE, kkl_error_profile  # noqa: E402
+from kklcasadi.estimators.kkl_mhe import KKLPrimedMHE, kkl_error_profile  # noqa: E402
+from kklcasadi.estimators.mhe import MHE  # noqa: E402
 from kklcasadi.evaluation.protocol import Protocol  # noqa: E402
 
 

@@ -5,7 +5,9 @@ import pytest
 
 import kklcasadi as kc
 from kklcasadi.estimators.ekf import EKF
-from kklcasadi.estimators.mhe import MHE, KKLPrimedMHE, SolveRecord, kkl_error_profile, solve_compiled
+from kklcasadi.estimators.kkl_mhe import KKLPrimedMHE, kkl_error_profile
+from kklcasadi.estimators.mhe import MHE
+from kklcasadi.estimators.solve import SolveRecord, solve_compiled
 from kklcasadi.evaluation.protocol import Protocol, evaluate
 
 DT = 0.05

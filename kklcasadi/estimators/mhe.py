@@ -23,10 +23,9 @@ the exact Jacobians of ``Phi``) -- the EKF arrival cost of Rao, Rawlings and Lee
 smoothed estimate of ``x_s`` from the previous window would count ``y_s..y_{k-1}`` twice;
 measured on Duffing it cost 2-3 SMAPE points against the EKF.)
 
-KKL-primed MHE (:class:`KKLPrimedMHE`): the learned observer runs alongside; its estimate at
-``k - n`` is the arrival prior, with a covariance from the observer's typical error at that time
-(calibrated on simulated runs, :func:`kkl_error_profile`), and its estimate at ``k`` initialises
-the newest node. A short horizon then suffices.
+KKL-primed MHE (:class:`kklcasadi.estimators.kkl_mhe.KKLPrimedMHE`): the learned observer runs alongside
+(``guide``); its estimate at ``k - n`` is the arrival prior, with a covariance from the observer's typical
+error at that time, and its estimate at ``k`` initialises the newest node. A short horizon then suffices.
 
 Every solve is checked: ipopt's ``success`` and a finite solution. A failed solve is never
 returned as an estimate: the plain MHE falls back to the previous estimate propagated through
@@ -38,10 +37,9 @@ Both are protocol estimators (``kklcasadi.evaluation.protocol``): ``mhe(t, y, u)
 
 from __future__ import annotations
 
-import time
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any, Optional, Sequence
+from typing import Any, Optional
 
 import casadi as ca
 import numpy as np
@@ -50,86 +48,9 @@ from ..estimate import Estimate, check_sample
 from ..plant.rk4 import rk4_step
 from ..plant.systems import System
 from ..validation import covariance, nonnegative_number, positive_int
+from .solve import SolveRecord, ipopt_options, solve_compiled
 
-__all__ = ["MHE", "KKLPrimedMHE", "MHEEstimator", "MHEEstimate", "MHEStats", "SolveRecord", "kkl_error_profile",
-           "solve_compiled", "ipopt_options"]
-
-#: ipopt return statuses that count as a solved problem.
-_SOLVED = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
-
-
-# ---------------------------------------------------------------------- solver helpers
-def ipopt_options(max_iter: int = 50, **extra: Any) -> dict:
-    """Options of ``Opti.solver("ipopt", ...)``: silent, exact Hessian, expanded to SX.
-
-    Parameters
-    ----------
-    max_iter : int
-        Iteration limit per solve.
-    **extra
-        More ipopt options (e.g. ``tol``, ``mu_init``), passed under ``"ipopt"``.
-
-    Returns
-    -------
-    dict
-        ``{"plugin": {...}, "ipopt": {...}}``: the two option dictionaries of ``Opti.solver``.
-    """
-    positive_int(max_iter, "max_iter")
-    ipopt = {"print_level": 0, "sb": "yes", "max_iter": int(max_iter),
-             "hessian_approximation": "exact", **extra}
-    plugin = {"expand": True, "print_time": False, "error_on_fail": False}
-    return {"plugin": plugin, "ipopt": ipopt}
-
-
-@dataclass(frozen=True)
-class SolveRecord:
-    """The outcome of one compiled ``Opti`` solve.
-
-    Attributes
-    ----------
-    success : bool
-        ipopt's ``success`` and a finite solution.
-    status : str
-        ipopt's ``return_status`` (``"NonFinite_Solution"`` when ipopt succeeded but the solution
-        holds a NaN/inf).
-    iterations : int
-    seconds : float
-        Wall time of the call.
-    """
-
-    success: bool
-    status: str
-    iterations: int
-    seconds: float
-
-
-def solve_compiled(function: ca.Function, args: Sequence[Any]) -> tuple[list[np.ndarray], SolveRecord]:
-    """Call a Function made by ``Opti.to_function`` and read ipopt's statistics of the call.
-
-    Parameters
-    ----------
-    function : casadi.Function
-        From ``opti.to_function(...)`` (its ``stats()`` are those of the embedded ipopt call).
-    args : sequence
-        Its inputs, in order.
-
-    Returns
-    -------
-    outputs : list of numpy.ndarray
-        The Function's outputs (dense).
-    record : SolveRecord
-    """
-    start = time.perf_counter()
-    outputs = function.call(list(args))
-    seconds = time.perf_counter() - start
-    stats = function.stats()
-    arrays = [np.asarray(ca.DM(out)) for out in outputs]
-    status = str(stats.get("return_status", "unknown"))
-    success = bool(stats.get("success", False)) and status in _SOLVED
-    if success and not all(np.all(np.isfinite(a)) for a in arrays):
-        success, status = False, "NonFinite_Solution"
-    return arrays, SolveRecord(success, status, int(stats.get("iter_count", -1)), seconds)
-
+__all__ = ["MHE", "MHEEstimator", "MHEEstimate", "MHEStats"]
 
 # ---------------------------------------------------------------------- results
 @dataclass(frozen=True, eq=False)
@@ -481,8 +402,9 @@ class _History:
 
 
 class MHEEstimator:
-    """Stateful form of an :class:`MHE` (or, with ``guide``, of a :class:`KKLPrimedMHE`), for loops that receive
-    one sample at a time (a :class:`kklcasadi.estimate.StepEstimator`).
+    """Stateful form of an :class:`MHE` (or, with ``guide``, of a
+    :class:`kklcasadi.estimators.kkl_mhe.KKLPrimedMHE`), for loops that receive one sample at a time (a
+    :class:`kklcasadi.estimate.StepEstimator`).
 
     ``make_step(y_k, u_k)`` solves the window ending at ``y_k`` and returns its newest node: the solves of
     :meth:`MHE.simulate` sample by sample (bitwise, given the same guide).
@@ -492,9 +414,10 @@ class MHEEstimator:
     mhe : MHE
     guide : StepEstimator, optional
         An estimator fed the same samples first whose estimate guides the MHE (the KKL observer's for
-        :meth:`KKLPrimedMHE.estimator`), with ``guide_std`` ``(N, nx)`` or ``(nx,)``: the standard deviation of
-        its error at each sample (the last row after the profile ends); without ``guide_std``, the guide's own
-        covariance of each estimate (its ``cov``: an observer with a covariance head).
+        :meth:`kklcasadi.estimators.kkl_mhe.KKLPrimedMHE.estimator`), with ``guide_std`` ``(N, nx)`` or
+        ``(nx,)``: the standard deviation of its error at each sample (the last row after the profile ends);
+        without ``guide_std``, the guide's own covariance of each estimate (its ``cov``: an observer with a
+        covariance head).
 
     Attributes
     ----------
@@ -564,128 +487,6 @@ class MHEEstimator:
         """``k`` (samples taken), ``failed`` (solves so far whose estimate is the fallback) and ``last`` (the last
         solve's :class:`SolveRecord`, None before the first)."""
         return {"k": self.k, "failed": self._failed, "last": self._record}
-
-
-class KKLPrimedMHE:
-    """The MHE with its arrival prior and warm start from a KKL observer.
-
-    At sample ``k`` the prior of the window's first node ``k - n`` is the KKL estimate there,
-    with covariance ``diag(error_std[k - n]^2)``, or, with ``error_std=None``, the observer's own
-    covariance of that estimate (its covariance head, :attr:`KKLObserver.covariance`: sample by
-    sample and trial by trial); the newest node starts at the KKL estimate at ``k``, and a failed
-    solve returns the KKL estimate (counted in the stats).
-
-    Parameters
-    ----------
-    observer : KKLObserver
-        The learned observer (its ``simulate`` runs alongside; its system and ``dt`` are used).
-    error_std : array_like, shape (N, nx) or (nx,), or None
-        Typical error of the observer at each sample time (:func:`kkl_error_profile`), or one
-        level for all times; None: the observer's covariance head (a model with
-        ``architecture.covariance``).
-    horizon : int
-        Short window length (default 5).
-    **mhe_options
-        Keyword options of :class:`MHE` (``process_std``, ``measurement_std``, ``substeps``,
-        ``noise_floor``, ``max_iter``, ``ipopt``).
-
-    Attributes
-    ----------
-    observer : KKLObserver
-    mhe : MHE
-    error_std : numpy.ndarray
-    last_stats : MHEStats or None
-        Statistics of the last :meth:`__call__`.
-    """
-
-    def __init__(self, observer: Any, error_std: Any, horizon: int = 5, **mhe_options: Any) -> None:
-        from ..observer.kkl import KKLObserver
-
-        if not isinstance(observer, KKLObserver):
-            raise TypeError(f"observer: expected a KKLObserver (kc.load_observer), received "
-                            f"{type(observer).__name__}.")
-        self.observer = observer
-        self.mhe = MHE(observer.system, observer.dt, horizon, **mhe_options)
-        self.last_stats: Optional[MHEStats] = None
-        if error_std is None:
-            if observer.covariance is None:
-                raise ValueError(f"error_std: expected the observer's errors' std, or None for a model with a "
-                                 f"covariance head, received None for {observer!r}, which has none. Pass "
-                                 "kkl_error_profile(observer, protocol), or fit a head "
-                                 "(benchmarks/covariance_heads.py).")
-            self.error_std = None
-            return
-        std = np.asarray(error_std, dtype=float)
-        if std.ndim not in (1, 2) or std.shape[-1] != observer.nx or not np.all(std > 0):
-            raise ValueError(f"error_std: expected positive values of shape (N, {observer.nx}) or "
-                             f"({observer.nx},), received shape {std.shape}"
-                             f"{'' if std.size == 0 or np.all(std > 0) else ' with values <= 0'}.")
-        self.error_std: Optional[np.ndarray] = std
-
-    def __repr__(self) -> str:
-        return (f"KKLPrimedMHE(method={self.observer.method!r}, system="
-                f"{self.observer.system.name!r}, horizon={self.mhe.horizon})")
-
-    def _std(self, n_samples: int) -> np.ndarray:
-        if self.error_std.ndim == 1:
-            return np.repeat(self.error_std[None], n_samples, axis=0)
-        if self.error_std.shape[0] < n_samples:
-            tail = np.repeat(self.error_std[-1:], n_samples - self.error_std.shape[0], axis=0)
-            return np.vstack([self.error_std, tail])
-        return self.error_std[:n_samples]
-
-    def simulate(self, t: Any, y: Any, u: Any) -> Estimate:
-        """Run the observer, then the MHE primed by it (shapes as :meth:`MHE.simulate`)."""
-        est = self.observer.simulate(t, y, u)
-        if self.error_std is None:
-            return self.mhe.simulate(t, y, u, guide=est.xhat, guide_cov=est.cov)
-        return self.mhe.simulate(t, y, u, guide=est.xhat, guide_std=self._std(np.size(t)))
-
-    def estimator(self) -> MHEEstimator:
-        """The primed MHE one sample at a time: the observer's step estimator guides an :class:`MHEEstimator`
-        (its estimates equal :meth:`simulate`'s to the rounding of the observer's step, one sample at a time)."""
-        return MHEEstimator(self.mhe, self.observer.estimator(), self.error_std)
-
-    def __call__(self, t: Any, y: Any, u: Any) -> np.ndarray:
-        """The protocol estimator; statistics in :attr:`last_stats`."""
-        run = self.simulate(t, y, u)
-        self.last_stats = run.stats
-        return run.xhat
-
-
-def kkl_error_profile(observer: Any, protocol: Any, kinds: Sequence[str] = ("zero", "constant",
-                      "sinusoid", "square"), *, floor: float = 0.05) -> np.ndarray:
-    """The observer's RMS error at each sample time over simulated protocol runs (calibration).
-
-    Use a protocol with another seed than the benchmark's, so that the calibration runs are not
-    the scored ones.
-
-    Parameters
-    ----------
-    observer : KKLObserver
-    protocol : kklcasadi.evaluation.protocol.Protocol
-        Trials to calibrate on (its noise levels, horizon and seed).
-    kinds : sequence of str
-        Input regimes pooled.
-    floor : float
-        Lower bound of the returned standard deviations, as a fraction of the X0 box half-width
-        (keeps the prior from being overconfident where the sample error is small by chance).
-
-    Returns
-    -------
-    numpy.ndarray, shape (N, nx)
-        RMS over trials of ``x - xhat`` per state and sample.
-    """
-    system = observer.system
-    errors = []
-    for kind in kinds:
-        batch = protocol.trials(system, kind)
-        ok = batch.ok
-        xhat = observer.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat
-        errors.append(batch.x[ok] - xhat)
-    err = np.concatenate(errors, axis=0)
-    half = 0.5 * (system.x0_box[:, 1] - system.x0_box[:, 0])
-    return np.maximum(np.sqrt(np.mean(err ** 2, axis=0)), nonnegative_number(floor, "floor") * half)
 
 
 # ---------------------------------------------------------------------- checks

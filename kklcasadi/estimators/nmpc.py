@@ -35,7 +35,7 @@ from ..plant.systems import System
 from ..validation import nonnegative_number, positive_int
 from . import ekf as ekf_module
 from .ekf import EKF
-from .mhe import SolveRecord, ipopt_options, solve_compiled
+from .solve import SolveRecord, ipopt_options, solve_compiled
 
 __all__ = ["NMPC", "NMPCStep", "ClosedLoop", "EKFEstimator", "TrueState", "closed_loop",
            "steady_state", "plant_step"]

@@ -20,7 +20,8 @@ import numpy as np
 
 from .. import metrics, provenance
 from ..estimators.ekf import EKF
-from ..estimators.mhe import MHE, MHEStats, kkl_error_profile
+from ..estimators.kkl_mhe import kkl_error_profile
+from ..estimators.mhe import MHE, MHEStats
 from ..observer.kkl import KKLObserver
 from ..plant import signals as sig
 from .protocol import CellResult, Protocol
@@ -89,7 +90,7 @@ def compare_system(observer: KKLObserver, protocol: Protocol, *, horizons: Seque
 
     Every estimator sees the same trials (``protocol.trials``); noise-free cells use
     ``protocol.noise_free()``. The KKL-primed MHE is primed by ``observer``, with the error
-    profile calibrated (:func:`kklcasadi.estimators.mhe.kkl_error_profile`) on ``calibration_trials`` runs
+    profile calibrated (:func:`kklcasadi.estimators.kkl_mhe.kkl_error_profile`) on ``calibration_trials`` runs
     per regime drawn with seed ``protocol.seed + 1`` (not the scored ones). Its time includes
     the observer's.
 
