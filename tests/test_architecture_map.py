@@ -245,6 +245,20 @@ def test_every_row_names_existing_code():
             assert target == "-" or _is_module(target), f"{name} may import {target}, which does not exist"
 
 
+#: Longest module without a reason written at its top (issue 44: rooms of one concern).
+LONG_MODULE = 600
+
+
+@pytest.mark.parametrize("path", sorted(PACKAGE.rglob("*.py")), ids=lambda p: str(p.relative_to(ROOT)))
+def test_a_long_module_says_why_at_its_top(path):
+    lines = path.read_text().count("\n")
+    if lines > LONG_MODULE:
+        docstring = ast.get_docstring(ast.parse(path.read_text())) or ""
+        assert f"Over {LONG_MODULE} lines:" in docstring, (
+            f"{path.relative_to(ROOT)} has {lines} lines: split it into rooms of one concern, or say why not in "
+            f"its docstring (a paragraph starting 'Over {LONG_MODULE} lines:')")
+
+
 def test_the_front_door_is_small():
     import kklcasadi
 

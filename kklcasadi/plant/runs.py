@@ -14,6 +14,11 @@ centre, angle states compared on the circle, or fails in the integrator) is cut 
 * :class:`RolloutConfig` -- the runs' recipe: how many, how long, families, ranges, noise, sample times.
 * :func:`rollouts` -- the runs themselves (full trajectories of the runs that did not escape).
 * :func:`fit_families` -- the families of a recipe with their parameter ranges (a card's ``fit_families``).
+
+Over 600 lines: one concept, how a training run is drawn (the recipe's checks and documentation are a
+fifth of it; the families' inputs, the loops they run under, the envelope's replayed runs and the chunked
+simulation share the recipe's private helpers). The feedback laws (``_Feedback`` to ``_closed_loop``) are
+the part that could leave for a module of their own once issue 45's work on these runs has settled.
 """
 
 from __future__ import annotations
