@@ -31,8 +31,8 @@ from kklcasadi.evaluation.compiled import CompiledRecord
 from kklcasadi.evaluation.protocol import Protocol
 from kklcasadi.model.files import load_model, save_model
 from kklcasadi.model.shipped import resolve
+from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, decoder_features
 from kklcasadi.model.variants.covariance import COVARIANCE, SCALE, covariance_numpy
-from kklcasadi.model.variants.filterbank import ASINH_SCALE, decoder_features
 from kklcasadi.nets.specs import MLPSpec
 from kklcasadi.observer.kkl import load_observer
 from kklcasadi.plant import signals as sig

@@ -12,7 +12,7 @@ import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
 from kklcasadi.model.operational import operational_data  # noqa: E402
 from kklcasadi.model.shipped import resolve  # noqa: E402
-from kklcasadi.model.variants import filterbank as fb  # noqa: E402
+from kklcasadi.model.variants import bankdecoder as bd  # noqa: E402
 from kklcasadi.plant.runs import RolloutConfig  # noqa: E402
 from kklcasadi.train import LoopConfig, default_config, train_observer  # noqa: E402
 from kklcasadi.train import bank as bank_training  # noqa: E402
@@ -48,7 +48,7 @@ def _data(system, config, seed, dt=0.05):
 def _teacher_decode(teacher_dir, z, y, u):
     model = load_model(teacher_dir)
     spec = model.spec.architecture
-    return fb.decode(spec.filter_arrays(model.arrays), spec.decoder.to_card(), z, y, u, members=spec.members)
+    return bd.decode(spec.decoder_spec, spec.filter_arrays(model.arrays), z, y, u)
 
 
 def test_a_student_with_the_teachers_latent_takes_its_estimates_on_its_own_samples(teacher_dir):

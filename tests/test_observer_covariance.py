@@ -14,8 +14,8 @@ import pytest
 from conftest import write_signed_card
 
 from kklcasadi.model.files import load_model, save_model
+from kklcasadi.model.variants.bankdecoder import decoder_features
 from kklcasadi.model.variants.covariance import COVARIANCE, SCALE, array_shapes, covariance_numpy
-from kklcasadi.model.variants.filterbank import decoder_features
 from kklcasadi.nets.specs import MLPSpec
 from kklcasadi.observer.codegen import generate_c
 from kklcasadi.observer.kkl import load_observer

@@ -20,6 +20,7 @@ from ..model.files import load_model
 from ..model.operational import OperationalData
 from ..model.shipped import is_shipped, resolve
 from ..model.variants import BankSpec
+from ..model.variants import bankdecoder as bd
 from ..model.variants import filterbank as fb
 from ..model.variants.copies import ModelCopies
 from ..plant.systems import System
@@ -100,9 +101,8 @@ def teacher_estimates(system: System, teacher: str | os.PathLike, data: Operatio
             raise ValueError("rerun: expected the student's runs again (same seed and recipe), received others: "
                              f"{again.x.shape} samples against {data.x.shape}.")
         z, source = again.z, "its own, run over the same runs"
-    arch = spec.decoder.to_card()
-    xhat = np.concatenate([fb.decode(full, arch, z[i:i + chunk], data.y[i:i + chunk], data.u[i:i + chunk],
-                                     angles=spec.angles, members=spec.members)
+    decoder = spec.decoder_spec
+    xhat = np.concatenate([bd.decode(decoder, full, z[i:i + chunk], data.y[i:i + chunk], data.u[i:i + chunk])
                            for i in range(0, len(z), chunk)] or [np.empty((0, system.nx))])
     name = "/".join(model.path.resolve().parts[-2:]) if is_shipped(model.path) else str(teacher)
     record = {"path": name, "weights_sha256": model.card.get("weights_sha256"),

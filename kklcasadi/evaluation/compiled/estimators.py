@@ -329,7 +329,7 @@ class CompiledRecord(CompiledEstimator):
 
     def __init__(self, observer: KKLObserver, *, compiler: Optional[Compiler] = Compiler(),
                  n_threads: Optional[int] = None, profile: Optional[Profile] = None) -> None:
-        from ..observer.kkl import KKLObserver
+        from ...observer.kkl import KKLObserver
 
         if not isinstance(observer, KKLObserver):
             raise TypeError(f"observer: expected a kklcasadi.KKLObserver, received {type(observer).__name__}.")
