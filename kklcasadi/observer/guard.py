@@ -33,7 +33,8 @@ import numpy as np
 from ..plant.envelope import output_ranges
 from ..validation import Text, error, nonnegative_number
 from .checks import check_time
-from .kkl import HELD, RESTARTED, Estimate, Estimator, KKLObserver
+from .estimator import HELD, RESTARTED, Estimator
+from .kkl import Estimate, KKLObserver
 
 __all__ = ["SampleGuard", "guarded_simulate", "guarded_estimator", "training_box", "GUARD_WIDTHS", "HELD", "RESTARTED"]
 
