@@ -365,3 +365,17 @@ def test_the_shipped_cards_were_only_signed(tmp_path):
         b = kc.load_observer(old_dir).simulate(tr.t, tr.y, tr.u)
         np.testing.assert_array_equal(a.xhat, b.xhat)
         np.testing.assert_array_equal(a.z, b.z)
+
+
+def test_a_damaged_digest_of_a_field_is_refused(valid_model, tmp_path):
+    """The digests of the fields are part of the card: one byte of a field's name in them damaged (found by the
+    property test above: 'architecture.gain.sizes' with a blank for its first letter) is refused, not loaded."""
+    work = tmp_path / "work"
+    shutil.copytree(valid_model.parent, work)
+    text = (work / "obs" / CARD_FILE).read_text()
+    assert text.count('"architecture.gain.sizes"') == 1
+    (work / "obs" / CARD_FILE).write_text(text.replace('"architecture.gain.sizes"', '" rchitecture.gain.sizes"'))
+    with pytest.raises(ValueError, match=r"'digest\.fields': expected the digests of the card's fields it was written "
+                                         r"with, received other digests") as info:
+        load_model(work / "obs")
+    _one_line(info.value)

@@ -116,10 +116,14 @@ def check_digest(card: Any, where: str, directory: Path) -> None:
         raise field_error(where, DIGEST, 'an object {"sha256": hex, "fields": {path: hex}}', Text("another value"),
                           fix)
     try:
-        expected = card_digest(card)["sha256"]
+        computed = card_digest(card)
     except (TypeError, ValueError) as exc:                 # values JSON cannot hold: not a card read from a file
         raise field_error(where, "<card>", "JSON values", Text(str(exc)), fix) from exc
+    expected = computed["sha256"]
     if entry["sha256"] == expected:
+        if dict(entry["fields"]) != computed["fields"]:   # the fields' digests are part of the card: damaged there
+            raise field_error(where, f"{DIGEST}.fields", "the digests of the card's fields it was written with",
+                              Text("other digests"), fix)
         return
     found = changes(card)
     if not found:
