@@ -257,6 +257,19 @@ def valid_model(tmp_path_factory):
                                                                                   "path": "../autonomous"}})
 
 
+@pytest.mark.parametrize("method", [[], {}, 3, None, ["bank"]])
+def test_a_signed_card_whose_method_is_not_a_name_is_refused_in_one_line(valid_model, tmp_path_factory, method):
+    """The property test's case (a signed card with ``"method": []`` ended in ``TypeError: unhashable type``)."""
+    card = _card(valid_model)
+    work = tmp_path_factory.mktemp("method")
+    shutil.copytree(valid_model.parent, work, dirs_exist_ok=True)
+    write_signed_card(work / "obs", {**{k: v for k, v in card.items() if k != DIGEST}, "method": method})
+    with pytest.raises(ValueError) as caught:
+        load_model(work / "obs")
+    _one_line(caught.value)
+    assert str(work / "obs") in str(caught.value) and "'method'" in str(caught.value)
+
+
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_a_mutated_card_loads_unchanged_in_meaning_or_is_refused_in_one_line(valid_model, tmp_path_factory, data):

@@ -258,7 +258,7 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True,
                           "Read it with the kklcasadi version that wrote it, or save it again.")
     if not isinstance(card["kklcasadi_version"], str):
         raise field_error(where, "kklcasadi_version", "a string", card["kklcasadi_version"], fix_new)
-    if card["method"] not in variants.VARIANTS:
+    if not isinstance(card["method"], str) or card["method"] not in variants.VARIANTS:
         raise field_error(where, "method", f"one of {list(variants.names())}", card["method"],
                           "This kklcasadi version cannot run it; upgrade kklcasadi or save the "
                           "model with a known method.")
