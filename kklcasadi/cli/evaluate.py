@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     profile = Profile() if args.profile else None
     print(f"trials: {'simulated, not cached' if trials.directory is None else trials.directory}; observers: "
           f"{'CasADi VM' if compiler is None else 'compiled (' + str(compiler.directory) + ')'}", file=sys.stderr)
-    rows = []
+    rows: list[tuple[str, Any]] = []                  # (label, estimator of any kind)
     for i, (model, obs) in enumerate(zip(args.models, observers)):
         label = args.labels[i] if args.labels else Path(model).resolve().name
         if args.consistency and obs.covariance is not None:   # one run gives the SMAPE and the covariance
@@ -163,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
     if args.consistency:
         from ..evaluation.uncertainty import RecordedObserver, filter_uncertainty, score_uncertainty, uncertainty_table
 
-        estimators = [(label, est.uncertain) for label, est in rows if isinstance(est, RecordedObserver)]
+        estimators: list[tuple[str, Any]] = [(label, est.uncertain) for label, est in rows
+                                             if isinstance(est, RecordedObserver)]
         if args.ekf:
             estimators.append(("EKF", filter_uncertainty(ekf)))
         if args.pf:
