@@ -17,11 +17,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                "benchmarks need its shipped models)", default="duffing")
     b.add_argument("--model", nargs="+", help="observer benchmark: model directories or shipped models by name "
                    "SYSTEM/METHOD (default: the system's shipped obs)")
-    b.add_argument("--write", metavar="FILE.md",
+    b.add_argument("--write", metavar="OUT_MD",
                    help="observer benchmark: also write the step figures of each model (microseconds per step of "
                    "the C builds and the CasADi VM, the default build's instructions) with its card's digest, "
-                   "stamped, to FILE.md (results/speed/observer_step.md feeds docs/results/speed.md)")
-    b.add_argument("--overwrite", action="store_true", help="with --write: replace FILE.md if it exists")
+                   "stamped, to OUT_MD, a markdown file (results/speed/SYSTEM/ is what docs/results/speed.md reads)")
+    b.add_argument("--overwrite", action="store_true", help="with --write: replace OUT_MD if it exists")
     b.add_argument("--models", nargs="+", help="protocol benchmark: model directories (default: the shipped ones)")
     b.add_argument("--trials", type=positive_int,
                    help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100), "

@@ -68,7 +68,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="also score the covariances on the noisy cells (issue 49): the models' covariance heads "
                    "and, with --ekf and --pf, the EKF's and the particle filter's own, by mean NEES against the "
                    "chi-square band, 1- and 2-sigma coverage per state and the log-likelihood of the truth "
-                   "(table; PLANT_consistency.md and .json under --out)")
+                   "(table; a markdown and a JSON file named after the plant under --out)")
     add_cache(e)
     e.add_argument("--vm", action="store_true", help="run the observers in the CasADi VM instead of compiled C "
                    "(the reference path; same values, slower)")

@@ -53,7 +53,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--consistency", action="store_true",
                    help="also score the covariances (issue 49): the models' covariance heads and the EKF's own on "
                    "every case (mean NEES against the chi-square band, 1- and 2-sigma coverage per state, "
-                   "log-likelihood of the truth; PLANT_generalisation_consistency.md and .json under --out)")
+                   "log-likelihood of the truth; a markdown and a JSON file named after the plant under --out)")
     add_cache(g)
     g.add_argument("--vm", action="store_true", help="run the observers and the EKF in the CasADi VM instead of "
                    "compiled C")
