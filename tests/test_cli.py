@@ -489,6 +489,10 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
                                       "--out", "x"])
     assert training_config(plant_of(args), "bank", args).decoder.skip   # the linear path: asked for, else none
     assert not config("square").decoder.skip
+    args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--teacher",
+                                      "models/duffing/bank", "--out", "x"])
+    assert training_config(plant_of(args), "bank", args).teacher == "models/duffing/bank"     # distillation
+    assert config("square").teacher is None
     # the decoders' loss (DecoderConfig.loss): the CLI's choices are the trainer's, the weight only with mse+smape
     args = build_parser().parse_args(["train", "--plant", "examples/damped3_plant.py:make_plant", "--loss", "mse+smape",
                                       "--smape-weight", "0.5", "--out", "x"])

@@ -59,6 +59,7 @@ def main() -> None:
     p.add_argument("--members", type=int, help="decoder networks averaged (default: the system's)")
     p.add_argument("--copies", help="comma-separated weights of the latent's model copies (BankConfig.copies)")
     p.add_argument("--copy-substeps", type=int, help="RK4 substeps of the copies per sample (BankConfig.copy_substeps)")
+    p.add_argument("--teacher", help="a bank model directory whose estimates are the decoders' targets (distillation)")
     p.add_argument("--measurement-std", type=float)
     p.add_argument("--process-std", help="one std or one per state")
     p.add_argument("--box-scale", help="a factor or lo,hi")
@@ -96,6 +97,8 @@ def main() -> None:
             runs[name] = getattr(args, name)
     if args.members is not None:
         top["members"] = args.members
+    if args.teacher is not None:
+        top["teacher"] = args.teacher
     if args.copies:
         top["copies"] = floats(args.copies)
     if args.copy_substeps is not None:

@@ -15,7 +15,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="which benchmark ('all' is every one but scaling, which trains an observer per size)")
     add_system(b, with_models=False, what="the system benchmarked (default duffing; the observer and protocol "
                "benchmarks need its shipped models)", default="duffing")
-    b.add_argument("--model", help="model directory for the observer benchmark")
+    b.add_argument("--model", nargs="+", help="observer benchmark: model directories or shipped models by name "
+                   "SYSTEM/METHOD (default: the system's shipped obs)")
+    b.add_argument("--write", metavar="FILE.md",
+                   help="observer benchmark: also write the step figures of each model (microseconds per step of "
+                   "the C builds and the CasADi VM, the default build's instructions) with its card's digest, "
+                   "stamped, to FILE.md (results/speed/observer_step.md feeds docs/results/speed.md)")
+    b.add_argument("--overwrite", action="store_true", help="with --write: replace FILE.md if it exists")
     b.add_argument("--models", nargs="+", help="protocol benchmark: model directories (default: the shipped ones)")
     b.add_argument("--trials", type=positive_int,
                    help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100), "
@@ -61,6 +67,32 @@ def _compiler(args: argparse.Namespace):
     return flagged("--flags", Compiler, flags=flags, postprocess=hook[(args.matvec, args.math)])
 
 
+def _bench_observer(args: argparse.Namespace) -> None:
+    """The observer step of each ``--model``; with ``--write`` its figures as a stamped table."""
+    import os
+    from pathlib import Path
+
+    from ..evaluation.bench.observer_step import bench_observer_step, card_digest, step_table
+    from ..model.shipped import is_shipped, resolve
+    from ..provenance import markdown
+
+    out = None if args.write is None else Path(args.write)
+    if out is not None and out.exists() and not args.overwrite:
+        raise CommandError(f"--write: {out} exists; pass --overwrite to replace it")
+    results = []
+    for given in args.model or [shipped(args.system, "obs")]:
+        path = flagged("--model", resolve, given)
+        print(f"== observer step of {given}: generated C vs CasADi VM vs torch eager ==")
+        name = "/".join(path.resolve().parts[-2:]) if is_shipped(path) else str(given)
+        results.append((name, card_digest(path), bench_observer_step(path)))
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        temporary = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+        temporary.write_text(markdown(step_table(results, os.getloadavg()), stamp_of(args)))
+        temporary.replace(out)
+        print(f"wrote {out}")
+
+
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.bench.simulation import bench_simulation
 
@@ -79,10 +111,7 @@ def run(args: argparse.Namespace) -> int:
         print("== data generation: trajectories per second ==")
         bench_simulation(args.system, n_trials=args.trials or 32)
     if args.what in ("all", "observer"):
-        from ..evaluation.bench.observer_step import bench_observer_step
-
-        print("== observer step: generated C vs CasADi VM vs torch eager ==")
-        bench_observer_step(args.model or shipped(args.system, "obs"))
+        _bench_observer(args)
     if args.what in ("all", "training"):
         from ..evaluation.bench.training import bench_phase2_epoch, bench_training
 

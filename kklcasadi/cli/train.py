@@ -54,6 +54,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--members": ("members", lambda a: a.members),
                  "--copies": ("copies", lambda a: None if a.copies is None else tuple(a.copies)),
                  "--skip-path": ("skip", lambda a: True if a.skip_path else None),
+                 "--teacher": ("teacher", lambda a: a.teacher),
                  "--loss": ("loss", lambda a: a.loss),
                  "--smape-weight": ("smape_weight", lambda a: a.smape_weight),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
@@ -99,6 +100,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--skip-path", action="store_true",
                    help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
                    "slope where they level off past the fitted states (Duffing's shipped bank has it)")
+    t.add_argument("--teacher", metavar="DIR",
+                   help="bank: fit the decoders to the estimates of this bank model (its ensemble's mean, through its "
+                   "own latent) on the same runs instead of the true states: distillation into a smaller decoder "
+                   "(docs/design.md, 'A compact observer')")
     t.add_argument("--loss", choices=("mse", "smape", "mse+smape"),
                    help="bank: the decoders' loss: mse (the default) of the normalised states, smape (the "
                    "protocol's metric) or mse+smape (their sum, --smape-weight on the SMAPE term). mse+smape with "

@@ -35,6 +35,7 @@ from ..plant.systems import System
 from ..validation import Text, error
 from .config import LoopConfig, with_epochs
 from .decoder import BankFit, DecoderConfig, config_record, fit_bank_decoder
+from .distil import teacher_estimates
 from .result import Trained
 
 __all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale",
@@ -140,6 +141,10 @@ class BankConfig:
         (:func:`kklcasadi.model.monitor.with_spread`). The training time grows with it.
     monitor : MonitorConfig
         How the domain monitor is calibrated.
+    teacher : str or None
+        A ``bank`` model directory of the plant whose estimate (its ensemble's mean, through its own latent)
+        replaces the true state as the decoders' target on the same runs (distillation:
+        :mod:`kklcasadi.train.distil`, docs/design.md, "A compact observer"); None: the true state.
     """
 
     y_poles: tuple = (0.2, 0.4, 0.8, 1.5, 3.0, 6.0, 12.0, 25.0)
@@ -159,8 +164,12 @@ class BankConfig:
     noise_copy: Optional[bool] = False
     members: int = 1
     monitor: MonitorConfig = field(default_factory=MonitorConfig)
+    teacher: Optional[str] = None
 
     def __post_init__(self) -> None:
+        if self.teacher is not None and not isinstance(self.teacher, str):
+            raise error("teacher", "a bank model directory (str) or None", Text(type(self.teacher).__name__),
+                        kind=TypeError)
         if not isinstance(self.copies, (tuple, list)) or not all(_intensity(w) for w in self.copies):
             raise error("copies", "a tuple of process intensities > 0, or of tuples of one per state >= 0 (one model "
                         "copy each; () for none)", self.copies)
@@ -368,14 +377,22 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     if len(data) == 0:
         raise ValueError(f"rollouts: every one of the {config.rollouts.n_traj} runs escaped at once (no samples); "
                          "lower the inputs or box_scale, or raise escape_scale.")
-    fits = fit_members(bank, data, config, angles, seed, progress=progress)
+    teacher = None
+    if config.teacher is not None:
+        targets, teacher = teacher_estimates(
+            system, config.teacher, data, bank, copies, dt=dt,
+            rerun=lambda b, c: operational_data(system, b, config.rollouts, seed, dt=dt,
+                                                measurement_std=config.measurement_std, process_std=process,
+                                                time_scale=rate, copies=c, progress=progress))
+    fits = fit_members(bank, data if teacher is None else replace(data, x=targets), config, angles, seed,
+                       progress=progress)
     fitted = fits[0]
     arrays, spec, domain = bank_model(system, bank, config, rate, fits, data, dt, copies=copies)
     if declares_envelope(system, config.rollouts.envelope):     # the domain is the box the user gave
         domain = replace(domain, x_lo=system.x0_box[:, 0].copy(), x_hi=system.x0_box[:, 1].copy())
     training = {"config": config, **config_record(config.rollouts, config.decoder), "time_scale": rate,
                 "input_range": {"range": None if u_range is None else u_range.tolist(), "source": u_source},
-                "noise_copy": noise_copy,
+                "noise_copy": noise_copy, **({} if teacher is None else {"teacher": teacher}),
                 "measurement_std": config.measurement_std, "process_std": process.tolist(),
                 "runs": data.record, "decoder_fit": fitted.fit.summary(), "samples": fitted.n_samples,
                 **({"member_fits": [f.fit.summary() for f in fits[1:]]} if len(fits) > 1 else {}),

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -25,11 +25,13 @@ __all__ = ["Timing", "time_call"]
 
 @dataclass(frozen=True)
 class Timing:
-    """Best-of-``repeat`` wall time of one call, and the work it did (``items``)."""
+    """Best-of-``repeat`` wall time of one call, the work it did (``items``) and, where counted, the instructions
+    per item (valgrind's callgrind)."""
 
     label: str
     seconds: float
     items: int
+    instructions: Optional[float] = None
 
     @property
     def rate(self) -> float:

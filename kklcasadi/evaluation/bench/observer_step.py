@@ -30,6 +30,7 @@ Torch is imported inside the functions only.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import shutil
@@ -37,7 +38,7 @@ import subprocess
 import tempfile
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
@@ -57,7 +58,7 @@ from ...observer.kkl import KKLObserver, load_observer
 from ...plant.systems import System
 from . import Timing
 
-__all__ = ["bench_observer_step"]
+__all__ = ["bench_observer_step", "card_digest", "step_table", "STEP_COLUMNS"]
 
 _NAME = "kkl_bench"
 #: Turns the C loops take (each with ``repeat // _ROUNDS`` runs).
@@ -411,7 +412,7 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
     for timing in timings:
         print(f"{timing.label:<48s} {timing.seconds:10.2f} s")
     _print_ratios(runs, torch_runs, counts, limits)
-    return timings + runs
+    return timings + [replace(run, instructions=counts.get(run.label)) for run in runs]
 
 
 def _c_builds(obs: KKLObserver, build: Path, gcc: str, flags: tuple[str, ...],
@@ -574,3 +575,38 @@ def _print_ratios(runs: list[Timing], torch_runs: list[Timing], counts: dict[str
     for c_label, hand_label in limits:             # the same math, flags and instruction set
         print(f"{c_label} takes {per_step[c_label] / per_step[hand_label]:.2f}x the time of "
               f"{hand_label}")
+
+
+#: The columns of :func:`step_table`: (heading, the label of the timing it shows, or its start after "...").
+STEP_COLUMNS = (("C default (-O3)", f"C default, {' '.join(DEFAULT_FLAGS)}"), ("C portable", "C portable..."),
+                ("C math=libm (bitwise)", "C math=libm..."), ("C via ca.external", "C default via ca.external..."),
+                ("CasADi VM", "CasADi VM..."))
+
+
+def card_digest(model_dir: str | os.PathLike) -> str:
+    """The SHA-256 of a model directory's ``card.json`` (which holds its weights' digest): what a step figure
+    was measured on."""
+    return hashlib.sha256((Path(model_dir) / "card.json").read_bytes()).hexdigest()
+
+
+def _column(timings: Sequence[Timing], label: str) -> Optional[Timing]:
+    start = label[:-3] if label.endswith("...") else None
+    return next((t for t in timings if t.items > 0 and (t.label.startswith(start) if start else t.label == label)),
+                None)
+
+
+def step_table(results: Sequence[tuple[str, str, Sequence[Timing]]], load: Sequence[float]) -> str:
+    """The markdown table of observer steps: one row per ``(model name, card digest, timings of
+    bench_observer_step)`` with the microseconds per step of :data:`STEP_COLUMNS` and the default build's
+    instructions per step, and the load average (1, 5, 15 min) the runs saw."""
+    rows = ["| model | card sha256 | " + " | ".join(f"{h} (us)" for h, _ in STEP_COLUMNS)
+            + " | instructions (C default) |",
+            "|" + "---|" * (len(STEP_COLUMNS) + 3)]
+    for name, digest, timings in results:
+        found = [_column(timings, label) for _, label in STEP_COLUMNS]
+        us = ["" if t is None else f"{t.seconds / t.items * 1e6:.2f}" for t in found]
+        count = "" if found[0] is None or found[0].instructions is None else f"{found[0].instructions:,.0f}"
+        rows.append(f"| `{name}` | `{digest[:16]}` | " + " | ".join(us) + f" | {count} |")
+    return ("\n".join(rows) + "\n\nOne step (latent update and decoder) per model, the best of interleaved short "
+            "runs; instructions by valgrind's callgrind (repeatable on a loaded machine), times not: load average "
+            f"{' / '.join(f'{v:.2f}' for v in load)} on {os.cpu_count()} CPUs.\n")

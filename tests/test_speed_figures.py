@@ -1,0 +1,36 @@
+"""The observer-step figures that docs/results/speed.md shows are written by ``kklcasadi bench observer --write``
+with the digest of each model's card; they must have been measured on the cards that ship now. No test asserts
+a speed (it depends on the machine and its load, which the table states)."""
+
+import hashlib
+
+from kklcasadi.cli import main
+from kklcasadi.evaluation.bench import Timing
+from kklcasadi.evaluation.bench.observer_step import STEP_COLUMNS, card_digest, step_table
+
+
+def test_the_step_table_shows_microseconds_per_step_and_the_default_builds_instructions():
+    default = STEP_COLUMNS[0][1]
+    timings = [Timing("gcc -std=c99 -O3 compile (shared library)", 0.5, 1),
+               Timing(default, 2e-3, 100, instructions=12345.4),
+               Timing(default + " -march=native", 1e-3, 100),          # not the default build: not shown
+               Timing("C portable, -std=c99 -O3 -DKKLC_NO_DISPATCH", 3e-3, 200),
+               Timing("CasADi VM (Function.call)", 0.5, 1000)]
+    table = step_table([("duffing/x", "ab" * 32, timings)], (1.0, 2.5, 3.0))
+    header, rule, row = table.splitlines()[:3]
+    assert header.startswith("| model | card sha256 | C default (-O3) (us) | C portable (us)")
+    assert row.split(" | ")[1:] == ["`" + "ab" * 8 + "`", "20.00", "15.00", "", "", "500.00", "12,345 |"]
+    assert rule.count("---") == header.count("|") - 1
+    assert "load average 1.00 / 2.50 / 3.00" in table
+
+
+def test_the_card_digest_is_the_sha256_of_card_json(tmp_path):
+    (tmp_path / "card.json").write_bytes(b'{"method": "bank"}')
+    assert card_digest(tmp_path) == hashlib.sha256(b'{"method": "bank"}').hexdigest()
+
+
+def test_bench_write_refuses_to_overwrite(tmp_path, capsys):
+    out = tmp_path / "step.md"
+    out.write_text("kept")
+    assert main(["bench", "observer", "--model", "duffing/bank", "--write", str(out)]) == 2
+    assert "--write" in capsys.readouterr().err and out.read_text() == "kept"
