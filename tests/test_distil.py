@@ -54,15 +54,14 @@ def test_a_student_with_the_teachers_latent_takes_its_estimates_on_its_own_sampl
     system = kc.systems.get("duffing")
     model = load_model(teacher_dir)
     config = _config(copies=(1.0,), copy_substeps=2)
-    bank, _, data = _data(system, config, seed=8)
-    copies = model.spec.architecture.model_copies(model.arrays, system)      # the teacher's, bit for bit
+    bank, copies, data = _data(system, config, seed=8)   # the teacher's design (its gains solved again)
 
     def never(*_):
         raise AssertionError("the same latent needs no second pass over the runs")
 
     xhat, record = teacher_estimates(system, teacher_dir, data, bank, copies, dt=0.05, rerun=never, chunk=7)
     np.testing.assert_array_equal(xhat, _teacher_decode(teacher_dir, data.z, data.y, data.u))
-    assert record["latent"] == "the student's" and record["members"] == 2
+    assert record["latent"].startswith("the student's") and record["members"] == 2
     assert record["weights_sha256"] == model.card["weights_sha256"] and record["copies"]["substeps"] == 2
     np.testing.assert_allclose(record["rmse_to_truth"], np.sqrt(np.mean((xhat - data.x) ** 2, axis=0)), rtol=1e-12)
 
