@@ -60,11 +60,14 @@ def estimators() -> str:
 
 
 def speed() -> str:
+    steps = "".join(_table(path) + "\n" for path in sorted((RESULTS / "speed").glob("*/observer_step*.md")))
     return (header("Results: speed", "python benchmarks/summarize_pages.py", "`results/speed/`")
-            + "\nSpeed depends on the machine and its load; each table says where it ran. The observer step's C "
-              "timings beside the CasADi VM and torch (`kklcasadi bench observer`) and the training throughput "
-              "(`kklcasadi bench training`) were not kept as files: `docs/notes/speed.md` has them with their "
-              "commands.\n\n## The benchmark protocol in minutes\n\n"
+            + "\nSpeed depends on the machine and its load; each table says where it ran. The training throughput "
+              "(`kklcasadi bench training`) and the observer step beside torch were not kept as files: "
+              "`docs/notes/speed.md` has them with their commands.\n\n## The observer step of the shipped models\n\n"
+              "Written by `kklcasadi bench observer --model ... --write`, each row with the SHA-256 of the card it "
+              "was measured on (`tests/test_speed_figures.py` checks that they are the shipped cards).\n\n"
+            + steps + "## The benchmark protocol in minutes\n\n"
             + _table(RESULTS / "speed" / "duffing" / "protocol_duffing.md")
             + "\n## The cost as the plant grows\n\nChains of n coupled Duffing oscillators (nx = 2n): the observer's "
               "C step, the EKF's (two forms), the MHE's solve and the training time per size; the log-log plot is "

@@ -11,6 +11,7 @@ pytest.importorskip("torch")
 import kklcasadi as kc  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
 from kklcasadi.model.operational import operational_data  # noqa: E402
+from kklcasadi.model.shipped import resolve  # noqa: E402
 from kklcasadi.model.variants import filterbank as fb  # noqa: E402
 from kklcasadi.plant.runs import RolloutConfig  # noqa: E402
 from kklcasadi.train import LoopConfig, default_config, train_observer  # noqa: E402
@@ -60,6 +61,7 @@ def test_a_student_with_the_teachers_latent_takes_its_estimates_on_its_own_sampl
         raise AssertionError("the same latent needs no second pass over the runs")
 
     xhat, record = teacher_estimates(system, teacher_dir, data, bank, copies, dt=0.05, rerun=never, chunk=7)
+    assert record["path"] == str(teacher_dir)             # a shipped teacher: its name (below)
     np.testing.assert_array_equal(xhat, _teacher_decode(teacher_dir, data.z, data.y, data.u))
     assert record["latent"].startswith("the student's") and record["members"] == 2
     assert record["weights_sha256"] == model.card["weights_sha256"] and record["copies"]["substeps"] == 2
@@ -112,11 +114,19 @@ def test_the_student_is_fit_to_the_teachers_estimates_and_its_card_says_so(teach
 @pytest.mark.parametrize("teacher, message", [("duffing/autonomous", "a bank model directory"),
                                               ("vdp/bank", "a bank model of 'duffing' at dt = 0.05")])
 def test_a_teacher_must_be_a_bank_of_the_same_plant(teacher, message, tmp_path):
-    from kklcasadi.model.shipped import resolve
-
     system = kc.systems.get("duffing")
     bank, copies, data = _data(system, _config(), seed=1)
     with pytest.raises(ValueError, match=f"teacher: expected {message}"):
         teacher_estimates(system, resolve(teacher), data, bank, copies, dt=0.05, rerun=None)
     with pytest.raises(TypeError, match="teacher"):
         _config(teacher=3)
+
+
+def test_a_shipped_teacher_is_recorded_by_name():
+    system = kc.systems.get("duffing")
+    config = _config(y_poles=(0.2, 0.4, 0.8, 1.5, 3.0, 6.0, 12.0, 25.0), u_poles=(0.1, 0.3, 1.0, 3.0, 10.0),
+                     copies=(1.0, 100.0, 1e4), rollouts=RolloutConfig(n_traj=2, T=2.0))
+    bank, copies, data = _data(system, config, seed=1)
+    xhat, record = teacher_estimates(system, "duffing/bank", data, bank, copies, dt=0.05, rerun=None)
+    assert record["path"] == "duffing/bank" and record["latent"].startswith("the student's")
+    np.testing.assert_array_equal(xhat, _teacher_decode(resolve("duffing/bank"), data.z, data.y, data.u))

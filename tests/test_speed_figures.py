@@ -3,10 +3,14 @@ with the digest of each model's card; they must have been measured on the cards 
 a speed (it depends on the machine and its load, which the table states)."""
 
 import hashlib
+import re
+from pathlib import Path
 
+from kklcasadi import provenance
 from kklcasadi.cli import main
 from kklcasadi.evaluation.bench import Timing
 from kklcasadi.evaluation.bench.observer_step import STEP_COLUMNS, card_digest, step_table
+from kklcasadi.model.shipped import resolve, shipped
 
 
 def test_the_step_table_shows_microseconds_per_step_and_the_default_builds_instructions():
@@ -34,3 +38,27 @@ def test_bench_write_refuses_to_overwrite(tmp_path, capsys):
     out.write_text("kept")
     assert main(["bench", "observer", "--model", "duffing/bank", "--write", str(out)]) == 2
     assert "--write" in capsys.readouterr().err and out.read_text() == "kept"
+
+
+ROOT = Path(__file__).resolve().parents[1]
+STEP_FILES = sorted((ROOT / "results" / "speed").glob("*/observer_step*.md"))
+
+
+def _rows(path):
+    """``(model name, card digest prefix)`` of each row of a step table."""
+    return re.findall(r"^\| `([^`]+)` \| `([0-9a-f]{16})` \|", path.read_text(), re.M)
+
+
+def test_the_step_figures_were_measured_on_the_shipped_cards():
+    """Every row of the step tables names a shipped model whose card is the one measured (by its SHA-256), and
+    every shipped compact observer is shown beside its system's bank: a changed model needs the command in
+    the table's stamp run again (then python benchmarks/summarize_pages.py)."""
+    assert STEP_FILES
+    shown = set()
+    for path in STEP_FILES:
+        assert provenance.read(path).command.startswith("kklcasadi bench observer")
+        for name, digest in _rows(path):
+            assert card_digest(resolve(name)).startswith(digest), f"{path.name}: {name} changed since it was timed"
+            shown.add(name)
+    compact = {f"{system}/compact" for system, methods in shipped().items() if "compact" in methods}
+    assert compact and compact | {name.replace("compact", "bank") for name in compact} <= shown

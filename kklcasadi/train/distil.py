@@ -18,6 +18,7 @@ import numpy as np
 
 from ..model.files import load_model
 from ..model.operational import OperationalData
+from ..model.shipped import is_shipped, resolve
 from ..model.variants import BankSpec
 from ..model.variants import filterbank as fb
 from ..model.variants.copies import ModelCopies
@@ -58,7 +59,8 @@ def teacher_estimates(system: System, teacher: str | os.PathLike, data: Operatio
     system : System
         The plant both observers are for.
     teacher : path
-        A ``bank`` model directory of ``system`` at the sample time ``dt``.
+        A ``bank`` model directory of ``system`` at the sample time ``dt``, or a shipped model's name
+        (``duffing/bank``).
     data : OperationalData
         The student's samples (its latent ``bank`` and ``copies`` in ``data.z``).
     bank, copies : FilterBank, ModelCopies or None
@@ -76,10 +78,10 @@ def teacher_estimates(system: System, teacher: str | os.PathLike, data: Operatio
     estimates : numpy.ndarray, shape (S, nx)
         The teacher's ``xhat`` at each of ``data``'s samples (its ensemble's mean).
     record : dict
-        For the card: the teacher's path, weights digest, decoder, members and latent, and the RMSE of its
-        estimates against the true states per state.
+        For the card: the teacher's path (a shipped model's name ``SYSTEM/METHOD``), weights digest, decoder,
+        members and latent, and the RMSE of its estimates against the true states per state.
     """
-    model = load_model(teacher)
+    model = load_model(resolve(teacher))
     where = f"teacher {str(teacher)!r}"
     if model.method != "bank":
         raise error("teacher", "a bank model directory (its decoder's estimates are the targets)",
@@ -102,7 +104,8 @@ def teacher_estimates(system: System, teacher: str | os.PathLike, data: Operatio
     xhat = np.concatenate([fb.decode(full, arch, z[i:i + chunk], data.y[i:i + chunk], data.u[i:i + chunk],
                                      angles=spec.angles, members=spec.members)
                            for i in range(0, len(z), chunk)] or [np.empty((0, system.nx))])
-    record = {"path": str(teacher), "weights_sha256": model.card.get("weights_sha256"),
+    name = "/".join(model.path.resolve().parts[-2:]) if is_shipped(model.path) else str(teacher)
+    record = {"path": name, "weights_sha256": model.card.get("weights_sha256"),
               "decoder": list(spec.decoder.sizes), "members": spec.members,
               "copies": model.card["architecture"]["bank"].get("copies"), "latent": source,
               "rmse_to_truth": np.sqrt(np.mean((xhat - data.x) ** 2, axis=0)).tolist()}
