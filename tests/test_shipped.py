@@ -91,3 +91,47 @@ def test_a_shipped_model_loads_by_name_from_any_directory(tmp_path, monkeypatch,
     assert main(["demo", "--model", "fhn/nope"]) == 2
     assert "error: --model: expected an existing model directory or a shipped model's name" in \
         capsys.readouterr().err
+
+
+def test_the_shipped_robust_observers_are_their_recipe():
+    """models/<system>/robust is ``kklcasadi train`` with the flags of :data:`kklcasadi.train.bank.ROBUST`
+    (issue 46.6): the card's configuration, seed, parameter box and noise models are the recipe's, the card
+    records the nominal plant, and the model loads by its shipped name."""
+    import json
+    from dataclasses import asdict
+
+    import numpy as np
+    import pytest
+
+    import kklcasadi as kc
+    from kklcasadi.cli import build_parser
+    from kklcasadi.cli.train import training_config
+    from kklcasadi.train import with_epochs
+    from kklcasadi.train.bank import ROBUST, robust_command
+
+    robust = sorted(system for system, methods in shipped.shipped().items() if "robust" in methods)
+    assert robust == sorted(kc.systems.families()) == ["duffing", "vdp"]
+    for system in robust:
+        args = build_parser().parse_args(robust_command(system))
+        assert Path(args.out) == Path("models") / system / "robust" and args.method == "bank"
+        family = kc.systems.get(system, param_spread=args.param_spread)
+        expected = with_epochs(training_config(family, "bank", args), args.epochs)
+        card = json.loads((ROOT / args.out / "card.json").read_text())
+        training = card["training"]
+        assert training["config"] == json.loads(json.dumps(asdict(expected)))
+        assert training["seed"] == args.seed == 11 and expected.members == 1
+        runs = training["runs"]
+        assert runs["runs"] == expected.rollouts.n_traj == 1000
+        assert set(runs["noise_models"]) == set(args.noise_model) == {"gauss", "student-t:3"}
+        assert min(runs["noise_models"].values()) > 0.4 * runs["runs"]          # one drawn per run, both drawn
+        params = runs["params"]
+        assert params["names"] == list(family.param_names)
+        np.testing.assert_allclose(params["box"], family.param_box, rtol=0, atol=1e-15)
+        drawn = np.asarray(params["drawn_range"])                 # the Latin hypercube reaches the box's edges
+        np.testing.assert_allclose(drawn, family.param_box.T, rtol=0, atol=0.002)
+        assert card["system"]["fingerprint"] == kc.systems.get(system).fingerprint      # the nominal plant
+        obs = kc.load_observer(f"{system}/robust")
+        assert obs.method == "bank" and obs.model.path == (ROOT / "models" / system / "robust").resolve()
+    assert "--param-spread" in ROBUST and "student-t:3" in ROBUST
+    with pytest.raises(ValueError, match=r"^system: expected a shipped system with a parameterised form"):
+        robust_command("fhn")
