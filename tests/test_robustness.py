@@ -73,7 +73,8 @@ def test_every_estimator_on_the_same_trials(monitored_bank, family, tmp_path):
                  rb.RobustCase("damping 0.3", "outside", damping=0.3),
                  rb.RobustCase("t", "noise", noise_model="student-t:2")]
     cache = TrialCache(None)
-    report = rb.run([("bank", obs)], family, case_list, SHORT, trials=cache, pf_particles=30, compiler=None)
+    report = rb.run([("bank", obs)], family, case_list, SHORT, trials=cache, pf_particles=30, pf_trials=2,
+                    compiler=None)
     nominal = kc.systems.get("duffing")
     for i, case in enumerate(case_list):
         batch = cache.trials(family, rb.RobustCell(case, SHORT))
@@ -97,8 +98,10 @@ def test_every_estimator_on_the_same_trials(monitored_bank, family, tmp_path):
         assert record["score"] == min(record["score_with_disturbance"], record["score_without_disturbance"])
         pf = ParameterPF(family, 0.05, n_particles=30, noise_model=case.noise_model, roughening=ROUGHENING, seed=2026,
                          jit=False)
-        np.testing.assert_array_equal(report.baselines["pf"][i], kc.metrics.smape(batch.x, pf(batch.t, batch.y,
-                                                                                               batch.u)))
+        np.testing.assert_array_equal(report.baselines["pf"][i], kc.metrics.smape(batch.x[:2], pf(
+            batch.t, batch.y[:2], batch.u[:2])))                           # the PF on the first 2 of 3 trials
+        assert report.ratio("bank", "pf", i) == np.mean(report.models["bank"]["smape"][i][:2]) / report.mean("pf", i)
+        assert report.ratio("bank", "ekf", i) == report.mean("bank", i) / report.mean("ekf", i)
     (check,) = report.checks("bank", 0)
     assert check[:3] == ("ekf", report.mean("bank", 0) / report.mean("ekf", 0), 1.05)
     assert [c[0] for c in report.checks("bank", 1)] == ["tuned", "augmented"]
@@ -107,8 +110,10 @@ def test_every_estimator_on_the_same_trials(monitored_bank, family, tmp_path):
     assert met["damping 0.3"] == (report.checks("bank", 2)[0][3] and report.flagged("bank", 2) >= 0.5)
     table = report.markdown()
     assert "| alpha+ beta+ | corner | 3 |" in table and "tuned EKF <= 0.85x" in table and "PF (x, p)" in table
+    assert "3 trials per case; the PF on the first 2 of each case's trials)" in table
     data = json.loads(json.dumps(report.to_json()))
-    assert data["cases"][1]["case"]["params"] == [1.3, 1.3] and data["pf_particles"] == 30
+    assert data["cases"][1]["case"]["params"] == [1.3, 1.3] and data["pf_particles"] == 30 and data["pf_trials"] == 2
+    assert data["cases"][1]["models"]["bank"]["ratios"]["pf"] == report.ratio("bank", "pf", 1)
     assert data["cases"][0]["models"]["bank"]["targets"][0]["baseline"] == "ekf"
     report.plot(tmp_path / "plot.png")
     assert (tmp_path / "plot.png").read_bytes()[:4] == b"\x89PNG"
@@ -134,5 +139,7 @@ def test_the_command(model_dir_factory, tmp_path, capsys):
     assert (out / "duffing_robustness.png").exists() and (out / "duffing_robustness.md").exists()
     assert main(["robustness", str(path), "--kinds", "exact", "--trials", "2", "--out", str(out)]) == 2
     assert "error: --out: expected a directory without a report of 'duffing'" in capsys.readouterr().err
+    assert main(["robustness", str(path), "--kinds", "exact", "--pf-trials", "5"]) == 2
+    assert "error: --pf-trials: runs the particle filter of --pf N on fewer trials" in capsys.readouterr().err
     assert main(["robustness", str(path), "--param-spread", "1.5", "--kinds", "exact"]) == 2
     assert "error: --param-spread: expected a relative uncertainty 0 < s < 1" in capsys.readouterr().err

@@ -60,6 +60,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--tuning-seed", type=int, default=4242, help="seed of the tuning trials (default 4242)")
     g.add_argument("--pf", type=positive_int, metavar="N",
                    help="add the particle filter over states and parameters with N particles")
+    g.add_argument("--pf-trials", type=positive_int, metavar="M",
+                   help="run the particle filter on the first M scored trials of each case only (default: all; "
+                   "the table says so, and its ratios are on those trials)")
     add_roughening(g)
     g.add_argument("--out", help="directory for the markdown table, the JSON report and the plot")
     add_cache(g)
@@ -93,8 +96,12 @@ def run(args: argparse.Namespace) -> int:
                            f"{out} with {existing[0].name}; choose another --out or move it")
     trials, compiler = benchmark_caches(args)
     t0 = time.perf_counter()
+    if args.pf_trials is not None and args.pf is None:
+        raise CommandError(f"--pf-trials: runs the particle filter of --pf N on fewer trials, received --pf-trials "
+                           f"{args.pf_trials} without --pf")
     report = flagged("MODELS", rb.run, observers, family, case_list, settings, trials=trials, pf_particles=args.pf,
-                     pf_roughening=args.pf_roughening, compiler=compiler, n_threads=args.threads, progress=True)
+                     pf_trials=args.pf_trials, pf_roughening=args.pf_roughening, compiler=compiler,
+                     n_threads=args.threads, progress=True)
     wall = time.perf_counter() - t0
     print(f"{len(case_list)} cases x {args.trials} trials in {wall:.1f} s", file=sys.stderr)
     table = report.markdown()

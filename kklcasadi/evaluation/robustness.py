@@ -243,12 +243,18 @@ class Report:
         share = self.models[label]["flagged_share"][i]
         return None if share is None else float(np.mean(share >= FLAG_SHARE))
 
+    def ratio(self, label: str, baseline: str, i: int) -> float:
+        """The model's mean SMAPE over a baseline's on case ``i``, on the trials the baseline ran (the particle
+        filter may run on the first of them only: :func:`run`'s ``pf_trials``)."""
+        n = len(self.baselines[baseline][i])
+        return float(np.mean(self.models[label]["smape"][i][:n])) / self.mean(baseline, i)
+
     def checks(self, label: str, i: int) -> list[tuple[str, float, float, bool]]:
         """The issue's targets of case ``i`` for a model: ``(baseline, ratio, target, met)`` each."""
         out = []
         for baseline, target in self.cases[i].targets:
             if baseline in self.baselines:
-                ratio = self.mean(label, i) / self.mean(baseline, i)
+                ratio = self.ratio(label, baseline, i)
                 out.append((baseline, ratio, target, ratio <= target))
         return out
 
@@ -256,13 +262,15 @@ class Report:
         """One table per model: the mean SMAPE of every estimator per case, the ratios, the targets."""
         names = [b for b in BASELINES if b in self.baselines]
         titles = {"ekf": "EKF", "tuned": "tuned EKF", "augmented": "augmented EKF", "pf": "PF (x, p)"}
+        pf_trials = self.extra.get("pf_trials")
+        pf_text = f"; the PF on the first {pf_trials} of each case's trials" if pf_trials is not None else ""
         blocks = []
         for label in self.models:
             head = ["case", "kind", "trials", label] + [titles[b] for b in names] + \
                 [f"/ {titles[b]}" for b in names] + ["targets", "flagged trials"]
             lines = [f"**{self.system}, {label}** (parameters {', '.join(self.param_names)} in "
                      f"{_box_text(self.param_box)}; noise {self.settings.noise:g}; mean SMAPE %, "
-                     f"{self.settings.n_trials} trials per case)", "",
+                     f"{self.settings.n_trials} trials per case{pf_text})", "",
                      "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
             for i, case in enumerate(self.cases):
                 m = self.mean(label, i)
@@ -270,7 +278,7 @@ class Report:
                 target = ", ".join(f"{titles[b]} <= {t:g}x: {'met' if ok else 'missed'}" for b, _, t, ok in checks)
                 flagged = self.flagged(label, i)
                 row = [case.name, case.kind, str(len(self.models[label]["smape"][i])), f"{m:.2f}"] + \
-                    [f"{self.mean(b, i):.2f}" for b in names] + [f"{m / self.mean(b, i):.2f}x" for b in names] + \
+                    [f"{self.mean(b, i):.2f}" for b in names] + [f"{self.ratio(label, b, i):.2f}x" for b in names] + \
                     [target or "-", "-" if flagged is None else f"{flagged:.2f}"]
                 lines.append("| " + " | ".join(row) + " |")
             blocks.append("\n".join(lines))
@@ -287,7 +295,7 @@ class Report:
                 share = result["flagged_share"][i]
                 entry["models"][label] = {
                     "smape_mean": self.mean(label, i), "smape": np.asarray(result["smape"][i]).tolist(),
-                    "ratios": {b: self.mean(label, i) / self.mean(b, i) for b in self.baselines},
+                    "ratios": {b: self.ratio(label, b, i) for b in self.baselines},
                     "targets": [{"baseline": b, "ratio": r, "target": t, "met": bool(ok)}
                                 for b, r, t, ok in self.checks(label, i)],
                     "flagged_share": None if share is None else share.tolist(),
@@ -312,7 +320,7 @@ class Report:
         width = 0.8 / len(names)
         for ax, label in zip(axes[:, 0], self.models):
             for j, b in enumerate(names):
-                ratios = [self.mean(label, i) / self.mean(b, i) for i in range(len(self.cases))]
+                ratios = [self.ratio(label, b, i) for i in range(len(self.cases))]
                 ax.bar(x + (j - (len(names) - 1) / 2) * width, ratios, width, label=f"{label} / {b}")
             for i, case in enumerate(self.cases):
                 for b, target in case.targets:
@@ -368,8 +376,9 @@ def _augmented(family: System, settings: Settings, tuning: TrajectoryBatch) -> t
 
 def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list: Sequence[RobustCase],
         settings: Settings = Settings(), *, trials: Optional[TrialCache] = None, pf_particles: Optional[int] = None,
-        pf_roughening: float = ROUGHENING, compiler: Optional[Compiler] = DEFAULT_COMPILER,
-        n_threads: Optional[int] = None, progress: bool = False) -> Report:
+        pf_trials: Optional[int] = None, pf_roughening: float = ROUGHENING,
+        compiler: Optional[Compiler] = DEFAULT_COMPILER, n_threads: Optional[int] = None,
+        progress: bool = False) -> Report:
     """Score observers of one plant family and the baselines on every case.
 
     Parameters
@@ -385,6 +394,9 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
         Where the trials come from (default: simulated for this call).
     pf_particles : int, optional
         Run the particle filter over states and parameters with this many particles.
+    pf_trials : int, optional
+        Run it on the first this many scored trials of each case only (default: all); its ratios compare the
+        observers on the same trials, and the table says so.
     pf_roughening : float
         Its roughening of the states.
     compiler : Compiler or None
@@ -408,6 +420,10 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
                         Text(f"{label!r} for another plant {obs.system.name!r}"))
     if pf_particles is not None:
         positive_int(pf_particles, "pf_particles")
+    if pf_trials is not None:
+        positive_int(pf_trials, "pf_trials")
+        if pf_particles is None:
+            raise error("pf_trials", "None without pf_particles (no particle filter runs)", pf_trials)
     trials = TrialCache(None) if trials is None else trials
     runners = {label: _model_runner(obs, compiler, n_threads) for label, obs in observers}
     models = {label: {"smape": [], "flagged_share": []} for label in runners}
@@ -442,8 +458,9 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
                              measurement_std=settings.noise, noise_model=case.noise_model,
                              substeps=SUBSTEPS.get(family.name, 1), roughening=pf_roughening, seed=settings.seed,
                              n_threads=n_threads, **how)
-            baselines["pf"].append(score(pf(t, y, u)))
+            k = len(x) if pf_trials is None else min(pf_trials, len(x))
+            baselines["pf"].append(metrics.smape(x[:k], pf(t, y[:k], u[:k]), angles=family.angle_states))
     return Report(family.name, family.param_names, family.param_box.tolist(), settings, list(case_list), models,
                   baselines, tuning_records, pf_particles,
-                  {"pf_roughening": None if pf_particles is None else pf_roughening,
+                  {"pf_roughening": None if pf_particles is None else pf_roughening, "pf_trials": pf_trials,
                    "pf_shrinkage": None if pf_particles is None else SHRINKAGE})
