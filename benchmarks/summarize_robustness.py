@@ -2,13 +2,13 @@
 
     python benchmarks/summarize_robustness.py [--check | --print]
 
-(after ``kklcasadi robustness models/<system>/bank models/<system>/robust --pf 2000 --out
+(after ``kklcasadi robustness models/<system>/bank models/<system>/robust --pf 1000 [--pf-trials 30] --out
 results/robustness/<system>`` per system: the scored trials, seed 2026, tuning trials seed 4242, 100 and 40
-per case). Per system one table: each case's mean SMAPE of the EKF, the EKF tuned on the tuning trials,
-the augmented EKF, the particle filter over states and parameters, the shipped ``bank`` and the ``robust``
-observer; the robust observer's ratio to the tuned and to the augmented EKF; the issue's targets and whether
-it meets them; the share of trials its domain monitor flags. Then where it loses, and by how much, and which
-observer to pick when.
+per case; the page names each report's command). Per system one table: each case's mean SMAPE of the EKF,
+the EKF tuned on the tuning trials, the augmented EKF, the particle filter over states and parameters, the
+shipped ``bank`` and the ``robust`` observer; the robust observer's ratio to the tuned and to the augmented
+EKF; the issue's targets and whether it meets them; the share of trials its domain monitor flags. Then where
+it loses, and by how much, and which observer to pick when.
 """
 
 from __future__ import annotations
@@ -25,6 +25,15 @@ RESULTS = ROOT / "results" / "robustness"
 SYSTEMS = ("duffing", "vdp")
 COMMAND = "python benchmarks/summarize_robustness.py"
 TITLES = {"ekf": "EKF", "tuned": "tuned EKF", "augmented": "augmented EKF", "pf": "PF (x, p)"}
+
+
+def _pf_text(report: dict) -> str:
+    """How the particle filter ran: its particles, and on how many of each case's trials where not all."""
+    if not report.get("pf_particles"):
+        return ""
+    some = report.get("pf_trials")
+    return (f"; the particle filter with {report['pf_particles']} particles"
+            + (f" on the first {some} trials of each case (its column and the ratios to it on those)" if some else ""))
 
 
 def _report(system: str) -> tuple[Path, dict, provenance.Stamp]:
@@ -84,7 +93,7 @@ def page() -> str:
         parts.append(f"\n## {system}\n\nFrom `{path.relative_to(ROOT)}`, written by `{stamp.command}` at commit "
                      f"`{stamp.commit[:12]}` ({s['n_trials']} scored trials per case, seed {s['seed']}; "
                      f"{s['n_tuning']} tuning trials, seed {s['tuning_seed']}"
-                     + (f"; {report['pf_particles']} particles" if report.get("pf_particles") else "") + "):\n\n")
+                     + _pf_text(report) + "):\n\n")
         parts.append(table)
         parts.append("\nWhere `robust` misses a target: " + ("; ".join(misses) if misses else "nowhere") + ".\n")
     parts.append("\n## Which to pick\n\n`bank` where the plant is the model and the noise Gaussian (it is the EKF's "
