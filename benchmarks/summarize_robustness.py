@@ -75,6 +75,27 @@ def _table(report: dict) -> tuple[str, list[str]]:
     return "\n".join(lines) + "\n", misses
 
 
+#: The estimators a user picks among, in the order of the ranking's ties.
+CANDIDATES = {"bank": "`bank`", "robust": "`robust`", "tuned": "tuned EKF", "augmented": "augmented EKF"}
+KINDS = {"exact": "the exact model", "corner": "the box's corners", "inside": "inside the box",
+         "outside": "effects outside the family", "noise": "heavy tails, outliers, quantisation"}
+
+
+def _pick(reports: dict) -> str:
+    """Per kind of case and system, the estimators ranked by their mean SMAPE averaged over the kind's cases."""
+    lines = ["| cases | " + " | ".join(reports) + " |", "|" + "---|" * (len(reports) + 1)]
+    for kind, title in KINDS.items():
+        row = [title]
+        for report in reports.values():
+            cases = [c for c in report["cases"] if c["case"]["kind"] == kind]
+            means = {name: sum(_mean(c, name) for c in cases) / len(cases) for name in CANDIDATES}
+            row.append(", ".join(f"{CANDIDATES[n]} {means[n]:.2f}" for n in sorted(means, key=means.get)))
+        lines.append("| " + " | ".join(row) + " |")
+    return ("\n## Which to pick\n\nPer kind of case, the four estimators a user picks among (the particle filter "
+            "is the reference) ranked by their mean SMAPE % over the kind's cases, best first:\n\n"
+            + "\n".join(lines) + "\n")
+
+
 def page() -> str:
     parts = [header("Results: robust observers where the EKF's model or noise is wrong", COMMAND,
                     "`results/robustness/<system>/<system>_robustness.json`"),
@@ -96,11 +117,7 @@ def page() -> str:
                      + _pf_text(report) + "):\n\n")
         parts.append(table)
         parts.append("\nWhere `robust` misses a target: " + ("; ".join(misses) if misses else "nowhere") + ".\n")
-    parts.append("\n## Which to pick\n\n`bank` where the plant is the model and the noise Gaussian (it is the EKF's "
-                 "equal there and `robust` costs accuracy: the `exact` rows); `robust` where the coefficients are "
-                 "known only to a box (the `corner` and `inside` rows); where the parameters stay constant and the "
-                 "input excites them, the augmented EKF is better than either and should be preferred; where the "
-                 "plant has effects outside the box, neither is better than the tuned EKF.\n")
+    parts.append(_pick({system: _report(system)[1] for system in SYSTEMS}))
     return "".join(parts)
 
 
