@@ -107,7 +107,7 @@ def test_the_shipped_robust_observers_are_their_recipe():
     from kklcasadi.cli import build_parser
     from kklcasadi.cli.train import training_config
     from kklcasadi.train import with_epochs
-    from kklcasadi.train.bank import ROBUST, robust_command
+    from kklcasadi.train.bank import ROBUST, BankConfig, robust_command
 
     robust = sorted(system for system, methods in shipped.shipped().items() if "robust" in methods)
     assert robust == sorted(kc.systems.families()) == ["duffing", "vdp"]
@@ -118,7 +118,11 @@ def test_the_shipped_robust_observers_are_their_recipe():
         expected = with_epochs(training_config(family, "bank", args), args.epochs)
         card = json.loads((ROOT / args.out / "card.json").read_text())
         training = card["training"]
-        assert training["config"] == json.loads(json.dumps(asdict(expected)))
+        recipe = json.loads(json.dumps(asdict(expected)))
+        default = json.loads(json.dumps(asdict(BankConfig())))
+        added = [key for key in recipe if key not in training["config"]]      # fields BankConfig gained since the fit
+        assert all(recipe[key] == default[key] for key in added), added
+        assert training["config"] == {key: value for key, value in recipe.items() if key not in added}
         assert training["seed"] == args.seed == 11 and expected.members == 1
         runs = training["runs"]
         assert runs["runs"] == expected.rollouts.n_traj == 1000
