@@ -117,10 +117,19 @@ def plant_of(args: argparse.Namespace) -> Optional[System]:
 
 
 def load(model: str | Path, plant: Optional[System], flag: str = "--model") -> Any:
-    """The observer of a model directory, errors naming ``flag``."""
-    from ..observer.kkl import load_observer
+    """The observer of a model directory, errors naming ``flag`` (and ``--plant`` for a model of a plant
+    kklcasadi does not ship, given without it)."""
+    from ..model.files import load_model
+    from ..observer.kkl import KKLObserver
 
-    return flagged(flag, load_observer, model, system=plant)
+    loaded = flagged(flag, load_model, model)
+    if plant is None:
+        name = loaded.card["system"]["name"]
+        if name not in systems.names():
+            raise CommandError(f"--plant: expected the plant of the model {flag} {model} (its card names the system "
+                               f"{name!r}, which kklcasadi does not ship), received none; pass --plant FILE.py:NAME")
+        plant = systems.get(name)
+    return flagged(flag, KKLObserver, loaded, plant)
 
 
 def labelled_models(args: argparse.Namespace, plant: Optional[System]) -> list[tuple[str, Any]]:
