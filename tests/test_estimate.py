@@ -13,7 +13,8 @@ import pytest
 import kklcasadi as kc
 from kklcasadi import provenance
 from kklcasadi.cli import main
-from kklcasadi.evaluation.logged import ekf_for_model, estimate_log, output_ranges, read_plant_log
+from kklcasadi.evaluation.logged import ekf_for_model, estimate_log, read_plant_log
+from kklcasadi.plant.envelope import output_ranges
 from kklcasadi.plant.logs import read_log
 
 QUBE = Path(__file__).resolve().parents[1] / "examples" / "qube"
@@ -62,7 +63,7 @@ def test_estimate_writes_the_estimates_flags_and_the_ekf(model, plant, tmp_path,
     with open(out, newline="") as stream:
         comment, rows = stream.readline(), list(csv.reader(stream))
     assert provenance.read(out).command == shlex.join(["kklcasadi", *args]) and comment.startswith("# provenance")
-    assert rows[0] == ["time", *STATES.split(","), "in_domain", *[f"ekf_{s}" for s in STATES.split(",")]]
+    assert rows[0] == ["time", *STATES.split(","), "in_domain", "status", *[f"ekf_{s}" for s in STATES.split(",")]]
     values = np.array(rows[1:], dtype=float)
     # the same as the observer and the EKF run on the log read onto the grid by hand
     obs = kc.load_observer(model, system=plant)
@@ -75,7 +76,8 @@ def test_estimate_writes_the_estimates_flags_and_the_ekf(model, plant, tmp_path,
     np.testing.assert_array_equal(values[:, 0], log.t)
     np.testing.assert_array_equal(values[:, 1:5], est.xhat)
     np.testing.assert_array_equal(values[:, 5], est.in_domain)
-    np.testing.assert_array_equal(values[:, 6:], ekf)
+    np.testing.assert_array_equal(values[:, 6], 0)                       # no sample flagged by the guard
+    np.testing.assert_array_equal(values[:, 7:], ekf)
     assert np.all(np.abs(log.y[:, 1] - np.pi) < 2.8)                     # alpha on the box's branch (hanging = pi)
 
 
@@ -325,3 +327,25 @@ def test_the_readme_run_passes_the_training_domain_check(demo_run, tmp_path, cap
     status, printed, _ = _run(capsys, "estimate", DUFFING, "--data", wild, "--y-cols", "y", "--u-cols", "u",
                               "--no-range-check", "--out", tmp_path / "wild_est.csv")
     assert status == 0 and "not checked against the training domain (--no-range-check)" in printed
+
+
+def test_an_absurd_sample_is_held_flagged_and_exit_status_3(demo_run, tmp_path, capsys):
+    """47.8 from the command line: with --no-range-check one y of 1e300 reaches the observer; it is not fed, the row
+    says so in the status column, the estimates stay finite, and the command ends with exit status 3."""
+    tr = demo_run
+    y = tr.y[::50, 0].copy()
+    y[100] = 1e300
+    data = _write(tmp_path / "spike.csv", ["time", "y", "u"], [tr.t[::50], y, tr.u[::50, 0]])
+    out = tmp_path / "est.csv"
+    assert "row 100 (line 102), column 'y': expected values within the box" in _refused(
+        capsys, "estimate", DUFFING, "--data", data, "--y-cols", "y", "--u-cols", "u", "--out", out)
+    status, printed, _ = _run(capsys, "estimate", DUFFING, "--data", data, "--y-cols", "y", "--u-cols", "u",
+                              "--no-range-check", "--out", out)
+    assert status == 3 and "guard    1 of 400 samples flagged in the status column: 1 not fed" in printed
+    with open(out, newline="") as stream:
+        rows = list(csv.reader(stream))
+    assert rows[0] == ["time", "x1", "x2", "in_domain", "status"]
+    values = np.array(rows[1:], dtype=float)
+    assert np.flatnonzero(values[:, 4]).tolist() == [100] and np.all(np.isfinite(values[:, 1:3]))
+    clean = kc.load_observer(DUFFING).simulate(tr.t[::50], tr.y[::50], tr.u[::50]).xhat
+    np.testing.assert_allclose(values[-50:, 1:3], clean[-50:], rtol=0, atol=1e-4)

@@ -7,7 +7,9 @@ times, angle columns unwrapped, ``u`` zero-order hold, or averaged over each int
 log), the outputs checked against the model's training domain (``--no-range-check`` skips it), the
 estimates, the domain flags and with ``--ekf`` the EKF's estimates are written
 (:meth:`kklcasadi.evaluation.logged.LogEstimate.write`), and ``--reference-cols`` scores them against
-recorded states. Every error is one line naming a flag (a bad log: ``--data`` with its row and column).
+recorded states. Every error is one line naming a flag (a bad log: ``--data`` with its row and column),
+exit status 2; a sample the guard did not feed to the observer (:mod:`kklcasadi.observer.guard`) is
+flagged in the ``status`` column, and the command then ends with exit status 3.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from .flags import (
     CommandError,
     add_noise_levels,
     add_plant,
+    columns,
     flagged,
     levels_text,
     load,
@@ -31,31 +34,23 @@ from .flags import (
 )
 
 
-def _columns(text: str) -> tuple[str, ...]:
-    """``a,b,c`` -> ("a", "b", "c"); an empty string -> ()."""
-    names = tuple(name.strip() for name in text.split(",")) if text.strip() else ()
-    if any(not name for name in names):
-        raise argparse.ArgumentTypeError(f"expected comma-separated column names, received {text!r}")
-    return names
-
-
 def add_parser(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("estimate", help="run an observer (and the EKF) over a recorded CSV log, write the estimates")
     e.add_argument("model", metavar="MODEL", help="a model directory, or a shipped model by name SYSTEM/METHOD")
     add_plant(e, "for a model of a plant that kklcasadi does not ship")
     e.add_argument("--data", required=True, metavar="LOG.csv", help="the log: a CSV file with a header row")
     e.add_argument("--time-col", default="time", help="the column of sample times in seconds (default time)")
-    e.add_argument("--y-cols", required=True, type=_columns, metavar="NAMES",
+    e.add_argument("--y-cols", required=True, type=columns, metavar="NAMES",
                    help="the measured outputs' columns, comma-separated, in the plant's output order")
-    e.add_argument("--u-cols", type=_columns, default=(), metavar="NAMES",
+    e.add_argument("--u-cols", type=columns, default=(), metavar="NAMES",
                    help="the inputs' columns, in the plant's input order (held zero-order; from a log faster than "
                    "the model, averaged over each interval)")
     e.add_argument("--u-zero", action="store_true", help="the plant's input was zero throughout the log (a plant "
                    "with inputs needs --u-cols or this)")
-    e.add_argument("--angle-cols", type=_columns, metavar="NAMES",
+    e.add_argument("--angle-cols", type=columns, metavar="NAMES",
                    help="columns to unwrap as angles (default: those of the plant's angle outputs and states; "
                    "'' for none)")
-    e.add_argument("--reference-cols", type=_columns, default=(), metavar="NAMES",
+    e.add_argument("--reference-cols", type=columns, default=(), metavar="NAMES",
                    help="recorded states to score against: one column per state in order, '-' for a state the log "
                    "does not record (errors of angle states wrapped)")
     e.add_argument("--no-range-check", action="store_true", help="accept outputs outside the model's training "
@@ -64,7 +59,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "unless --process-std/--measurement-std)")
     add_noise_levels(e, "the EKF's (default: the card's)")
     e.add_argument("--settle", type=nonnegative_float, default=0.0, help="seconds left out of the scores (default 0)")
-    e.add_argument("--state-names", type=_columns, metavar="NAMES", help="column names of the states in EST.csv "
+    e.add_argument("--state-names", type=columns, metavar="NAMES", help="column names of the states in EST.csv "
                    "(default x1, ..., xn)")
     e.add_argument("--out", required=True, metavar="EST.csv", help="the estimates to write (CSV; never one of the "
                    "command's input files)")
@@ -127,8 +122,14 @@ def _check_out(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Estimate the log's states; write EST.csv; print the grid, the domain monitor and the scores."""
+    """Estimate the log's states; write EST.csv; print the grid, the domain monitor and the scores.
+
+    Exit status 0, or 3 where the sample guard flagged samples (the estimates are written all the same).
+    """
+    import numpy as np
+
     from ..evaluation.logged import ekf_for_model, estimate_log
+    from ..observer.guard import HELD, RESTARTED
 
     _check_out(args)
     obs = load(args.model, plant_of(args), "MODEL")
@@ -147,13 +148,13 @@ def run(args: argparse.Namespace) -> int:
     if args.state_names is not None:
         _check_count("--state-names", args.state_names, plant.nx, f"the states of {plant.name!r}")
     reference: tuple[Optional[str], ...] = tuple(None if name == "-" else name for name in args.reference_cols)
-    log, columns = _read(args, obs, reference)
+    log, recorded = _read(args, obs, reference)
     ekf = False
     if args.ekf:
         ekf, levels = flagged("--ekf", ekf_for_model, obs, process_std=args.process_std,
                               measurement_std=args.measurement_std)
     result = flagged("--settle", estimate_log, obs, log, u_zero=args.u_zero, ekf=ekf, settle=args.settle,
-                     reference=columns)
+                     reference=recorded)
     r = log.resampling
     print(f"model    {model_label(args.model)}  ({obs.method}, system {plant.name}, dt {obs.dt:g} s)")
     inputs = "none" if not plant.nu else "zero (--u-zero)" if args.u_zero else r.u_method
@@ -164,12 +165,17 @@ def run(args: argparse.Namespace) -> int:
     if result.in_domain is not None:
         print(f"domain   {int(result.in_domain.sum())} of {log.t.size} estimates in the domain the maps were "
               "trained on")
+    flagged_samples = int(np.count_nonzero(result.status))
+    if flagged_samples:
+        print(f"guard    {flagged_samples} of {log.t.size} samples flagged in the status column: "
+              f"{int(np.count_nonzero(result.status & HELD))} not fed (not finite or absurd), "
+              f"{int(np.count_nonzero(result.status & RESTARTED))} restarts (exit status 3)")
     if args.ekf:
         q = levels_text(levels[0])
         print(f"EKF      Q = ({q} dt)^2 I, R = {levels[1]:g}^2 I" if "(" not in q else
               f"EKF      Q = diag({q[1:-1]})^2 dt^2, R = {levels[1]:g}^2 I")
-    if columns:
+    if recorded:
         print(result.table(args.state_names))
     path = flagged("--out", result.write, args.out, state_names=args.state_names, stamp=stamp_of(args))
     print(f"wrote    {path}")
-    return 0
+    return 3 if flagged_samples else 0

@@ -45,6 +45,7 @@ from ..plant import systems
 from ..plant.systems import System
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
+           "columns",
            "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
            "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "stamp_of",
            "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS", "labelled_models", "benchmark_caches"]
@@ -88,6 +89,14 @@ positive_int = _number(int, 0, True, "a positive integer")
 nonnegative_int = _number(int, 0, False, "an integer >= 0")
 positive_float = _number(float, 0.0, True, "a positive number")
 nonnegative_float = _number(float, 0.0, False, "a number >= 0")
+
+
+def columns(text: str) -> tuple[str, ...]:
+    """Column names of a CSV file (``--y-cols``, ...): ``a,b,c`` -> ("a", "b", "c"); an empty string -> ()."""
+    names = tuple(name.strip() for name in text.split(",")) if text.strip() else ()
+    if any(not name for name in names):
+        raise argparse.ArgumentTypeError(f"expected comma-separated column names, received {text!r}")
+    return names
 
 
 def c_name(text: str) -> str:

@@ -21,6 +21,7 @@ import numpy as np
 
 from .. import metrics
 from ..estimators.ekf import EKF
+from ..observer.guard import guarded_simulate, training_box
 from ..observer.kkl import KKLObserver
 from ..plant.envelope import output_ranges
 from ..plant.logs import Log, read_log, write_estimates
@@ -28,8 +29,7 @@ from ..plant.systems import System
 from ..provenance import Stamp
 from ..validation import Text, error, nonnegative_number, state_stds
 
-__all__ = ["LogEstimate", "estimate_log", "read_plant_log", "output_ranges", "training_box", "ekf_for_model"]
-
+__all__ = ["LogEstimate", "estimate_log", "read_plant_log", "ekf_for_model"]
 
 @dataclass(frozen=True, eq=False)
 class LogEstimate:
@@ -46,6 +46,10 @@ class LogEstimate:
     z : numpy.ndarray, shape (N, nz)
     in_domain : numpy.ndarray of bool, shape (N,), or None
         The domain monitor (None when the model records no domain).
+    status : numpy.ndarray of int8, shape (N,)
+        The sample guard per sample (:func:`kklcasadi.observer.guard.guarded_simulate`): 0, or
+        the sum of ``guard.HELD`` (1: the sample was not fed) and ``guard.RESTARTED`` (2: the
+        observer restarted there).
     ekf : numpy.ndarray, shape (N, nx), or None
         The EKF's estimates, when it ran.
     ekf_noise : tuple of float or None
@@ -65,6 +69,7 @@ class LogEstimate:
     xhat: np.ndarray
     z: np.ndarray
     in_domain: Optional[np.ndarray]
+    status: np.ndarray
     ekf: Optional[np.ndarray]
     ekf_noise: Optional[tuple]
     reference: dict
@@ -73,8 +78,9 @@ class LogEstimate:
 
     def write(self, path: str | os.PathLike, *, state_names: Optional[Sequence[str]] = None,
               stamp: Optional[Stamp] = None) -> Path:
-        """Write ``time``, the estimates, ``in_domain`` (where recorded) and ``ekf_<state>`` columns (with
-        the EKF) as CSV under a provenance line, atomically (:func:`kklcasadi.plant.logs.write_estimates`).
+        """Write ``time``, the estimates, ``in_domain`` (where recorded), ``status`` (the sample guard) and
+        ``ekf_<state>`` columns (with the EKF) as CSV under a provenance line, atomically
+        (:func:`kklcasadi.plant.logs.write_estimates`).
 
         Parameters
         ----------
@@ -87,8 +93,8 @@ class LogEstimate:
         nx = self.xhat.shape[1]
         names = tuple(state_names) if state_names is not None else tuple(f"x{i + 1}" for i in range(nx))
         extra = None if self.ekf is None else {f"ekf_{name}": self.ekf[:, i] for i, name in enumerate(names)}
-        return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain, extra=extra,
-                               stamp=stamp)
+        return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain,
+                               status=self.status, extra=extra, stamp=stamp)
 
     def table(self, state_names: Optional[Sequence[str]] = None) -> str:
         """The scores as a few lines of text (one per recorded state)."""
@@ -100,14 +106,6 @@ class LogEstimate:
             ekf = "" if s["rmse_ekf"] is None else f"   EKF {s['rmse_ekf']:.4g}"
             lines.append(f"  {name:<12s} against {s['column']!r}: KKL {s['rmse']:.4g}{ekf}")
         return "\n".join(lines)
-
-
-def training_box(observer: KKLObserver) -> np.ndarray:
-    """The states the model was trained on, (nx, 2): the card's recorded domain, else the plant's X0 box."""
-    domain = observer.domain
-    if domain is None:
-        return observer.system.x0_box
-    return np.column_stack([domain.x_lo, domain.x_hi])
 
 
 def _reference_columns(reference_cols: Sequence[Optional[str]], nx: int) -> dict:
@@ -266,7 +264,7 @@ def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, ti
                                         range_check=range_check)
     settle = nonnegative_number(settle, "settle")
     u = log.u if log.u.shape[1] else np.zeros((log.t.size, plant.nu))
-    est = observer.simulate(log.t, log.y, u)
+    est, status = guarded_simulate(observer, log.t, log.y, u)
     ekf_xhat, noise = None, None
     if ekf is True:
         ekf, noise = ekf_for_model(observer, process_std=process_std, measurement_std=measurement_std)
@@ -284,4 +282,4 @@ def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, ti
         scores[i] = {"column": name, "rmse": float(metrics.rmse(recorded, est.xhat[keep, i:i + 1], angles=wrap)),
                      "rmse_ekf": None if ekf_xhat is None else float(metrics.rmse(recorded, ekf_xhat[keep, i:i + 1],
                                                                                   angles=wrap))}
-    return LogEstimate(log, log.t, est.xhat, est.z, est.in_domain, ekf_xhat, noise, reference, scores, settle)
+    return LogEstimate(log, log.t, est.xhat, est.z, est.in_domain, status, ekf_xhat, noise, reference, scores, settle)

@@ -309,7 +309,8 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
         between two samples) before anything else.
     t0 : float, optional
         First grid time, in the log's clock, within the logged times; default the first logged time.
-        The grid runs to the last grid time at or before the last logged time.
+        The grid runs to the last grid time at or before the last logged time (to 1e-9 ``dt``, so
+        that a log at the model's rate keeps its last sample whatever the rounding of its times).
     max_dt_ratio : float
         No logged spacing may exceed ``max_dt_ratio dt`` (a gap would be bridged by interpolation).
     box : mapping {column: (lo, hi)}, optional
@@ -417,7 +418,7 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
     if not t_raw[0] <= t0 < t_raw[-1]:
         raise error("t0", f"a time within the log [{t_raw[0]:.6g}, {t_raw[-1]:.6g})", t0)
     edges = t0 + np.arange(int(math.floor((t_raw[-1] - t0) / dt * (1.0 + 1e-12))) + 2) * dt
-    t = edges[:-1][edges[:-1] <= t_raw[-1]]              # the grid never extrapolates
+    t = edges[:-1][edges[:-1] <= t_raw[-1] + 1e-9 * dt]   # the grid never extrapolates (beyond the rounding of t)
     if t.size < 2:
         raise error("t0", f"a time at least dt = {dt:g} s before the last logged time {t_raw[-1]:.6g}", t0)
     edges = edges[:t.size + 1]
@@ -460,17 +461,17 @@ def _finite(value: Any, argument: str, ndim: int, n: Optional[int] = None) -> np
 
 
 def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: Sequence[str],
-                    in_domain: Any = None, extra: Optional[Mapping[str, Any]] = None,
+                    in_domain: Any = None, status: Any = None, extra: Optional[Mapping[str, Any]] = None,
                     stamp: Optional[provenance.Stamp] = None) -> Path:
     """Write estimates as a CSV file, atomically.
 
     A first line ``# provenance {...}`` holds the stamp (:mod:`kklcasadi.provenance`; ``stamp``,
     default this process's), then the header row (:func:`read_log` skips the comment). Columns:
-    ``time``, the ``state_names``, then ``in_domain`` (0/1) if given, then the ``extra`` columns in
-    their order. Numbers are written with :func:`repr`, so reading them back gives the same floats.
-    Everything is validated and formatted before the file is touched; the text goes to a temporary
-    file in the same folder, which then replaces ``path`` (:func:`os.replace`): a failure leaves an
-    existing file as it was and no temporary file behind.
+    ``time``, the ``state_names``, then ``in_domain`` (0/1) and ``status`` (an integer >= 0) if
+    given, then the ``extra`` columns in their order. Numbers are written with :func:`repr`, so
+    reading them back gives the same floats. Everything is validated and formatted before the file
+    is touched; the text goes to a temporary file in the same folder, which then replaces ``path``
+    (:func:`os.replace`): a failure leaves an existing file as it was and no temporary file behind.
 
     Parameters
     ----------
@@ -482,6 +483,8 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     state_names : sequence of str, length nx
     in_domain : array_like of bool, shape (N,), optional
         The domain monitor's flags (``Estimate.in_domain``).
+    status : array_like of int, shape (N,), optional
+        The sample guard's flags (:func:`kklcasadi.observer.guard.guarded_simulate`).
     extra : mapping {name: array_like (N,)}, optional
         Further finite columns (e.g. reference velocities).
 
@@ -505,6 +508,12 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
             raise error("in_domain", f"{n} booleans", Text(f"shape {flags.shape}, dtype {flags.dtype}"))
         header.append("in_domain")
         body.append(flags.astype(bool))
+    if status is not None:
+        codes = np.asarray(status)
+        if codes.shape != (n,) or not np.issubdtype(codes.dtype, np.integer) or np.any(codes < 0):
+            raise error("status", f"{n} integers >= 0", Text(f"shape {codes.shape}, dtype {codes.dtype}"))
+        header.append("status")
+        body.append(codes.astype(np.int64))
     if extra is not None:
         if not isinstance(extra, Mapping):
             raise error("extra", "a mapping {name: values (N,)}", Text(type(extra).__name__), kind=TypeError)
@@ -514,17 +523,19 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
             body.append(_finite(values, f"extra[{name!r}]", 1, n))
     repeated = sorted({name for name in header if header.count(name) > 1})
     if repeated:
-        raise error("state_names, extra", "names distinct from each other and from 'time', 'in_domain'",
+        raise error("state_names, extra", "names distinct from each other and from 'time', 'in_domain', 'status'",
                     Text(f"repeated {repeated}"))
     text = io.StringIO(provenance.csv_comment(stamp or provenance.stamp()))
     text.seek(0, io.SEEK_END)
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(header)
     for row in zip(*body):
-        writer.writerow([str(int(v)) if isinstance(v, np.bool_) else repr(float(v)) for v in row])
+        writer.writerow([str(int(v)) if isinstance(v, (np.bool_, np.integer)) else repr(float(v)) for v in row])
 
     if not path.parent.is_dir():
         raise error("path", "a file in an existing folder", str(path))
+    if path.is_dir():
+        raise error("path", "a file path", Text(f"{str(path)!r}, a folder"))
     handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(handle, "w", newline="") as stream:
