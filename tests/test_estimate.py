@@ -290,7 +290,7 @@ def test_a_1khz_log_is_averaged_onto_the_models_grid(demo_run, tmp_path, capsys)
     status, printed, _ = _run(capsys, "estimate", DUFFING, "--data", data, "--time-col", "t", "--y-cols", "y",
                               "--u-cols", "u", "--out", out)
     assert status == 0 and "u mean over each interval of the log's zero-order hold" in printed
-    written = np.loadtxt(out, delimiter=",", skiprows=1)
+    written = np.loadtxt(out, delimiter=",", skiprows=2)                # a provenance line, the header
     obs = kc.load_observer(DUFFING)
     grid = np.arange(0, 400) * 0.05
     assert written.shape[0] == 400 and np.allclose(written[:, 0], grid, rtol=0, atol=1e-12)
@@ -302,7 +302,7 @@ def test_a_1khz_log_is_averaged_onto_the_models_grid(demo_run, tmp_path, capsys)
     slow = _write(tmp_path / "slow.csv", ["t", "y", "u"], [grid, y, u])
     assert main(["estimate", str(DUFFING), "--data", str(slow), "--time-col", "t", "--y-cols", "y", "--u-cols", "u",
                  "--out", str(tmp_path / "slow_est.csv")]) == 0
-    np.testing.assert_allclose(np.loadtxt(tmp_path / "slow_est.csv", delimiter=",", skiprows=1)[:, 1:3], est.xhat,
+    np.testing.assert_allclose(np.loadtxt(tmp_path / "slow_est.csv", delimiter=",", skiprows=2)[:, 1:3], est.xhat,
                                rtol=0, atol=1e-12)
 
 
@@ -343,8 +343,8 @@ def test_an_absurd_sample_is_held_flagged_and_exit_status_3(demo_run, tmp_path, 
                               "--no-range-check", "--out", out)
     assert status == 3 and "guard    1 of 400 samples flagged in the status column: 1 not fed" in printed
     with open(out, newline="") as stream:
-        rows = list(csv.reader(stream))
-    assert rows[0] == ["time", "x1", "x2", "in_domain", "status"]
+        comment, rows = stream.readline(), list(csv.reader(stream))
+    assert comment.startswith("# provenance") and rows[0] == ["time", "x1", "x2", "in_domain", "status"]
     values = np.array(rows[1:], dtype=float)
     assert np.flatnonzero(values[:, 4]).tolist() == [100] and np.all(np.isfinite(values[:, 1:3]))
     clean = kc.load_observer(DUFFING).simulate(tr.t[::50], tr.y[::50], tr.u[::50]).xhat

@@ -129,9 +129,10 @@ def load(model: str | Path, plant: Optional[System], flag: str = "--model") -> A
     """The observer of a model directory, errors naming ``flag`` (and ``--plant`` for a model of a plant
     kklcasadi does not ship, given without it)."""
     from ..model.files import load_model
+    from ..model.shipped import resolve
     from ..observer.kkl import KKLObserver
 
-    loaded = flagged(flag, load_model, model)
+    loaded = flagged(flag, load_model, flagged(flag, resolve, model))
     if plant is None:
         name = loaded.card["system"]["name"]
         if name not in systems.names():
