@@ -19,12 +19,12 @@ import numpy as np
 from ..model import variants
 from ..plant import signals as sig
 from ..plant import systems
-from .estimate import _columns
 from .flags import (
     CommandError,
     add_dt,
     add_plant,
     add_system,
+    columns,
     flagged,
     levels_text,
     load,
@@ -130,15 +130,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "innovations (recorded in the card; --measurement-std, --process-std win)")
     t.add_argument("--time-col", default="time", help="with --like: the logs' column of sample times in seconds "
                    "(default time)")
-    t.add_argument("--y-cols", type=_columns, metavar="NAMES",
+    t.add_argument("--y-cols", type=columns, metavar="NAMES",
                    help="with --like: the measured outputs' columns, comma-separated, in the plant's output order")
-    t.add_argument("--u-cols", type=_columns, metavar="NAMES",
+    t.add_argument("--u-cols", type=columns, metavar="NAMES",
                    help="with --like: the inputs' columns in the plant's input order (a log faster than --dt: "
                    "averaged over each interval)")
     t.add_argument("--u-zero", action="store_true",
                    help="with --like: the rig's input was zero throughout the logs (a plant with inputs needs "
                    "--u-cols or this)")
-    t.add_argument("--angle-cols", type=_columns, metavar="NAMES",
+    t.add_argument("--angle-cols", type=columns, metavar="NAMES",
                    help="with --like: columns to unwrap as angles (default: those of the plant's angle outputs)")
     t.add_argument("--epochs", type=positive_int, help="override the number of epochs of every stage")
     t.add_argument("--seed", type=int, default=0, help="seed of the training data and the networks' weights "
