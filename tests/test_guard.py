@@ -92,3 +92,24 @@ def test_the_guard_boxes_come_from_the_training_domain(model_dir_factory):
         guarded_simulate(obs, np.arange(3) * DT, np.zeros((2, 1)), np.zeros((3, 1)))
     with pytest.raises(ValueError, match=r"^t: expected samples spaced by the observer's dt"):
         guarded_simulate(obs, np.arange(3) * 0.1, np.zeros((3, 1)), np.zeros((3, 1)))
+
+
+def test_a_plant_that_declares_its_inputs_guards_them(model_dir_factory):
+    """With ``u_box`` [-2, 3] the inputs' guard is [-52, 53]: an input of 60 is held, not fed (without it, fed)."""
+    import casadi as ca
+
+    import kklcasadi as kc
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    plant = kc.System("boxed", x, u, [x[1], -x[0] - 0.4 * x[1] + u], x[0], [[-1, 1], [-1, 1]], u_box=[[-2.0, 3.0]])
+    obs = load_observer(model_dir_factory("inject", system=plant, window=3), system=plant)
+    guard = SampleGuard.of(obs)
+    np.testing.assert_allclose([guard.u_lo, guard.u_hi], [[-52.0], [53.0]])
+    t, y, u = run_data(40, seed=3)
+    spiked = u.copy()
+    spiked[20, 0] = 60.0
+    est, status = guarded_simulate(obs, t, y, spiked)
+    assert np.flatnonzero(status).tolist() == [20] and status[20] == HELD
+    held_y, held_u = y.copy(), u.copy()
+    held_y[20], held_u[20] = y[19], u[19]                  # the whole sample: the last one fed
+    np.testing.assert_array_equal(est.xhat, obs.simulate(t, held_y, held_u).xhat)

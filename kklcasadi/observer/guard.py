@@ -10,8 +10,8 @@ every step with the same rule:
    (before the first one, the middle of the guard box, ``u = 0`` where unbounded), and the row
    is flagged :data:`HELD`. The guard box of the outputs is their range over the states the
    model was trained on (:func:`kklcasadi.plant.envelope.output_ranges` over :func:`training_box`) widened by
-   :data:`GUARD_WIDTHS` times its width on each side; inputs are unbounded (no range of them is
-   recorded), outputs of zero range too.
+   :data:`GUARD_WIDTHS` times its width on each side; the inputs' is the plant's ``u_box`` widened
+   alike (unbounded for a plant that declares none), unbounded too where a range is zero.
 2. **Restart.** A step whose latent ``z_k`` or estimate ``xhat_k`` is not finite, or whose
    latent lies outside the card's latent box widened in the same way (where the card records a
    domain), restarts the observer at that sample as at the start of a run (``z_k = 0``, ``w_k =
@@ -89,13 +89,17 @@ class SampleGuard:
         widths = nonnegative_number(widths, "widths")
         ranges = output_ranges(observer.system, training_box(observer))
         y_lo, y_hi = _widened(ranges[:, 0], ranges[:, 1], widths)
-        unbounded = np.full(observer.nu, np.inf)
+        u_box = observer.system.u_box
+        if u_box is None:
+            u_lo, u_hi = np.full(observer.nu, -np.inf), np.full(observer.nu, np.inf)
+        else:
+            u_lo, u_hi = _widened(u_box[:, 0], u_box[:, 1], widths)
         if observer.domain is None:
             z_lo, z_hi = np.full(observer.nz, -np.inf), np.full(observer.nz, np.inf)
         else:
             z_lo, z_hi = _widened(np.asarray(observer.domain.z_lo, float), np.asarray(observer.domain.z_hi, float),
                                   widths)
-        return cls(y_lo, y_hi, -unbounded, unbounded, z_lo, z_hi)
+        return cls(y_lo, y_hi, u_lo, u_hi, z_lo, z_hi)
 
     @staticmethod
     def _middle(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
