@@ -139,8 +139,8 @@ def monitored_bank(model_dir_factory):
 
 
 def c_program_estimates(obs, folder, name, t, y, u):
-    """The estimates of ``obs``'s C program (``generate_c`` with the C library's math, built by gcc) fed the rows
-    ``t, y, u`` on stdin: (N, nx)."""
+    """The estimates of ``obs``'s C program (``generate_c`` with the C library's math, built by gcc) fed the log
+    ``time, y1.., u1..`` on stdin: (N, nx); every sample fed (no guard flag)."""
     import subprocess
 
     from kklcasadi.observer.codegen import generate_c
@@ -148,6 +148,9 @@ def c_program_estimates(obs, folder, name, t, y, u):
     files = generate_c(obs, folder, name, math="libm")
     subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", str(files[0]), str(files[2]), "-lm",
                     "-o", str(folder / name)], check=True)
+    header = ",".join(["time", *(f"y{j + 1}" for j in range(obs.ny)), *(f"u{j + 1}" for j in range(obs.nu))])
     rows = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([t, y, u]))
-    out = subprocess.run([str(folder / name)], input=rows + "\n", capture_output=True, text=True, check=True)
-    return np.loadtxt(out.stdout.splitlines(), delimiter=",")[:, 1:]
+    out = subprocess.run([str(folder / name)], input=f"{header}\n{rows}\n", capture_output=True, text=True, check=True)
+    table = np.loadtxt(out.stdout.splitlines()[1:], delimiter=",", ndmin=2)
+    assert np.all(table[:, -1] == 0)                      # the status column: every sample fed
+    return table[:, 1:1 + obs.nx]

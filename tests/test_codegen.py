@@ -2,8 +2,8 @@
 default flags (and -march=native where gcc has it), has no dynamic allocation, and matches the
 CasADi VM through ca.external: bitwise with the axpy mat-vec kernels and the C library's exp/tanh,
 within VECTOR_MATH_TOLERANCE with the vectorisable exp/tanh; the vector exp/tanh against numpy;
-the mat-vec kernels' fallback for overlapping arrays; the standalone main example reproduces
-KKLObserver.simulate from a CSV; argument errors. Speed lives in kklcasadi.evaluation.bench.observer_step."""
+the mat-vec kernels' fallback for overlapping arrays; argument errors. The C main over CSV logs:
+tests/test_c_main.py. Speed lives in kklcasadi.evaluation.bench.observer_step."""
 
 import ctypes
 import re
@@ -102,14 +102,6 @@ def assert_matches_vm(obs, library, name, tol):
                 assert np.array_equal(c_out, vm_out), np.max(np.abs(c_out - vm_out))
             else:
                 np.testing.assert_allclose(c_out, vm_out, rtol=tol, atol=tol)
-
-
-def trajectory(n=40, seed=0):
-    rng = np.random.default_rng(seed)
-    t = np.arange(n) * DT
-    y = np.sin(1.3 * t)[:, None] + 0.1 * rng.normal(size=(n, 1))
-    u = 0.8 * np.sign(np.sin(2.0 * t + 0.4))[:, None]
-    return t, y, u
 
 
 # ----------------------------------------------------------------------------- the step in C
@@ -277,82 +269,7 @@ int main(int argc, char** argv) {
             assert np.max(np.abs(got[finite] - want[finite]) / scale) <= ulps
 
 
-# ----------------------------------------------------------------------------- the main example
-
-@needs_gcc
-@pytest.mark.parametrize("method, math", [("obs", "vector"), ("inject", "vector"),
-                                          ("obs", "libm"), ("obs_stream", "libm"), ("dyn_stream", "vector")])
-def test_main_example_reproduces_simulate(model_dir_factory, tmp_path, method, math):
-    obs = load_observer(model_dir_factory(method, window=4))
-    files = generate_c(obs, tmp_path, "observer", math=math)
-    assert "Build: gcc -std=c99 -O3 observer.c observer_main.c -lm -o observer" in \
-        files[2].read_text()
-    binary = tmp_path / "observer"
-    compile_c([files[0], files[2]], binary, flags=DEFAULT_FLAGS)
-    t, y, u = trajectory()
-    expected = obs.simulate(t, y, u)
-    rows = np.column_stack([t, y, u])
-    csv = tmp_path / "samples.csv"
-    csv.write_text("t,y0,u0\n" + "\n".join(",".join(repr(float(v)) for v in row) for row in rows)
-                   + "\n")
-    from_file = subprocess.run([str(binary), str(csv)], capture_output=True, text=True, check=True)
-    from_stdin = subprocess.run([str(binary)], input=csv.read_text(), capture_output=True,
-                                text=True, check=True)
-    assert from_file.stdout == from_stdin.stdout
-    out = np.loadtxt(from_file.stdout.splitlines(), delimiter=",")
-    assert out.shape == (t.size, 3)
-    np.testing.assert_array_equal(out[:, 0], t)
-    if math == "libm":
-        np.testing.assert_array_equal(out[:, 1:], expected.xhat)
-    else:
-        np.testing.assert_allclose(out[:, 1:], expected.xhat, rtol=0, atol=1e-12)
-
-
-@needs_gcc
-def test_two_inputs_and_outputs(model_dir_factory, mimo_plant, tmp_path):
-    obs = load_observer(model_dir_factory("obs", system=mimo_plant, window=3), system=mimo_plant)
-    files = generate_c(obs, tmp_path, name="mimo")
-    binary = tmp_path / "mimo"
-    compile_c([files[0], files[2]], binary)
-    rng = np.random.default_rng(2)
-    t, y, u = np.arange(20) * DT, rng.normal(size=(20, 2)), rng.normal(size=(20, 2))
-    text = "\n".join(" ".join(repr(float(v)) for v in row) for row in np.column_stack([t, y, u]))
-    result = subprocess.run([str(binary)], input=text, capture_output=True, text=True, check=True)
-    out = np.loadtxt(result.stdout.splitlines(), delimiter=",")
-    np.testing.assert_allclose(out[:, 1:], obs.simulate(t, y, u).xhat, rtol=0, atol=1e-12)
-
-
-@needs_gcc
-def test_main_example_rejects_bad_lines(model_dir_factory, tmp_path):
-    files = generate_c(load_observer(model_dir_factory("autonomous")), tmp_path, name="obs")
-    binary = tmp_path / "obs"
-    compile_c([files[0], files[2]], binary)
-    for text, message in [("0,0.1,0\n0.05,nan,0\n", "line 2 (sample 1): value 2 is not finite"),
-                          ("0,0.1\n", "line 1: expected 3 numbers"),
-                          ("0,0.1,0,4\n", "line 1: expected 3 numbers"),
-                          ("0,0.1,0\n0.05,abc,0\n", "line 2: expected 3 numbers")]:
-        result = subprocess.run([str(binary)], input=text, capture_output=True, text=True)
-        assert result.returncode == 1 and message in result.stderr, (text, result.stderr)
-
-
-@needs_gcc
-def test_main_example_checks_the_time_step_against_the_models_dt(model_dir_factory, tmp_path):
-    """0.1 s data into a 0.05 s observer stops at the first step with its line number and status 1; times that are
-    k * dt to rounding (np.arange, printed with repr) run."""
-    files = generate_c(load_observer(model_dir_factory("autonomous")), tmp_path, name="obs")
-    binary = tmp_path / "obs"
-    compile_c([files[0], files[2]], binary)
-    for text, line in [("t,y,u\n0,0.1,0\n0.1,0.2,0\n0.2,0.3,0\n", 3), ("0,0.1,0\n0.05,0.2,0\n0.1001,0.3,0\n", 3),
-                       ("0,0.1,0\n# a comment\n0.05,0.2,0\n0.05,0.3,0\n", 4)]:
-        result = subprocess.run([str(binary)], input=text, capture_output=True, text=True)
-        lines = result.stderr.strip().splitlines()
-        assert result.returncode == 1 and len(lines) == 1, result.stderr
-        assert lines[0].startswith(f"line {line} (sample ") and "expected the model's dt = 0.05" in lines[0]
-    t = np.arange(400) * 0.05 + 1000.0
-    text = "\n".join(f"{float(v)!r},0.1,0" for v in t)
-    result = subprocess.run([str(binary)], input=text, capture_output=True, text=True)
-    assert result.returncode == 0 and len(result.stdout.splitlines()) == 400, result.stderr
-
+# ----------------------------------------------------------------------------- sizes
 
 @needs_gcc
 def test_duffing_sized_decoder_keeps_its_weights_as_constant_arrays(model_dir_factory, tmp_path):
@@ -421,6 +338,18 @@ def test_rejects_a_file_as_out_dir_and_bad_argument_types(model_dir_factory, tmp
     ({"flags": ["O3"]}, ValueError, r"flags: expected compiler options .*received 'O3'"),
     ({"flags": ["-O3", "-march=native -g"]}, ValueError, r"flags: .*received '-march=native -g'"),
     ({"flags": ["-O3", 2]}, ValueError, r"flags: .*received 2"),
+    ({"y_cols": "y"}, TypeError, r"^y_cols: expected a sequence of 1 column names, received str"),
+    ({"y_cols": ("a", "b")}, ValueError, r"^y_cols: expected 1 column names, received \['a', 'b'\]"),
+    ({"u_cols": ("a,b",)}, ValueError, r"^u_cols: expected names of printable ASCII characters without commas"),
+    ({"time_col": "t\"s"}, ValueError, r"^time_col: expected names of printable ASCII"),
+    ({"time_col": " t"}, ValueError, r"^time_col: expected names .* no blanks at either end"),
+    ({"state_names": ("a", "\u00e9")}, ValueError, r"^state_names: expected names of printable ASCII"),
+    ({"state_names": ("x", "x")}, ValueError, r"^state_names: expected distinct names other than 'time'"),
+    ({"state_names": ("x", "status")}, ValueError, r"^state_names: expected distinct names other than"),
+    ({"y_cols": ("time",)}, ValueError, r"^time_col, y_cols, u_cols: expected distinct column names, received "
+                                        r"\['time', 'time', 'u1'\]"),
+    ({"u_cols": ("a??/",)}, ValueError, r"^u_cols: expected names .* or '\?\?'"),
+    ({"y_cols": ("#y",)}, ValueError, r"^y_cols: expected names .* no '#' first"),
 ])
 def test_rejects_bad_code_options(model_dir_factory, tmp_path, options, error, message):
     obs = load_observer(model_dir_factory("autonomous"))

@@ -39,7 +39,9 @@ def test_cli_trains_and_runs_a_plant_from_a_file(tmp_path, capsys):
     assert main(["demo", "--plant", spec, "--model", str(out), "--T", "5", "--out", str(tmp_path / "d.png")]) == 0
     assert "SMAPE" in capsys.readouterr().out
     assert main(["demo", "--model", str(out), "--T", "5"]) == 2               # without its plant
-    assert "'pendulum' is not a registered system" in capsys.readouterr().err
+    assert ("--plant: expected the plant of the model --model" in (err := capsys.readouterr().err)
+            and "its card names the system 'pendulum', which kklcasadi does not ship" in err
+            and "pass --plant FILE.py:NAME" in err)
     assert main(["export", str(out), "--plant", spec, "--casadi", str(tmp_path / "s.casadi")]) == 0
 
 

@@ -151,5 +151,5 @@ def test_a_stamped_csv_reads_as_a_log_with_the_files_line_numbers(stamp, tmp_pat
     log = logs.read_log(path, time_col="time", y_cols=("y",), dt=0.1)
     np.testing.assert_array_equal(log.y[:, 0], t)
     path.write_text(provenance.csv_comment(stamp) + "time,y\n0.0,1\n0.1,abc\n0.2,3\n")
-    with pytest.raises(ValueError, match=r"row 1 \(line 4\), column 'y': expected a number"):
+    with pytest.raises(ValueError, match=r"row 1 \(line 4\), column 'y': expected a plain decimal number"):
         logs.read_log(path, time_col="time", y_cols=("y",), dt=0.1)

@@ -152,9 +152,12 @@ def _check_pipeline_outputs(tmp_path, plant):
     expected = obs.simulate(log["time"], log["theta"][:, None], log["u"][:, None]).xhat
     np.testing.assert_array_equal(np.column_stack([est["x1"], est["x2"]]), expected)
     assert provenance.read(tmp_path / "est.csv").command.startswith("kklcasadi estimate pendulum_bank")
-    from_c = np.loadtxt(tmp_path / "est_c.csv", delimiter=",")
-    np.testing.assert_array_equal(from_c[:, 0], log["time"])
-    np.testing.assert_allclose(from_c[:, 1:], expected, rtol=1e-12, atol=1e-12)    # the vector exp/tanh: 1e-14
+    from_c = np.genfromtxt(tmp_path / "est_c.csv", delimiter=",", names=True)       # read by name, header written
+    assert from_c.dtype.names == ("time", "x1", "x2", "in_domain", "status")
+    np.testing.assert_array_equal(from_c["time"], log["time"])
+    np.testing.assert_array_equal(from_c["status"], 0)                              # every sample fed
+    np.testing.assert_allclose(np.column_stack([from_c["x1"], from_c["x2"]]), expected, rtol=1e-12,
+                               atol=1e-12)                                          # the vector exp/tanh: 1e-14
 
 
 @needs_gcc

@@ -142,13 +142,13 @@ def _worker(out: Path, trials: int, seed: int, *extra: str) -> subprocess.Popen:
                             stderr=subprocess.STDOUT, text=True)
 
 
-def _finish(proc: subprocess.Popen, timeout: float = 120) -> str:
+def _finish(proc: subprocess.Popen, timeout: float = 900) -> str:
     out, _ = proc.communicate(timeout=timeout)
     assert proc.returncode == 0, out
     return out
 
 
-def _running_trial_of(study_name: str, out: Path, pid: int, timeout: float = 60):
+def _running_trial_of(study_name: str, out: Path, pid: int, timeout: float = 300):
     """The trial that worker ``pid`` is running, once it trains: its objective has started (so its
     heartbeat is on) and drawn its last parameter (``epochs``)."""
     worker = f"{socket.gethostname()}:{pid}"

@@ -1,22 +1,29 @@
 """``kklcasadi estimate``: run an observer (and the EKF) over a recorded CSV log and write the estimates.
 
-``kklcasadi estimate MODEL --data LOG.csv --time-col time --y-cols theta,alpha [--u-cols Vm] --out EST.csv``:
-the log is put on the model's grid (:func:`kklcasadi.plant.logs.read_log`: ``y`` linear, angle
-columns unwrapped, ``u`` zero-order hold), the estimates, the domain flags and with ``--ekf`` the
-EKF's estimates are written (:meth:`kklcasadi.evaluation.logged.LogEstimate.write`), and
-``--reference-cols`` scores them against recorded states. A bad log is one line naming its row
-and column.
+``kklcasadi estimate MODEL --data LOG.csv --time-col time --y-cols theta,alpha --u-cols Vm --out EST.csv``
+(``--u-zero`` instead of ``--u-cols`` for a log taken at zero input): the log's columns are taken by
+name and put on the model's grid (:func:`kklcasadi.plant.logs.read_log`: ``y`` sampled at the grid
+times, angle columns unwrapped, ``u`` zero-order hold, or averaged over each interval from a faster
+log), the outputs checked against the model's training domain (``--no-range-check`` skips it), the
+estimates, the domain flags and with ``--ekf`` the EKF's estimates are written
+(:meth:`kklcasadi.evaluation.logged.LogEstimate.write`), and ``--reference-cols`` scores them against
+recorded states. Every error is one line naming a flag (a bad log: ``--data`` with its row and column),
+exit status 2; a sample the guard did not feed to the observer (:mod:`kklcasadi.observer.guard`) is
+flagged in the ``status`` column, and the command then ends with exit status 3.
 """
 
 from __future__ import annotations
 
 import argparse
-from typing import Optional
+import os
+from pathlib import Path
+from typing import Any, Optional
 
 from .flags import (
     CommandError,
     add_noise_levels,
     add_plant,
+    columns,
     flagged,
     levels_text,
     load,
@@ -27,37 +34,35 @@ from .flags import (
 )
 
 
-def _columns(text: str) -> tuple[str, ...]:
-    """``a,b,c`` -> ("a", "b", "c"); an empty string -> ()."""
-    names = tuple(name.strip() for name in text.split(",")) if text.strip() else ()
-    if any(not name for name in names):
-        raise argparse.ArgumentTypeError(f"expected comma-separated column names, received {text!r}")
-    return names
-
-
 def add_parser(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("estimate", help="run an observer (and the EKF) over a recorded CSV log, write the estimates")
     e.add_argument("model", metavar="MODEL", help="a model directory, or a shipped model by name SYSTEM/METHOD")
     add_plant(e, "for a model of a plant that kklcasadi does not ship")
     e.add_argument("--data", required=True, metavar="LOG.csv", help="the log: a CSV file with a header row")
     e.add_argument("--time-col", default="time", help="the column of sample times in seconds (default time)")
-    e.add_argument("--y-cols", required=True, type=_columns, metavar="NAMES",
+    e.add_argument("--y-cols", required=True, type=columns, metavar="NAMES",
                    help="the measured outputs' columns, comma-separated, in the plant's output order")
-    e.add_argument("--u-cols", type=_columns, default=(), metavar="NAMES",
-                   help="the inputs' columns (held zero-order); without them u = 0")
-    e.add_argument("--angle-cols", type=_columns, metavar="NAMES",
+    e.add_argument("--u-cols", type=columns, default=(), metavar="NAMES",
+                   help="the inputs' columns, in the plant's input order (held zero-order; from a log faster than "
+                   "the model, averaged over each interval)")
+    e.add_argument("--u-zero", action="store_true", help="the plant's input was zero throughout the log (a plant "
+                   "with inputs needs --u-cols or this)")
+    e.add_argument("--angle-cols", type=columns, metavar="NAMES",
                    help="columns to unwrap as angles (default: those of the plant's angle outputs and states; "
                    "'' for none)")
-    e.add_argument("--reference-cols", type=_columns, default=(), metavar="NAMES",
+    e.add_argument("--reference-cols", type=columns, default=(), metavar="NAMES",
                    help="recorded states to score against: one column per state in order, '-' for a state the log "
                    "does not record (errors of angle states wrapped)")
+    e.add_argument("--no-range-check", action="store_true", help="accept outputs outside the model's training "
+                   "domain (by default a value more than 10%% of its range outside is refused)")
     e.add_argument("--ekf", action="store_true", help="run the EKF beside the observer (noise: the card's levels "
                    "unless --process-std/--measurement-std)")
     add_noise_levels(e, "the EKF's (default: the card's)")
     e.add_argument("--settle", type=nonnegative_float, default=0.0, help="seconds left out of the scores (default 0)")
-    e.add_argument("--state-names", type=_columns, metavar="NAMES", help="column names of the states in EST.csv "
+    e.add_argument("--state-names", type=columns, metavar="NAMES", help="column names of the states in EST.csv "
                    "(default x1, ..., xn)")
-    e.add_argument("--out", required=True, metavar="EST.csv", help="the estimates to write (CSV)")
+    e.add_argument("--out", required=True, metavar="EST.csv", help="the estimates to write (CSV; never one of the "
+                   "command's input files)")
     e.set_defaults(func=run)
 
 
@@ -67,41 +72,110 @@ def _check_count(flag: str, names: tuple, expected: int, what: str, allow_empty:
                            f"{','.join(names) or 'none'}")
 
 
-def run(args: argparse.Namespace) -> int:
-    """Estimate the log's states; write EST.csv; print the grid, the domain monitor and the scores."""
-    from ..evaluation.logged import ekf_for_model, estimate_log, read_plant_log
+#: The arguments of :func:`kklcasadi.evaluation.logged.read_plant_log` that are flags of this command.
+_FLAGS = {"time_col": "--time-col", "y_cols": "--y-cols", "u_cols": "--u-cols", "u_zero": "--u-zero",
+          "reference_cols": "--reference-cols", "angle_cols": "--angle-cols"}
 
+
+def _read(args: argparse.Namespace, obs: Any, reference: tuple[Optional[str], ...]) -> Any:
+    """The log on the model's grid; an error about a column argument names its flag, any other ``--data``."""
+    from ..evaluation.logged import read_plant_log
+
+    try:
+        return read_plant_log(args.data, obs, time_col=args.time_col, y_cols=args.y_cols, u_cols=args.u_cols,
+                              u_zero=args.u_zero, reference_cols=reference, angle_cols=args.angle_cols,
+                              range_check=not args.no_range_check)
+    except (ValueError, TypeError) as exc:
+        message = str(exc)
+        head, sep, rest = message.partition(": ")
+        if sep and head in _FLAGS:
+            raise CommandError(f"{_FLAGS[head]}: {rest}") from exc
+        raise CommandError(f"--data: {rest}" if sep and head.isidentifier() else f"--data: {message}") from exc
+
+
+def _inputs(args: argparse.Namespace) -> dict[str, Path]:
+    """The files the command reads, by flag: the log, the plant file, the model's files."""
+    files = {"--data": Path(args.data)}
+    if args.plant is not None and ":" in args.plant:
+        plant_file = Path(args.plant.rsplit(":", 1)[0])
+        if plant_file.suffix == ".py":
+            files["--plant"] = plant_file
+    model = Path(args.model)
+    if model.is_dir():
+        files.update({f"MODEL ({p.name})": p for p in model.iterdir() if p.is_file()})
+    return files
+
+
+def _check_out(args: argparse.Namespace) -> None:
+    """``--out`` is a file path that is none of the inputs and not inside the model."""
+    out = Path(args.out)
+    if out.is_dir():
+        raise CommandError(f"--out: expected a file path for the estimates, received {args.out!r}, a folder")
+    resolved = out.resolve()
+    if Path(args.model).resolve() in resolved.parents:
+        raise CommandError(f"--out: expected a file outside the model MODEL, received {args.out!r}")
+    for flag, path in _inputs(args).items():
+        same = os.path.samefile(out, path) if out.exists() and path.exists() else resolved == path.resolve()
+        if same:
+            raise CommandError(f"--out: expected a file other than the command's inputs, received {args.out!r}, "
+                               f"which is {flag}'s file; choose another --out")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Estimate the log's states; write EST.csv; print the grid, the domain monitor and the scores.
+
+    Exit status 0, or 3 where the sample guard flagged samples (the estimates are written all the same).
+    """
+    import numpy as np
+
+    from ..evaluation.logged import ekf_for_model, estimate_log
+    from ..observer.guard import HELD, RESTARTED
+
+    _check_out(args)
     obs = load(args.model, plant_of(args), "MODEL")
     plant = obs.system
     _check_count("--y-cols", args.y_cols, plant.ny, f"the outputs of {plant.name!r}")
-    _check_count("--u-cols", args.u_cols, plant.nu, f"the inputs of {plant.name!r}, or none for u = 0", True)
+    if args.u_cols and args.u_zero:
+        raise CommandError("--u-zero: expected either --u-cols (the logged inputs) or --u-zero (a log at zero "
+                           "input), received both")
+    if plant.nu and not args.u_cols and not args.u_zero:
+        raise CommandError(f"--u-cols: expected {plant.nu} column(s) (the inputs of {plant.name!r}, in order), "
+                           "received none; name the logged inputs, or pass --u-zero if the input was zero "
+                           "throughout the log")
+    _check_count("--u-cols", args.u_cols, plant.nu, f"the inputs of {plant.name!r}", True)
     _check_count("--reference-cols", args.reference_cols, plant.nx, f"one per state of {plant.name!r}, '-' for "
                  "none", True)
     if args.state_names is not None:
         _check_count("--state-names", args.state_names, plant.nx, f"the states of {plant.name!r}")
     reference: tuple[Optional[str], ...] = tuple(None if name == "-" else name for name in args.reference_cols)
-    log, columns = flagged("--data", read_plant_log, args.data, obs, time_col=args.time_col, y_cols=args.y_cols,
-                           u_cols=args.u_cols, reference_cols=reference, angle_cols=args.angle_cols)
+    log, recorded = _read(args, obs, reference)
     ekf = False
     if args.ekf:
         ekf, levels = flagged("--ekf", ekf_for_model, obs, process_std=args.process_std,
                               measurement_std=args.measurement_std)
-    result = flagged("--settle", estimate_log, obs, log, ekf=ekf, settle=args.settle, reference=columns)
+    result = flagged("--settle", estimate_log, obs, log, u_zero=args.u_zero, ekf=ekf, settle=args.settle,
+                     reference=recorded)
     r = log.resampling
     print(f"model    {model_label(args.model)}  ({obs.method}, system {plant.name}, dt {obs.dt:g} s)")
+    inputs = "none" if not plant.nu else "zero (--u-zero)" if args.u_zero else r.u_method
     print(f"log      {log.source}: {r.n_raw} rows over {r.t_last - r.t_first:.6g} s (spacing {r.dt_min:.4g} to "
           f"{r.dt_max:.4g} s, mean {r.dt_mean:.4g}) -> {log.t.size} samples every {obs.dt:g} s; y {r.y_method}, "
-          f"u {'zero (no --u-cols)' if not args.u_cols else r.u_method}"
-          + (f"; angles unwrapped: {', '.join(r.angle_cols)}" if r.angle_cols else ""))
+          f"u {inputs}" + (f"; angles unwrapped: {', '.join(r.angle_cols)}" if r.angle_cols else "")
+          + ("; outputs not checked against the training domain (--no-range-check)" if args.no_range_check else ""))
     if result.in_domain is not None:
         print(f"domain   {int(result.in_domain.sum())} of {log.t.size} estimates in the domain the maps were "
               "trained on")
+    flagged_samples = int(np.count_nonzero(result.status))
+    if flagged_samples:
+        print(f"guard    {flagged_samples} of {log.t.size} samples flagged in the status column: "
+              f"{int(np.count_nonzero(result.status & HELD))} not fed (not finite or absurd), "
+              f"{int(np.count_nonzero(result.status & RESTARTED))} restarts (exit status 3)")
     if args.ekf:
         q = levels_text(levels[0])
         print(f"EKF      Q = ({q} dt)^2 I, R = {levels[1]:g}^2 I" if "(" not in q else
               f"EKF      Q = diag({q[1:-1]})^2 dt^2, R = {levels[1]:g}^2 I")
-    if columns:
+    if recorded:
         print(result.table(args.state_names))
     path = flagged("--out", result.write, args.out, state_names=args.state_names, stamp=stamp_of(args))
     print(f"wrote    {path}")
-    return 0
+    return 3 if flagged_samples else 0

@@ -45,9 +45,10 @@ from ..plant import systems
 from ..plant.systems import System
 
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
+           "columns",
            "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
            "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "stamp_of",
-           "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS"]
+           "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS", "labelled_models", "benchmark_caches"]
 
 #: Noise std of a run (and its EKF) where a model's card records no levels (docs/protocol.md).
 PROTOCOL_STD = 0.1
@@ -90,6 +91,14 @@ positive_float = _number(float, 0.0, True, "a positive number")
 nonnegative_float = _number(float, 0.0, False, "a number >= 0")
 
 
+def columns(text: str) -> tuple[str, ...]:
+    """Column names of a CSV file (``--y-cols``, ...): ``a,b,c`` -> ("a", "b", "c"); an empty string -> ()."""
+    names = tuple(name.strip() for name in text.split(",")) if text.strip() else ()
+    if any(not name for name in names):
+        raise argparse.ArgumentTypeError(f"expected comma-separated column names, received {text!r}")
+    return names
+
+
 def c_name(text: str) -> str:
     """A C identifier (for ``--name``)."""
     from ..observer.codegen import check_c_name
@@ -117,10 +126,46 @@ def plant_of(args: argparse.Namespace) -> Optional[System]:
 
 
 def load(model: str | Path, plant: Optional[System], flag: str = "--model") -> Any:
-    """The observer of a model directory, errors naming ``flag``."""
-    from ..observer.kkl import load_observer
+    """The observer of a model directory, errors naming ``flag`` (and ``--plant`` for a model of a plant
+    kklcasadi does not ship, given without it)."""
+    from ..model.files import load_model
+    from ..model.shipped import resolve
+    from ..observer.kkl import KKLObserver
 
-    return flagged(flag, load_observer, model, system=plant)
+    loaded = flagged(flag, load_model, flagged(flag, resolve, model))
+    if plant is None:
+        name = loaded.card["system"]["name"]
+        if name not in systems.names():
+            raise CommandError(f"--plant: expected the plant of the model {flag} {model} (its card names the system "
+                               f"{name!r}, which kklcasadi does not ship), received none; pass --plant FILE.py:NAME")
+        plant = systems.get(name)
+    return flagged(flag, KKLObserver, loaded, plant)
+
+
+def labelled_models(args: argparse.Namespace, plant: Optional[System]) -> list[tuple[str, Any]]:
+    """The observers of ``MODELS`` (of one plant) with their ``--labels`` (default: the directories' names)."""
+    if args.labels is not None and len(args.labels) != len(args.models):
+        raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
+                           f"received {len(args.labels)}")
+    observers: list[tuple[str, Any]] = []
+    for i, model in enumerate(args.models):
+        obs = load(model, plant, "MODELS")
+        if observers and obs.system.fingerprint != observers[0][1].system.fingerprint:
+            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
+                               f"after models for {observers[0][1].system.name!r}")
+        observers.append((args.labels[i] if args.labels else Path(model).resolve().name, obs))
+    return observers
+
+
+def benchmark_caches(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The trial cache and the compiler of ``--cache-dir``, ``--no-cache`` and ``--vm`` (None: the CasADi VM)."""
+    from ..evaluation.compiled import Compiler
+    from ..evaluation.trialcache import TrialCache, cache_root
+    from ..observer.codegen import fast_kernels
+
+    root = Path(args.cache_dir) if args.cache_dir else cache_root()
+    trials = TrialCache(None if args.no_cache else root / "trials")
+    return trials, None if args.vm else Compiler(cache_dir=root / "compiled", postprocess=fast_kernels)
 
 
 def shipped(system: str, method: str) -> Path:

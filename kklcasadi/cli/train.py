@@ -19,12 +19,12 @@ import numpy as np
 from ..model import variants
 from ..plant import signals as sig
 from ..plant import systems
-from .estimate import _columns
 from .flags import (
     CommandError,
     add_dt,
     add_plant,
     add_system,
+    columns,
     flagged,
     levels_text,
     load,
@@ -50,6 +50,8 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--process-std": ("process_std", lambda a: a.process_std),
                  "--box-scale": ("box_scale", lambda a: a.box_scale),
                  "--kinds": ("kinds", lambda a: None if a.kinds is None else tuple(a.kinds)),
+                 "--runs": ("n_traj", lambda a: a.runs),
+                 "--noise-model": ("noise_models", lambda a: None if a.noise_model is None else tuple(a.noise_model)),
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
                  "--copies": ("copies", lambda a: None if a.copies is None else tuple(a.copies)),
@@ -86,6 +88,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="the input families of the training data. bank: kklcasadi.train.operational.FAMILIES "
                    "(default: the benchmark's four, multisine and a proportional feedback loop; add pd for a plant "
                    "that a controller with derivative action will drive); obs, dyn: the benchmark's kinds")
+    t.add_argument("--runs", type=positive_int, metavar="N",
+                   help="bank: the number of operational runs the decoders are fit on (the budget with --epochs; "
+                   "default the recipe's: 8000 for Duffing and Van der Pol, 1000 for a new plant)")
+    t.add_argument("--noise-model", nargs="+", metavar="MODEL",
+                   help="bank: the measurement noise of the training runs, scaled by --measurement-std: gauss (the "
+                   "default), student-t:NU, outliers:P,K (P of the samples at K times the noise), quantised:STEP, "
+                   "or a combination with '+'; with several, each run draws one (kklcasadi.plant.noise)")
+    t.add_argument("--param-spread", type=positive_float, metavar="S",
+                   help="bank, with --system: train over the family of the plant, every coefficient in nominal "
+                   f"(1 -+ S), each run's drawn from that box ({', '.join(systems.families())}); a --plant with "
+                   "params= trains over its own box without this flag. The card records the box and the draw")
     t.add_argument("--width", type=positive_int, help="autonomous: hidden width of T and T* (default 150; the "
                    "paper uses 350 for rossler and fhn)")
     t.add_argument("--members", type=positive_int, metavar="K",
@@ -117,15 +130,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "innovations (recorded in the card; --measurement-std, --process-std win)")
     t.add_argument("--time-col", default="time", help="with --like: the logs' column of sample times in seconds "
                    "(default time)")
-    t.add_argument("--y-cols", type=_columns, metavar="NAMES",
+    t.add_argument("--y-cols", type=columns, metavar="NAMES",
                    help="with --like: the measured outputs' columns, comma-separated, in the plant's output order")
-    t.add_argument("--u-cols", type=_columns, metavar="NAMES",
+    t.add_argument("--u-cols", type=columns, metavar="NAMES",
                    help="with --like: the inputs' columns in the plant's input order (a log faster than --dt: "
                    "averaged over each interval)")
     t.add_argument("--u-zero", action="store_true",
                    help="with --like: the rig's input was zero throughout the logs (a plant with inputs needs "
                    "--u-cols or this)")
-    t.add_argument("--angle-cols", type=_columns, metavar="NAMES",
+    t.add_argument("--angle-cols", type=columns, metavar="NAMES",
                    help="with --like: columns to unwrap as angles (default: those of the plant's angle outputs)")
     t.add_argument("--epochs", type=positive_int, help="override the number of epochs of every stage")
     t.add_argument("--seed", type=int, default=0, help="seed of the training data and the networks' weights "
@@ -229,7 +242,10 @@ def envelope_text(envelope: Any, plant: systems.System) -> str:
 def run(args: argparse.Namespace) -> int:
     if (args.plant is None) == (args.system is None):
         raise CommandError("--system/--plant: give exactly one: a shipped system name or your plant FILE.py:NAME")
-    plant = plant_of(args) or systems.get(args.system)
+    if args.param_spread is not None and args.system is None:
+        raise CommandError("--param-spread: makes the family of a shipped --system; your --plant declares its own "
+                           "parameters (kc.System(..., params=P, param_box=...))")
+    plant = plant_of(args) or flagged("--param-spread", systems.get, args.system, param_spread=args.param_spread)
     needs_torch("kklcasadi train")
     from ..train import train_observer
 

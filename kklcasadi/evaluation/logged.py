@@ -1,15 +1,17 @@
 """An observer (and the EKF) over a recorded log, in one call: ``kklcasadi estimate`` from Python.
 
 :func:`estimate_log` reads a CSV log onto the observer's grid (:func:`kklcasadi.plant.logs.read_log`:
-``y`` linear, angle columns unwrapped and moved onto the branch of the plant's box, ``u``
-zero-order hold), runs the observer from ``z = 0``, optionally the EKF beside it with the
-model's noise levels, and scores both against recorded states where the log has them (errors
-of angle states wrapped to ``(-pi, pi]``). :meth:`LogEstimate.write` writes the estimates, the
-domain flags and the EKF's estimates as CSV.
+columns by name, ``y`` sampled at the grid times, angle columns unwrapped and moved onto the branch
+of the training domain, ``u`` zero-order hold or, from a faster log, averaged over each interval),
+checks the outputs against the model's training domain, runs the observer from ``z = 0``,
+optionally the EKF beside it with the model's noise levels, and scores both against recorded
+states where the log has them (errors of angle states wrapped to ``(-pi, pi]``).
+:meth:`LogEstimate.write` writes the estimates, the domain flags and the EKF's estimates as CSV.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,14 +21,15 @@ import numpy as np
 
 from .. import metrics
 from ..estimators.ekf import EKF
+from ..observer.guard import guarded_simulate, training_box
 from ..observer.kkl import KKLObserver
 from ..plant.envelope import output_ranges
 from ..plant.logs import Log, read_log, write_estimates
+from ..plant.systems import System
 from ..provenance import Stamp
 from ..validation import Text, error, nonnegative_number, state_stds
 
-__all__ = ["LogEstimate", "estimate_log", "read_plant_log", "output_ranges", "ekf_for_model"]
-
+__all__ = ["LogEstimate", "estimate_log", "read_plant_log", "ekf_for_model"]
 
 @dataclass(frozen=True, eq=False)
 class LogEstimate:
@@ -43,6 +46,10 @@ class LogEstimate:
     z : numpy.ndarray, shape (N, nz)
     in_domain : numpy.ndarray of bool, shape (N,), or None
         The domain monitor (None when the model records no domain).
+    status : numpy.ndarray of int8, shape (N,)
+        The sample guard per sample (:func:`kklcasadi.observer.guard.guarded_simulate`): 0, or
+        the sum of ``guard.HELD`` (1: the sample was not fed) and ``guard.RESTARTED`` (2: the
+        observer restarted there).
     ekf : numpy.ndarray, shape (N, nx), or None
         The EKF's estimates, when it ran.
     ekf_noise : tuple of float or None
@@ -62,6 +69,7 @@ class LogEstimate:
     xhat: np.ndarray
     z: np.ndarray
     in_domain: Optional[np.ndarray]
+    status: np.ndarray
     ekf: Optional[np.ndarray]
     ekf_noise: Optional[tuple]
     reference: dict
@@ -70,8 +78,9 @@ class LogEstimate:
 
     def write(self, path: str | os.PathLike, *, state_names: Optional[Sequence[str]] = None,
               stamp: Optional[Stamp] = None) -> Path:
-        """Write ``time``, the estimates, ``in_domain`` (where recorded) and ``ekf_<state>`` columns (with
-        the EKF) as CSV under a provenance line, atomically (:func:`kklcasadi.plant.logs.write_estimates`).
+        """Write ``time``, the estimates, ``in_domain`` (where recorded), ``status`` (the sample guard) and
+        ``ekf_<state>`` columns (with the EKF) as CSV under a provenance line, atomically
+        (:func:`kklcasadi.plant.logs.write_estimates`).
 
         Parameters
         ----------
@@ -84,8 +93,8 @@ class LogEstimate:
         nx = self.xhat.shape[1]
         names = tuple(state_names) if state_names is not None else tuple(f"x{i + 1}" for i in range(nx))
         extra = None if self.ekf is None else {f"ekf_{name}": self.ekf[:, i] for i, name in enumerate(names)}
-        return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain, extra=extra,
-                               stamp=stamp)
+        return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain,
+                               status=self.status, extra=extra, stamp=stamp)
 
     def table(self, state_names: Optional[Sequence[str]] = None) -> str:
         """The scores as a few lines of text (one per recorded state)."""
@@ -110,15 +119,32 @@ def _reference_columns(reference_cols: Sequence[Optional[str]], nx: int) -> dict
 
 
 def read_plant_log(path: str | os.PathLike, observer: KKLObserver, *, time_col: str, y_cols: Sequence[str],
-                   u_cols: Sequence[str] = (), reference_cols: Sequence[Optional[str]] = (),
+                   u_cols: Sequence[str] = (), u_zero: bool = False, reference_cols: Sequence[Optional[str]] = (),
                    angle_cols: Optional[Sequence[str]] = None, t0: Optional[float] = None,
-                   max_dt_ratio: float = 1.5) -> tuple[Log, dict]:
-    """A log on ``observer``'s grid, checked against its plant.
+                   max_dt_ratio: float = 1.5, range_check: bool = True) -> tuple[Log, dict]:
+    """A log on ``observer``'s grid, checked against its plant and its training domain.
 
-    The outputs' plausible ranges are those of ``h`` over the plant's X0 box
-    (:func:`output_ranges`; a logged output far outside is an error naming its row and column, an
-    angle is moved onto the box's branch). Angle columns default to the ``y_cols`` of the plant's
-    ``angle_outputs`` and the ``reference_cols`` of its ``angle_states``.
+    The outputs' plausible ranges are those of ``h`` over the states the model was trained on
+    (:func:`training_box`: the card's recorded domain, else the plant's X0 box; :func:`output_ranges`):
+    a logged output more than 10 % of its range outside is an error naming its row and column
+    (``range_check=False`` skips the test), and an angle is moved onto the branch of that range.
+    Angle columns default to the ``y_cols`` of the plant's ``angle_outputs`` and the
+    ``reference_cols`` of its ``angle_states``.
+
+    Parameters
+    ----------
+    path, time_col, y_cols, t0, max_dt_ratio
+        See :func:`kklcasadi.plant.logs.read_log`; ``y_cols`` in the plant's output order.
+    observer : KKLObserver
+    u_cols : sequence of str
+        The plant's inputs, in order: required for a plant with inputs unless ``u_zero``.
+    u_zero : bool
+        The plant's input was zero throughout the log (no ``u_cols``).
+    reference_cols : sequence of str or None
+        ``nx`` entries in state order: the column of each recorded state, None for the others.
+    angle_cols : sequence of str, optional
+    range_check : bool
+        Refuse outputs outside the training domain's range (default).
 
     Returns
     -------
@@ -130,20 +156,35 @@ def read_plant_log(path: str | os.PathLike, observer: KKLObserver, *, time_col: 
     y_cols = tuple(y_cols)
     if len(y_cols) != plant.ny:
         raise error("y_cols", f"{plant.ny} columns (the outputs of {plant.name!r}, in order)", list(y_cols))
+    _check_inputs(plant, len(u_cols), u_zero)
     if u_cols and len(u_cols) != plant.nu:
-        raise error("u_cols", f"{plant.nu} columns (the inputs of {plant.name!r}, in order) or none (u = 0)",
-                    list(u_cols))
+        raise error("u_cols", f"{plant.nu} columns (the inputs of {plant.name!r}, in order)", list(u_cols))
+    if not isinstance(range_check, bool):
+        raise error("range_check", "a bool", Text(type(range_check).__name__), kind=TypeError)
     reference = _reference_columns(reference_cols, plant.nx)
     extra = tuple(dict.fromkeys(name for name in reference.values() if name not in y_cols))  # others are y's
     if angle_cols is None:
         angle_cols = ([y_cols[j] for j in plant.angle_outputs]
                       + [name for i, name in reference.items() if i in plant.angle_states and name in extra])
-    ranges = output_ranges(plant)
-    box = {name: tuple(ranges[j]) for j, name in enumerate(y_cols) if ranges[j, 1] > ranges[j, 0]}
+    angle_cols = tuple(dict.fromkeys(angle_cols))
+    ranges = output_ranges(plant, training_box(observer))
+    box = {name: tuple(ranges[j]) for j, name in enumerate(y_cols)
+           if ranges[j, 1] > ranges[j, 0] and (range_check or name in angle_cols)}
     log = read_log(path, time_col=time_col, y_cols=y_cols, u_cols=tuple(u_cols), reference_cols=extra,
-                   dt=observer.dt, angle_cols=tuple(dict.fromkeys(angle_cols)), t0=t0, max_dt_ratio=max_dt_ratio,
-                   box=box)
+                   dt=observer.dt, angle_cols=angle_cols, t0=t0, max_dt_ratio=max_dt_ratio, box=box,
+                   box_margin=0.1 if range_check else math.inf)
     return log, reference
+
+
+def _check_inputs(plant: System, n_columns: int, u_zero: bool) -> None:
+    """A plant with inputs needs their columns, or ``u_zero`` saying the input was zero."""
+    if not isinstance(u_zero, bool):
+        raise error("u_zero", "a bool", Text(type(u_zero).__name__), kind=TypeError)
+    if n_columns and u_zero:
+        raise error("u_zero", "False with u_cols (the inputs are either logged or zero)", True)
+    if plant.nu and not n_columns and not u_zero:
+        raise error("u_cols", f"{plant.nu} column(s) (the inputs of {plant.name!r}, in order)", Text("none"),
+                    "Name the logged inputs, or pass u_zero=True if the input was zero throughout the log.")
 
 
 def ekf_for_model(observer: KKLObserver, *, process_std: Optional[float | Sequence[float]] = None,
@@ -180,9 +221,9 @@ def _recorded(log: Log, name: str) -> np.ndarray:
 
 
 def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, time_col: str = "time",
-                 y_cols: Sequence[str] = (), u_cols: Sequence[str] = (),
+                 y_cols: Sequence[str] = (), u_cols: Sequence[str] = (), u_zero: bool = False,
                  reference_cols: Sequence[Optional[str]] = (), angle_cols: Optional[Sequence[str]] = None,
-                 ekf: Union[bool, EKF] = False, process_std: Optional[float] = None,
+                 range_check: bool = True, ekf: Union[bool, EKF] = False, process_std: Optional[float] = None,
                  measurement_std: Optional[float] = None, settle: float = 0.0,
                  reference: Optional[dict] = None) -> LogEstimate:
     """Run ``observer`` (and the EKF) over a recorded log and score it against recorded states.
@@ -193,8 +234,9 @@ def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, ti
     log : Log or path
         A log already on the observer's grid (:func:`read_plant_log`; then ``reference`` maps
         state indices to its reference columns), or a CSV file read with the column arguments.
-    time_col, y_cols, u_cols, angle_cols
-        See :func:`read_plant_log` (without ``u_cols`` the input is 0).
+    time_col, y_cols, u_cols, u_zero, angle_cols, range_check
+        See :func:`read_plant_log`: a plant with inputs needs ``u_cols``, or ``u_zero=True`` for a
+        log taken at ``u = 0`` (also for a ``Log`` without inputs).
     reference_cols : sequence of str or None
         ``nx`` entries in state order: the column of each recorded state, None for the others (a
         measured output's column may be one: the angles of a pendulum are states and outputs).
@@ -213,12 +255,16 @@ def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, ti
         reference = {} if reference is None else dict(reference)
         if log.y.shape[1] != plant.ny:
             raise error("log", f"a log of {plant.ny} outputs", Text(f"{log.y.shape[1]} outputs"))
+        _check_inputs(plant, log.u.shape[1], u_zero)
+        if log.u.shape[1] not in (0, plant.nu):
+            raise error("log", f"a log of {plant.nu} inputs", Text(f"{log.u.shape[1]} inputs"))
     else:
         log, reference = read_plant_log(log, observer, time_col=time_col, y_cols=y_cols, u_cols=u_cols,
-                                        reference_cols=reference_cols, angle_cols=angle_cols)
+                                        u_zero=u_zero, reference_cols=reference_cols, angle_cols=angle_cols,
+                                        range_check=range_check)
     settle = nonnegative_number(settle, "settle")
     u = log.u if log.u.shape[1] else np.zeros((log.t.size, plant.nu))
-    est = observer.simulate(log.t, log.y, u)
+    est, status = guarded_simulate(observer, log.t, log.y, u)
     ekf_xhat, noise = None, None
     if ekf is True:
         ekf, noise = ekf_for_model(observer, process_std=process_std, measurement_std=measurement_std)
@@ -236,4 +282,4 @@ def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, ti
         scores[i] = {"column": name, "rmse": float(metrics.rmse(recorded, est.xhat[keep, i:i + 1], angles=wrap)),
                      "rmse_ekf": None if ekf_xhat is None else float(metrics.rmse(recorded, ekf_xhat[keep, i:i + 1],
                                                                                   angles=wrap))}
-    return LogEstimate(log, log.t, est.xhat, est.z, est.in_domain, ekf_xhat, noise, reference, scores, settle)
+    return LogEstimate(log, log.t, est.xhat, est.z, est.in_domain, status, ekf_xhat, noise, reference, scores, settle)

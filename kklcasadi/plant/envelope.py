@@ -5,7 +5,7 @@ the states along the logs (the EKF's estimates), the range of the logged outputs
 rig's noise (measurement std from the outputs' high-frequency residual, process std per state by the
 likelihood of the EKF's innovations: :func:`kklcasadi.estimators.noise.rig_envelope` builds it). Its
 card entry (:meth:`Envelope.to_card`) names every file (with its SHA-256) and what was estimated from
-them; :func:`output_ranges` is the range of a plant's outputs over its X0 box.
+them; :func:`output_ranges` is the range of a plant's outputs over a state box (its X0 box by default).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..validation import Text, error
+from ..validation import Text, error, finite_array
 from .systems import System
 
 __all__ = ["Envelope", "output_ranges", "LIKE_TIME_FACTORS", "LIKE_AMPLITUDE_FACTORS", "OUTPUT_MARGIN"]
@@ -33,11 +33,23 @@ LIKE_AMPLITUDE_FACTORS = (0.8, 1.25)
 OUTPUT_MARGIN = 0.1
 
 
-def output_ranges(system: System) -> np.ndarray:
-    """The range of each output ``h(x)`` over the X0 box, (ny, 2): a Latin hypercube of the box and its corners."""
-    points = [system.sample_box(_RANGE_SAMPLES, 0)]
+def output_ranges(system: System, box: object = None) -> np.ndarray:
+    """The range of each output ``h(x)`` over a state box, (ny, 2): a Latin hypercube of the box and its corners.
+
+    Parameters
+    ----------
+    system : System
+    box : array_like, shape (nx, 2), optional
+        ``[lo, hi]`` per state (e.g. a model's training domain); default the X0 box (then the points
+        are ``system.sample_box(4096, 0)``'s).
+    """
+    from scipy.stats import qmc
+
+    box = system.x0_box if box is None else finite_array(box, "box", (system.nx, 2))
+    unit = qmc.LatinHypercube(d=system.nx, seed=0).random(_RANGE_SAMPLES)
+    points = [box.mean(axis=1) + (2.0 * unit - 1.0) * (0.5 * (box[:, 1] - box[:, 0]))]
     if system.nx <= 12:                                   # the 2^nx corners, where a monotone output peaks
-        points.append(np.array(list(itertools.product(*system.x0_box))))
+        points.append(np.array(list(itertools.product(*box))))
     y = system.h_batch(np.vstack(points))
     return np.column_stack([y.min(axis=0), y.max(axis=0)])
 

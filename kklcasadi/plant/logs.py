@@ -1,20 +1,35 @@
 """Logged data in and out: a CSV log put on a model's uniform grid, and estimates written back.
 
-:func:`read_log` reads the columns it is told to from a CSV file with a header row, validates
-them (times strictly increasing, every value finite, the mean sample time close to the model's
-``dt``, no gap much longer than ``dt``, values inside an optional box) and resamples them onto
-the grid ``t_k = t0 + k dt`` that observers and the EKF expect:
+:func:`read_log` reads the columns it is told to, by name, from a CSV file with a header row,
+validates them (plain decimal numbers, times strictly increasing, every value finite, a log at
+least as fast as the model's ``dt``, no gap much longer than ``dt``, values inside an optional
+box) and puts them on the grid ``t_k = t0 + k dt`` that observers and the EKF expect:
 
-- measurements ``y`` and reference columns are interpolated **linearly** (for a signal with
-  ``|f''| <= M`` sampled with spacing at most ``h``, the error is at most ``M h^2 / 8``); angle
-  columns are unwrapped first (:func:`numpy.unwrap`), so a pendulum angle logged wrapped to
-  ``[-pi, pi]`` becomes continuous and is never interpolated across a jump of ``2 pi``;
-- inputs ``u`` are held **zero-order**: ``u_k`` is the last logged value at or before ``t_k``.
-  A digital controller holds its output between updates, so the plant saw piecewise-constant
-  inputs; a linear interpolation would invent voltages that were never applied (between the two
-  levels of a step) and shift every step by half a sample. The hold keeps the applied levels,
-  and delays a change logged between two grid points by less than ``dt`` (the model's own
-  convention holds ``u_k`` over ``[t_k, t_k+1)``).
+- measurements ``y`` and reference columns are **sampled at the grid times**, interpolated
+  linearly between the two logged samples around each (for a signal with ``|f''| <= M`` sampled
+  with spacing at most ``h``, the error is at most ``M h^2 / 8``); angle columns are unwrapped
+  first (:func:`numpy.unwrap`), so a pendulum angle logged wrapped to ``[-pi, pi]`` becomes
+  continuous and is never interpolated across a jump of ``2 pi``;
+- inputs ``u`` of a log **at the model's rate** (mean spacing within :data:`RATE_TOLERANCE` of
+  ``dt``, jitter allowed) are held **zero-order**: ``u_k`` is the last logged value at or before
+  ``t_k``. A digital controller holds its output between updates, so the plant saw
+  piecewise-constant inputs; a linear interpolation would invent voltages that were never
+  applied (between the two levels of a step) and shift every step by half a sample. The hold
+  keeps the applied levels, and delays a change logged between two grid points by less than
+  ``dt`` (the model's own convention holds ``u_k`` over ``[t_k, t_k+1)``);
+- inputs of a **faster log** (several samples per ``dt``, an integer multiple or not) are
+  **averaged over each interval**: ``u_k`` is the exact integral of the log's own zero-order
+  hold over ``[t_k, t_k + dt]`` divided by ``dt`` (the last logged value held past the end), the
+  constant input that carries the same impulse over the interval as the logged one did.
+
+A log slower than the model (median spacing above ``dt (1 + RATE_TOLERANCE)``) is refused: it
+cannot be put on a finer grid without inventing samples; train a model at its rate.
+
+The file is UTF-8 (a byte-order mark is dropped), read with :mod:`csv` (quoted fields, other
+columns ignored, blank lines and lines starting with ``#`` skipped). A value is a plain decimal
+number (:data:`NUMBER`: ASCII digits, an optional sign, point and exponent; ``1_000``, ``0x10``
+or non-ASCII digits are refused) or ``nan``/``inf``, which are then refused as not finite.
+Every error is one line naming the file, row, line and column.
 
 :func:`write_estimates` writes estimates as CSV atomically (a temporary file in the same folder,
 then :func:`os.replace`), and :func:`savgol_derivative` is the zero-lag velocity reference that
@@ -25,25 +40,38 @@ from __future__ import annotations
 
 import csv
 import io
-import itertools
 import math
 import os
+import re
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Iterator, Mapping, Optional, Sequence
 
 import numpy as np
 
 from .. import provenance
 from ..validation import Text, error, finite_number, is_int, nonnegative_number, positive_int, positive_number
 
-__all__ = ["Log", "Resampling", "read_log", "write_estimates", "savgol_derivative", "Y_METHOD", "U_METHOD"]
+__all__ = ["Log", "Resampling", "read_log", "write_estimates", "savgol_derivative", "Y_METHOD", "U_HOLD", "U_MEAN",
+           "RATE_TOLERANCE", "NUMBER", "FIELD_LIMIT"]
 
 #: How ``y`` and the reference are put on the grid.
-Y_METHOD = "linear (angle columns unwrapped first)"
-#: How ``u`` is put on the grid.
-U_METHOD = "zero-order hold (last logged value at or before each grid time)"
+Y_METHOD = "sampled at the grid times (linear between logged samples; angle columns unwrapped first)"
+#: How ``u`` of a log at the model's rate is put on the grid.
+U_HOLD = "zero-order hold (last logged value at or before each grid time)"
+#: How ``u`` of a faster log is put on the grid.
+U_MEAN = "mean over each interval of the log's zero-order hold (the same impulse)"
+#: A log whose median spacing is within this share of ``dt`` is at the model's rate (jitter); above
+#: ``dt (1 + RATE_TOLERANCE)`` it is slower than the model and refused, below ``dt / (1 +
+#: RATE_TOLERANCE)`` it is faster and its inputs are averaged over each interval.
+RATE_TOLERANCE = 0.05
+#: The numbers a log may hold: an optional sign, ASCII digits with an optional decimal point, an
+#: optional exponent (and ``nan``, ``inf``, ``infinity`` in any case, refused later as not finite).
+NUMBER = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)",
+                    re.IGNORECASE | re.ASCII)
+#: The longest field the reader accepts (the :mod:`csv` module's default limit).
+FIELD_LIMIT = 131072
 
 
 @dataclass(frozen=True)
@@ -63,7 +91,7 @@ class Resampling:
     dt_min, dt_mean, dt_max : float
         Statistics of the logged sample spacing.
     y_method, u_method : str
-        :data:`Y_METHOD` and :data:`U_METHOD`.
+        :data:`Y_METHOD`; :data:`U_HOLD` (a log at the model's rate) or :data:`U_MEAN` (a faster log).
     angle_cols : tuple of str
         Columns unwrapped as angles.
     angle_shifts : tuple of float
@@ -94,12 +122,12 @@ class Log:
     t : numpy.ndarray, shape (N,)
         Grid times ``t0 + k dt``, in the log's clock.
     y : numpy.ndarray, shape (N, ny)
-        Measurements, linearly interpolated (angle columns unwrapped).
+        Measurements sampled at the grid times (angle columns unwrapped).
     u : numpy.ndarray, shape (N, nu)
-        Inputs, held zero-order; shape (N, 0) without ``u_cols`` (pass ``np.zeros((N, nu))`` to an
-        estimator for a run at ``u = 0``).
+        Inputs, held zero-order or averaged over each interval (see the module); shape (N, 0)
+        without ``u_cols`` (pass ``np.zeros((N, nu))`` to an estimator for a run at ``u = 0``).
     reference : numpy.ndarray, shape (N, nr), or None
-        Reference columns (e.g. logged velocities), linearly interpolated; None without ``reference_cols``.
+        Reference columns (e.g. logged velocities), sampled as ``y``; None without ``reference_cols``.
     columns : dict
         ``{"time": (name,), "y": names, "u": names, "reference": names}``, tuples of the file's column names.
     source : str
@@ -150,87 +178,149 @@ def _where(source: str, row: int, line: int, column: Optional[str] = None) -> st
     return f"{place}, column {column!r}" if column is not None else place
 
 
-def _read_table(path: Path, wanted: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """The ``wanted`` columns of a CSV file as floats (n, len(wanted)), and each row's line number; comment
-    lines starting with ``#`` before the header row (a provenance stamp) are skipped."""
+def _shown(text: str, limit: int = 40) -> Text:
+    """``text`` for an error message: quoted, cut to ``limit`` characters."""
+    return Text(repr(text) if len(text) <= limit else f"{text[:limit]!r}... ({len(text)} characters)")
+
+
+class _Lines:
+    """The lines of a text stream without comment lines (``#`` first), counting every physical line."""
+
+    def __init__(self, stream: Any) -> None:
+        self.stream, self.line = stream, 0
+
+    def __iter__(self) -> Iterator[str]:
+        for text in self.stream:
+            self.line += 1
+            if not text.startswith("#"):
+                yield text
+
+
+def _rows(path: Path, source: str) -> Iterator[tuple[int, list[str]]]:
+    """The non-blank rows of a CSV file with the number of the line each ends on; one-line errors."""
+    with open(path, newline="", encoding="utf-8-sig") as stream:
+        lines = _Lines(stream)
+        reader = csv.reader(lines, strict=True)
+        while True:
+            try:
+                row = next(reader)
+            except StopIteration:
+                return
+            except UnicodeDecodeError:
+                raise error(f"{source}: line {lines.line + 1}", "UTF-8 text", Text("bytes that are not UTF-8"),
+                            "Save the log as UTF-8 CSV.") from None
+            except csv.Error as exc:
+                what = str(exc)
+                if "field larger than field limit" in what:
+                    raise error(f"{source}: line {lines.line}", f"fields of at most {FIELD_LIMIT} characters",
+                                Text("a longer field")) from None
+                raise error(f"{source}: line {lines.line}", "a well-formed CSV row", Text(what)) from None
+            if row:                                       # blank lines carry no sample
+                yield lines.line, row
+
+
+def _number(text: str, where: str) -> float:
+    """A field as a float: a plain decimal number (:data:`NUMBER`), blanks around it allowed."""
+    text = text.strip(" \t")
+    if NUMBER.fullmatch(text) is None:
+        raise error(where, "a plain decimal number (digits, '.', an exponent)", _shown(text))
+    return float(text)
+
+
+def _read_table(path: Path, wanted: tuple[str, ...], arguments: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The ``wanted`` columns of a CSV file as floats (n, len(wanted)), and each row's line number.
+
+    ``arguments`` names, per wanted column, the argument that asked for it (for a missing column).
+    """
     source = str(path)
-    with open(path, newline="") as stream:
-        skipped, first = 0, stream.readline()
-        while first.startswith("#"):
-            skipped, first = skipped + 1, stream.readline()
-        reader = csv.reader(itertools.chain([first] if first else [], stream))
-        header = next(reader, None)
-        if header is None:
-            raise error(source, "a CSV file with a header row", Text("an empty file"))
-        header = [name.strip() for name in header]
-        repeated = sorted({name for name in header if header.count(name) > 1})
-        if repeated:
-            raise error(f"{source}: header", "distinct column names", Text(f"repeated {repeated}"))
-        missing = [name for name in wanted if name not in header]
-        if missing:
-            raise error(f"{source}: columns", f"{missing} among the file's columns", Text(f"columns {header}"),
-                        "Pass the names of the file's header row.")
-        index = [header.index(name) for name in wanted]
-        values, lines = [], []
-        for row in reader:
-            if not row:                                   # blank lines carry no sample
-                continue
-            k, line = len(values), reader.line_num + skipped
-            if len(row) != len(header):
-                raise error(_where(source, k, line), f"{len(header)} fields (one per header column)",
-                            Text(f"{len(row)} fields"))
-            numbers = []
-            for i, name in zip(index, wanted):
-                text = row[i].strip()
-                try:
-                    numbers.append(float(text))
-                except ValueError:
-                    raise error(_where(source, k, line, name), "a number", text) from None
-            values.append(numbers)
-            lines.append(line)
+    rows = _rows(path, source)
+    first = next(rows, None)
+    if first is None:
+        raise error(source, "a CSV file with a header row", Text("an empty file"))
+    header = [name.strip() for name in first[1]]
+    repeated = sorted({name for name in header if header.count(name) > 1})
+    if repeated:
+        raise error(f"{source}: header", "distinct column names", Text(f"repeated {repeated}"))
+    for name, argument in zip(wanted, arguments):
+        if name not in header:
+            raise error(argument, f"a column of {source}", name,
+                        f"Its header holds {header if len(header) <= 20 else header[:20] + ['...']}.")
+    index = [header.index(name) for name in wanted]
+    values, lines = [], []
+    for line, row in rows:
+        k = len(values)
+        if len(row) != len(header):
+            raise error(_where(source, k, line), f"{len(header)} fields (one per header column)",
+                        Text(f"{len(row)} fields"))
+        values.append([_number(row[i], _where(source, k, line, name)) for i, name in zip(index, wanted)])
+        lines.append(line)
     if len(values) < 2:
         raise error(source, "at least 2 data rows", Text(f"{len(values)} rows"))
     return np.array(values, dtype=np.float64), np.array(lines)
+
+
+def _interval_means(t_raw: np.ndarray, values: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The mean over each ``[edges[k], edges[k+1]]`` of the zero-order hold of ``values`` (n, m) at
+    ``t_raw`` (the last value held past the end), (len(edges) - 1, m).
+
+    The intervals are cut at every logged time inside them; each piece's departure from the
+    interval's first value, times its length, is summed per interval and divided by the summed
+    lengths, then added to that first value (so an input constant over an interval is exactly kept).
+    """
+    inside = t_raw[(t_raw > edges[0]) & (t_raw < edges[-1])]
+    cuts = np.union1d(edges, inside)
+    lengths = np.diff(cuts)
+    held = values[np.searchsorted(t_raw, cuts[:-1], side="right") - 1]           # each piece's value
+    interval = np.minimum(np.searchsorted(edges, cuts[:-1], side="right") - 1, edges.size - 2)
+    n = edges.size - 1
+    first = held[np.searchsorted(interval, np.arange(n))]                          # each interval's first value
+    total = np.bincount(interval, weights=lengths, minlength=n)
+    departure = np.column_stack([np.bincount(interval, weights=lengths * (held[:, j] - first[interval, j]),
+                                             minlength=n) for j in range(values.shape[1])])
+    return first + departure / total[:, None]
 
 
 def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u_cols: Sequence[str] = (),
              reference_cols: Sequence[str] = (), dt: float, angle_cols: Sequence[str] = (),
              t0: Optional[float] = None, max_dt_ratio: float = 1.5,
              box: Optional[Mapping[str, Sequence[float]]] = None, box_margin: float = 0.1) -> Log:
-    """Read a CSV log, validate it and resample it onto the grid ``t0 + k dt``.
+    """Read a CSV log, validate it and put it on the grid ``t0 + k dt``.
 
     Parameters
     ----------
     path : str or path-like
-        A CSV file with a header row (comment lines starting with ``#`` before it are skipped); other
-        columns are ignored, blank lines skipped.
+        A CSV file with a header row (UTF-8; see the module for what it may hold); other columns
+        are ignored, blank lines and ``#`` lines (a provenance stamp, notes) skipped.
     time_col : str
         The column of sample times (seconds, strictly increasing, any origin).
     y_cols : sequence of str
-        Measurement columns, in the order of the model's outputs.
+        Measurement columns, in the order of the model's outputs (sampled at the grid times).
     u_cols : sequence of str
-        Input columns, in the order of the model's inputs (held zero-order, see the module).
+        Input columns, in the order of the model's inputs (held zero-order, or averaged over each
+        interval for a log faster than the model; see the module).
     reference_cols : sequence of str
-        Further columns to carry along linearly interpolated (e.g. logged velocities to compare with).
+        Further columns to carry along, sampled as ``y`` (e.g. logged velocities to compare with).
     dt : float
-        The model's sample period.
+        The model's sample period. The log's median spacing must be at most ``dt (1 +``
+        :data:`RATE_TOLERANCE` ``)``: at the model's rate with jitter, or faster.
     angle_cols : sequence of str
         Columns of ``y_cols`` or ``reference_cols`` that are angles in radians, possibly wrapped:
         they are unwrapped (:func:`numpy.unwrap`, which assumes less than ``pi`` of true motion
         between two samples) before anything else.
     t0 : float, optional
         First grid time, in the log's clock, within the logged times; default the first logged time.
-        The grid runs to the last grid time at or before the last logged time.
+        The grid runs to the last grid time at or before the last logged time (to 1e-9 ``dt``, so
+        that a log at the model's rate keeps its last sample whatever the rounding of its times).
     max_dt_ratio : float
-        The mean logged spacing must lie within ``[dt / max_dt_ratio, dt max_dt_ratio]``, and no
-        spacing may exceed ``max_dt_ratio dt`` (a gap would be bridged by interpolation).
+        No logged spacing may exceed ``max_dt_ratio dt`` (a gap would be bridged by interpolation).
     box : mapping {column: (lo, hi)}, optional
-        Plausible ranges of read columns (e.g. a plant's ``x0_box`` rows). An angle column is first
-        moved by the multiple of ``2 pi`` that brings its mean closest to the middle of its range
-        (the dynamics of an angle are ``2 pi``-periodic; the shift is recorded). A logged value
-        more than ``box_margin`` times the range's width outside it is an error.
+        Plausible ranges of read columns (e.g. the outputs over a model's training domain). An
+        angle column is first moved by the multiple of ``2 pi`` that brings its mean closest to
+        the middle of its range (the dynamics of an angle are ``2 pi``-periodic; the shift is
+        recorded). A logged value more than ``box_margin`` times the range's width outside it is
+        an error.
     box_margin : float
-        See ``box``.
+        See ``box``; ``math.inf`` for no range test (the box then only moves angles onto its branch).
 
     Returns
     -------
@@ -239,10 +329,12 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
     Raises
     ------
     ValueError
-        One line naming the file and what is wrong: missing columns (with the file's columns),
-        an unparsable or non-finite value (row, line and column), times not strictly increasing
-        (the first bad row), a mean spacing far from ``dt`` (both given) or a gap (its row), a
-        value outside the box (column, row, value and bound), or ``t0`` outside the log.
+        One line naming the file and what is wrong: a column missing from the header (naming the
+        argument that asked for it: ``time_col``, ``y_cols``, ``u_cols`` or ``reference_cols``),
+        text that is not UTF-8 CSV or a field over :data:`FIELD_LIMIT` characters (its line), a
+        value that is not a plain decimal number or not finite (row, line and column), times not
+        strictly increasing (the first bad row), a log slower than ``dt`` (both given) or a gap
+        (its row), a value outside the box (column, row, value and bound), or ``t0`` outside the log.
     TypeError
         Column arguments that are not sequences of strings, or a box that is not a mapping.
     """
@@ -264,15 +356,18 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
                     Text(f"{not_interpolated}"))
     dt = positive_number(dt, "dt")
     max_dt_ratio = finite_number(max_dt_ratio, "max_dt_ratio")
-    if max_dt_ratio <= 1.0:
-        raise error("max_dt_ratio", "a number > 1", max_dt_ratio)
-    box_margin = nonnegative_number(box_margin, "box_margin")
+    if max_dt_ratio <= 1.0 + RATE_TOLERANCE:
+        raise error("max_dt_ratio", f"a number > 1 + RATE_TOLERANCE = {1.0 + RATE_TOLERANCE:g}", max_dt_ratio)
+    if not (isinstance(box_margin, (int, float)) and box_margin == math.inf):
+        box_margin = nonnegative_number(box_margin, "box_margin")
     bounds = _box_bounds(box, data_cols)
     if not path.is_file():
         raise error("path", "an existing CSV file", source)
 
     wanted = (time_col,) + data_cols
-    table, lines = _read_table(path, wanted)
+    asked = ("time_col",) + ("y_cols",) * len(y_cols) + ("u_cols",) * len(u_cols) + ("reference_cols",) * len(
+        reference_cols)
+    table, lines = _read_table(path, wanted, asked)
     bad = np.argwhere(~np.isfinite(table))
     if bad.size:
         k, c = bad[0]
@@ -284,11 +379,14 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
         raise error(_where(source, k, int(lines[k]), time_col), f"a time after row {k - 1}'s {t_raw[k - 1]!r}",
                     float(t_raw[k]), "Times must be strictly increasing.")
     dt_min, dt_mean, dt_max = float(steps.min()), float(steps.mean()), float(steps.max())
-    if not dt / max_dt_ratio <= dt_mean <= dt * max_dt_ratio:
+    spacing = float(np.median(steps))                     # the log's rate, whatever its gaps
+    if spacing > dt * (1.0 + RATE_TOLERANCE):
         raise error(f"{source}: column {time_col!r}",
-                    f"a mean sample time within a factor {max_dt_ratio:g} of the model's dt = {dt:g} s",
-                    Text(f"a mean sample time of {dt_mean:.6g} s (spacings {dt_min:.6g} to {dt_max:.6g} s)"),
-                    "Resample the log, or use a model trained at the log's sample time.")
+                    f"a log at least as fast as the model: a median sample time of at most dt = {dt:g} s "
+                    f"(+{RATE_TOLERANCE:.0%} for jitter)",
+                    Text(f"a median sample time of {spacing:.6g} s (spacings {dt_min:.6g} to {dt_max:.6g} s)"),
+                    f"A slower log cannot be put on the model's grid: use a model trained at the log's rate "
+                    f"(kklcasadi train --dt {spacing:.6g}).")
     if dt_max > dt * max_dt_ratio:
         k = int(np.argmax(steps)) + 1
         raise error(_where(source, k, int(lines[k]), time_col),
@@ -306,7 +404,7 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
             columns[name] = columns[name] + shift
         shifts.append(shift)
     for name, (lo, hi) in bounds.items():
-        margin = box_margin * (hi - lo)
+        margin = box_margin * (hi - lo) if box_margin < math.inf else math.inf
         values = columns[name]
         outside = (values < lo - margin) | (values > hi + margin)
         if outside.any():
@@ -319,24 +417,31 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
     t0 = float(t_raw[0]) if t0 is None else finite_number(t0, "t0")
     if not t_raw[0] <= t0 < t_raw[-1]:
         raise error("t0", f"a time within the log [{t_raw[0]:.6g}, {t_raw[-1]:.6g})", t0)
-    t = t0 + np.arange(int(math.floor((t_raw[-1] - t0) / dt * (1.0 + 1e-12))) + 1) * dt
-    t = t[t <= t_raw[-1]]                                 # the grid never extrapolates
+    edges = t0 + np.arange(int(math.floor((t_raw[-1] - t0) / dt * (1.0 + 1e-12))) + 2) * dt
+    t = edges[:-1][edges[:-1] <= t_raw[-1] + 1e-9 * dt]   # the grid never extrapolates (beyond the rounding of t)
     if t.size < 2:
         raise error("t0", f"a time at least dt = {dt:g} s before the last logged time {t_raw[-1]:.6g}", t0)
+    edges = edges[:t.size + 1]
 
-    def linear(names: tuple[str, ...]) -> np.ndarray:
+    def sampled(names: tuple[str, ...]) -> np.ndarray:
         return np.column_stack([np.interp(t, t_raw, columns[name]) for name in names]) if names \
             else np.zeros((t.size, 0))
 
-    held = np.searchsorted(t_raw, t, side="right") - 1
-    y = linear(y_cols)
-    u = np.column_stack([columns[name][held] for name in u_cols]) if u_cols else np.zeros((t.size, 0))
-    reference = linear(reference_cols) if reference_cols else None
+    at_rate = spacing >= dt / (1.0 + RATE_TOLERANCE)
+    logged_u = np.column_stack([columns[name] for name in u_cols]) if u_cols else np.zeros((t_raw.size, 0))
+    if not u_cols:
+        u = np.zeros((t.size, 0))
+    elif at_rate:
+        u = logged_u[np.searchsorted(t_raw, t, side="right") - 1]
+    else:
+        u = _interval_means(t_raw, logged_u, edges)
+    y = sampled(y_cols)
+    reference = sampled(reference_cols) if reference_cols else None
     for array in (t, y, u, reference):
         if array is not None:
             array.setflags(write=False)
     record = Resampling(dt, t0, int(t_raw.size), float(t_raw[0]), float(t_raw[-1]), dt_min, dt_mean, dt_max,
-                        Y_METHOD, U_METHOD, angle_cols, tuple(shifts))
+                        Y_METHOD, U_HOLD if at_rate else U_MEAN, angle_cols, tuple(shifts))
     names = {"time": (time_col,), "y": y_cols, "u": u_cols, "reference": reference_cols}
     return Log(t, y, u, reference, names, source, record)
 
@@ -356,17 +461,17 @@ def _finite(value: Any, argument: str, ndim: int, n: Optional[int] = None) -> np
 
 
 def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: Sequence[str],
-                    in_domain: Any = None, extra: Optional[Mapping[str, Any]] = None,
+                    in_domain: Any = None, status: Any = None, extra: Optional[Mapping[str, Any]] = None,
                     stamp: Optional[provenance.Stamp] = None) -> Path:
     """Write estimates as a CSV file, atomically.
 
     A first line ``# provenance {...}`` holds the stamp (:mod:`kklcasadi.provenance`; ``stamp``,
     default this process's), then the header row (:func:`read_log` skips the comment). Columns:
-    ``time``, the ``state_names``, then ``in_domain`` (0/1) if given, then the ``extra`` columns in
-    their order. Numbers are written with :func:`repr`, so reading them back gives the same floats.
-    Everything is validated and formatted before the file is touched; the text goes to a temporary
-    file in the same folder, which then replaces ``path`` (:func:`os.replace`): a failure leaves an
-    existing file as it was and no temporary file behind.
+    ``time``, the ``state_names``, then ``in_domain`` (0/1) and ``status`` (an integer >= 0) if
+    given, then the ``extra`` columns in their order. Numbers are written with :func:`repr`, so
+    reading them back gives the same floats. Everything is validated and formatted before the file
+    is touched; the text goes to a temporary file in the same folder, which then replaces ``path``
+    (:func:`os.replace`): a failure leaves an existing file as it was and no temporary file behind.
 
     Parameters
     ----------
@@ -378,6 +483,8 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     state_names : sequence of str, length nx
     in_domain : array_like of bool, shape (N,), optional
         The domain monitor's flags (``Estimate.in_domain``).
+    status : array_like of int, shape (N,), optional
+        The sample guard's flags (:func:`kklcasadi.observer.guard.guarded_simulate`).
     extra : mapping {name: array_like (N,)}, optional
         Further finite columns (e.g. reference velocities).
 
@@ -401,6 +508,12 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
             raise error("in_domain", f"{n} booleans", Text(f"shape {flags.shape}, dtype {flags.dtype}"))
         header.append("in_domain")
         body.append(flags.astype(bool))
+    if status is not None:
+        codes = np.asarray(status)
+        if codes.shape != (n,) or not np.issubdtype(codes.dtype, np.integer) or np.any(codes < 0):
+            raise error("status", f"{n} integers >= 0", Text(f"shape {codes.shape}, dtype {codes.dtype}"))
+        header.append("status")
+        body.append(codes.astype(np.int64))
     if extra is not None:
         if not isinstance(extra, Mapping):
             raise error("extra", "a mapping {name: values (N,)}", Text(type(extra).__name__), kind=TypeError)
@@ -410,17 +523,19 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
             body.append(_finite(values, f"extra[{name!r}]", 1, n))
     repeated = sorted({name for name in header if header.count(name) > 1})
     if repeated:
-        raise error("state_names, extra", "names distinct from each other and from 'time', 'in_domain'",
+        raise error("state_names, extra", "names distinct from each other and from 'time', 'in_domain', 'status'",
                     Text(f"repeated {repeated}"))
     text = io.StringIO(provenance.csv_comment(stamp or provenance.stamp()))
     text.seek(0, io.SEEK_END)
     writer = csv.writer(text, lineterminator="\n")
     writer.writerow(header)
     for row in zip(*body):
-        writer.writerow([str(int(v)) if isinstance(v, np.bool_) else repr(float(v)) for v in row])
+        writer.writerow([str(int(v)) if isinstance(v, (np.bool_, np.integer)) else repr(float(v)) for v in row])
 
     if not path.parent.is_dir():
         raise error("path", "a file in an existing folder", str(path))
+    if path.is_dir():
+        raise error("path", "a file path", Text(f"{str(path)!r}, a folder"))
     handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(handle, "w", newline="") as stream:

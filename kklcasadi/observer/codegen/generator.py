@@ -39,12 +39,20 @@ The speed rewrites of CasADi's C live in :mod:`.kernels`, the C text in ``templa
     period ``KKL_OBS_DT`` and the work sizes ``KKL_OBS_SZ_ARG``, ``_SZ_RES``, ``_SZ_IW``,
     ``_SZ_W`` (enough for both functions).
 ``kkl_obs_main.c``
-    An example program: reads ``t, y[0..ny-1], u[0..nu-1]`` per line from a CSV file (first
-    argument) or stdin, and prints ``t, xhat[0..nx-1]`` per line, exactly as
-    :meth:`KKLObserver.simulate` computes them. A time step other than the model's ``dt`` (to
-    1e-6 of it) stops it with the line number and exit status 1. Build it with
-    ``gcc -std=c99 -O3 kkl_obs.c kkl_obs_main.c -lm -o kkl_obs`` (the ``flags`` of
-    :func:`generate_c`, written into both C files).
+    A program that runs the observer over a CSV log (first argument, or stdin): it reads the
+    header and takes the model's columns **by name** (``time_col``, ``y_cols``, ``u_cols`` of
+    :func:`generate_c`, written into the header as ``KKL_OBS_TIME_COL``, ``_Y_COLS``,
+    ``_U_COLS``), in any order, and writes one line per sample: ``time``, the estimate (the
+    ``state_names``), ``in_domain`` where the model records a domain, and the sample guard's
+    ``status`` (:mod:`kklcasadi.observer.guard`: a non-finite or absurd sample is not fed, a step
+    that leaves the latent's guard box restarts the observer; the guard boxes are
+    ``KKL_OBS_GUARD_LO``, ``_HI``, ``_Z_LO``, ``_Z_HI``), exactly as
+    :func:`~kklcasadi.observer.guard.guarded_simulate` computes them. Only plain decimal numbers
+    are read; a missing column, a malformed row or number, or a time step other than the model's
+    ``dt`` (to 1e-6 of it) stops it with one line ``error: line L: ...`` and exit status 2; a run
+    with flagged samples ends with exit status 3. Build it with ``gcc -std=c99 -O3 kkl_obs.c
+    kkl_obs_main.c -lm -o kkl_obs`` (the ``flags`` of :func:`generate_c`, written into both C
+    files).
 """
 
 from __future__ import annotations
@@ -53,11 +61,12 @@ import os
 import re
 import tempfile
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import casadi as ca
 
-from ...validation import one_of
+from ...validation import Text, error, one_of
+from ..guard import SampleGuard
 from ..kkl import DOMAIN_MARGIN, KKLObserver
 from .kernels import rewrite, template
 
@@ -128,14 +137,55 @@ def _work_sizes(casadi_header: str, names: list[str]) -> dict[str, int]:
     return sizes
 
 
-def _header(observer: KKLObserver, name: str, casadi_header: str,
-            sizes: dict[str, int], build: str, matvec: str, math: str, dispatch: bool) -> str:
+# A column name as the C main reads it: printable ASCII without commas, quotes, backslashes or
+# "??" (a trigraph in ISO C), no blanks at either end and no '#' first (so it is a C string literal
+# and a CSV header field as it is, and a header that starts with it is no comment).
+_COLUMN = re.compile(r"(?!.*\?\?)[!$-+\--\[\]-~](?:[ !#-+\--\[\]-~]*[!#-+\--\[\]-~])?")
+
+
+def _column_names(value: object, argument: str, count: int, default: str) -> tuple[str, ...]:
+    """``count`` column names for the C main (``default1 .. defaultN`` when None), else raise."""
+    if value is None:
+        return tuple(f"{default}{i + 1}" for i in range(count))
+    if isinstance(value, str) or not isinstance(value, Sequence):
+        raise error(argument, f"a sequence of {count} column names", Text(type(value).__name__), kind=TypeError)
+    names = tuple(value)
+    if len(names) != count:
+        raise error(argument, f"{count} column names", list(names))
+    for item in names:
+        if not isinstance(item, str) or _COLUMN.fullmatch(item) is None:
+            raise error(argument, "names of printable ASCII characters without commas, quotes, backslashes or '??', "
+                        "no blanks at either end, no '#' first", item)
+    return names
+
+
+def _c_list(values: Sequence[float]) -> str:
+    """Numbers as a C initializer list (``-HUGE_VAL``/``HUGE_VAL`` for infinities)."""
+    return ", ".join("HUGE_VAL" if v == float("inf") else "-HUGE_VAL" if v == float("-inf") else repr(float(v))
+                     for v in values)
+
+
+def _strings(names: Sequence[str]) -> str:
+    return ", ".join(f'"{n}"' for n in names)
+
+
+def _header(observer: KKLObserver, name: str, casadi_header: str, sizes: dict[str, int], build: str,
+            matvec: str, math: str, dispatch: bool, columns: dict[str, tuple[str, ...]]) -> str:
     macro = name.upper()
     rows, cols = observer.memory_shape
     defines = {"NX": observer.nx, "NU": observer.nu, "NY": observer.ny, "NZ": observer.nz,
                "WINDOW": observer.window, "NW": rows * cols, **sizes}
     lines = [f"#define {macro}_{key} {value}" for key, value in defines.items()]
     lines.append(f"#define {macro}_DT {observer.dt!r}")
+    guard = SampleGuard.of(observer)
+    lines += [f'#define {macro}_TIME_COL "{columns["time"][0]}"',
+              f"#define {macro}_Y_COLS {_strings(columns['y'])}",
+              f"#define {macro}_U_COLS {_strings(columns['u'])}",
+              f"#define {macro}_STATE_NAMES {_strings(columns['states'])}",
+              f"#define {macro}_GUARD_LO {_c_list([*guard.y_lo, *guard.u_lo])}",
+              f"#define {macro}_GUARD_HI {_c_list([*guard.y_hi, *guard.u_hi])}",
+              f"#define {macro}_GUARD_Z_LO {_c_list(guard.z_lo)}",
+              f"#define {macro}_GUARD_Z_HI {_c_list(guard.z_hi)}"]
     if observer.domain_check is not None:
         lines.append(f"#define {macro}_HAS_DOMAIN 1")
         tests = []
@@ -174,6 +224,11 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
  * {name}_init(arg, res, iw, w, mem): arg[0] y_0 (NY), arg[1] u_0 (NU) -> res[0] w_0 (NW), the
  *   memory at the start.{monitor}
  * Start: z_0 = 0, w_0 = init(u_0), xhat_0 = decode(z_0, w_0).
+ * The CSV columns {name}_main reads, by name: {macro}_TIME_COL, {macro}_Y_COLS (the outputs in
+ *   order), {macro}_U_COLS (the inputs in order); it writes time, {macro}_STATE_NAMES. The sample
+ *   guard (kklcasadi.observer.guard): [y; u] outside [{macro}_GUARD_LO, {macro}_GUARD_HI] or not finite
+ *   is not fed; a step whose z leaves [{macro}_GUARD_Z_LO, {macro}_GUARD_Z_HI] restarts the run
+ *   (HUGE_VAL where unbounded; these use <math.h>).
  * Work arrays: arg[{macro}_SZ_ARG], res[{macro}_SZ_RES], iw[{macro}_SZ_IW],
  * w[{macro}_SZ_W] (enough for both functions); outputs must not alias inputs; mem = 0.
  *
@@ -255,7 +310,9 @@ def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = 
 
 def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
                *, overwrite: bool = False, matvec: str = "axpy", math: str = "vector",
-               dispatch: bool = True, flags: Sequence[str] = DEFAULT_FLAGS) -> list[Path]:
+               dispatch: bool = True, flags: Sequence[str] = DEFAULT_FLAGS, time_col: str = "time",
+               y_cols: Optional[Sequence[str]] = None, u_cols: Optional[Sequence[str]] = None,
+               state_names: Optional[Sequence[str]] = None) -> list[Path]:
     """Write the observer step as C99 source, a header and a ``main`` example.
 
     Parameters
@@ -291,6 +348,13 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         machine's CPU only). The source compiles without warnings under ``-Wall -Wextra`` with
         either. Bitwise equality with the CasADi VM needs a build without floating-point
         contraction, as ``-std=c99`` gives (no ``-ffast-math``, no ``-ffp-contract=fast``).
+    time_col : str
+        The column of times the ``main`` reads from a log's header.
+    y_cols, u_cols : sequence of str, optional
+        The columns of the outputs and the inputs it reads, in the plant's order; default ``y1 ..
+        yN`` and ``u1 .. uM``. Printable ASCII without commas, quotes or backslashes, distinct.
+    state_names : sequence of str, optional
+        The columns of the estimates it writes; default ``x1 .. xN`` (as ``kklcasadi estimate``).
 
     Returns
     -------
@@ -316,6 +380,16 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     if not isinstance(dispatch, bool):
         raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
     flags = check_flags(flags)
+    columns = {"time": _column_names((time_col,) if isinstance(time_col, str) else time_col, "time_col", 1, "time"),
+               "y": _column_names(y_cols, "y_cols", observer.ny, "y"),
+               "u": _column_names(u_cols, "u_cols", observer.nu, "u"),
+               "states": _column_names(state_names, "state_names", observer.nx, "x")}
+    read = columns["time"] + columns["y"] + columns["u"]
+    if len(set(read)) != len(read):
+        raise error("time_col, y_cols, u_cols", "distinct column names", list(read))
+    if len(set(columns["states"])) != observer.nx or {"time", "in_domain", "status"} & set(columns["states"]):
+        raise error("state_names", "distinct names other than 'time', 'in_domain' and 'status'",
+                    list(columns["states"]))
     if not isinstance(out_dir, (str, os.PathLike)):
         raise TypeError(f"out_dir: expected a path, received {type(out_dir).__name__}.")
     out = Path(out_dir)
@@ -340,7 +414,7 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     paths[0].write_text(f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h."
                         f" */\n{source}")
     paths[1].write_text(_header(observer, name, casadi_header, sizes, build, matvec,
-                                math, dispatch))
+                                math, dispatch, columns))
     paths[2].write_text(template("main").replace("__BUILD__", build).replace("__NAME__", name)
                         .replace("__MACRO__", name.upper()))
     return paths
