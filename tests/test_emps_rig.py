@@ -65,4 +65,26 @@ def test_the_page_is_the_stored_records():
     record = provenance.json_payload(json.loads((root / "results" / "real_rig" / "emps" / "emps.json").read_text()))
     text = (root / "docs" / "results" / "emps.md").read_text()
     assert provenance.strip_markdown(text) == example["page"](record)
-    assert provenance.read(root / "docs" / "results" / "emps.md").command.startswith("examples/emps_rig.py")
+    assert provenance.read(root / "docs" / "results" / "emps.md").command == example["COMMAND"]
+    assert provenance.read(root / "results" / "real_rig" / "emps" / "emps_velocity.png").command == example["COMMAND"]
+
+
+def test_the_readme_states_the_records_figures():
+    """The README's EMPS section: each observer's velocity over the EKF's and its position error, from the record."""
+    import re
+
+    from kklcasadi import provenance
+
+    example = runpy.run_path(str(EXAMPLE), run_name="emps_rig")
+    root = EXAMPLE.parents[1]
+    table = provenance.json_payload(json.loads((root / "results" / "real_rig" / "emps" / "emps.json")
+                                               .read_text()))["scores"]
+    readme = (root / "README.md").read_text()
+    text = re.sub(r"\s+", " ", re.search(r"^## A real positioning axis \(EMPS\)\n(.*?)(?=^## )", readme,
+                                          re.M | re.S).group(1))
+    ekf = table["EKF (noise from the log)"]["scored"]["q_dot"]
+    for case, label in example["LABELS"].items():
+        cell = table[label]["scored"]
+        assert (f"{cell["q_dot"] / ekf:.2f}x the EKF's velocity RMSE {example['CASE_NAMES'][case]} (position "
+                f"{1e3 * cell['q']:.1f} mm)") in text, case
+    assert "[docs/results/emps.md](docs/results/emps.md)" in text and "chose nothing" in text

@@ -232,6 +232,9 @@ def _pages(monkeypatch):
                                    runpy.run_path(str(ROOT / "benchmarks" / "summarize_generalisation.py"))["page"]),
              "levers.md": ("python benchmarks/accuracy/tables.py --page",
                            runpy.run_path(str(ROOT / "benchmarks" / "accuracy" / "tables.py"))["page"])}
+    emps = runpy.run_path(str(ROOT / "examples" / "emps_rig.py"), run_name="emps_rig")
+    record = json_payload(json.loads((ROOT / "results" / "real_rig" / "emps" / "emps.json").read_text()))
+    pages["emps.md"] = (emps["COMMAND"], lambda: emps["page"](record))
     rest = runpy.run_path(str(ROOT / "benchmarks" / "summarize_pages.py"))["PAGES"]
     pages.update({name: ("python benchmarks/summarize_pages.py", page) for name, page in rest.items()})
     return pages
