@@ -127,7 +127,27 @@ def real_rig() -> str:
               "zero-phase derivative of them, beside the EKF and a filtered difference. RMSE, mean over the three "
               "scored runs (rad, rad/s):\n\n" + example["summary"](first).strip() + "\n\nWith the pendulum encoder "
               "alone the arm's angle is unobservable: its error is shown, not a target. A second training seed: "
-              "`hardware_seed1_*.json`.\n")
+              "`hardware_seed1_*.json`.\n\n" + _like(example, folder))
+
+
+def _like(example: dict, folder: Path) -> str:
+    """The section of the one command with ``--like`` on the development runs (nothing chosen by hand)."""
+    path = folder / "hardware_like.json"
+    records = _records(path)
+    stamp = provenance.read(path)
+    commands = "\n".join(record["command"] for record in records.values())
+    seconds = ", ".join(f"{example['CASES'][case][0]} {record['train_s']} s" for case, record in records.items())
+    misses = [f"{example['CASES'][case][0]}: {state} {b / e:.2f}x" for case, record in records.items()
+              for state, b, e in zip(example["STATES"][2:], record["scored_mean"]["KKL (bank)"][2:],
+                                     record["scored_mean"]["EKF"][2:]) if b / e > 1.2]
+    return ("## The one command with `--like` (nothing chosen by hand)\n\nThe same runs, the observers trained from "
+            "the development runs' logs alone (`--like` runs 1, 3 and 5: the envelope, the measurement and process "
+            "noise the log estimation gives; no `--process-std` or `--box-scale`), at the recipe's budget (training "
+            f"{seconds}), from `{path.relative_to(ROOT)}` (written by `{stamp.command}` at commit "
+            f"`{stamp.commit[:12]}`):\n\n```bash\n" + commands + "\n```\n\nThe EKF beside them runs with the noise "
+            "the log estimation gives on the development runs. RMSE, mean over the scored runs 7, 9 and 11 "
+            "(rad, rad/s):\n\n" + example["summary"](records).strip() + "\n\nThe target, velocities within 1.2x of "
+            "that EKF: " + ("met in both cases" if not misses else "missed, " + "; ".join(misses)) + ".\n")
 
 
 PAGES = {"estimators.md": estimators, "speed.md": speed, "tune.md": tune, "own_plant.md": own_plant,
