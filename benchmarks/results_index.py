@@ -32,7 +32,8 @@ STUDIES = {
                       "validation trials that chose the recipe (seed 3030); `all/`: the particle filter's roughening",
     "levers": "the bank recipe's levers, one configuration per record (`benchmarks/accuracy/probe.py`)",
     "own_plant": "plants kklcasadi does not ship, trained by the one command (`kklcasadi train --plant`)",
-    "real_rig": "logged hardware runs (the Quanser Qube Servo 2 of `examples/qube/`)",
+    "real_rig": "logged hardware runs (the Quanser Qube Servo 2 of `examples/qube/`, the EMPS positioning axis of "
+                "`examples/emps/`)",
     "estimators": "the observer beside the EKF, MHE and KKL-primed MHE (`kklcasadi compare`)",
     "certificates": "Proposition 1 of the paper for shipped models (`kklcasadi certificate`)",
     "nmpc": "output-feedback NMPC with the observer in the loop (`examples/nmpc_output_feedback.py`)",
