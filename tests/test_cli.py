@@ -266,6 +266,8 @@ def test_export_refuses_to_overwrite_and_needs_something_to_do(model_dir_factory
     assert main(["export", str(model), "--c", str(tmp_path / "c"), "--overwrite"]) == 0
     assert main(["export", str(model)]) == 2
     assert "nothing to export" in capsys.readouterr().err
+    assert main(["export", str(model), "--c", str(tmp_path / "c32"), "--precision", "float32"]) == 0
+    assert "#define casadi_real float" in (tmp_path / "c32" / "kkl_obs.c").read_text()
 
 
 def _cli(*args, env=None):

@@ -376,6 +376,47 @@ def test_duffing_sized_decoder_keeps_its_weights_as_constant_arrays(model_dir_fa
                                rtol=0, atol=VECTOR_MATH_TOLERANCE)
 
 
+# ----------------------------------------------------------------------------- float32
+
+# A floating constant of C without the float suffix (CasADi writes 2., 0.5, 5.0000000000000000e-01).
+DOUBLE_LITERAL = re.compile(r"(?<![\w.])(?:\d+\.\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|\d+[eE][+-]?\d+)(?![\w.f])")
+
+
+@needs_gcc
+@pytest.mark.parametrize("method", METHODS)
+def test_float32_code_computes_in_single_precision(model_dir_factory, tmp_path, method):
+    """precision="float32": float values, float constants and the C library's float functions, so that gcc's
+    -Wdouble-promotion (a float promoted to double anywhere) finds nothing; the main example then gives the
+    float64 estimates to float's rounding, not bitwise."""
+    obs = model(model_dir_factory, method)
+    files = generate_c(obs, tmp_path, "f32", precision="float32")
+    code = re.sub(r"/\*.*?\*/", "", files[0].read_text(), flags=re.DOTALL)
+    assert "#define casadi_real float" in code and "#define casadi_int int" in code
+    assert not DOUBLE_LITERAL.search(code), DOUBLE_LITERAL.search(code)
+    assert re.search(r"\btanhf\(", code) and not re.search(r"\b(tanh|exp|sqrt|fmax|fmin)\(", code)
+    assert "precision='float32'" in files[1].read_text()
+    binary = tmp_path / "f32"
+    compile_c([files[0], files[2]], binary, "-Wdouble-promotion", flags=DEFAULT_FLAGS)
+    t, y, u = trajectory()
+    text = "\n".join(",".join(repr(float(v)) for v in row) for row in np.column_stack([t, y, u]))
+    out = np.loadtxt(subprocess.run([str(binary)], input=text, capture_output=True, text=True,
+                                    check=True).stdout.splitlines(), delimiter=",")
+    expected = obs.simulate(t, y, u).xhat
+    np.testing.assert_array_equal(out[:, 0], t)                    # the times stay double
+    error = np.max(np.abs(out[:, 1:] - expected))
+    assert 0 < error <= 1e-4 * (1 + np.max(np.abs(expected))), error
+
+
+def test_float32_refuses_the_double_only_options(model_dir_factory, tmp_path):
+    obs = load_observer(model_dir_factory("autonomous"))
+    for options, message in [({"precision": "float16"}, r"precision: expected one of \['float64', 'float32'\]"),
+                             ({"precision": "float32", "math": "vector"}, r"math: expected 'libm' with precision"),
+                             ({"precision": "float32", "dispatch": True}, r"dispatch: expected False with precision")]:
+        with pytest.raises(ValueError, match=message):
+            generate_c(obs, tmp_path, **options)
+    assert not any(tmp_path.iterdir())
+
+
 # ----------------------------------------------------------------------------- arguments
 
 def test_refuses_to_overwrite_unless_asked(model_dir_factory, tmp_path):

@@ -15,6 +15,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_plant(x, "for a model of a plant that kklcasadi does not ship")
     x.add_argument("--c", metavar="OUT_DIR", help="write C code of the observer step here")
     x.add_argument("--name", type=c_name, default="kkl_obs", help="C name prefix (a C identifier)")
+    x.add_argument("--precision", choices=("float64", "float32"), default="float64",
+                   help="the C type of every value: double (default), or float for a microcontroller's "
+                   "single-precision FPU (docs/design.md, 'float32 C')")
     x.add_argument("--casadi", metavar="FILE", help="write the step as a ca.Function (Function.save)")
     x.add_argument("--overwrite", action="store_true", help="replace files that exist")
     x.set_defaults(func=run)
@@ -30,7 +33,8 @@ def run(args: argparse.Namespace) -> int:
         existing = Path(args.c)
         if existing.exists() and any(existing.iterdir()) and not args.overwrite:
             raise CommandError(f"--c {existing}: the directory is not empty; pass --overwrite to replace its files")
-        for path in generate_c(obs, args.c, name=args.name, overwrite=args.overwrite):
+        for path in generate_c(obs, args.c, name=args.name, overwrite=args.overwrite,
+                               precision=args.precision):
             print(f"wrote {path}")
     if args.casadi:
         target = Path(args.casadi)

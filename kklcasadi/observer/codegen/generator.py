@@ -53,16 +53,16 @@ import os
 import re
 import tempfile
 from pathlib import Path
-from typing import Sequence, Union
+from typing import Optional, Sequence, Union
 
 import casadi as ca
 
-from ...validation import one_of
+from ...validation import error, one_of
 from ..kkl import DOMAIN_MARGIN, KKLObserver
-from .kernels import rewrite, template
+from .kernels import rewrite, single_precision, template
 
 __all__ = ["generate_c", "casadi_source", "renamed", "check_c_name", "check_flags", "C_FLAGS", "DEFAULT_FLAGS",
-           "NATIVE_FLAGS", "MATVECS", "MATHS"]
+           "NATIVE_FLAGS", "MATVECS", "MATHS", "PRECISIONS"]
 
 #: The warning flags the generated code is tested with, at -O2 (it is also tested at
 #: ``DEFAULT_FLAGS`` with the same warnings).
@@ -77,6 +77,8 @@ NATIVE_FLAGS = ("-std=c99", "-O3", "-march=native")
 MATVECS = ("axpy", "casadi")
 #: ``generate_c(math=...)``: vectorisable exp and tanh, or the C library's.
 MATHS = ("vector", "libm")
+#: ``generate_c(precision=...)``: the C type of every value, ``double`` or ``float`` (microcontrollers).
+PRECISIONS = ("float64", "float32")
 # A C identifier that CasADi also accepts as a function name: a letter first, then letters, digits
 # and single underscores (CasADi reserves double underscores), not ending in an underscore.
 _C_NAME = re.compile(r"^[A-Za-z](?:_?[A-Za-z0-9])*$")
@@ -129,7 +131,7 @@ def _work_sizes(casadi_header: str, names: list[str]) -> dict[str, int]:
 
 
 def _header(observer: KKLObserver, name: str, casadi_header: str,
-            sizes: dict[str, int], build: str, matvec: str, math: str, dispatch: bool) -> str:
+            sizes: dict[str, int], build: str, matvec: str, math: str, dispatch: bool, precision: str) -> str:
     macro = name.upper()
     rows, cols = observer.memory_shape
     defines = {"NX": observer.nx, "NU": observer.nu, "NY": observer.ny, "NZ": observer.nz,
@@ -177,7 +179,8 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
  * Work arrays: arg[{macro}_SZ_ARG], res[{macro}_SZ_RES], iw[{macro}_SZ_IW],
  * w[{macro}_SZ_W] (enough for both functions); outputs must not alias inputs; mem = 0.
  *
- * Code: matvec={matvec!r}, math={math!r}, dispatch={dispatch!r} (kklcasadi.observer.codegen).
+ * Code: matvec={matvec!r}, math={math!r}, dispatch={dispatch!r}, precision={precision!r}
+ * (casadi_real is {"float" if precision == "float32" else "double"}; kklcasadi.observer.codegen).
  * Build:
  *   {build}
  */
@@ -213,7 +216,7 @@ def check_flags(flags: object) -> tuple[str, ...]:
 
 
 def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = "axpy", math: str = "vector",
-                  dispatch: bool = True) -> tuple[str, str, dict[str, int]]:
+                  dispatch: bool = True, precision: str = "float64") -> tuple[str, str, dict[str, int]]:
     """The C of CasADi Functions as :func:`generate_c` writes it: CasADi's code generation, the
     rewrites of :mod:`.kernels` and the ``#pragma`` lines that let it compile with ``-Wall -Wextra
     -Werror`` (the EKF's :meth:`~kklcasadi.estimators.ekf.EKF.generate_c` uses it too).
@@ -224,8 +227,8 @@ def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = 
         Named as their C symbols are to be (``name_step``, ...).
     name : str
         The C file's name (``name.c``), a C identifier.
-    matvec, math, dispatch
-        As for :func:`generate_c`.
+    matvec, math, dispatch, precision
+        As for :func:`generate_c` (``"float32"`` needs ``math="libm"`` and ``dispatch=False``).
 
     Returns
     -------
@@ -241,7 +244,9 @@ def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = 
     math = one_of(math, "math", MATHS)
     if not isinstance(dispatch, bool):
         raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
-    generator = ca.CodeGenerator(f"{name}.c", {"with_header": True, "casadi_real": "double"})
+    single = _single(precision, math, dispatch)
+    types = {"casadi_real": "float", "casadi_int": "int"} if single else {"casadi_real": "double"}
+    generator = ca.CodeGenerator(f"{name}.c", {"with_header": True, **types})
     for f in functions:
         generator.add(f)
     with tempfile.TemporaryDirectory() as tmp:
@@ -249,13 +254,28 @@ def casadi_source(functions: Sequence[ca.Function], name: str, *, matvec: str = 
         source = (Path(tmp) / f"{name}.c").read_text()
         casadi_header = (Path(tmp) / f"{name}.h").read_text()
     source = rewrite(source, matvec == "axpy", math == "vector", dispatch)
+    if single:
+        source = single_precision(source)
     return (f"{template('pragma_push')}{source}{template('pragma_pop')}", casadi_header,
             _work_sizes(casadi_header, [f.name() for f in functions]))
 
 
+def _single(precision: str, math: str, dispatch: bool) -> bool:
+    """Whether ``precision`` is float32; its options checked (the vector exp/tanh and the AVX2 kernels are
+    double code)."""
+    single = one_of(precision, "precision", PRECISIONS) == "float32"
+    fix = "Leave math and dispatch at their defaults (the vector exp/tanh and the AVX2 kernels are double code)."
+    if single and math != "libm":
+        raise error("math", "'libm' with precision='float32'", math, fix)
+    if single and dispatch:
+        raise error("dispatch", "False with precision='float32'", dispatch, fix)
+    return single
+
+
 def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: str = "kkl_obs",
-               *, overwrite: bool = False, matvec: str = "axpy", math: str = "vector",
-               dispatch: bool = True, flags: Sequence[str] = DEFAULT_FLAGS) -> list[Path]:
+               *, overwrite: bool = False, matvec: str = "axpy", math: Optional[str] = None,
+               dispatch: Optional[bool] = None, flags: Sequence[str] = DEFAULT_FLAGS,
+               precision: str = "float64") -> list[Path]:
     """Write the observer step as C99 source, a header and a ``main`` example.
 
     Parameters
@@ -272,18 +292,19 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         The dense matrix-vector products: fixed-size kernels in column (axpy) order with a block
         of outputs in registers, which vectorise (default), or CasADi's own loops. Both sum every
         output in the same order: the results are bitwise equal.
-    math : {"vector", "libm"}
+    math : {"vector", "libm"}, optional
         ``exp`` and ``tanh``: branch-free C99 arithmetic that vectorises, within 3 ulp of the C
         library, so that the step is within :data:`VECTOR_MATH_TOLERANCE` of the CasADi VM
-        (default); or the C library's functions, bitwise as the CasADi VM (with
-        ``matvec="axpy"`` or ``"casadi"``).
-    dispatch : bool
+        (the default in float64); or the C library's functions, bitwise as the CasADi VM (with
+        ``matvec="axpy"`` or ``"casadi"``; the only choice, and the default, in float32).
+    dispatch : bool, optional
         With gcc or clang on x86, also compile the kernels and the vector exp/tanh for AVX2
         (gcc vector extensions, under ``#if``) and use that version where the CPU has it:
         chosen at run time (``__builtin_cpu_supports``), or always when the build targets AVX2
         (``-march=native`` on a recent CPU). The results are the same bit for bit.
         ``-DKKLC_NO_DISPATCH`` at compile time, or ``dispatch=False`` (no extensions in the
-        source), leaves the portable C99 version only.
+        source), leaves the portable C99 version only. Default True in float64, False (the only
+        choice) in float32.
     flags : sequence of str
         The compiler options written into the build lines of ``name.h`` and ``name_main.c``
         (``gcc FLAGS name.c name_main.c -lm -o name``); default :data:`DEFAULT_FLAGS`
@@ -291,6 +312,13 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         machine's CPU only). The source compiles without warnings under ``-Wall -Wextra`` with
         either. Bitwise equality with the CasADi VM needs a build without floating-point
         contraction, as ``-std=c99`` gives (no ``-ffast-math``, no ``-ffp-contract=fast``).
+    precision : {"float64", "float32"}
+        The C type of every value: ``double`` (default), or ``float`` for microcontrollers whose
+        FPU is single precision (Cortex-M4F, M33): every constant, weight, work array and
+        argument is a ``float``, the C library's float functions (``tanhf``, ``expf``) are
+        called, and ``casadi_int`` is ``int``. The step then differs from the float64 step by
+        the rounding of float (see docs/design.md, "float32 C", for the error over whole trials);
+        ``name_main.c`` still reads the times and samples in double.
 
     Returns
     -------
@@ -301,7 +329,8 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     ------
     ValueError
         ``name`` is not a valid C identifier, ``out_dir`` exists and is not a directory,
-        ``matvec`` or ``math`` is not one of the choices, or a flag is not an option word.
+        ``matvec``, ``math`` or ``precision`` is not one of the choices, a flag is not an option
+        word, or float32 is asked with ``math="vector"`` or ``dispatch=True``.
     TypeError
         ``flags`` is not a sequence of strings, ``dispatch`` not a bool, or another argument
         has the wrong type.
@@ -311,10 +340,13 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
     if not isinstance(observer, KKLObserver):
         raise TypeError(f"observer: expected a KKLObserver, received {type(observer).__name__}.")
     name = check_c_name(name)
+    single = one_of(precision, "precision", PRECISIONS) == "float32"
+    math = one_of(("libm" if single else "vector") if math is None else math, "math", MATHS)
+    dispatch = not single if dispatch is None else dispatch
     matvec = one_of(matvec, "matvec", MATVECS)
-    math = one_of(math, "math", MATHS)
     if not isinstance(dispatch, bool):
         raise TypeError(f"dispatch: expected a bool, received {type(dispatch).__name__}.")
+    _single(precision, math, dispatch)
     flags = check_flags(flags)
     if not isinstance(out_dir, (str, os.PathLike)):
         raise TypeError(f"out_dir: expected a path, received {type(out_dir).__name__}.")
@@ -333,14 +365,15 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
                  renamed(observer.memory_init, f"{name}_init", ca.SX)]
     if observer.domain_check is not None:          # the domain monitor, where the card records a domain or monitor
         functions.append(renamed(observer.domain_check, f"{name}_in_domain"))
-    source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch)
+    source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch,
+                                                 precision=precision)
     build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
 
     out.mkdir(parents=True, exist_ok=True)
     paths[0].write_text(f"/* {name}.c -- KKL observer step generated by kklcasadi; see {name}.h."
                         f" */\n{source}")
     paths[1].write_text(_header(observer, name, casadi_header, sizes, build, matvec,
-                                math, dispatch))
+                                math, dispatch, precision))
     paths[2].write_text(template("main").replace("__BUILD__", build).replace("__NAME__", name)
                         .replace("__MACRO__", name.upper()))
     return paths

@@ -14,10 +14,12 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import casadi as ca
+import numpy as np
 
 from ...validation import one_of
 
-__all__ = ["axpy_matvec", "fast_kernels", "vector_math_c", "rewrite", "template", "VECTOR_MATH_TOLERANCE"]
+__all__ = ["axpy_matvec", "fast_kernels", "vector_math_c", "rewrite", "single_precision", "template",
+           "VECTOR_MATH_TOLERANCE"]
 
 #: With ``math="vector"`` the C step and the CasADi VM agree to
 #: ``|C - VM| <= VECTOR_MATH_TOLERANCE * (1 + |VM|)`` (tested on every method).
@@ -40,6 +42,14 @@ _MTIMES_DEF = re.compile(r"^void casadi_mtimes_dense\(.*?^}\n", re.MULTILINE | r
 _MATH_LOOP = re.compile(r"for \(i=0, rr=([^,();]+), cs=([^,();]+); i<(\d+); \+\+i\) "
                         r"\*rr\+\+ = (exp|tanh)\( \*cs\+\+ \);")
 _MATH_CALL = re.compile(r"\b(exp|tanh)\((?!@)")
+# The C library's double functions that CasADi's C may call, each with a float version named <name>f.
+_LIBM = ("exp", "expm1", "log", "log1p", "log10", "sqrt", "cbrt", "pow", "fabs", "fmin", "fmax", "fmod", "floor",
+         "ceil", "copysign", "erf", "sin", "cos", "tan", "asin", "acos", "atan", "atan2", "sinh", "cosh", "tanh",
+         "asinh", "acosh", "atanh")
+_LIBM_CALL = re.compile(rf"\b({'|'.join(_LIBM)})\((?!@)")
+# A C floating constant as CasADi writes them (no sign, no suffix): 2., 0.5, 5.0000000000000000e-01, 1e-05.
+_FLOAT_LITERAL = re.compile(r"(?<![\w.])(?:\d+\.\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|\d+[eE][+-]?\d+)(?![\w.])")
+_COMMENT = re.compile(r"(/\*.*?\*/|//[^\n]*)", re.DOTALL)
 _INT_TYPE = re.compile(r"^#ifndef casadi_int\n#define casadi_int [^\n]*\n#endif\n", re.MULTILINE)
 _MATH_INCLUDE = "#include <math.h>\n"
 
@@ -223,6 +233,29 @@ def rewrite(source: str, matvec: bool, math: bool, dispatch: bool) -> str:
     source = source[:anchor.end()] + helpers + source[anchor.end():]
     return source.replace(_MATH_INCLUDE, _MATH_INCLUDE + "#include <stdint.h>\n"
                           "#include <string.h>\n", 1)
+
+
+def _float_literal(match: re.Match) -> str:
+    """A double constant as the float constant it rounds to (shortest digits that give it back)."""
+    value = np.float32(float(match.group(0)))
+    if np.isinf(value):
+        return "HUGE_VALF"
+    return np.format_float_scientific(value, unique=True, trim="0") + "f"
+
+
+def single_precision(source: str) -> str:
+    """``source`` (C written by ``ca.CodeGenerator`` with ``casadi_real`` float) with every computation in
+    single precision: each constant written as the float it rounds to (``0.5f``: without the suffix C
+    computes ``2.*a`` in double), each call of the C library's double functions as its float version
+    (``tanhf``, ``expf``, ``sqrtf``, ``fmaxf``, ...). Comments are left as they are.
+
+    A core with a single-precision FPU (Cortex-M4F, M33, M7 without its double unit) then runs the
+    step without software double arithmetic.
+    """
+    parts = _COMMENT.split(_source(source))
+    for i in range(0, len(parts), 2):                    # the code between comments
+        parts[i] = _LIBM_CALL.sub(r"\1f(", _FLOAT_LITERAL.sub(_float_literal, parts[i]))
+    return "".join(parts)
 
 
 def axpy_matvec(source: str) -> str:

@@ -5,6 +5,8 @@
  * numeric (a header) and lines starting with '#' are skipped. Each output line: t, xhat[0..NX-1].
  * The times must be spaced by the model's sample period __MACRO___DT (to 1e-6 of it): a line whose
  * time step differs stops the run with its line number and exit status 1.
+ * The times and samples are read and the estimates printed in double, whatever casadi_real is
+ * (float in a float32 build: the samples are rounded to it once, as they enter the step).
  * Build: __BUILD__
  */
 #include <float.h>
@@ -22,14 +24,14 @@
 
 static casadi_real z[__MACRO___NZ], z_next[__MACRO___NZ];
 static casadi_real win[__MACRO___NW], win_next[__MACRO___NW];
-static casadi_real y_prev[__MACRO___NY], xhat[__MACRO___NX];
+static casadi_real y_prev[__MACRO___NY], y[__MACRO___NY], u[__MACRO___NU], xhat[__MACRO___NX];
 static const casadi_real* arg[__MACRO___SZ_ARG];
 static casadi_real* res[__MACRO___SZ_RES];
 static casadi_int iw[__MACRO___SZ_IW + 1];
 static casadi_real work[__MACRO___SZ_W + 1];
 
 /* Parse up to NCOL numbers; return how many were read, or -1 on text that is not a number. */
-static int parse_line(const char* line, casadi_real* values) {
+static int parse_line(const char* line, double* values) {
   int n = 0;
   const char* p = line;
   char* end;
@@ -47,9 +49,9 @@ static int parse_line(const char* line, casadi_real* values) {
 int main(int argc, char** argv) {
   FILE* in = stdin;
   char line[LINE_LEN];
-  casadi_real values[NCOL];
+  double values[NCOL];
   long k = 0, lineno = 0;
-  casadi_real t_prev = 0;
+  double t_prev = 0;
   int i, n;
   if (argc > 2) {
     fprintf(stderr, "usage: %s [samples.csv]\n", argv[0]);
@@ -60,7 +62,6 @@ int main(int argc, char** argv) {
     return 1;
   }
   while (fgets(line, sizeof line, in) != NULL) {
-    const casadi_real *y, *u;
     lineno++;
     if (strchr(line, '\n') == NULL && !feof(in)) {
       fprintf(stderr, "line %ld: longer than %d characters\n", lineno, LINE_LEN - 1);
@@ -86,8 +87,8 @@ int main(int argc, char** argv) {
       return 1;
     }
     t_prev = values[0];
-    y = values + 1;
-    u = values + 1 + __MACRO___NY;
+    for (i = 0; i < __MACRO___NY; i++) y[i] = (casadi_real) values[1 + i];
+    for (i = 0; i < __MACRO___NU; i++) u[i] = (casadi_real) values[1 + __MACRO___NY + i];
     if (k == 0) {                 /* z_0 = 0, w_0 = init(y_0, u_0) */
       for (i = 0; i < __MACRO___NZ; i++) z[i] = 0;
       arg[0] = y; arg[1] = u; res[0] = win;
@@ -112,7 +113,7 @@ int main(int argc, char** argv) {
     }
     memcpy(y_prev, y, sizeof y_prev);
     printf("%.17g", values[0]);
-    for (i = 0; i < __MACRO___NX; i++) printf(",%.17g", xhat[i]);
+    for (i = 0; i < __MACRO___NX; i++) printf(",%.17g", (double) xhat[i]);
     printf("\n");
     k++;
   }
