@@ -52,7 +52,8 @@ def short_log(tmp_path, rows=300, edit=None):
 def test_estimate_writes_the_estimates_flags_and_the_ekf(model, plant, tmp_path, capsys):
     out = tmp_path / "est.csv"
     args = ["estimate", str(model), "--plant", PLANT, "--data", str(short_log(tmp_path)), "--y-cols", "theta,alpha",
-            "--reference-cols", STATES, "--ekf", "--settle", "0.4", "--state-names", STATES, "--out", str(out)]
+            "--reference-cols", STATES, "--ekf", "--settle", "0.4", "--state-names", STATES, "--out", str(out),
+            "--math", "libm"]
     assert main(args) == 0
     printed = capsys.readouterr().out
     assert "your model" in printed and "300 rows" in printed and "angles unwrapped: theta, alpha" in printed

@@ -150,9 +150,14 @@ def _where(source: str, row: int, line: int, column: Optional[str] = None) -> st
     return f"{place}, column {column!r}" if column is not None else place
 
 
+#: Rows parsed into Python lists before they become one float64 block (bounds the reader's Python objects).
+_BLOCK = 65536
+
+
 def _read_table(path: Path, wanted: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
     """The ``wanted`` columns of a CSV file as floats (n, len(wanted)), and each row's line number; comment
-    lines starting with ``#`` before the header row (a provenance stamp) are skipped."""
+    lines starting with ``#`` before the header row (a provenance stamp) are skipped. The rows are parsed a
+    block at a time into float64 arrays (8 bytes per value, not Python lists of floats)."""
     source = str(path)
     with open(path, newline="") as stream:
         skipped, first = 0, stream.readline()
@@ -171,26 +176,41 @@ def _read_table(path: Path, wanted: tuple[str, ...]) -> tuple[np.ndarray, np.nda
             raise error(f"{source}: columns", f"{missing} among the file's columns", Text(f"columns {header}"),
                         "Pass the names of the file's header row.")
         index = [header.index(name) for name in wanted]
-        values, lines = [], []
+        width = len(header)
+        blocks: list[np.ndarray] = []
+        line_blocks: list[np.ndarray] = []
+        values: list[list[float]] = []
+        lines: list[int] = []
+        count = 0
         for row in reader:
             if not row:                                   # blank lines carry no sample
                 continue
-            k, line = len(values), reader.line_num + skipped
-            if len(row) != len(header):
-                raise error(_where(source, k, line), f"{len(header)} fields (one per header column)",
-                            Text(f"{len(row)} fields"))
-            numbers = []
-            for i, name in zip(index, wanted):
-                text = row[i].strip()
-                try:
-                    numbers.append(float(text))
-                except ValueError:
-                    raise error(_where(source, k, line, name), "a number", text) from None
-            values.append(numbers)
-            lines.append(line)
-    if len(values) < 2:
-        raise error(source, "at least 2 data rows", Text(f"{len(values)} rows"))
-    return np.array(values, dtype=np.float64), np.array(lines)
+            if len(row) != width:
+                raise error(_where(source, count, reader.line_num + skipped), f"{width} fields (one per header "
+                            "column)", Text(f"{len(row)} fields"))
+            try:
+                values.append([float(row[i]) for i in index])
+            except ValueError:
+                line = reader.line_num + skipped
+                for i, name in zip(index, wanted):
+                    text = row[i].strip()
+                    try:
+                        float(text)
+                    except ValueError:
+                        raise error(_where(source, count, line, name), "a number", text) from None
+                raise
+            lines.append(reader.line_num + skipped)
+            count += 1
+            if len(values) == _BLOCK:
+                blocks.append(np.array(values, dtype=np.float64))
+                line_blocks.append(np.array(lines))
+                values, lines = [], []
+    if count < 2:
+        raise error(source, "at least 2 data rows", Text(f"{count} rows"))
+    if values:
+        blocks.append(np.array(values, dtype=np.float64))
+        line_blocks.append(np.array(lines))
+    return np.concatenate(blocks), np.concatenate(line_blocks)
 
 
 def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u_cols: Sequence[str] = (),
@@ -364,9 +384,9 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     default this process's), then the header row (:func:`read_log` skips the comment). Columns:
     ``time``, the ``state_names``, then ``in_domain`` (0/1) if given, then the ``extra`` columns in
     their order. Numbers are written with :func:`repr`, so reading them back gives the same floats.
-    Everything is validated and formatted before the file is touched; the text goes to a temporary
-    file in the same folder, which then replaces ``path`` (:func:`os.replace`): a failure leaves an
-    existing file as it was and no temporary file behind.
+    Everything is validated before the file is touched; the text goes, a block of rows at a time, to
+    a temporary file in the same folder, which then replaces ``path`` (:func:`os.replace`): a failure
+    leaves an existing file as it was and no temporary file behind.
 
     Parameters
     ----------
@@ -394,13 +414,13 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     if len(names) != xhat.shape[1]:
         raise error("state_names", f"{xhat.shape[1]} names (one per column of xhat)", list(names))
     header = ["time", *names]
-    body = [t, *xhat.T]
+    body: list[np.ndarray] = [t, *xhat.T]
     if in_domain is not None:
         flags = np.asarray(in_domain)
         if flags.shape != (n,) or not (flags.dtype == bool or np.isin(flags, (0, 1)).all()):
             raise error("in_domain", f"{n} booleans", Text(f"shape {flags.shape}, dtype {flags.dtype}"))
         header.append("in_domain")
-        body.append(flags.astype(bool))
+        body.append(flags.astype(bool).astype(np.int64))              # written 0 or 1
     if extra is not None:
         if not isinstance(extra, Mapping):
             raise error("extra", "a mapping {name: values (N,)}", Text(type(extra).__name__), kind=TypeError)
@@ -414,10 +434,7 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
                     Text(f"repeated {repeated}"))
     text = io.StringIO(provenance.csv_comment(stamp or provenance.stamp()))
     text.seek(0, io.SEEK_END)
-    writer = csv.writer(text, lineterminator="\n")
-    writer.writerow(header)
-    for row in zip(*body):
-        writer.writerow([str(int(v)) if isinstance(v, np.bool_) else repr(float(v)) for v in row])
+    csv.writer(text, lineterminator="\n").writerow(header)
 
     if not path.parent.is_dir():
         raise error("path", "a file in an existing folder", str(path))
@@ -425,6 +442,9 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     try:
         with os.fdopen(handle, "w", newline="") as stream:
             stream.write(text.getvalue())
+            for start in range(0, n, _BLOCK):             # Python floats repr as the shortest round trip
+                columns = [column[start:start + _BLOCK].tolist() for column in body]
+                stream.write("".join(",".join(map(repr, row)) + "\n" for row in zip(*columns)))
             stream.flush()
             os.fsync(stream.fileno())
         os.replace(temp, path)
