@@ -241,9 +241,9 @@ def main() -> None:
     obs = load_observer(resolve(args.model))
     protocol = Protocol(n_trials=args.trials)
     cache = TrialCache.default()
-    lines = [f"# float32 C against the float64 step: `{args.model}`", "",
-             f"Protocol: the noisy table (seed {protocol.seed}, {protocol.T:g} s, process and measurement noise "
-             f"{protocol.process_std:g}), {args.trials} trials per input regime; float64 is the C library build "
+    lines = [f"float32 C against the float64 step, `{args.model}`. Protocol: the noisy table (seed {protocol.seed}, "
+             f"{protocol.T:g} s, process and measurement noise {protocol.process_std:g}), {args.trials} trials per "
+             "input regime; float64 is the C library build "
              "(`math=\"libm\"`, bitwise the CasADi VM), float32 `precision=\"float32\"`, both `gcc -std=c99 -O2`.",
              "", "| regime | max abs diff per state | max diff / state range | SMAPE float64 | SMAPE float32 |",
              "|---|---|---|---|---|"]
@@ -277,9 +277,8 @@ def main() -> None:
             m = cortex_m(obs, folder / "arm", t, y, u, args.steps)
             agree = np.abs(m["xhat"] - host[1:m["steps"] + 1]).max()
             cycles = m["instructions_per_step"] * m["cpi"]
-            lines += ["", "## On a Cortex-M4F (QEMU MPS2-AN386)", "",
-                      f"`{' '.join(ARM)}`: flash {m['flash']} bytes (code and constants), RAM {m['ram']} bytes "
-                      "(static work arrays; no heap).",
+            lines += ["", f"On a Cortex-M4F (QEMU MPS2-AN386), `{' '.join(ARM)}`: flash {m['flash']} bytes (code and "
+                      f"constants), RAM {m['ram']} bytes (static work arrays; no heap).",
                       "", f"- instructions per step: {m['instructions_per_step']:.0f} (QEMU `-icount shift=0`, "
                       f"{m['steps']} steps of the first trial of the '{ARM_REGIME}' regime)",
                       "- instruction mix (executed, the first step and the start): "
