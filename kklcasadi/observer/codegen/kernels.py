@@ -49,6 +49,7 @@ _LIBM = ("exp", "expm1", "log", "log1p", "log10", "sqrt", "cbrt", "pow", "fabs",
 _LIBM_CALL = re.compile(rf"\b({'|'.join(_LIBM)})\((?!@)")
 # A C floating constant as CasADi writes them (no sign, no suffix): 2., 0.5, 5.0000000000000000e-01, 1e-05.
 _FLOAT_LITERAL = re.compile(r"(?<![\w.])(?:\d+\.\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?|\d+[eE][+-]?\d+)(?![\w.])")
+_REAL_DOUBLE, _INT_LONG = "#define casadi_real double\n", "#define casadi_int long long int\n"
 _COMMENT = re.compile(r"(/\*.*?\*/|//[^\n]*)", re.DOTALL)
 _INT_TYPE = re.compile(r"^#ifndef casadi_int\n#define casadi_int [^\n]*\n#endif\n", re.MULTILINE)
 _MATH_INCLUDE = "#include <math.h>\n"
@@ -244,10 +245,12 @@ def _float_literal(match: re.Match) -> str:
 
 
 def single_precision(source: str) -> str:
-    """``source`` (C written by ``ca.CodeGenerator`` with ``casadi_real`` float) with every computation in
-    single precision: each constant written as the float it rounds to (``0.5f``: without the suffix C
-    computes ``2.*a`` in double), each call of the C library's double functions as its float version
-    (``tanhf``, ``expf``, ``sqrtf``, ``fmaxf``, ...). Comments are left as they are.
+    """``source`` (C or a header written by ``ca.CodeGenerator``) with every computation in single precision:
+    ``casadi_real`` defined as ``float`` and ``casadi_int`` as ``int`` (what CasADi's own options of those
+    names write; nothing else of its code differs), each constant written as the float it rounds to
+    (``0.5f``: without the suffix C computes ``2.*a`` in double), each call of the C library's double
+    functions as its float version (``tanhf``, ``expf``, ``sqrtf``, ``fmaxf``, ...). Comments are left as
+    they are.
 
     A core with a single-precision FPU (Cortex-M4F, M33, M7 without its double unit) then runs the
     step without software double arithmetic.
@@ -255,7 +258,8 @@ def single_precision(source: str) -> str:
     parts = _COMMENT.split(_source(source))
     for i in range(0, len(parts), 2):                    # the code between comments
         parts[i] = _LIBM_CALL.sub(r"\1f(", _FLOAT_LITERAL.sub(_float_literal, parts[i]))
-    return "".join(parts)
+    return "".join(parts).replace(_REAL_DOUBLE, "#define casadi_real float\n").replace(
+        _INT_LONG, "#define casadi_int int\n")
 
 
 def axpy_matvec(source: str) -> str:
