@@ -38,6 +38,8 @@ STUDIES = {
     "nmpc": "output-feedback NMPC with the observer in the loop (`examples/nmpc_output_feedback.py`)",
     "mhe": "MHE and the KKL-primed MHE beside the observer on one run (`examples/mhe_estimation.py`)",
     "speed": "speed benchmarks (`kklcasadi bench`)",
+    "consistency": "the covariance heads of the shipped banks and the EKF's own covariance on the protocol's noisy "
+                   "cells (`kklcasadi evaluate --consistency`)",
     "tune": "design searches (`kklcasadi tune`)",
     "robustness": "the shipped `bank` and `robust` observers where the EKF's model or noise is wrong, beside the EKF, "
                   "the tuned and the augmented EKF and the particle filter over states and parameters "

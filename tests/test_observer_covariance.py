@@ -296,6 +296,9 @@ def test_evaluate_writes_the_consistency_table(headed, tmp_path, capsys, model_d
     assert "mean NEES (95 % band)" in printed and "| duffing | zero-noisy | EKF |" in printed
     records = provenance.json_payload(json.loads((out / "duffing_consistency.json").read_text()))
     assert [r["label"] for r in records] == [obs.model.path.name, "EKF"]
+    scores = provenance.json_payload(json.loads((out / "duffing_scores.json").read_text()))
+    smape = {r["method"]: np.mean(r["smape"]) for r in scores}                # the SMAPE of the same run
+    assert [smape[r["label"]] for r in records] == pytest.approx([r["smape"] for r in records], rel=1e-12)
     assert provenance.read(out / "duffing_consistency.md").command == "kklcasadi " + " ".join(args)
     assert main(["evaluate", str(obs.model.path), "--noise", "off", "--consistency"]) == 2
     assert "--consistency: the covariances are scored on the noisy cells" in capsys.readouterr().err

@@ -127,13 +127,19 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for i, (model, obs) in enumerate(zip(args.models, observers)):
         label = args.labels[i] if args.labels else Path(model).resolve().name
-        rows.append((label, observer_estimator(obs, compiler=compiler, n_threads=args.threads, profile=profile)))
+        if args.consistency and obs.covariance is not None:   # one run gives the SMAPE and the covariance
+            from ..evaluation.uncertainty import RecordedObserver
+
+            rows.append((label, RecordedObserver(obs, compiler=compiler, n_threads=args.threads)))
+        else:
+            rows.append((label, observer_estimator(obs, compiler=compiler, n_threads=args.threads, profile=profile)))
     if args.ekf:
         ekf = (EKF.for_noise(plant, protocol.dt, process_std=protocol.process_std,
                              measurement_std=protocol.measurement_std) if levels else EKF(plant, protocol.dt))
         rows.append(("EKF", ekf_estimator(ekf, compiler=compiler, n_threads=args.threads, profile=profile)))
     cells = [(protocol if noisy else protocol.noise_free()).cell(kind) for noisy in noise for kind in kinds]
-    precompile([est for _, est in rows], cells[0].shape()[1], groups=(len(noise),), jobs=args.threads,
+    precompile([getattr(est, "record", est) for _, est in rows], cells[0].shape()[1], groups=(len(noise),),
+               jobs=args.threads,
                meanwhile=lambda: _read_cells(plant, cells, trials, profile))
     scores = []
     for label, estimator in rows:
@@ -155,15 +161,9 @@ def run(args: argparse.Namespace) -> int:
     print(markdown_table(scores, kinds))
     uncertainty = None
     if args.consistency:
-        from ..evaluation.uncertainty import (
-            filter_uncertainty,
-            observer_uncertainty,
-            score_uncertainty,
-            uncertainty_table,
-        )
+        from ..evaluation.uncertainty import RecordedObserver, filter_uncertainty, score_uncertainty, uncertainty_table
 
-        estimators = [(label, observer_uncertainty(obs, compiler=compiler, n_threads=args.threads))
-                      for (label, _), obs in zip(rows, observers) if obs.covariance is not None]
+        estimators = [(label, est.uncertain) for label, est in rows if isinstance(est, RecordedObserver)]
         if args.ekf:
             estimators.append(("EKF", filter_uncertainty(ekf)))
         if args.pf:

@@ -12,6 +12,7 @@ EKF tuned to each case's noise), :func:`uncertainty_table` writes the markdown t
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 
@@ -30,8 +31,8 @@ from .trialcache import TrialCache
 if TYPE_CHECKING:
     from ..observer.kkl import KKLObserver
 
-__all__ = ["UncertainEstimator", "UncertaintyRow", "observer_uncertainty", "filter_uncertainty", "score_uncertainty",
-           "score_cases", "uncertainty_table", "uncertainty_record"]
+__all__ = ["UncertainEstimator", "UncertaintyRow", "observer_uncertainty", "RecordedObserver", "filter_uncertainty",
+           "score_uncertainty", "score_cases", "uncertainty_table", "uncertainty_record"]
 
 #: The compiler of :func:`observer_uncertainty` by default (the evaluation's cache and flags).
 _COMPILER = Compiler()
@@ -54,16 +55,42 @@ class UncertaintyRow:
 def observer_uncertainty(observer: KKLObserver, *, compiler: Optional[Compiler] = _COMPILER,
                          n_threads: Optional[int] = None) -> UncertainEstimator:
     """An observer with a covariance head as an :data:`UncertainEstimator` (compiled, bitwise its ``simulate``)."""
-    if observer.covariance is None:
-        raise ValueError(f"observer: expected a model with a covariance head (architecture.covariance), received "
-                         f"{observer!r} without one. Fit one with benchmarks/covariance_heads.py.")
-    record = CompiledRecord(observer, compiler=compiler, n_threads=n_threads)
+    return RecordedObserver(observer, compiler=compiler, n_threads=n_threads).uncertain
 
-    def estimate(t: np.ndarray, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        xhat, _, cov = record.record(t, y, u)
+
+class RecordedObserver:
+    """An observer with a covariance head, both a protocol estimator (``(t, y, u) -> xhat``) and an
+    :data:`UncertainEstimator` (:meth:`uncertain`), which keeps each call's results by its inputs: the SMAPE and
+    the consistency of one cell come from one run (``kklcasadi evaluate --consistency``).
+
+    Attributes
+    ----------
+    record : CompiledRecord
+        The compiled trajectories (what :func:`kklcasadi.evaluation.compiled.precompile` takes).
+    """
+
+    def __init__(self, observer: KKLObserver, *, compiler: Optional[Compiler] = _COMPILER,
+                 n_threads: Optional[int] = None) -> None:
+        if observer.covariance is None:
+            raise ValueError(f"observer: expected a model with a covariance head (architecture.covariance), received "
+                             f"{observer!r} without one. Fit one with benchmarks/covariance_heads.py.")
+        self.record = CompiledRecord(observer, compiler=compiler, n_threads=n_threads)
+        self._kept: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def _run(self, t: np.ndarray, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xhat, _, cov = self.record.record(t, y, u)
         return xhat, np.diagonal(cov, axis1=-2, axis2=-1)
 
-    return estimate
+    def uncertain(self, t: np.ndarray, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(xhat, var)`` of M trials, computed once per distinct ``(t, y, u)``."""
+        key = hashlib.sha256(b"".join(np.ascontiguousarray(a, dtype=float).tobytes() + str(np.shape(a)).encode()
+                                      for a in (t, y, u))).digest()
+        if key not in self._kept:
+            self._kept[key] = self._run(t, y, u)
+        return self._kept[key]
+
+    def __call__(self, t: np.ndarray, y: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.uncertain(t, y, u)[0]
 
 
 def filter_uncertainty(estimator: Any) -> UncertainEstimator:
