@@ -1,30 +1,34 @@
 """A real rig, end to end: the six logged free swings of a Quanser Qube Servo 2 (``examples/qube/``).
 
-1. **Settings from the fit runs only.** The runs are split before anything is looked at: runs 1,
-   3 and 5 chose the settings (``benchmarks/accuracy/qube.py``, its records
-   ``results/real_rig/qube/*_fit.json``: process std 4 / 8 / 16 / 32 on the velocities, initial
-   states from half or all of the box); runs 7, 9 and 11 are scored and chose nothing.
+1. **The split, fixed before anything was looked at.** Runs 1, 3 and 5 are the development runs (the
+   logs the training reads, and where any setting was chosen); runs 7, 9 and 11 are scored and chose
+   nothing.
 2. **Train** with the one command, for ``y = (theta, alpha)`` and for ``y = alpha``
    (``make_plant_alpha``), its Python path: the configuration
    :func:`kklcasadi.cli.train.training_config` builds from the command's flags, trained by
    ``train_observer`` as the command does::
 
-       kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 --measurement-std 0.001 \
-           --process-std 16 --box-scale 0.5 --out DIR
+       kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 \
+           --like examples/qube/data/free_swing_1.csv --like .../free_swing_3.csv --like .../free_swing_5.csv \
+           --time-col time --y-cols theta,alpha --u-zero --out DIR
 
-   (:data:`CHOSEN`: the measurement std is the encoders' noise level, 1e-3 rad, ``data/README.md``;
-   the bank recipe's budget for a new plant, 1000 runs of 60 / 13.3 = 4.5 s, 15 epochs).
+   (the ``like`` recipe: the rig's envelope from the development runs' logs, its measurement and process
+   noise estimated from them, nothing chosen by hand; the bank recipe's budget for a new plant, 1000
+   runs of 60 / 13.3 = 4.5 s, 15 epochs). ``--recipe chosen`` trains the earlier command instead, whose
+   flags were chosen by hand on the development runs (:data:`CHOSEN`, ``benchmarks/accuracy/qube.py``).
 3. **Estimate every log** with :func:`kklcasadi.evaluation.logged.estimate_log` (the log put on the
-   4 ms grid, angles unwrapped), beside the EKF of ``examples/qube/check_logs.py`` (``R = 1e-6 I``,
-   process variance ``1e-3`` per step on the velocities) and a filtered finite difference of the
-   angles (the backward difference low-passed at 50 rad/s, ``50 s / (s + 50)``), and score them
-   for ``t >= 2 s``: the angles against the measured ones (wrapped), the velocities against the
-   zero-phase reference :func:`kklcasadi.plant.logs.savgol_derivative` (window 15, cubic).
+   4 ms grid, angles unwrapped), beside the EKF with the noise the log estimation gives on the
+   development runs (:func:`kklcasadi.estimators.noise.rig_envelope`; the ``like`` model's card holds the
+   same), the EKF of ``examples/qube/check_logs.py`` (``R = 1e-6 I``, process variance ``1e-3`` per step on
+   the velocities) and a filtered finite difference of the angles (the backward difference low-passed at
+   50 rad/s, ``50 s / (s + 50)``), and score them for ``t >= 2 s``: the angles against the measured ones
+   (wrapped), the velocities against the zero-phase reference
+   :func:`kklcasadi.plant.logs.savgol_derivative` (window 15, cubic).
 4. **Plot** the angles and velocities of a scored run against the reference (``OUT/qube_<y>.png``),
    and write every score to ``OUT/qube_hardware.json`` (or ``--results FILE``).
 
-Run: ``python examples/qube_hardware.py [--out DIR] [--results FILE] [--cases ...]``; ``--epochs``,
-``--runs`` and ``--horizon`` (in units of the plant's time scale) shrink the recipe's budget, as
+Run: ``python examples/qube_hardware.py [--out DIR] [--results FILE] [--cases ...] [--recipe like|chosen]``;
+``--epochs``, ``--runs`` and ``--horizon`` (in units of the plant's time scale) shrink the recipe's budget, as
 ``tests/test_qube_hardware.py`` does.
 """
 
@@ -42,6 +46,7 @@ from scipy.signal import savgol_filter
 
 import kklcasadi as kc
 from kklcasadi import provenance
+from kklcasadi.estimators.noise import rig_envelope
 from kklcasadi.evaluation.logged import estimate_log
 from kklcasadi.metrics import rmse
 from kklcasadi.plant.logs import Log, read_log, savgol_derivative
@@ -68,6 +73,9 @@ CASES = {"theta_alpha": ("y = (theta, alpha)", "make_plant", ("theta", "alpha"))
 #: 0.109 with process std 8 and the whole box; y = alpha 16 / 32 -> 0.171 / 0.158.
 CHOSEN = {"theta_alpha": {"--measurement-std": 1e-3, "--process-std": 16.0, "--box-scale": 0.5},
           "alpha": {"--measurement-std": 1e-3, "--process-std": 32.0, "--box-scale": 0.5}}
+#: The training recipes: ``like`` (the default: the rig's envelope from the development runs' logs) and
+#: ``chosen`` (the flags of :data:`CHOSEN`).
+RECIPES = ("like", "chosen")
 
 
 def run_path(k: int) -> Path:
@@ -97,27 +105,33 @@ def filtered_difference(t: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return v
 
 
-def command(case: str, out: Path, plant: Path = HERE / "qube_plant.py", seed: int = 0) -> list[str]:
-    """The one command that trains ``case``'s observer into ``out``, as its argument list (``plant``: the
-    plant file as the command names it; ``seed``: the command's ``--seed``, shown where it is not 0)."""
-    flags = [str(part) for flag, value in CHOSEN[case].items() for part in (flag, value)]
+def command(case: str, out: Path, plant: Path = HERE / "qube_plant.py", seed: int = 0,
+            recipe: str = "like", data: Path = HERE / "data") -> list[str]:
+    """The one command that trains ``case``'s observer into ``out`` with ``recipe``, as its argument list
+    (``plant``, ``data``: the plant file and the logs' folder as the command names them; ``seed``: the
+    command's ``--seed``, shown where it is not 0)."""
+    if recipe == "like":
+        flags = [part for k in FIT_RUNS for part in ("--like", str(data / f"free_swing_{k}.csv"))]
+        flags += ["--time-col", "time", "--y-cols", ",".join(CASES[case][2]), "--u-zero"]
+    else:
+        flags = [str(part) for flag, value in CHOSEN[case].items() for part in (flag, value)]
     seeded = ["--seed", str(seed)] if seed else []
     return ["train", "--plant", f"{plant}:{CASES[case][1]}", "--dt", str(DT), *flags, *seeded, "--out", str(out)]
 
 
 def train(case: str, out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
-          horizon: Optional[float] = None, seed: int = 0) -> Path:
+          horizon: Optional[float] = None, seed: int = 0, recipe: str = "like") -> Path:
     """``kklcasadi train`` of :func:`command` in Python: the command's configuration
     (:func:`kklcasadi.cli.train.training_config`), trained as the command trains it; ``epochs``,
     ``runs`` and ``horizon`` (runs' length in units of the plant's time scale) shrink the budget."""
     from kklcasadi.cli import build_parser
     from kklcasadi.cli.flags import plant_of
-    from kklcasadi.cli.train import RECOMMENDED, training_config
+    from kklcasadi.cli.train import RECOMMENDED, rig_of, training_config
     from kklcasadi.train import train_observer, with_field
 
-    args = build_parser().parse_args(command(case, out / case, seed=seed))
+    args = build_parser().parse_args(command(case, out / case, seed=seed, recipe=recipe))
     plant = plant_of(args)
-    config = training_config(plant, RECOMMENDED, args)
+    config = training_config(plant, RECOMMENDED, args, rig_of(plant, args))
     for name, value in (("n_traj", runs), ("T", horizon)):      # a smaller budget than the recipe's, when asked
         if value is not None:
             config = with_field(config, name, value)
@@ -133,7 +147,9 @@ def score(case: str, model: Path) -> tuple[dict, dict]:
     label, factory, y_cols = CASES[case]
     plant = kc.systems.load_plant(f"{HERE / 'qube_plant.py'}:{factory}")
     obs = kc.load_observer(model, system=plant)
-    ekf = kc.EKF(plant, DT, Q=np.diag([0.0, 0.0, 1e-3, 1e-3]), R=1e-6 * np.eye(plant.ny))
+    rig = rig_envelope(plant, [run_path(k) for k in FIT_RUNS], dt=DT, time_col="time", y_cols=y_cols)
+    ekf = kc.EKF.for_noise(plant, DT, process_std=rig.process_std, measurement_std=rig.measurement_std)
+    check_logs = kc.EKF(plant, DT, Q=np.diag([0.0, 0.0, 1e-3, 1e-3]), R=1e-6 * np.eye(plant.ny))
     table, traces = {}, {}
     for k in FIT_RUNS + SCORED_RUNS:
         # the reference: the measured angles (both, whatever y is) and their zero-phase derivative
@@ -141,21 +157,26 @@ def score(case: str, model: Path) -> tuple[dict, dict]:
         result = estimate_log(obs, run_path(k), y_cols=y_cols, ekf=ekf)
         reference = np.column_stack([both.y, savgol_derivative(both.t, both.y)])
         keep = both.t - both.t[0] >= SETTLE
+        u0 = np.zeros((result.t.size, plant.nu))
         # the filtered difference gives the angles it measures and their velocities, nothing else
         ffd = np.column_stack([both.y, filtered_difference(both.t, both.y)])
         for i in (0, 1):
             if STATES[i] not in y_cols:
                 ffd[:, [i, i + 2]] = np.nan
+        estimates = {"KKL (bank)": result.xhat, "EKF": result.ekf,
+                     "EKF (check_logs)": check_logs.simulate(result.t, result.log.y, u0).xhat,
+                     "filtered difference": ffd}
         table[k] = {name: [rmse(reference[keep, i:i + 1], x[keep, i:i + 1], angles=(0,) if i < 2 else ())
-                           for i in range(4)]
-                    for name, x in (("KKL (bank)", result.xhat), ("EKF", result.ekf), ("filtered difference", ffd))}
+                           for i in range(4)] for name, x in estimates.items()}
         if k == SCORED_RUNS[0]:
-            traces = {"t": both.t - both.t[0], "reference": reference, "KKL (bank)": result.xhat, "EKF": result.ekf,
-                      "filtered difference": ffd, "in_domain": result.in_domain, "run": k, "label": label}
+            traces = {"t": both.t - both.t[0], "reference": reference, **estimates, "in_domain": result.in_domain,
+                      "run": k, "label": label}
     return table, traces
 
 
-ESTIMATORS = ("KKL (bank)", "EKF", "filtered difference")
+#: The estimators scored: the observer, the EKF with the noise the log estimation gives on the development runs,
+#: the EKF of examples/qube/check_logs.py, the filtered difference.
+ESTIMATORS = ("KKL (bank)", "EKF", "EKF (check_logs)", "filtered difference")
 
 
 def scored_mean(table: dict) -> dict:
@@ -229,18 +250,19 @@ def _json(values: list) -> list:
 
 
 def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None, horizon: Optional[float] = None,
-         cases: tuple[str, ...] = tuple(CASES), results: Optional[Path] = None, seed: int = 0) -> dict:
-    """Train, estimate, score and plot every case; writes the scores to ``results`` (default
+         cases: tuple[str, ...] = tuple(CASES), results: Optional[Path] = None, seed: int = 0,
+         recipe: str = "like") -> dict:
+    """Train with ``recipe``, estimate, score and plot every case; writes the scores to ``results`` (default
     ``OUT/qube_hardware.json``) and returns ``{case: (table, markdown)}``."""
     out.mkdir(parents=True, exist_ok=True)
     print(f"encoder noise on runs {FIT_RUNS}: std {encoder_noise(FIT_RUNS):.2g} rad about a smoothing "
-          f"(the quantisation; the training's --measurement-std is the encoders' 1e-3 rad)")
+          f"(the quantisation)")
     results = out / "qube_hardware.json" if results is None else results
     record, done = {}, {}
     for case in cases:
-        print("kklcasadi " + " ".join(command(case, out / case, seed=seed)), flush=True)
+        print("kklcasadi " + " ".join(command(case, out / case, seed=seed, recipe=recipe)), flush=True)
         t0 = time.perf_counter()
-        model = train(case, out, epochs=epochs, runs=runs, horizon=horizon, seed=seed)
+        model = train(case, out, epochs=epochs, runs=runs, horizon=horizon, seed=seed, recipe=recipe)
         seconds = time.perf_counter() - t0
         print(f"{CASES[case][0]}: trained {model} in {seconds:.0f} s")
         table, traces = score(case, model)
@@ -248,8 +270,9 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
         print(text)
         print(f"plot {plot(traces, out / f'qube_{case}.png')}")
         done[case] = (table, text)
-        shown = command(case, Path("DIR"), Path("examples/qube/qube_plant.py"), seed)
-        record[case] = {"command": "kklcasadi " + " ".join(shown), "train_s": round(seconds),
+        shown = command(case, Path("DIR"), Path("examples/qube/qube_plant.py"), seed, recipe,
+                        Path("examples/qube/data"))
+        record[case] = {"command": "kklcasadi " + " ".join(shown), "recipe": recipe, "train_s": round(seconds),
                         "budget": {"epochs": epochs, "runs": runs, "horizon": horizon}, "fit_runs": FIT_RUNS,
                         "scored_runs": SCORED_RUNS, "states": STATES, "settle_s": SETTLE,
                         "runs": {str(k): {name: _json(v) for name, v in row.items()} for k, row in table.items()},
@@ -272,6 +295,8 @@ if __name__ == "__main__":
                         "scale (default: the recipe's 60)")
     parser.add_argument("--cases", nargs="+", choices=tuple(CASES), default=list(CASES))
     parser.add_argument("--seed", type=int, default=0, help="the train command's --seed")
+    parser.add_argument("--recipe", choices=RECIPES, default="like", help="like (default: the rig's envelope from the "
+                        "development runs' logs) or chosen (the earlier flags chosen by hand on them)")
     args = parser.parse_args()
     main(args.out, epochs=args.epochs, runs=args.runs, horizon=args.horizon, cases=tuple(args.cases),
-         results=args.results, seed=args.seed)
+         results=args.results, seed=args.seed, recipe=args.recipe)

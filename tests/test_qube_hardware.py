@@ -46,25 +46,39 @@ def test_the_filtered_difference_of_a_ramp_is_its_slope_after_the_filter_settles
     assert abs(v[10, 0] - 3.0 * (1 - np.exp(-50.0 * 10 * 0.004))) < 1e-12      # a first-order lag at 50 rad/s
 
 
-def test_example_runs_in_a_reduced_form(example, tmp_path, capsys):
-    results = example["main"](tmp_path, epochs=1, runs=12, horizon=2.0, cases=("theta_alpha",))
+@pytest.mark.parametrize("recipe", ["like", "chosen"])
+def test_example_runs_in_a_reduced_form(example, tmp_path, capsys, recipe):
+    results = example["main"](tmp_path, epochs=1, runs=12, horizon=2.0, cases=("theta_alpha",), recipe=recipe)
     table, text = results["theta_alpha"]
     assert sorted(table) == [1, 3, 5, 7, 9, 11]
     for run in table.values():
-        assert set(run) == {"KKL (bank)", "EKF", "filtered difference"}
+        assert set(run) == {"KKL (bank)", "EKF", "EKF (check_logs)", "filtered difference"}
         assert np.isfinite(run["KKL (bank)"]).all() and np.isfinite(run["EKF"]).all()
-        assert max(run["EKF"][:2]) < 0.01                 # the EKF follows the angles it measures
+        assert max(run["EKF"][:2]) < 0.01 and max(run["EKF (check_logs)"][:2]) < 0.01   # they follow the angles
     assert "| **EKF** | **mean 7, 9, 11** |" in text and "(fit)" in text and "| bank / EKF |" in text
     assert (tmp_path / "qube_theta_alpha.png").stat().st_size > 20000
     record = json.loads((tmp_path / "qube_hardware.json").read_text())["theta_alpha"]
-    assert record["command"] == ("kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 "
-                                 "--measurement-std 0.001 --process-std 16.0 --box-scale 0.5 --out DIR")
+    data = "examples/qube/data/free_swing_"
+    assert record["command"] == {
+        "like": ("kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 "
+                 f"--like {data}1.csv --like {data}3.csv --like {data}5.csv --time-col time --y-cols theta,alpha "
+                 "--u-zero --out DIR"),
+        "chosen": ("kklcasadi train --plant examples/qube/qube_plant.py:make_plant --dt 0.004 "
+                   "--measurement-std 0.001 --process-std 16.0 --box-scale 0.5 --out DIR")}[recipe]
     np.testing.assert_allclose(record["scored_mean"]["EKF"], np.mean([table[k]["EKF"] for k in (7, 9, 11)], axis=0))
     from kklcasadi.model.files import load_model
 
     model = load_model(tmp_path / "theta_alpha")
     assert model.method == "bank" and model.dt == 0.004
-    assert model.spec.measurement_std == 1e-3 and model.spec.process_std == (0.0, 0.0, 16.0, 16.0)
     training = model.card["training"]
-    assert training["rollouts"]["box_scale"] == 0.5 and training["rollouts"]["n_traj"] == 12
+    assert training["rollouts"]["n_traj"] == 12
+    if recipe == "chosen":
+        assert model.spec.measurement_std == 1e-3 and model.spec.process_std == (0.0, 0.0, 16.0, 16.0)
+        assert training["rollouts"]["box_scale"] == 0.5 and training["rollouts"]["envelope"] is None
+    else:                       # the noise estimated from the development runs, the same the EKF beside runs with
+        envelope = training["rollouts"]["envelope"]
+        assert [s["path"].rsplit("/", 1)[-1] for s in envelope["sources"]] == [f"free_swing_{k}.csv" for k in (1, 3, 5)]
+        assert 3e-4 < model.spec.measurement_std < 1e-3 and model.spec.process_std[:2] == (0.0, 0.0)
+        assert all(5.0 < q < 30.0 for q in model.spec.process_std[2:])
+        assert training["runs"]["escape_scale"] == 1.25 and "like" in training["runs"]["kinds"]
     assert "kklcasadi train --plant" in capsys.readouterr().out

@@ -237,3 +237,16 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
     for bad in ({"copies": ((0.0, 0.0),)}, {"copies": (-1.0,)}, {"noise_copy": "yes"}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             replace(config, **bad)
+
+
+def test_fit_after_leaves_the_latents_first_moments_out_of_the_fit():
+    plant = _oscillator()
+    cfg = RolloutConfig(n_traj=4, T=6.0, kinds=("sinusoid",), dense_time=1.0, dense_period=0.1, sample_period=0.5)
+    late = replace(cfg, fit_after=2.0)
+    n = rn.time_grid(6.0, 0.05).size
+    full = rn._keep(n, 0.05, cfg)
+    np.testing.assert_array_equal(rn._keep(n, 0.05, late), full & (np.arange(n) * 0.05 >= 2.0 - 1e-9))
+    data = operational_data(plant, _bank(), late, 0, dt=0.05, measurement_std=0.0, process_std=0.0)
+    assert data.t.min() >= 2.0 - 1e-9 and len(data) == 4 * int(full[40:].sum())
+    with pytest.raises(ValueError, match="fit_after: expected a time >= 0 and below T"):
+        replace(cfg, fit_after=6.0)

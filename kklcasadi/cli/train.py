@@ -155,7 +155,7 @@ _LOG_FLAGS = {"time_col": "--time-col", "y_cols": "--y-cols", "u_cols": "--u-col
               "paths": "--like", "measurement_std": "--measurement-std", "process_std": "--process-std"}
 
 
-def _envelope(plant: systems.System, args: argparse.Namespace) -> Any:
+def rig_of(plant: systems.System, args: argparse.Namespace) -> Any:
     """The rig's envelope from ``--like`` and its column flags (None without ``--like``)."""
     from ..estimators.noise import rig_envelope
 
@@ -242,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
     if args.like and not _takes(method, "envelope", plant.name):
         raise CommandError(f"--like: only --method {' or '.join(_takers('envelope', plant.name))} takes it, "
                            f"received --method {method}")
-    envelope = _envelope(plant, args)
+    envelope = rig_of(plant, args)
     if envelope is not None and not args.quiet:
         print(envelope_text(envelope, plant), flush=True)
     config = training_config(plant, method, args, envelope)

@@ -120,6 +120,10 @@ class RolloutConfig:
         width (an angle turns freely).
     like_share : float
         With an envelope: the share of the runs that are ``like`` runs.
+    fit_after : float
+        The decoder's samples start this long after each run's start (in units of ``1 / time_scale``): the
+        latent's first moments from ``z = 0`` (a model copy far from the state, a filter not yet settled) are
+        left out, where a squared error would spend the fit on them.
     sample_period, dense_period, dense_time : float
         The decoder's samples: one every ``dense_period`` seconds over the first ``dense_time``
         (the transient from ``z = 0``), one every ``sample_period`` seconds after (the first
@@ -145,6 +149,7 @@ class RolloutConfig:
     stabilise: Optional[bool] = False
     envelope: Optional[Envelope] = None
     like_share: float = 0.5
+    fit_after: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_traj, int) or self.n_traj < 1:
@@ -179,6 +184,8 @@ class RolloutConfig:
         if self.envelope is not None and not isinstance(self.envelope, Envelope):
             raise TypeError(f"envelope: expected a kklcasadi.plant.envelope.Envelope or None, received "
                             f"{type(self.envelope).__name__}.")
+        if not (isinstance(self.fit_after, (int, float)) and 0 <= self.fit_after < self.T):
+            raise ValueError(f"fit_after: expected a time >= 0 and below T = {self.T!r}, received {self.fit_after!r}.")
         if not (isinstance(self.like_share, (int, float)) and 0 <= self.like_share <= 1):
             raise ValueError(f"like_share: expected a share in [0, 1], received {self.like_share!r}.")
 
@@ -193,7 +200,8 @@ def _keep(n: int, dt: float, config: RolloutConfig, rate: float = 1.0) -> np.nda
     dense_bins = np.ceil(config.dense_time / config.dense_period - eps)
     bins = np.where(t < config.dense_time, np.floor(t / config.dense_period + eps),
                     dense_bins + np.floor((t - config.dense_time) / config.sample_period + eps))
-    return np.concatenate([[True], bins[1:] != bins[:-1]])
+    keep = np.concatenate([[True], bins[1:] != bins[:-1]])
+    return keep & (t >= config.fit_after - eps) if config.fit_after > 0 else keep
 
 
 def _horizon(T: float, rate: float, dt: float) -> float:
