@@ -61,8 +61,9 @@ def test_an_integrator_plant_runs_in_its_box_under_the_stabilising_loop():
     assert rn.drifting_states(plant) == (0,) and rn.drifting_states(_oscillator()) == ()
     new = replace(BankConfig.for_system("mass").rollouts, n_traj=36, T=30.0, chunk=36)
     plan = rn.resolved(plant, new)
-    assert plan.stabilise is True and plan.escape_scale == rn.ENVELOPE_ESCAPE
-    assert rn.resolved(_mass(u_box=None), new).escape_scale == rn.LEGACY_ESCAPE    # no envelope declared
+    assert plan.stabilise is True and plan.escape_scale == rn.ENVELOPE_ESCAPE and plan.fit_after == 0.5
+    legacy = rn.resolved(_mass(u_box=None), new)                              # no envelope declared
+    assert legacy.escape_scale == rn.LEGACY_ESCAPE and legacy.fit_after == 0.0
     share = {}
     rate = kc.plant.design.time_scales(plant)[0]
     n = rn.time_grid(rn._horizon(new.T, rate, 0.05), 0.05).size

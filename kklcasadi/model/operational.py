@@ -157,7 +157,7 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
     t0 = time.perf_counter()
     plan = resolved(system, config)
     n = time_grid(_horizon(config.T, time_scale, dt), dt).size
-    keep = _keep(n, dt, config, time_scale)
+    keep = _keep(n, dt, plan, time_scale)
     parts: dict[str, list[np.ndarray]] = {"z": [], "y": [], "u": [], "x": [], "t": [], "run": []}
     first = 0
     cut = failed = 0

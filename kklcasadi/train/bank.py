@@ -205,7 +205,7 @@ class BankConfig:
         budget = dict(NEW_PLANT_BANK)
         config = replace(config, process_on="forced", noise_copy=None,
                          rollouts=replace(config.rollouts, n_traj=budget["n_traj"], T=budget["T"], escape_scale=None,
-                                          stabilise=None))
+                                          stabilise=None, fit_after=None))
         return with_epochs(config, budget["epochs"])
 
 
