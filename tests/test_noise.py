@@ -43,6 +43,9 @@ def test_process_and_measurement_std_of_a_simulated_log_are_recovered_within_20_
     assert fit.states == forced_states(plant) == (1,)
     assert fit.process_std[0] == 0.0 and abs(fit.process_std[1] / process - 1) < 0.2
     assert abs(fit.samples - 3 * (logs[0].t.size - 100)) <= 3 and fit.at_bound == ()
+    # one forced state: the shared std is the same optimum
+    np.testing.assert_allclose(process_noise(plant, logs, dt=dt, measurement_std=r, shared=True).process_std,
+                               fit.process_std, rtol=1e-3)
     record = fit.record()
     assert record["states"] == [1] and record["process_std"][1] == fit.process_std[1]
 

@@ -165,7 +165,7 @@ def _likelihood(system: System, dt: float, r: np.ndarray, states: tuple, substep
 
 def process_noise(system: System, logs: Sequence[Any], *, dt: float, measurement_std: Any,
                   states: Optional[Sequence[int]] = None, settle: float = 1.0, substeps: int = 1,
-                  bounds: tuple[float, float] = (1e-8, 1e4)) -> ProcessNoise:
+                  bounds: tuple[float, float] = (1e-8, 1e4), shared: bool = False) -> ProcessNoise:
     """The process-noise std per state that maximises the likelihood of the logs' EKF innovations.
 
     Parameters
@@ -186,6 +186,9 @@ def process_noise(system: System, logs: Sequence[Any], *, dt: float, measurement
     bounds : (float, float)
         The search's bounds on ``q_i`` in units of state ``i``'s scale (the half-width of its X0 box row
         times the plant's time scale, :func:`kklcasadi.plant.design.time_scales`).
+    shared : bool
+        One std for all the estimated states (a log that measures few states cannot tell the ones it does
+        not measure apart) instead of one each.
 
     Returns
     -------
@@ -231,10 +234,13 @@ def process_noise(system: System, logs: Sequence[Any], *, dt: float, measurement
         runs.append((run, s0, uyw))
     if scored == 0:
         raise error("settle", "less than the logs' length (no innovation is left to score)", settle)
-    log_q = ca.MX.sym("log_q", len(states))
-    total = sum(run(s0, uyw, ca.repmat(log_q, 1, uyw.shape[1]))[-1, -1] for run, s0, uyw in runs) / scored
+    log_q = ca.MX.sym("log_q", 1 if shared else len(states))
+    each = ca.repmat(log_q, len(states), 1) if shared else log_q
+    total = sum(run(s0, uyw, ca.repmat(each, 1, uyw.shape[1]))[-1, -1] for run, s0, uyw in runs) / scored
     fun = ca.Function("nll", [log_q], [total, ca.gradient(total, log_q)])
     scale = np.array([0.5 * (system.x0_box[i, 1] - system.x0_box[i, 0]) for i in states]) * time_scales(system)[0]
+    if shared:
+        scale = np.array([np.exp(np.mean(np.log(scale)))])
 
     def objective(v: np.ndarray) -> tuple[float, np.ndarray]:
         value, grad = fun(v)
@@ -247,7 +253,8 @@ def process_noise(system: System, logs: Sequence[Any], *, dt: float, measurement
     best = scipy.optimize.minimize(objective, start, jac=True, method="L-BFGS-B", bounds=limits)
     std = np.zeros(system.nx)
     std[list(states)] = np.exp(best.x)
-    edge = tuple(i for i, v, (a, b) in zip(states, best.x, limits) if min(v - a, b - v) < 1e-6)
+    edge = tuple(i for i, v, (a, b) in zip(states, np.broadcast_to(best.x, len(states)),
+                                            limits * len(states) if shared else limits) if min(v - a, b - v) < 1e-6)
     return ProcessNoise(std, r, tuple(states), float(best.fun), scored, edge)
 
 
@@ -262,7 +269,7 @@ def _sha256(path: Path) -> str:
 def rig_envelope(system: System, paths: Sequence[str | os.PathLike], *, dt: float, time_col: str,
                  y_cols: Sequence[str], u_cols: Sequence[str] = (), angle_cols: Optional[Sequence[str]] = None,
                  settle: float = 1.0, measurement_std: Optional[float] = None,
-                 process_std: Optional[float | Sequence[float]] = None) -> Envelope:
+                 process_std: Optional[float | Sequence[float]] = None, shared: bool = False) -> Envelope:
     """The envelope of ``system``'s training runs read from the rig's logs (``kklcasadi train --like``).
 
     Each log is put on the model's grid (:func:`kklcasadi.plant.logs.read_log`: outputs sampled, inputs
@@ -288,6 +295,8 @@ def rig_envelope(system: System, paths: Sequence[str | os.PathLike], *, dt: floa
         EKF's transient).
     measurement_std, process_std : optional
         Given levels win over the estimates (a process std: one for the forced states, or one per state).
+    shared : bool
+        Estimate one process std for all the forced states (:func:`process_noise`).
 
     Returns
     -------
@@ -324,7 +333,7 @@ def rig_envelope(system: System, paths: Sequence[str | os.PathLike], *, dt: floa
         r = nonnegative_number(measurement_std, "measurement_std")
         noise["measurement_std_from"] = "given"
     if process_std is None:
-        fit = process_noise(system, logs, dt=dt, measurement_std=r, settle=settle)
+        fit = process_noise(system, logs, dt=dt, measurement_std=r, settle=settle, shared=shared)
         q = fit.process_std
         noise.update(process=fit.record(), process_std_from="logs")
     else:

@@ -1,0 +1,68 @@
+"""examples/emps_rig.py in a reduced form: a tiny training budget, the raw 1 kHz log estimated and scored."""
+
+import hashlib
+import json
+import runpy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "emps_rig.py"
+
+
+@pytest.fixture(scope="module")
+def example():
+    return runpy.run_path(str(EXAMPLE), run_name="emps_rig")
+
+
+def test_the_development_part_is_the_logs_rows_before_the_split_as_logged(example, tmp_path):
+    dev = example["write_development_part"](tmp_path)
+    raw = example["DATA"].read_text().splitlines()
+    lines = dev.read_text().splitlines()
+    assert lines == raw[:len(lines)]                                  # the same text, a prefix of the log
+    t = np.genfromtxt(dev, delimiter=",", names=True)["time"]
+    assert t.max() < example["SPLIT"] <= float(raw[len(lines)].split(",")[0])
+    assert abs(len(lines) - 1 - 0.6 * (len(raw) - 1)) <= 1           # the first 60 % of the rows
+
+
+def test_example_runs_in_a_reduced_form(example, tmp_path, capsys):
+    from kklcasadi import provenance
+
+    results, page = tmp_path / "emps.json", tmp_path / "emps.md"
+    table = example["main"](tmp_path, epochs=1, runs=12, horizon=4.0, results=results, page_path=page)
+    assert list(table) == list(example["ESTIMATORS"])
+    for row in table.values():
+        for part in ("development", "scored"):
+            assert np.isfinite(row[part]["q"]) and np.isfinite(row[part]["q_dot"])
+    ekf = table["EKF (noise from the log)"]["scored"]
+    assert ekf["q"] < 1e-5 and ekf["q_dot"] < 1e-3                  # it follows the position it measures
+    text = page.read_text()
+    assert text.startswith("<!-- provenance") and "| EKF (noise from the log) |" in text and "chose nothing" in text
+    record = provenance.json_payload(json.loads(results.read_text()))
+    assert provenance.strip_markdown(text) == example["page"](record)
+    assert record["cases"]["like"]["command"] == (
+        "kklcasadi train --plant examples/emps/emps_plant.py:make_plant --dt 0.01 --like OUT/emps_dev.csv "
+        "--time-col time --y-cols q --u-cols u --out DIR")
+    assert record["cases"]["u_box"]["command"].endswith("--measurement-std 1e-6 --out DIR")
+    card = json.loads((tmp_path / "like" / "card.json").read_text())
+    source = card["training"]["rollouts"]["envelope"]["sources"][0]
+    assert source["sha256"] == hashlib.sha256((tmp_path / "emps_dev.csv").read_bytes()).hexdigest()
+    assert card["domain"]["x_lo"] == [-0.01, -0.2] and card["training"]["runs"]["stabilised"] is True
+    assert record["ekf_noise"] == card["noise"]
+    assert (tmp_path / "emps_velocity.png").stat().st_size > 20000
+    assert "kklcasadi train --plant" in capsys.readouterr().out
+
+
+def test_the_page_is_the_stored_records():
+    """docs/results/emps.md is what examples/emps_rig.py writes from results/real_rig/emps/emps.json."""
+    from kklcasadi import provenance
+
+    example = runpy.run_path(str(EXAMPLE), run_name="emps_rig")
+    root = EXAMPLE.parents[1]
+    record = provenance.json_payload(json.loads((root / "results" / "real_rig" / "emps" / "emps.json").read_text()))
+    text = (root / "docs" / "results" / "emps.md").read_text()
+    assert provenance.strip_markdown(text) == example["page"](record)
+    assert provenance.read(root / "docs" / "results" / "emps.md").command.startswith("examples/emps_rig.py")
