@@ -81,12 +81,12 @@ def train(case: str, model: Path, dev: Path, *, epochs: Optional[int] = None, ru
     ``epochs``, ``runs`` and ``horizon`` (in units of the plant's time scale) shrink the budget."""
     from kklcasadi.cli import build_parser
     from kklcasadi.cli.flags import plant_of
-    from kklcasadi.cli.train import RECOMMENDED, _envelope, training_config
+    from kklcasadi.cli.train import RECOMMENDED, rig_of, training_config
     from kklcasadi.train import train_observer, with_field
 
     args = build_parser().parse_args(command(case, model, dev, f"{HERE / 'emps_plant.py'}:make_plant", seed))
     plant = plant_of(args)
-    config = training_config(plant, RECOMMENDED, args, _envelope(plant, args))
+    config = training_config(plant, RECOMMENDED, args, rig_of(plant, args))
     for name, value in (("n_traj", runs), ("T", horizon)):
         if value is not None:
             config = with_field(config, name, value)
