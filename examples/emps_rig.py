@@ -105,7 +105,7 @@ def estimate(model: Path, out: Path, ekf: bool) -> np.ndarray:
             "--time-col", "time", "--y-cols", "q", "--u-cols", "u", "--state-names", "q,q_dot", "--out", str(path)]
     if main(argv + (["--ekf"] if ekf else [])) != 0:
         raise RuntimeError(f"kklcasadi {' '.join(argv)} failed")
-    return np.genfromtxt(path, delimiter=",", names=True, comments="#")
+    return np.genfromtxt(path, delimiter=",", names=True, skip_header=1)      # under its provenance line
 
 
 def reference() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
