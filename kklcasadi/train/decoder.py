@@ -24,7 +24,7 @@ from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
 
-__all__ = ["DecoderConfig", "fit_bank_decoder", "BankFit", "LOSSES", "config_record", "fold_whitening",
+__all__ = ["DecoderConfig", "fit_bank_decoder", "BankFit", "LOSSES", "config_record", "fold_whitening", "whitening",
            "torch_decoder"]
 
 Tensor = torch.Tensor
@@ -83,7 +83,7 @@ class DecoderConfig:
             raise error("skip", "True or False (a linear skip path in the decoder)", self.skip, kind=TypeError)
 
 
-def _whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+def whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
     """Mean (d,) and symmetric whitening matrix W (d, d): ``cov((f - mean) W^T) = I`` up to the floor."""
     mean = f.mean(axis=0)
     cov = np.cov((f - mean).T)
@@ -93,7 +93,8 @@ def _whitening(f: np.ndarray, floor: float = 1e-6) -> tuple[np.ndarray, np.ndarr
     return mean, (vecs / np.sqrt(vals)) @ vecs.T
 
 
-def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np.ndarray) -> dict[str, np.ndarray]:
+def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np.ndarray, *,
+                   prefix: str = DECODER) -> dict[str, np.ndarray]:
     """Fold an input whitening into an MLP trained on ``(f - mean) W^T`` (with unit input normalisation).
 
     ``W0 ((f - mean) W^T)^T = (W0 W) (f - mean)``, so the returned arrays have ``W0 <- W0 W``
@@ -103,19 +104,21 @@ def fold_whitening(arrays: Mapping[str, np.ndarray], mean: np.ndarray, white: np
     Parameters
     ----------
     arrays : Mapping[str, numpy.ndarray]
-        ``decoder/*`` arrays of the MLP trained on whitened features (``in_mean = 0``, ``in_std = 1``).
+        ``prefix/*`` arrays of the MLP trained on whitened features (``in_mean = 0``, ``in_std = 1``).
     mean : numpy.ndarray, shape (d,)
     white : numpy.ndarray, shape (d, d)
+    prefix : str
+        The MLP's array prefix (the decoder's, or the covariance head's).
     """
     d = white.shape[0]
-    if not (np.allclose(arrays[f"{DECODER}/in_mean"], 0.0) and np.allclose(arrays[f"{DECODER}/in_std"], 1.0)):
+    if not (np.allclose(arrays[f"{prefix}/in_mean"], 0.0) and np.allclose(arrays[f"{prefix}/in_std"], 1.0)):
         raise ValueError("fold_whitening expects an MLP with in_mean = 0 and in_std = 1")
     out = dict(arrays)
-    for name in (f"{DECODER}/W0", f"{DECODER}/Wskip"):
+    for name in (f"{prefix}/W0", f"{prefix}/Wskip"):
         if name in arrays:
             out[name] = np.asarray(arrays[name]) @ white
-    out[f"{DECODER}/in_mean"] = np.asarray(mean, dtype=float).copy()
-    out[f"{DECODER}/in_std"] = np.ones(d)
+    out[f"{prefix}/in_mean"] = np.asarray(mean, dtype=float).copy()
+    out[f"{prefix}/in_std"] = np.ones(d)
     return out
 
 
@@ -218,7 +221,7 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     torch.manual_seed(seed)
     mlp = MLP(sizes, config.activation, skip=config.skip).to(torch.float64)
     if config.whiten:
-        f_mean, white = _whitening(feats)
+        f_mean, white = whitening(feats)
     else:
         f_mean, white = feats.mean(axis=0), np.diag(1.0 / (feats.std(axis=0) + 1e-12))
     mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), v.mean(axis=0), v.std(axis=0) + 1e-12)

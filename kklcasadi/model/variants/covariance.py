@@ -1,0 +1,121 @@
+"""The covariance head of a ``bank`` decoder (torch-free): how far off each estimate may be, sample by sample.
+
+A small MLP (array prefix ``covariance``) reads the decoder's own features ``f = [z_k; y_k; u_k]`` and
+returns ``q``, ``nx (nx + 1) / 2`` numbers that fill a lower-triangular factor ``L``: its diagonal
+``exp(q_0), ..., exp(q_{nx-1})``, then the entries below it row by row (``L_10, L_20, L_21, ...``). In
+the units of the decoder's network outputs ``v`` (their scale ``d = decoder/out_std``)
+
+    Sigma_v = D L L^T D,                       D = diag(d)
+    Sigma_x = S J Sigma_v J S,                 J = diag(dxhat_i / dv_i),  S = diag(covariance/scale)
+
+``J`` is 1 for a state decoded as ``v_i`` and ``s_i cosh(v_i)`` for one decoded as ``s_i sinh(v_i)``
+(the delta method through the output map), and ``S`` the calibration: one factor per state, chosen on
+validation runs so that the normalised errors have unit variance there
+(:func:`kklcasadi.train.covariance.calibrate`). The head is fit by the Gaussian negative log-likelihood
+of the truth after the decoder's mean (:mod:`kklcasadi.train.covariance`). Angle states are not
+supported (their error lives on the circle).
+
+:func:`covariance_numpy` is the reference; :func:`covariance_expression` the same map in CasADi (what
+the observer's step and its C code compute).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import casadi as ca
+import numpy as np
+
+from ...nets import builders as casadi_nets
+from ...nets.numpy_mlp import mlp_numpy
+from ...nets.specs import MLPSpec
+from ...validation import error
+
+__all__ = ["COVARIANCE", "SCALE", "n_entries", "array_shapes", "factor", "covariance_numpy",
+           "covariance_expression", "output_jacobian"]
+
+#: Array prefix of the head's MLP (and the card's ``architecture.covariance`` entry).
+COVARIANCE = "covariance"
+#: Array of the per-state calibration factors (nx,).
+SCALE = "covariance/scale"
+
+
+def n_entries(nx: int) -> int:
+    """The head's outputs for ``nx`` states: ``nx (nx + 1) / 2`` (the factor's diagonal, then below it)."""
+    return nx * (nx + 1) // 2
+
+
+def array_shapes(spec: MLPSpec, nx: int) -> dict[str, tuple[int, ...]]:
+    """The head's arrays: its MLP's (prefix :data:`COVARIANCE`) and :data:`SCALE` (nx,)."""
+    if spec.n_out != n_entries(nx):
+        raise error("architecture.covariance.sizes", f"a last size of nx (nx + 1) / 2 = {n_entries(nx)} (the "
+                    "covariance factor's entries)", list(spec.sizes))
+    return {**spec.array_shapes(COVARIANCE), SCALE: (nx,)}
+
+
+def _lower(nx: int) -> list[tuple[int, int]]:
+    """The strictly lower entries of an nx x nx matrix, row by row."""
+    return [(i, j) for i in range(nx) for j in range(i)]
+
+
+def factor(q: np.ndarray, nx: int) -> np.ndarray:
+    """The lower-triangular factor ``L`` (..., nx, nx) of the head's outputs ``q`` (..., nx (nx + 1) / 2)."""
+    L = np.zeros((*q.shape[:-1], nx, nx))
+    idx = np.arange(nx)
+    L[..., idx, idx] = np.exp(q[..., :nx])
+    for k, (i, j) in enumerate(_lower(nx)):
+        L[..., i, j] = q[..., nx + k]
+    return L
+
+
+def output_jacobian(v: Any, asinh_scale: np.ndarray, lib: Any = np) -> Any:
+    """``dxhat_i / dv_i`` per state (..., nx): 1, or ``s_i cosh(v_i)`` where ``asinh_scale_i = s_i > 0``."""
+    scale = np.asarray(asinh_scale, dtype=float)
+    if lib is np:
+        return np.where(scale > 0, scale * np.cosh(v[..., :scale.size]), 1.0)
+    return ca.vertcat(*[float(s) * ca.cosh(v[i]) if s > 0 else ca.DM(1.0) for i, s in enumerate(scale)])
+
+
+def covariance_numpy(spec: MLPSpec, arrays: Mapping[str, Any], features: np.ndarray, v: np.ndarray,
+                     out_std: np.ndarray, asinh_scale: np.ndarray) -> np.ndarray:
+    """The covariance of the estimates (numpy, float64).
+
+    Parameters
+    ----------
+    spec : MLPSpec
+        The head's network (``architecture.covariance``).
+    arrays : Mapping[str, array_like]
+        The head's arrays (:func:`array_shapes`).
+    features : numpy.ndarray, shape (..., d)
+        The decoder's features ``[z; y; u]``.
+    v : numpy.ndarray, shape (..., nx)
+        The decoder's network outputs there (the ensemble's mean).
+    out_std : numpy.ndarray, shape (nx,)
+        ``decoder/out_std``.
+    asinh_scale : numpy.ndarray, shape (nx,)
+        ``decoder/asinh_scale``.
+
+    Returns
+    -------
+    numpy.ndarray, shape (..., nx, nx)
+    """
+    nx = out_std.size
+    L = factor(mlp_numpy(spec, arrays, COVARIANCE, features), nx)
+    d = np.asarray(arrays[SCALE], dtype=float) * output_jacobian(v, asinh_scale) * out_std
+    DL = d[..., :, None] * L
+    return DL @ np.swapaxes(DL, -1, -2)
+
+
+def covariance_expression(spec: MLPSpec, arrays: Mapping[str, Any], features: ca.MX, v: ca.MX,
+                          out_std: np.ndarray, asinh_scale: np.ndarray, name: str = "covariance_mlp") -> ca.MX:
+    """:func:`covariance_numpy` at CasADi symbols: ``features`` (d, 1), ``v`` (nx, 1) -> ``P`` (nx, nx)."""
+    nx = out_std.size
+    q = casadi_nets.mlp_function(spec, arrays, COVARIANCE, name)(features)
+    d = ca.DM(np.asarray(arrays[SCALE], dtype=float) * out_std) * output_jacobian(v, asinh_scale, ca)
+    rows = []
+    lower = {(i, j): nx + k for k, (i, j) in enumerate(_lower(nx))}
+    for i in range(nx):
+        rows.append(ca.horzcat(*[d[i] * (ca.exp(q[i]) if j == i else q[lower[i, j]]) if j <= i else ca.MX(0)
+                                 for j in range(nx)]))
+    DL = ca.vertcat(*rows)
+    return ca.mtimes(DL, DL.T)

@@ -1,0 +1,164 @@
+"""The covariance head of a ``bank`` decoder (torch): fit by the Gaussian likelihood of the truth, then calibrated.
+
+* :func:`fit_covariance` -- after the decoder's mean is fit, a small MLP on the decoder's features learns the
+  factor of the errors' covariance (:mod:`kklcasadi.model.variants.covariance`) by minimising the Gaussian
+  negative log-likelihood of the true states' errors, ``0.5 |L^-1 r|^2 + sum log L_ii`` with
+  ``r = (v_true - v) / d`` the decoder's error in the units of its outputs.
+* :func:`calibrate` -- one factor per state, on validation runs the head was not fit on, so that each
+  state's normalised error has unit variance there (the head fit on the decoder's own fitting runs sees
+  errors a little smaller than on new ones).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Mapping
+
+import numpy as np
+import torch
+
+from ..model.variants.covariance import COVARIANCE, SCALE, covariance_numpy, n_entries
+from ..nets.specs import MLPSpec
+from ..validation import Text, error
+from .config import LoopConfig
+from .decoder import fold_whitening, whitening
+from .loop import ArrayDataset, FitResult, fit, torch_dtype
+from .nets import MLP
+
+__all__ = ["CovarianceConfig", "CovarianceFit", "fit_covariance", "calibrate", "gaussian_nll"]
+
+Tensor = torch.Tensor
+
+
+@dataclass(frozen=True)
+class CovarianceConfig:
+    """The covariance head's network and its fit.
+
+    Attributes
+    ----------
+    hidden : tuple of int
+        Hidden widths of the head's MLP (small: it runs at every step beside the decoder).
+    activation : str
+    loop : LoopConfig
+    dtype : {"float32", "float64"}
+        Training precision; the arrays are float64 either way.
+    """
+
+    hidden: tuple[int, ...] = (16,)
+    activation: str = "tanh"
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=10, batch_size=4096, lr=3e-3,
+                                                                  schedule="cosine", val_fraction=0.05))
+    dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        if not self.hidden or not all(isinstance(h, int) and not isinstance(h, bool) and h > 0 for h in self.hidden):
+            raise error("hidden", "a non-empty tuple of positive widths", self.hidden)
+        torch_dtype(self.dtype)
+
+
+@dataclass(frozen=True, eq=False)
+class CovarianceFit:
+    """Result of :func:`fit_covariance`: the head's arrays (``covariance/*``, scale 1), its card entry and the fit."""
+
+    arrays: dict
+    arch: dict
+    fit: FitResult
+
+
+def _factor(q: Tensor, nx: int) -> Tensor:
+    """The lower-triangular factor (..., nx, nx) of the head's outputs (the layout of
+    :func:`kklcasadi.model.variants.covariance.factor`: the diagonal's logarithms, then below it row by row)."""
+    L = torch.diag_embed(torch.exp(q[..., :nx]))
+    lower = [(i, j) for i in range(nx) for j in range(i)]
+    if lower:
+        off = torch.zeros_like(L)
+        off[..., [i for i, _ in lower], [j for _, j in lower]] = q[..., nx:]
+        L = L + off
+    return L
+
+
+def gaussian_nll(q: Tensor, r: Tensor) -> Tensor:
+    """Mean negative log-likelihood (less ``nx/2 log 2 pi``) of errors ``r`` (B, nx) under ``N(0, L L^T)``,
+    ``L`` from the head's outputs ``q`` (B, nx (nx + 1) / 2)."""
+    nx = r.shape[-1]
+    L = _factor(q, nx)
+    white = torch.linalg.solve_triangular(L, r[..., None], upper=False)[..., 0]
+    return (0.5 * (white ** 2).sum(-1) + q[..., :nx].sum(-1)).mean()
+
+
+def fit_covariance(features: np.ndarray, error_v: np.ndarray, config: CovarianceConfig, *, seed: int = 0,
+                   progress: bool = False) -> CovarianceFit:
+    """Fit the covariance head on the decoder's features and its errors.
+
+    Parameters
+    ----------
+    features : numpy.ndarray, shape (S, d)
+        The decoder's features ``[z; y; u]`` of the samples.
+    error_v : numpy.ndarray, shape (S, nx)
+        The decoder's errors there in the units of its outputs, ``(v_true - v) / decoder/out_std``.
+    config : CovarianceConfig
+    seed : int
+    progress : bool
+
+    Returns
+    -------
+    CovarianceFit
+        The head's arrays with :data:`kklcasadi.model.variants.covariance.SCALE` 1 (calibrate it with
+        :func:`calibrate`).
+    """
+    features = np.asarray(features, dtype=float)
+    r = np.asarray(error_v, dtype=float)
+    if features.ndim != 2 or r.ndim != 2 or len(features) != len(r) or not np.all(np.isfinite(r)):
+        raise error("error_v", f"finite errors of shape (S = {len(features)}, nx)", Text(f"shape {r.shape}"))
+    nx = r.shape[1]
+    sizes = (features.shape[1], *config.hidden, n_entries(nx))
+    dtype = torch_dtype(config.dtype)
+    torch.manual_seed(seed)
+    mlp = MLP(sizes, config.activation)
+    mean, white = whitening(features)
+    start = np.zeros(sizes[-1])
+    start[:nx] = np.log(np.std(r, axis=0) + 1e-12)                 # the errors' scale, uncorrelated, at the start
+    mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), start, np.ones(sizes[-1]))
+    mlp = mlp.to(dtype)
+    data = ArrayDataset({"f": (features - mean) @ white.T, "r": r}, dtype=dtype)
+
+    def loss_fn(batch: Mapping[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
+        loss = gaussian_nll(mlp(batch["f"]), batch["r"])
+        return loss, {"nll": loss.item()}
+
+    result = fit(list(mlp.parameters()), loss_fn, data, config.loop, name="covariance head", seed=seed,
+                 progress=progress)
+    arrays = fold_whitening(mlp.to(torch.float64).to_arrays(COVARIANCE), mean, white, prefix=COVARIANCE)
+    arrays[SCALE] = np.ones(nx)
+    return CovarianceFit(arrays, mlp.spec.to_card(), result)
+
+
+def calibrate(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], features: np.ndarray, v: np.ndarray,
+              errors: np.ndarray, out_std: np.ndarray, asinh_scale: np.ndarray) -> np.ndarray:
+    """The per-state calibration factors ``s_i = sqrt(mean(e_i^2 / P_ii))`` on validation samples.
+
+    Parameters
+    ----------
+    arrays, arch
+        The head's arrays (its :data:`SCALE` is ignored) and card entry.
+    features : numpy.ndarray, shape (S, d)
+    v : numpy.ndarray, shape (S, nx)
+        The decoder's network outputs at the samples.
+    errors : numpy.ndarray, shape (S, nx)
+        The estimates' errors ``x - xhat`` there.
+    out_std, asinh_scale : numpy.ndarray, shape (nx,)
+        ``decoder/out_std`` and ``decoder/asinh_scale``.
+
+    Returns
+    -------
+    numpy.ndarray, shape (nx,)
+    """
+    nx = out_std.size
+    unit = {**arrays, SCALE: np.ones(nx)}
+    spec = MLPSpec.from_card(arch, "architecture", COVARIANCE)
+    P = covariance_numpy(spec, unit, features, v, out_std, asinh_scale)
+    ratio = np.asarray(errors, dtype=float) ** 2 / np.diagonal(P, axis1=-2, axis2=-1)
+    if not np.all(np.isfinite(ratio)):
+        raise error("errors", "finite errors and variances at every validation sample",
+                    Text(f"{int(np.sum(~np.isfinite(ratio)))} non-finite"))
+    return np.sqrt(ratio.mean(axis=0))
