@@ -65,7 +65,8 @@ def test_the_likelihood_is_the_gaussian_one():
 
 def test_the_head_learns_a_covariance_that_depends_on_the_features():
     """Errors drawn with a known covariance that depends on the feature: std of state 0 is 0.1 exp(f0),
-    state 1 correlated with it at 0.6 and half its scale. The fit recovers the stds within 8 % and the correlation within 0.08."""
+    state 1 correlated with it at 0.6 and half its scale. The fit recovers the stds within 8 % and the
+    correlation within 0.08."""
     rng = np.random.default_rng(0)
     n = 20000
     f = rng.uniform(-1, 1, size=(n, 3))
