@@ -38,19 +38,20 @@ def test_numpy_and_casadi_covariances_agree_and_are_positive_definite(nx):
     out_std = rng.uniform(0.5, 2, nx)
     asinh = np.zeros(nx)
     asinh[-1] = 0.01 if nx > 1 else 0.0                              # one state decoded as s sinh(v)
-    f, v = rng.normal(size=(7, d)), rng.normal(size=(7, nx))
-    P = cov.covariance_numpy(spec, arrays, f, v, out_std, asinh)
+    f, xhat = rng.normal(size=(7, d)), rng.normal(size=(7, nx))
+    P = cov.covariance_numpy(spec, arrays, f, xhat, out_std, asinh)
     assert P.shape == (7, nx, nx)
     np.testing.assert_allclose(P, np.swapaxes(P, -1, -2), rtol=0, atol=0)
     assert np.all(np.linalg.eigvalsh(P) > 0)
-    fs, vs = ca.MX.sym("f", d), ca.MX.sym("v", nx)
-    fun = ca.Function("P", [fs, vs], [cov.covariance_expression(spec, arrays, fs, vs, out_std, asinh)])
+    fs, xs = ca.MX.sym("f", d), ca.MX.sym("xhat", nx)
+    fun = ca.Function("P", [fs, xs], [cov.covariance_expression(spec, arrays, fs, xs, out_std, asinh)])
     for k in range(7):
-        np.testing.assert_allclose(np.array(fun(f[k], v[k])), P[k], rtol=1e-13, atol=1e-300)
-    # the delta method through s sinh(v): the variance scales with (s cosh v)^2
+        np.testing.assert_allclose(np.array(fun(f[k], xhat[k])), P[k], rtol=1e-13, atol=1e-300)
+    # the delta method through xhat = s sinh(v): the variance scales with (s cosh v)^2 = s^2 + xhat^2
     if nx > 1:
-        plain = cov.covariance_numpy(spec, arrays, f, v, out_std, np.zeros(nx))
-        np.testing.assert_allclose(P[:, -1, -1], plain[:, -1, -1] * (0.01 * np.cosh(v[:, -1])) ** 2, rtol=1e-12)
+        plain = cov.covariance_numpy(spec, arrays, f, xhat, out_std, np.zeros(nx))
+        vv = np.arcsinh(xhat[:, -1] / 0.01)
+        np.testing.assert_allclose(P[:, -1, -1], plain[:, -1, -1] * (0.01 * np.cosh(vv)) ** 2, rtol=1e-12)
 
 
 def test_the_likelihood_is_the_gaussian_one():
@@ -89,8 +90,8 @@ def test_the_head_learns_a_covariance_that_depends_on_the_features():
     e0 = rng.normal(size=n)
     s0 = 0.1 * np.exp(fresh[:, 0])
     errors = np.stack([s0 * e0, 0.5 * s0 * (0.6 * e0 + 0.8 * rng.normal(size=n))], axis=1)
-    v = np.zeros((n, 2))
-    scale = calibrate(fit.arrays, fit.arch, fresh, v, errors, np.ones(2), np.zeros(2))
+    xhat = np.zeros((n, 2))
+    scale = calibrate(fit.arrays, fit.arch, fresh, xhat, errors, np.ones(2), np.zeros(2))
     np.testing.assert_allclose(scale, 1.0, atol=0.06)
-    np.testing.assert_allclose(calibrate(fit.arrays, fit.arch, fresh, v, 2 * errors, np.ones(2), np.zeros(2)),
+    np.testing.assert_allclose(calibrate(fit.arrays, fit.arch, fresh, xhat, 2 * errors, np.ones(2), np.zeros(2)),
                                2 * scale, rtol=1e-12)

@@ -133,7 +133,7 @@ def fit_covariance(features: np.ndarray, error_v: np.ndarray, config: Covariance
     return CovarianceFit(arrays, mlp.spec.to_card(), result)
 
 
-def calibrate(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], features: np.ndarray, v: np.ndarray,
+def calibrate(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], features: np.ndarray, xhat: np.ndarray,
               errors: np.ndarray, out_std: np.ndarray, asinh_scale: np.ndarray) -> np.ndarray:
     """The per-state calibration factors ``s_i = sqrt(mean(e_i^2 / P_ii))`` on validation samples.
 
@@ -142,8 +142,8 @@ def calibrate(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], feat
     arrays, arch
         The head's arrays (its :data:`SCALE` is ignored) and card entry.
     features : numpy.ndarray, shape (S, d)
-    v : numpy.ndarray, shape (S, nx)
-        The decoder's network outputs at the samples.
+    xhat : numpy.ndarray, shape (S, nx)
+        The estimates at the samples.
     errors : numpy.ndarray, shape (S, nx)
         The estimates' errors ``x - xhat`` there.
     out_std, asinh_scale : numpy.ndarray, shape (nx,)
@@ -156,7 +156,7 @@ def calibrate(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], feat
     nx = out_std.size
     unit = {**arrays, SCALE: np.ones(nx)}
     spec = MLPSpec.from_card(arch, "architecture", COVARIANCE)
-    P = covariance_numpy(spec, unit, features, v, out_std, asinh_scale)
+    P = covariance_numpy(spec, unit, features, xhat, out_std, asinh_scale)
     ratio = np.asarray(errors, dtype=float) ** 2 / np.diagonal(P, axis1=-2, axis2=-1)
     if not np.all(np.isfinite(ratio)):
         raise error("errors", "finite errors and variances at every validation sample",

@@ -8,8 +8,9 @@ the units of the decoder's network outputs ``v`` (their scale ``d = decoder/out_
     Sigma_v = D L L^T D,                       D = diag(d)
     Sigma_x = S J Sigma_v J S,                 J = diag(dxhat_i / dv_i),  S = diag(covariance/scale)
 
-``J`` is 1 for a state decoded as ``v_i`` and ``s_i cosh(v_i)`` for one decoded as ``s_i sinh(v_i)``
-(the delta method through the output map), and ``S`` the calibration: one factor per state, chosen on
+``J`` is 1 for a state decoded as ``v_i`` and ``s_i cosh(v_i) = sqrt(s_i^2 + xhat_i^2)`` for one decoded as
+``xhat_i = s_i sinh(v_i)`` (the delta method through the output map, written in the estimate the step has
+already), and ``S`` the calibration: one factor per state, chosen on
 validation runs so that the normalised errors have unit variance there
 (:func:`kklcasadi.train.covariance.calibrate`). The head is fit by the Gaussian negative log-likelihood
 of the truth after the decoder's mean (:mod:`kklcasadi.train.covariance`). Angle states are not
@@ -68,15 +69,16 @@ def factor(q: np.ndarray, nx: int) -> np.ndarray:
     return L
 
 
-def output_jacobian(v: Any, asinh_scale: np.ndarray, lib: Any = np) -> Any:
-    """``dxhat_i / dv_i`` per state (..., nx): 1, or ``s_i cosh(v_i)`` where ``asinh_scale_i = s_i > 0``."""
+def output_jacobian(xhat: Any, asinh_scale: np.ndarray, lib: Any = np) -> Any:
+    """``dxhat_i / dv_i`` per state (..., nx): 1, or ``s_i cosh(v_i) = sqrt(s_i^2 + xhat_i^2)`` where
+    ``asinh_scale_i = s_i > 0`` (``xhat_i = s_i sinh(v_i)``)."""
     scale = np.asarray(asinh_scale, dtype=float)
     if lib is np:
-        return np.where(scale > 0, scale * np.cosh(v[..., :scale.size]), 1.0)
-    return ca.vertcat(*[float(s) * ca.cosh(v[i]) if s > 0 else ca.DM(1.0) for i, s in enumerate(scale)])
+        return np.where(scale > 0, np.sqrt(scale ** 2 + np.asarray(xhat)[..., :scale.size] ** 2), 1.0)
+    return ca.vertcat(*[ca.sqrt(float(s) ** 2 + xhat[i] ** 2) if s > 0 else ca.DM(1.0) for i, s in enumerate(scale)])
 
 
-def covariance_numpy(spec: MLPSpec, arrays: Mapping[str, Any], features: np.ndarray, v: np.ndarray,
+def covariance_numpy(spec: MLPSpec, arrays: Mapping[str, Any], features: np.ndarray, xhat: np.ndarray,
                      out_std: np.ndarray, asinh_scale: np.ndarray) -> np.ndarray:
     """The covariance of the estimates (numpy, float64).
 
@@ -88,8 +90,8 @@ def covariance_numpy(spec: MLPSpec, arrays: Mapping[str, Any], features: np.ndar
         The head's arrays (:func:`array_shapes`).
     features : numpy.ndarray, shape (..., d)
         The decoder's features ``[z; y; u]``.
-    v : numpy.ndarray, shape (..., nx)
-        The decoder's network outputs there (the ensemble's mean).
+    xhat : numpy.ndarray, shape (..., nx)
+        The estimates there.
     out_std : numpy.ndarray, shape (nx,)
         ``decoder/out_std``.
     asinh_scale : numpy.ndarray, shape (nx,)
@@ -101,17 +103,17 @@ def covariance_numpy(spec: MLPSpec, arrays: Mapping[str, Any], features: np.ndar
     """
     nx = out_std.size
     L = factor(mlp_numpy(spec, arrays, COVARIANCE, features), nx)
-    d = np.asarray(arrays[SCALE], dtype=float) * output_jacobian(v, asinh_scale) * out_std
+    d = np.asarray(arrays[SCALE], dtype=float) * output_jacobian(xhat, asinh_scale) * out_std
     DL = d[..., :, None] * L
     return DL @ np.swapaxes(DL, -1, -2)
 
 
-def covariance_expression(spec: MLPSpec, arrays: Mapping[str, Any], features: ca.MX, v: ca.MX,
+def covariance_expression(spec: MLPSpec, arrays: Mapping[str, Any], features: ca.MX, xhat: ca.MX,
                           out_std: np.ndarray, asinh_scale: np.ndarray, name: str = "covariance_mlp") -> ca.MX:
-    """:func:`covariance_numpy` at CasADi symbols: ``features`` (d, 1), ``v`` (nx, 1) -> ``P`` (nx, nx)."""
+    """:func:`covariance_numpy` at CasADi symbols: ``features`` (d, 1), ``xhat`` (nx, 1) -> ``P`` (nx, nx)."""
     nx = out_std.size
     q = casadi_nets.mlp_function(spec, arrays, COVARIANCE, name)(features)
-    d = ca.DM(np.asarray(arrays[SCALE], dtype=float) * out_std) * output_jacobian(v, asinh_scale, ca)
+    d = ca.DM(np.asarray(arrays[SCALE], dtype=float) * out_std) * output_jacobian(xhat, asinh_scale, ca)
     rows = []
     lower = {(i, j): nx + k for k, (i, j) in enumerate(_lower(nx))}
     for i in range(nx):
