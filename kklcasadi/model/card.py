@@ -284,10 +284,12 @@ def parse_card(card: Any, where: str = CARD_FILE, *, require_sha: bool = True) -
     window = _positive_field(card["window"], where, "window", fix_new)
 
     arch = card["architecture"]
-    if not isinstance(arch, Mapping) or set(arch) != set(variant.entries):
+    if (not isinstance(arch, Mapping) or not set(variant.entries) <= set(arch)
+            or not set(arch) <= set(variant.entries) | set(variant.optional_entries)):
         found = sorted(arch) if isinstance(arch, Mapping) else arch
+        optional = f" (and optionally {sorted(variant.optional_entries)})" if variant.optional_entries else ""
         raise field_error(where, "architecture", f"an object with exactly the keys "
-                          f"{sorted(variant.entries)} for method {card['method']!r}", found, fix_new)
+                          f"{sorted(variant.entries)}{optional} for method {card['method']!r}", found, fix_new)
 
     base = card["base"]
     if base is not None:

@@ -88,12 +88,22 @@ class Estimate:
         lies in the trained boxes (with the margin :data:`DOMAIN_MARGIN`) and, where the model has a
         decoder-input monitor, whether the decoder's input ``[z_k; vec(w_k)]`` lies within its
         threshold of the fitting data; None when the model records neither.
+    cov : numpy.ndarray, shape (N, nx, nx) or (M, N, nx, nx), or None
+        The covariance of each estimate's error ``x_k - xhat_k`` from the model's covariance head
+        (:attr:`KKLObserver.covariance`); None for a model without one.
     """
 
     t: np.ndarray
     xhat: np.ndarray
     z: np.ndarray
     in_domain: Optional[np.ndarray] = None
+    cov: Optional[np.ndarray] = None
+
+    @property
+    def var(self) -> Optional[np.ndarray]:
+        """The variances of the estimates' errors, (N, nx) or (M, N, nx): the diagonal of :attr:`cov`
+        (None without a covariance head)."""
+        return None if self.cov is None else np.diagonal(self.cov, axis1=-2, axis2=-1)
 
 
 class KKLObserver:
@@ -162,6 +172,15 @@ class KKLObserver:
         ``domain_check(z, w, xhat) -> in_domain`` (1 or 0): the domain monitor of one sample (the
         card's boxes and, with :attr:`monitor`, the decoder's input ``[z; vec(w)]``); None when the
         card records neither. The C function ``name_in_domain`` of :func:`kklcasadi.generate_c`.
+    covariance : casadi.Function or None
+        ``covariance(z, w, xhat) -> P (nx, nx)``: the covariance of the error of the estimate ``xhat``
+        at ``(z, w)``, from the card's covariance head (a ``bank`` with ``architecture.covariance``;
+        :mod:`kklcasadi.model.variants.covariance`); None without one. The C function
+        ``name_covariance``.
+    step_covariance : casadi.Function or None
+        ``step_covariance(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next, P_next)``: :attr:`step`
+        with the covariance of ``xhat_next`` (its first three outputs are :attr:`step`'s, bit for bit);
+        None without a covariance head. The C function ``name_step`` of a model with a head.
     """
 
     def __init__(self, model: Model, system: System, *, discretization: Optional[str] = None,
@@ -206,7 +225,8 @@ class KKLObserver:
         self.decode = ca.Function("decode", [z, w], [nets.decoder(z, w)], ["z", "w"], ["xhat"])
         self.rhs = ca.Function("rhs", [z, y, u, w], [self._field(z, y, u, self._context_of(w))],
                                ["z", "y", "u", "w"], ["zdot"])
-        self.step = self._build_step()
+        self.covariance: Optional[ca.Function] = nets.covariance
+        self.step, self.step_covariance = self._build_step()
         self.monitor = None if spec.monitor is None else FeatureMonitor.from_arrays(spec.monitor, model.arrays)
         features = self.nz + self.memory_shape[0] * self.memory_shape[1]
         if self.monitor is not None and self.monitor.features != features:
@@ -232,7 +252,9 @@ class KKLObserver:
             zdot = zdot + self._input_term(z, u, context)
         return zdot
 
-    def _build_step(self) -> ca.Function:
+    def _build_step(self) -> tuple[ca.Function, Optional[ca.Function]]:
+        """The step, and the step with the covariance of its estimate (the same expressions; None without a
+        covariance head)."""
         z, w = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape)
         y, y_next = ca.MX.sym("y", self.ny), ca.MX.sym("y_next", self.ny)
         u_next = ca.MX.sym("u_next", self.nu)
@@ -248,9 +270,14 @@ class KKLObserver:
             z_next = rk4_step(lambda s, zz: self._field(zz, y + s * (y_next - y), u, context),
                               z, self.dt, self.substeps)
         w_next = self.memory.next(w, y_next, u_next)
-        return ca.Function("step", [z, w, y, y_next, u_next],
-                           [z_next, w_next, self.decode(z_next, w_next)],
-                           ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"])
+        xhat_next = self.decode(z_next, w_next)
+        names = ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"]
+        step = ca.Function("step", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next], *names)
+        if self.covariance is None:
+            return step, None
+        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next],
+                                 [z_next, w_next, xhat_next, self.covariance(z_next, w_next, xhat_next)],
+                                 names[0], names[1] + ["P_next"])
 
     def _build_domain_check(self) -> Optional[ca.Function]:
         if self._domain_bounds is None and self.monitor is None:
@@ -423,30 +450,39 @@ class KKLObserver:
         z = np.empty((m, n, nz))
         xhat[:, 0] = np.asarray(self.decode.map(m)(z_start, w0_cols)).T
         z[:, 0] = z_start.T
+        nx = self.nx
+        cov = None
+        if self.covariance is not None:
+            cov = np.empty((m, n, nx, nx))
+            cov[:, 0] = _blocks(self.covariance.map(m)(z_start, w0_cols, xhat[:, 0].T), nx).reshape(m, nx, nx)
         rows, cols = self.memory_shape
         memory = np.empty((m, n, rows, cols)) if self.monitor is not None else None
         if memory is not None:
             memory[:, 0] = np.asarray(w0_cols).reshape(rows, m, cols).transpose(1, 0, 2)
         if n > 1:
-            trajectory = self.step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
+            step = self.step if cov is None else self.step_covariance
+            trajectory = step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
             if m > 1:
                 threads = (os.cpu_count() or 1) if n_threads is None else n_threads
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
-            z_out, w_out, xhat_out = trajectory(
+            z_out, w_out, xhat_out, *P_out = trajectory(
                 z_start, w0_cols,
                 ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
                 us[:, 1:].reshape(columns, nu).T)
+            if cov is not None:               # (nx, nx * columns): block j is the covariance of column j
+                cov[:, 1:] = _blocks(P_out[0], nx).reshape(m, n - 1, nx, nx)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)
             xhat[:, 1:] = np.asarray(xhat_out).T.reshape(m, n - 1, self.nx)
             if memory is not None:
                 memory[:, 1:] = np.asarray(w_out).reshape(rows, m, n - 1, cols).transpose(1, 2, 0, 3)
         flags = self.in_domain(xhat, z, memory)
-        for array in (xhat, z) if flags is None else (xhat, z, flags):
-            array.setflags(write=False)
+        for array in (xhat, z, flags, cov):
+            if array is not None:
+                array.setflags(write=False)
         if batched_y:
-            return Estimate(t, xhat, z, flags)
-        return Estimate(t, xhat[0], z[0], None if flags is None else flags[0])
+            return Estimate(t, xhat, z, flags, cov)
+        return Estimate(t, xhat[0], z[0], None if flags is None else flags[0], None if cov is None else cov[0])
 
     def estimator(self) -> Estimator:
         """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample."""
@@ -485,6 +521,7 @@ class Estimator:
         self.k = 0
         self._in_domain: Optional[bool] = None
         self._out_of_domain = 0
+        self._cov: Optional[np.ndarray] = None
 
     @property
     def z(self) -> Optional[np.ndarray]:
@@ -496,6 +533,12 @@ class Estimator:
         """Input memory ``w_k`` (``observer.memory_shape``; the window (window, nu) for windowed
         variants) after the last step, or None before the first."""
         return None if self._w is None else self._w.copy()
+
+    @property
+    def cov(self) -> Optional[np.ndarray]:
+        """The covariance (nx, nx) of the last estimate's error (the model's covariance head), or None before the
+        first step or without a head."""
+        return None if self._cov is None else self._cov.copy()
 
     def make_step(self, y: Any, u: Any) -> np.ndarray:
         """Feed ``y_k`` and ``u_k`` (the input held from ``t_k``); return the estimate ``xhat_k``.
@@ -523,6 +566,8 @@ class Estimator:
         xhat = np.asarray(xhat).ravel()
         inside = obs.in_domain(xhat, z, w)
         self._in_domain = None if inside is None else bool(inside)
+        if obs.covariance is not None:
+            self._cov = np.asarray(obs.covariance(z, w, xhat))
         self._out_of_domain += inside is not None and not inside
         return xhat
 
@@ -532,6 +577,11 @@ class Estimator:
         last estimate lies in the trained domain, None without a recorded domain) and
         ``out_of_domain_steps`` (how many estimates so far did not)."""
         return {"k": self.k, "in_domain": self._in_domain, "out_of_domain_steps": self._out_of_domain}
+
+
+def _blocks(matrix: Any, nx: int) -> np.ndarray:
+    """The (nx, nx) blocks of a mapped Function's output (nx, nx C), as (C, nx, nx)."""
+    return np.asarray(matrix).reshape(nx, -1, nx).transpose(1, 0, 2)
 
 
 # ---------------------------------------------------------------------- checks

@@ -25,7 +25,7 @@ from .decoder import fold_whitening, whitening
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
 
-__all__ = ["CovarianceConfig", "CovarianceFit", "fit_covariance", "calibrate", "gaussian_nll"]
+__all__ = ["CovarianceConfig", "CovarianceFit", "fit_covariance", "calibrate", "gaussian_nll", "output_errors"]
 
 Tensor = torch.Tensor
 
@@ -84,6 +84,19 @@ def gaussian_nll(q: Tensor, r: Tensor) -> Tensor:
     L = _factor(q, nx)
     white = torch.linalg.solve_triangular(L, r[..., None], upper=False)[..., 0]
     return (0.5 * (white ** 2).sum(-1) + q[..., :nx].sum(-1)).mean()
+
+
+def output_errors(x: np.ndarray, xhat: np.ndarray, out_std: np.ndarray, asinh_scale: np.ndarray) -> np.ndarray:
+    """The estimates' errors in the units of the decoder's outputs, ``(v(x) - v(xhat)) / out_std`` (..., nx), with
+    ``v(x) = asinh(x / s)`` for a state with an ``asinh`` scale ``s > 0`` and ``x`` otherwise (what
+    :func:`fit_covariance` fits; the estimate's ``v`` is recovered from ``xhat`` exactly up to rounding)."""
+    s = np.asarray(asinh_scale, dtype=float)
+    safe = np.where(s > 0, s, 1.0)
+
+    def v(a: np.ndarray) -> np.ndarray:
+        return np.where(s > 0, np.arcsinh(np.asarray(a, dtype=float) / safe), a)
+
+    return (v(x) - v(xhat)) / np.asarray(out_std, dtype=float)
 
 
 def fit_covariance(features: np.ndarray, error_v: np.ndarray, config: CovarianceConfig, *, seed: int = 0,

@@ -46,11 +46,14 @@ from ...plant.systems import System
 from ...validation import is_int, is_number
 from .base import Memory, Networks, Sizes, Variant
 from .copies import ModelCopies
+from .covariance import COVARIANCE, covariance_expression, n_entries
+from .covariance import array_shapes as covariance_shapes
 from .filterbank import (
     ASINH_SCALE,
     Angles,
     bank_from_arrays,
     decoder_expression,
+    feature_expression,
     latent_step,
     member_prefixes,
     spread_expression,
@@ -75,6 +78,7 @@ class BankSpec:
     nu: int
     params: dict
     angles: Angles = Angles()
+    covariance: Optional[MLPSpec] = None
 
     @property
     def nz(self) -> int:
@@ -125,7 +129,10 @@ class BankSpec:
         bank = dict(self.params)
         if self.angles:
             bank["angles"] = self.angles.to_card()
-        return {DECODER: self.decoder.to_card(), "bank": bank}
+        card = {DECODER: self.decoder.to_card(), "bank": bank}
+        if self.covariance is not None:
+            card[COVARIANCE] = self.covariance.to_card()
+        return card
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
         n = self.n_filters
@@ -136,6 +143,8 @@ class BankSpec:
                            "copies/bound": (self.nx,)})
         for prefix in member_prefixes(self.members):
             shapes.update(self.decoder.array_shapes(prefix))
+        if self.covariance is not None:
+            shapes.update(covariance_shapes(self.covariance, self.nx))
         return shapes
 
 
@@ -213,6 +222,7 @@ class Bank(Variant):
     name = "bank"
     summary = "ours: linear filter bank of y and u, decoder fitted on noisy closed-loop runs (for noise)"
     entries = (DECODER, "bank")
+    optional_entries = (COVARIANCE,)
     linear = True
     needs_base = False
     certified = False
@@ -234,7 +244,16 @@ class Bank(Variant):
         if np.max(np.linalg.eigvals(A).real) >= 0:
             raise field_error(where, "design.A", "a Hurwitz matrix (the filter bank is stable)",
                               float(np.max(np.linalg.eigvals(A).real)), "Use the bank's A.")
-        spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where), angles)
+        head = None
+        if COVARIANCE in card["architecture"]:
+            head = MLPSpec.from_card(card["architecture"][COVARIANCE], where, f"architecture.{COVARIANCE}")
+            if head.n_in != n_in or head.n_out != n_entries(sizes.nx) or angles.measured or angles.free:
+                raise field_error(where, f"architecture.{COVARIANCE}.sizes", f"[{n_in} (the decoder's input), ..., "
+                                  f"nx (nx + 1) / 2 = {n_entries(sizes.nx)}] on a plant without angle states",
+                                  list(head.sizes), "The covariance head reads the decoder's features and gives the "
+                                  "factor of the estimate's covariance (docs/model-format.md); an angle state's "
+                                  "error lives on the circle, which it does not model.")
+        spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where), angles, head)
         if spec.n_copies and (spec.n_filters < 1 or angles):
             raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x nx = "
                               f"{spec.n_copies * spec.nx} latents after at least one filter, on a plant without "
@@ -254,6 +273,13 @@ class Bank(Variant):
         spread = None if spec.members < 2 else ca.Function(
             "spread", [z, w], [spread_expression(full, arch, z, y, u, angles=spec.angles, members=spec.members)],
             ["z", "w"], ["spread"])
+        covariance = None
+        if spec.covariance is not None:
+            xs = ca.MX.sym("xhat", spec.nx)
+            features = feature_expression(full, z, y, u, angles=spec.angles)
+            P = covariance_expression(spec.covariance, arrays, features, xs, np.asarray(arrays[f"{DECODER}/out_std"]),
+                                      np.asarray(arrays[ASINH_SCALE]))
+            covariance = ca.Function("covariance", [z, w, xs], [P], ["z", "w", "xhat"], ["P"])
         bu, c = ca.DM(bank.Bu), ca.DM(bank.c)
 
         def input_term(zz: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
@@ -261,4 +287,4 @@ class Bank(Variant):
             return filters if copies is None else ca.vertcat(filters, copies.remainder(zz[n:], u))
 
         return Networks(None, decoder, None, input_term, memory=memory,
-                        exact_step=latent_step(full, spec.dt, copies=copies), spread=spread)
+                        exact_step=latent_step(full, spec.dt, copies=copies), spread=spread, covariance=covariance)

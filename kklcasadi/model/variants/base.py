@@ -140,6 +140,9 @@ class Networks:
     spread : casadi.Function or None
         ``spread(z (nz,1), w) -> s (1,1)``: how far the members of a decoder ensemble disagree
         (the domain monitor's second test); None for a single decoder.
+    covariance : casadi.Function or None
+        ``covariance(z (nz,1), w, xhat (nx,1)) -> P (nx,nx)``: the covariance of the estimate ``xhat``
+        (:mod:`kklcasadi.model.variants.covariance`); None for a model without a covariance head.
     """
 
     encoder: Optional[ca.Function]
@@ -150,6 +153,7 @@ class Networks:
     memory: Optional[Memory] = None
     exact_step: Optional[ca.Function] = None
     spread: Optional[ca.Function] = None
+    covariance: Optional[ca.Function] = None
 
 
 class Variant:
@@ -164,6 +168,8 @@ class Variant:
         One line for listings and the CLI help.
     entries : tuple of str
         The ``architecture`` entries of its card.
+    optional_entries : tuple of str
+        Entries its card may hold besides them (``bank``: ``covariance``, the covariance head).
     linear : bool
         Whether the latent dynamics are ``zdot = A z + B y`` (the exact discretisation applies).
     windowed : bool
@@ -195,6 +201,7 @@ class Variant:
     name: ClassVar[str]
     summary: ClassVar[str]
     entries: ClassVar[tuple[str, ...]] = (ENCODER, DECODER)
+    optional_entries: ClassVar[tuple[str, ...]] = ()
     linear: ClassVar[bool] = True
     windowed: ClassVar[bool] = False
     needs_base: ClassVar[bool] = True

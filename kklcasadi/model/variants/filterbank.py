@@ -55,7 +55,7 @@ from .copies import ModelCopies, copy_count
 __all__ = ["FilterBank", "Angles", "NO_ANGLES", "dc_gains", "decoder_features", "decoder_targets",
            "decoder_outputs", "decode", "decoder_function", "decoder_expression", "estimate", "bank_arrays",
            "bank_from_arrays", "observer_step", "latent_size", "latent_run", "latent_step", "ASINH_SCALE",
-           "member_prefixes", "spread", "spread_expression"]
+           "member_prefixes", "spread", "spread_expression", "feature_expression"]
 
 #: Array name of the per-state output transform scales (0: identity, > 0: asinh scale).
 ASINH_SCALE = "decoder/asinh_scale"
@@ -554,6 +554,19 @@ def _symbols(arrays: Mapping[str, Any]) -> tuple[ca.MX, ca.MX, ca.MX]:
     return ca.MX.sym("z", latent_size(arrays)), ca.MX.sym("y", bank.ny), ca.MX.sym("u", bank.nu)
 
 
+def feature_expression(arrays: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX, *,
+                       angles: Angles = NO_ANGLES) -> ca.MX:
+    """:func:`decoder_features` at CasADi symbols: the decoder's input (nz + ny + len(angles.outputs) + nu, 1)."""
+    if not angles.outputs:
+        return ca.vertcat(z, y, u)
+    bank = bank_from_arrays(arrays)
+    a = list(angles.outputs)
+    other = [j for j in range(bank.ny) if j not in angles.outputs]
+    ya = ca.vertcat(*[y[j] for j in a])
+    return ca.vertcat(z - ca.mtimes(ca.DM(dc_gains(bank)[:, a]), ya), *[y[j] for j in other], ca.sin(ya),
+                      ca.cos(ya), u)
+
+
 def _member_expressions(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: ca.MX, y: ca.MX, u: ca.MX,
                         angles: Angles, members: int, mlp_name: str) -> tuple[list, np.ndarray]:
     """Each member's network output ``v_j`` at the symbols, and the output scales."""
@@ -563,14 +576,7 @@ def _member_expressions(arrays: Mapping[str, Any], arch: Mapping[str, Any], z: c
     if spec.n_in != angles.n_features(nz, bank.ny, bank.nu):
         raise ValueError(f"decoder input size {spec.n_in} != nz + ny + len(angle outputs) + nu = "
                          f"{angles.n_features(nz, bank.ny, bank.nu)}")
-    if angles.outputs:
-        a = list(angles.outputs)
-        other = [j for j in range(bank.ny) if j not in angles.outputs]
-        ya = ca.vertcat(*[y[j] for j in a])
-        feats = ca.vertcat(z - ca.mtimes(ca.DM(dc_gains(bank)[:, a]), ya), *[y[j] for j in other], ca.sin(ya),
-                           ca.cos(ya), u)
-    else:
-        feats = ca.vertcat(z, y, u)
+    feats = feature_expression(arrays, z, y, u, angles=angles)
     names = [mlp_name] + [f"{mlp_name}_{j}" for j in range(1, members)]
     return [casadi_nets.mlp_function(spec, arrays, prefix, label)(feats)
             for prefix, label in zip(member_prefixes(members), names)], scale

@@ -153,6 +153,15 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
  *   (with the step's z_next, w_next, xhat_next; {macro}_HAS_DOMAIN is defined).""")
     else:
         monitor = "\n * (The model records no training domain: no domain monitor.)"
+    covariance = ""
+    if observer.covariance is not None:
+        lines.append(f"#define {macro}_HAS_COVARIANCE 1")
+        covariance = (f"""
+ *   res[3] P_next  (NX*NX)           the covariance of xhat_next's error, column-major (the card's
+ *                                    covariance head; {macro}_HAS_COVARIANCE is defined; a null
+ *                                    res[3] skips it)
+ * {name}_covariance(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w (NW), arg[2] xhat (NX) -> res[0] P
+ *   (NX*NX), the covariance at the start (with z_0, w_0, xhat_0).""")
     scheme = ("exact (matrix exponential, first-order hold)" if observer.discretization == "exact"
               else f"RK4 with {observer.substeps} substep(s)")
     memory = ("the input window, WINDOW x NU column-major: w[i + WINDOW*j] is input j at sample "
@@ -169,7 +178,7 @@ def _header(observer: KKLObserver, name: str, casadi_header: str,
  *   arg[2] y       (NY)               measurement y_k
  *   arg[3] y_next  (NY)               measurement y_k+1 (y is interpolated linearly)
  *   arg[4] u_next  (NU)               input u_k+1 (u is held at u_k, which w_k holds)
- *   res[0] z_next  (NZ), res[1] w_next (NW), res[2] xhat_next (NX)
+ *   res[0] z_next  (NZ), res[1] w_next (NW), res[2] xhat_next (NX){covariance}
  * {name}_decode(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w -> res[0] xhat (NX).
  * {name}_init(arg, res, iw, w, mem): arg[0] y_0 (NY), arg[1] u_0 (NU) -> res[0] w_0 (NW), the
  *   memory at the start.{monitor}
@@ -328,11 +337,14 @@ def generate_c(observer: KKLObserver, out_dir: Union[str, os.PathLike], name: st
         raise FileExistsError(f"{existing[0]}: already exists; pass overwrite=True to replace "
                               "it, or choose another out_dir or name.")
 
-    functions = [renamed(observer.step, f"{name}_step"), renamed(observer.decode, f"{name}_decode"),
+    step = observer.step if observer.step_covariance is None else observer.step_covariance
+    functions = [renamed(step, f"{name}_step"), renamed(observer.decode, f"{name}_decode"),
                  # the start only, once: as SX, so that it has no nested calls (gcc's -Wdangling-pointer)
                  renamed(observer.memory_init, f"{name}_init", ca.SX)]
     if observer.domain_check is not None:          # the domain monitor, where the card records a domain or monitor
         functions.append(renamed(observer.domain_check, f"{name}_in_domain"))
+    if observer.covariance is not None:            # the covariance of the estimate, where the card has a head
+        functions.append(renamed(observer.covariance, f"{name}_covariance"))
     source, casadi_header, sizes = casadi_source(functions, name, matvec=matvec, math=math, dispatch=dispatch)
     build = f"gcc {' '.join(flags)} {name}.c {name}_main.c -lm -o {name}"
 
