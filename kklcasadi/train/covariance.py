@@ -46,7 +46,7 @@ class CovarianceConfig:
 
     hidden: tuple[int, ...] = (16,)
     activation: str = "tanh"
-    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=10, batch_size=4096, lr=3e-3,
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=20, batch_size=512, lr=3e-3,
                                                                   schedule="cosine", val_fraction=0.05))
     dtype: str = "float32"
 
@@ -132,6 +132,9 @@ def fit_covariance(features: np.ndarray, error_v: np.ndarray, config: Covariance
     start = np.zeros(sizes[-1])
     start[:nx] = np.log(np.std(r, axis=0) + 1e-12)                 # the errors' scale, uncorrelated, at the start
     mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), start, np.ones(sizes[-1]))
+    with torch.no_grad():                          # start at that constant covariance, whatever the features
+        mlp.layers[-1].weight.zero_()
+        mlp.layers[-1].bias.zero_()
     mlp = mlp.to(dtype)
     data = ArrayDataset({"f": (features - mean) @ white.T, "r": r}, dtype=dtype)
 
