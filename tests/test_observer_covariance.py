@@ -248,3 +248,55 @@ def test_the_learned_covariance_of_a_linear_gaussian_observer_is_the_exact_one(t
     corr = P[..., 0, 1] / (std[..., 0] * std[..., 1])
     np.testing.assert_allclose(std, np.broadcast_to(np.sqrt(np.diag(exact)), std.shape), rtol=0.06)
     np.testing.assert_allclose(corr, exact[0, 1] / np.sqrt(exact[0, 0] * exact[1, 1]), atol=0.1)
+
+
+# ----------------------------------------------------------------------------- consistency beside the SMAPE
+
+def test_the_covariances_are_scored_on_the_protocols_trials(headed):
+    """score_uncertainty's rows are kklcasadi.consistency of the observer's variances (compiled: bitwise its
+    simulate) and of the EKF's own, on the cells' trials."""
+    from kklcasadi.consistency import consistency
+    from kklcasadi.estimators.ekf import EKF
+    from kklcasadi.evaluation.compiled import Compiler
+    from kklcasadi.evaluation.protocol import Protocol
+    from kklcasadi.evaluation.uncertainty import (
+        filter_uncertainty,
+        observer_uncertainty,
+        score_uncertainty,
+        uncertainty_table,
+    )
+
+    obs, _, _ = headed
+    ekf = EKF(obs.system, obs.dt)
+    protocol = Protocol(n_trials=3, method="rk")
+    cells = [protocol.cell("zero"), protocol.cell("square")]
+    estimators = [("kkl", observer_uncertainty(obs, compiler=Compiler())), ("EKF", filter_uncertainty(ekf))]
+    rows = score_uncertainty(estimators, obs.system, cells)
+    assert [(r.label, r.cell) for r in rows] == [("kkl", "zero-noisy"), ("kkl", "square-noisy"), ("EKF", "zero-noisy"),
+                                                 ("EKF", "square-noisy")]
+    batch = cells[1].simulate(obs.system)
+    est, filt = obs.simulate(batch.t, batch.y, batch.u), ekf.simulate(batch.t, batch.y, batch.u)
+    assert rows[1].consistency == consistency(batch.x, est.xhat, est.var, t=batch.t)
+    assert rows[3].consistency == consistency(batch.x, filt.xhat, filt.var, t=batch.t)
+    table = uncertainty_table(rows)
+    assert table.count("\n") == 5 and "| duffing | square-noisy | EKF |" in table
+
+
+def test_evaluate_writes_the_consistency_table(headed, tmp_path, capsys, model_dir_factory):
+    import kklcasadi.provenance as provenance
+    from kklcasadi.cli import main
+
+    obs, _, _ = headed
+    out = tmp_path / "eval"
+    args = ["evaluate", str(obs.model.path), "--trials", "2", "--kinds", "zero", "--noise", "on", "--ekf",
+            "--consistency", "--out", str(out)]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "mean NEES (95 % band)" in printed and "| duffing | zero-noisy | EKF |" in printed
+    records = provenance.json_payload(json.loads((out / "duffing_consistency.json").read_text()))
+    assert [r["label"] for r in records] == [obs.model.path.name, "EKF"]
+    assert provenance.read(out / "duffing_consistency.md").command == "kklcasadi " + " ".join(args)
+    assert main(["evaluate", str(obs.model.path), "--noise", "off", "--consistency"]) == 2
+    assert "--consistency: the covariances are scored on the noisy cells" in capsys.readouterr().err
+    assert main(["evaluate", str(model_dir_factory("bank")), "--consistency"]) == 2
+    assert "--consistency: expected a model with a covariance head" in capsys.readouterr().err

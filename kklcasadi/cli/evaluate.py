@@ -12,6 +12,7 @@ call, so that the work its inputs alone decide is done once for both (the same s
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -62,6 +63,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--seed", type=int, default=2026, help="seed of the trials (docs/protocol.md's scored trials: "
                    "2026; choose on another)")
     e.add_argument("--out", help="directory for the JSON scores, table and box plots")
+    e.add_argument("--consistency", action="store_true",
+                   help="also score the covariances on the noisy cells (issue 49): the models' covariance heads "
+                   "and, with --ekf and --pf, the EKF's and the particle filter's own, by mean NEES against the "
+                   "chi-square band, 1- and 2-sigma coverage per state and the log-likelihood of the truth "
+                   "(table; PLANT_consistency.md and .json under --out)")
     add_cache(e)
     e.add_argument("--vm", action="store_true", help="run the observers in the CasADi VM instead of compiled C "
                    "(the reference path; same values, slower)")
@@ -103,6 +109,12 @@ def run(args: argparse.Namespace) -> int:
     noise = NOISE[args.noise]
     if args.pf and True not in noise:
         raise CommandError("--pf: the particle filter runs on the noisy cells only; pass --noise on or both")
+    if args.consistency:
+        if True not in noise:
+            raise CommandError("--consistency: the covariances are scored on the noisy cells; pass --noise on or both")
+        if not (args.ekf or args.pf or any(obs.covariance is not None for obs in observers)):
+            raise CommandError("--consistency: expected a model with a covariance head (architecture.covariance), "
+                               "--ekf or --pf, received none of them")
     kinds = tuple(args.kinds)
     root = Path(args.cache_dir) if args.cache_dir else cache_root()
     trials = TrialCache(None if args.no_cache else root / "trials")
@@ -140,6 +152,25 @@ def run(args: argparse.Namespace) -> int:
     for horizon in args.mhe or ():
         scores.append(_mhe_scores(horizon, plant, protocol, noise, kinds, trials))
     print(markdown_table(scores, kinds))
+    uncertainty = None
+    if args.consistency:
+        from ..evaluation.uncertainty import (
+            filter_uncertainty,
+            observer_uncertainty,
+            score_uncertainty,
+            uncertainty_table,
+        )
+
+        estimators = [(label, observer_uncertainty(obs, compiler=compiler, n_threads=args.threads))
+                      for (label, _), obs in zip(rows, observers) if obs.covariance is not None]
+        if args.ekf:
+            estimators.append(("EKF", filter_uncertainty(ekf)))
+        if args.pf:
+            estimators.append((f"PF N={args.pf}", filter_uncertainty(pf)))
+        t0 = time.perf_counter()
+        uncertainty = score_uncertainty(estimators, plant, [protocol.cell(kind) for kind in kinds], trials=trials)
+        print(f"covariances scored in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        print("\n" + uncertainty_table(uncertainty))
     if args.out:
         from ..provenance import markdown
 
@@ -151,6 +182,13 @@ def run(args: argparse.Namespace) -> int:
             smape_boxplot(scores, out / f"{plant.name}_smape_{'noisy' if noisy else 'clean'}.png", noisy=noisy,
                           kinds=kinds, stamp=stamp)
         (out / f"{plant.name}_table.md").write_text(markdown(markdown_table(scores, kinds) + "\n", stamp))
+        if uncertainty is not None:
+            from ..evaluation.uncertainty import uncertainty_record, uncertainty_table
+            from ..provenance import json_record
+
+            (out / f"{plant.name}_consistency.md").write_text(markdown(uncertainty_table(uncertainty) + "\n", stamp))
+            (out / f"{plant.name}_consistency.json").write_text(
+                json.dumps(json_record(uncertainty_record(uncertainty), stamp), indent=1) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
     if profile is not None:
         children = os.times()

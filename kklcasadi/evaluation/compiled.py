@@ -56,8 +56,8 @@ if TYPE_CHECKING:
     from ..observer.kkl import KKLObserver
 
 __all__ = ["Compiler", "CompilerWarning", "Build", "compile_function", "CompiledEstimator", "CompiledObserver",
-           "CompiledEKF", "SplitStep", "split_step", "skip_at_zero_input", "reuse_decoded", "observer_estimator",
-           "ekf_estimator", "pf_estimator", "precompile", "DEFAULT_FLAGS", "GROUP"]
+           "CompiledEKF", "CompiledRecord", "SplitStep", "split_step", "skip_at_zero_input", "reuse_decoded",
+           "observer_estimator", "ekf_estimator", "pf_estimator", "precompile", "DEFAULT_FLAGS", "GROUP"]
 
 #: Portable optimisation flags; ``-fPIC -shared`` are always added.
 DEFAULT_FLAGS = ("-O3", "-ffp-contract=off")
@@ -873,6 +873,64 @@ class CompiledEKF(CompiledEstimator):
     def initial_state(self) -> np.ndarray:
         """The prior ``[x0; vec(P0)]`` (nx + nx^2,), ``vec`` column-major."""
         return np.concatenate([self.ekf.x0, self.ekf.P0.ravel(order="F")])
+
+
+class CompiledRecord(CompiledEstimator):
+    """An observer's estimates with its latent and the covariance of its head, compiled and mapped over trials.
+
+    Each trial's Function gives, per sample, the rows ``[xhat (nx); z (nz); vec(P) (nx^2)]`` (``P`` only where the
+    observer has a covariance head, :attr:`~kklcasadi.observer.kkl.KKLObserver.step_covariance`); calling it returns
+    those rows as ``(M, N, rows)``, and :meth:`record` splits them. The same Functions as
+    :meth:`KKLObserver.simulate` (``z_0 = 0``, ``memory_init``, ``decode``, ``covariance`` at the first sample,
+    then the step folded), so compiled with :class:`Compiler`'s flags it gives the same values bitwise.
+
+    Parameters
+    ----------
+    observer : KKLObserver
+    compiler, n_threads, profile
+        See :class:`CompiledEstimator`.
+    """
+
+    def __init__(self, observer: KKLObserver, *, compiler: Optional[Compiler] = Compiler(),
+                 n_threads: Optional[int] = None, profile: Optional[Profile] = None) -> None:
+        from ..observer.kkl import KKLObserver
+
+        if not isinstance(observer, KKLObserver):
+            raise TypeError(f"observer: expected a kklcasadi.KKLObserver, received {type(observer).__name__}.")
+        self.observer = observer
+        self.covariance = observer.covariance is not None
+        rows = observer.nx + observer.nz + (observer.nx ** 2 if self.covariance else 0)
+        super().__init__(rows, observer.nu, observer.ny, observer.dt, compiler=compiler, n_threads=n_threads,
+                         profile=profile)
+
+    def trajectory(self, n: int, group: int = 1) -> ca.Function:
+        if group != 1:
+            raise ValueError(f"group: expected 1, received {group!r}.")
+        obs = self.observer
+        nx = obs.nx
+        y, u, z0 = ca.MX.sym("y", obs.ny, n), ca.MX.sym("u", obs.nu, n), ca.MX.sym("z0", obs.nz)
+        w0 = obs.memory_init(y[:, 0], u[:, 0])
+        x0 = obs.decode(z0, w0)
+        step = obs.step if not self.covariance else obs.step_covariance
+        out = step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:])
+        rows = [ca.horzcat(x0, out[2]), ca.horzcat(z0, out[0])]
+        if self.covariance:
+            rows.append(ca.horzcat(ca.vec(obs.covariance(z0, w0, x0)), ca.reshape(out[3], nx * nx, n - 1)))
+        name = f"{_c_name(obs.system.name)}_{_c_name(obs.method)}_record_n{n}"
+        return ca.Function(name, [y, u, z0], [ca.vertcat(*rows)], ["y", "u", "s0"], ["record"])
+
+    def initial_state(self) -> np.ndarray:
+        """``z_0 = 0`` (nz,)."""
+        return np.zeros(self.observer.nz)
+
+    def record(self, t: Any, y: Any, u: Any) -> tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+        """``xhat (M, N, nx)``, ``z (M, N, nz)`` and ``cov (M, N, nx, nx)`` (None without a head) of M trials."""
+        rows = self(t, y, u)
+        nx, nz = self.observer.nx, self.observer.nz
+        cov = None
+        if self.covariance:                                   # vec is column-major: P[i, j] at row i + nx j
+            cov = rows[..., nx + nz:].reshape(rows.shape[:2] + (nx, nx)).swapaxes(-1, -2)
+        return rows[..., :nx], rows[..., nx:nx + nz], cov
 
 
 def observer_estimator(observer: KKLObserver, *, compiler: Optional[Compiler] = Compiler(),

@@ -1,0 +1,125 @@
+"""The estimators' own covariances on the protocol's cells, scored the same way (issue 49).
+
+A learned observer with a covariance head (:attr:`kklcasadi.observer.kkl.KKLObserver.covariance`), the EKF and the
+particle filter each report, with every estimate, how far off it may be. :func:`score_uncertainty` runs them on the
+same trials and scores each covariance against the errors with :func:`kklcasadi.consistency.consistency`: mean NEES
+against Bar-Shalom's 95 % band of the trials' count, the share of sample times whose trial-averaged NEES lies in it,
+1- and 2-sigma coverage per state and the log-likelihood of the truth, beside the SMAPE. Every estimator is scored
+with its variances (the diagonal of its covariance: the EKF and the particle filter report no more), so NEES and
+likelihood ignore correlations for all alike. :func:`uncertainty_table` writes the markdown table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
+
+import numpy as np
+
+from .. import metrics
+from ..consistency import SIGMA_LEVELS, Consistency, consistency
+from ..plant.systems import System
+from .compiled import CompiledRecord, Compiler
+from .protocol import Cell, read_cells
+from .trialcache import TrialCache
+
+if TYPE_CHECKING:
+    from ..observer.kkl import KKLObserver
+
+__all__ = ["UncertainEstimator", "UncertaintyRow", "observer_uncertainty", "filter_uncertainty", "score_uncertainty",
+           "uncertainty_table", "uncertainty_record"]
+
+#: The compiler of :func:`observer_uncertainty` by default (the evaluation's cache and flags).
+_COMPILER = Compiler()
+#: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> (xhat (M, N, nx), var (M, N, nx))``: estimates and their variances.
+UncertainEstimator = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class UncertaintyRow:
+    """One estimator on one cell: its mean SMAPE (%) and the consistency of its covariance."""
+
+    label: str
+    system: str
+    cell: str
+    smape: float
+    consistency: Consistency
+    escaped: int = 0
+
+
+def observer_uncertainty(observer: KKLObserver, *, compiler: Optional[Compiler] = _COMPILER,
+                         n_threads: Optional[int] = None) -> UncertainEstimator:
+    """An observer with a covariance head as an :data:`UncertainEstimator` (compiled, bitwise its ``simulate``)."""
+    if observer.covariance is None:
+        raise ValueError(f"observer: expected a model with a covariance head (architecture.covariance), received "
+                         f"{observer!r} without one. Fit one with benchmarks/covariance_heads.py.")
+    record = CompiledRecord(observer, compiler=compiler, n_threads=n_threads)
+
+    def estimate(t: np.ndarray, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xhat, _, cov = record.record(t, y, u)
+        return xhat, np.diagonal(cov, axis1=-2, axis2=-1)
+
+    return estimate
+
+
+def filter_uncertainty(estimator: Any) -> UncertainEstimator:
+    """An EKF or a particle filter (anything whose ``simulate(t, y, u)`` gives ``xhat`` and ``var``)."""
+
+    def estimate(t: np.ndarray, y: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        est = estimator.simulate(t, y, u)
+        return np.asarray(est.xhat), np.asarray(est.var)
+
+    return estimate
+
+
+def score_uncertainty(estimators: Sequence[tuple[str, UncertainEstimator]], system: System, cells: Sequence[Cell],
+                      *, trials: Optional[TrialCache] = None) -> list[UncertaintyRow]:
+    """Run every estimator on every cell's trials (those that did not escape) and score its covariance.
+
+    Parameters
+    ----------
+    estimators : sequence of (str, UncertainEstimator)
+        Row labels and estimators.
+    system : System
+    cells : sequence of Cell
+    trials : TrialCache, optional
+        Where the cells' trials come from (default: simulated for this call).
+
+    Returns
+    -------
+    list of UncertaintyRow
+        Estimator by estimator, cell by cell; the whole horizon is scored (``t_settle`` 0), as the SMAPE.
+    """
+    batches = read_cells(system, cells, TrialCache(None) if trials is None else trials)
+    rows = []
+    for label, estimator in estimators:
+        for cell, batch in zip(cells, batches):
+            ok = batch.ok
+            xhat, var = estimator(batch.t, batch.y[ok], batch.u[ok])
+            x = batch.x[ok]
+            rows.append(UncertaintyRow(label, system.name, cell.label, float(np.mean(metrics.smape(x, xhat))),
+                                       consistency(x, xhat, var, t=batch.t, angles=system.angle_states),
+                                       int((~ok).sum())))
+    return rows
+
+
+def uncertainty_table(rows: Sequence[UncertaintyRow]) -> str:
+    """Markdown: per estimator and cell the SMAPE, the mean NEES with its band, the share of times in the band,
+    1- and 2-sigma coverage per state (%) and the mean log-likelihood of the truth."""
+    levels = " / ".join(f"{k:g}" for k in SIGMA_LEVELS)
+    head = ["system", "cell", "estimator", "SMAPE %", "mean NEES (95 % band)", "times in band %",
+            f"coverage {levels} sigma, per state %", "log-lik."]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        c = r.consistency
+        cover = "; ".join(" / ".join(f"{100 * c.coverage[j][i]:.1f}" for j in range(len(SIGMA_LEVELS)))
+                          for i in range(c.nx))
+        lines.append(f"| {r.system} | {r.cell} | {r.label} | {r.smape:.2f} | {c.nees:.3g} ({c.nees_band[0]:.3g}-"
+                     f"{c.nees_band[1]:.3g}) | {100 * c.in_band:.1f} | {cover} | {c.log_likelihood:.3g} |")
+    return "\n".join(lines)
+
+
+def uncertainty_record(rows: Sequence[UncertaintyRow]) -> list[dict]:
+    """The rows as JSON-able records."""
+    return [{"label": r.label, "system": r.system, "cell": r.cell, "smape": r.smape, "escaped": r.escaped,
+             **r.consistency.to_json()} for r in rows]
