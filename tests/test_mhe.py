@@ -192,3 +192,32 @@ def test_mhe_example_runs_reduced(model_dir_factory, tmp_path):
     assert list(results) == ["KKL (autonomous)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
     assert all(xhat.shape == (10, 2) and np.all(np.isfinite(xhat)) for xhat in results.values())
     assert png.stat().st_size > 0
+
+
+def test_the_primed_mhe_takes_the_observers_covariance_as_its_arrival_cost(model_dir_factory):
+    """With error_std=None the arrival prior of each window is the observer's own covariance of its estimate
+    there, trial by trial (the MHE with guide_cov = Estimate.cov); a diagonal guide_cov is guide_std, bitwise."""
+    from test_observer_covariance import with_head
+
+    path, _, _ = with_head(model_dir_factory("bank", hidden=(9, 7)))
+    obs = kc.load_observer(path)
+    batch = _run(obs.system, T=0.5, noise=0.1)
+    primed = KKLPrimedMHE(obs, None, horizon=3)
+    run = primed.simulate(batch.t, batch.y, batch.u)
+    est = obs.simulate(batch.t, batch.y, batch.u)
+    same = primed.mhe.simulate(batch.t, batch.y, batch.u, guide=est.xhat, guide_cov=est.cov)
+    np.testing.assert_array_equal(run.xhat, same.xhat)
+    std = np.full((batch.t.size, 2), 0.3)
+    diagonal = np.broadcast_to(np.eye(2) * 0.09, est.cov.shape)
+    np.testing.assert_array_equal(primed.mhe.simulate(batch.t, batch.y, batch.u, guide=est.xhat, guide_std=std).xhat,
+                                  primed.mhe.simulate(batch.t, batch.y, batch.u, guide=est.xhat,
+                                                      guide_cov=diagonal).xhat)
+    assert not np.array_equal(run.xhat, primed.mhe.simulate(batch.t, batch.y, batch.u, guide=est.xhat,
+                                                             guide_std=std).xhat)
+    with pytest.raises(ValueError, match="error_std: expected the observer's errors' std, or None for a model with "
+                                         "a covariance head"):
+        KKLPrimedMHE(kc.load_observer(model_dir_factory("bank")), None)
+    with pytest.raises(ValueError, match=r"guide_cov: expected positive definite covariances of shape \(2, 10, 2, 2\)"):
+        primed.mhe.simulate(batch.t, batch.y, batch.u, guide=est.xhat, guide_cov=est.cov[:, :, :1])
+    with pytest.raises(ValueError, match="guide_std, guide_cov: expected one of them"):
+        primed.mhe.simulate(batch.t, batch.y, batch.u, guide=est.xhat, guide_std=std, guide_cov=est.cov)

@@ -337,7 +337,7 @@ class MHE:
         return self._rv * np.linalg.cholesky(info).T
 
     def simulate(self, t: Any, y: Any, u: Any, *, guide: Any = None,
-                 guide_std: Any = None) -> MHEEstimate:
+                 guide_std: Any = None, guide_cov: Any = None) -> MHEEstimate:
         """Estimate one or many measured trajectories, one solve per sample.
 
         Parameters
@@ -354,7 +354,11 @@ class MHE:
             previous estimate.
         guide_std : array_like, shape (N, nx), optional
             Standard deviation of the guide's error at each sample (the prior covariance is
-            ``diag(guide_std[k - n]^2)``); required with ``guide``.
+            ``diag(guide_std[k - n]^2)``); with ``guide``, this or ``guide_cov``.
+        guide_cov : array_like, shape like ``xhat`` plus (nx,), optional
+            The covariance of the guide's error at each sample of each trial, ``(N, nx, nx)`` or
+            ``(M, N, nx, nx)`` (a learned observer's covariance head, ``Estimate.cov``): the prior
+            covariance is ``guide_cov[k - n]``.
 
         Returns
         -------
@@ -363,7 +367,7 @@ class MHE:
         """
         t, ys, us, single = _check_run(t, y, u, self)
         m, n_samples = ys.shape[:2]
-        guides, guide_var = _check_guide(guide, guide_std, m, n_samples, self.nx, single)
+        guides, guide_P = _check_guide(guide, guide_std, guide_cov, m, n_samples, self.nx, single)
         xhat = np.empty((m, n_samples, self.nx))
         iterations = np.zeros((m, n_samples), dtype=int)
         seconds = np.zeros((m, n_samples))
@@ -371,7 +375,8 @@ class MHE:
         statuses: Counter = Counter()
         for i in range(m):
             g = None if guides is None else guides[i]
-            records = self._run_trial(ys[i], us[i], g, guide_var, xhat[i])
+            P = None if guide_P is None else guide_P[i] if guide_P.ndim == 4 else guide_P
+            records = self._run_trial(ys[i], us[i], g, P, xhat[i])
             for k, record in enumerate(records):
                 iterations[i, k], seconds[i, k] = record.iterations, record.seconds
                 failed[i, k] = not record.success
@@ -391,7 +396,7 @@ class MHE:
         return run.xhat
 
     def _run_trial(self, y: np.ndarray, u: np.ndarray, guide: Optional[np.ndarray],
-                   guide_var: Optional[np.ndarray], out: np.ndarray) -> list[SolveRecord]:
+                   guide_P: Optional[np.ndarray], out: np.ndarray) -> list[SolveRecord]:
         """Fill ``out`` (N, nx) with the estimates of one trial; return one record per sample."""
         N, nx = self.horizon, self.nx
         records: list[SolveRecord] = []
@@ -402,7 +407,7 @@ class MHE:
             n = min(k, N)
             start = k - n
             if guide is not None:
-                xbar, P = guide[start], np.diag(guide_var[start])
+                xbar, P = guide[start], guide_P[start]
             elif n == N and k > N:
                 # the window slid: the prior of the new first node is the filtered estimate of the
                 # dropped node propagated one interval, with the EKF covariance propagation
@@ -439,16 +444,19 @@ class KKLPrimedMHE:
     """The MHE with its arrival prior and warm start from a KKL observer.
 
     At sample ``k`` the prior of the window's first node ``k - n`` is the KKL estimate there,
-    with covariance ``diag(error_std[k - n]^2)``; the newest node starts at the KKL estimate at
-    ``k``, and a failed solve returns the KKL estimate (counted in the stats).
+    with covariance ``diag(error_std[k - n]^2)``, or, with ``error_std=None``, the observer's own
+    covariance of that estimate (its covariance head, :attr:`KKLObserver.covariance`: sample by
+    sample and trial by trial); the newest node starts at the KKL estimate at ``k``, and a failed
+    solve returns the KKL estimate (counted in the stats).
 
     Parameters
     ----------
     observer : KKLObserver
         The learned observer (its ``simulate`` runs alongside; its system and ``dt`` are used).
-    error_std : array_like, shape (N, nx) or (nx,)
+    error_std : array_like, shape (N, nx) or (nx,), or None
         Typical error of the observer at each sample time (:func:`kkl_error_profile`), or one
-        level for all times.
+        level for all times; None: the observer's covariance head (a model with
+        ``architecture.covariance``).
     horizon : int
         Short window length (default 5).
     **mhe_options
@@ -472,13 +480,21 @@ class KKLPrimedMHE:
                             f"{type(observer).__name__}.")
         self.observer = observer
         self.mhe = MHE(observer.system, observer.dt, horizon, **mhe_options)
+        self.last_stats: Optional[MHEStats] = None
+        if error_std is None:
+            if observer.covariance is None:
+                raise ValueError(f"error_std: expected the observer's errors' std, or None for a model with a "
+                                 f"covariance head, received None for {observer!r}, which has none. Pass "
+                                 "kkl_error_profile(observer, protocol), or fit a head "
+                                 "(benchmarks/covariance_heads.py).")
+            self.error_std = None
+            return
         std = np.asarray(error_std, dtype=float)
         if std.ndim not in (1, 2) or std.shape[-1] != observer.nx or not np.all(std > 0):
             raise ValueError(f"error_std: expected positive values of shape (N, {observer.nx}) or "
                              f"({observer.nx},), received shape {std.shape}"
                              f"{'' if std.size == 0 or np.all(std > 0) else ' with values <= 0'}.")
-        self.error_std = std
-        self.last_stats: Optional[MHEStats] = None
+        self.error_std: Optional[np.ndarray] = std
 
     def __repr__(self) -> str:
         return (f"KKLPrimedMHE(method={self.observer.method!r}, system="
@@ -494,8 +510,10 @@ class KKLPrimedMHE:
 
     def simulate(self, t: Any, y: Any, u: Any) -> MHEEstimate:
         """Run the observer, then the MHE primed by it (shapes as :meth:`MHE.simulate`)."""
-        guide = self.observer.simulate(t, y, u).xhat
-        return self.mhe.simulate(t, y, u, guide=guide, guide_std=self._std(np.size(t)))
+        est = self.observer.simulate(t, y, u)
+        if self.error_std is None:
+            return self.mhe.simulate(t, y, u, guide=est.xhat, guide_cov=est.cov)
+        return self.mhe.simulate(t, y, u, guide=est.xhat, guide_std=self._std(np.size(t)))
 
     def __call__(self, t: Any, y: Any, u: Any) -> np.ndarray:
         """The protocol estimator; statistics in :attr:`last_stats`."""
@@ -565,11 +583,13 @@ def _check_run(t: Any, y: Any, u: Any, mhe: MHE) -> tuple[np.ndarray, np.ndarray
     return t, ys, us, single
 
 
-def _check_guide(guide: Any, guide_std: Any, m: int, n: int, nx: int,
+def _check_guide(guide: Any, guide_std: Any, guide_cov: Any, m: int, n: int, nx: int,
                  single: bool) -> tuple[Optional[np.ndarray], Optional[np.ndarray]]:
+    """The guides (M, N, nx) and the prior covariances: (N, nx, nx) for every trial, or (M, N, nx, nx)."""
     if guide is None:
-        if guide_std is not None:
-            raise ValueError("guide_std: given without guide; pass both or neither.")
+        if guide_std is not None or guide_cov is not None:
+            raise ValueError(f"{'guide_std' if guide_std is not None else 'guide_cov'}: given without guide; pass "
+                             "both or neither.")
         return None, None
     g = np.asarray(guide, dtype=float)
     if single and g.ndim == 2:
@@ -580,6 +600,18 @@ def _check_guide(guide: Any, guide_std: Any, m: int, n: int, nx: int,
                          f"{np.shape(guide)}.")
     if not np.all(np.isfinite(g)):
         raise ValueError("guide: expected finite values, received a NaN/inf.")
+    if guide_cov is not None:
+        if guide_std is not None:
+            raise ValueError("guide_std, guide_cov: expected one of them with guide, received both.")
+        P = np.asarray(guide_cov, dtype=float)
+        if single and P.ndim == 3:
+            P = P[None]
+        if P.shape != (m, n, nx, nx) or not np.all(np.isfinite(P)) or not np.all(np.linalg.eigvalsh(
+                0.5 * (P + np.swapaxes(P, -1, -2))) > 0):
+            expected = f"({n}, {nx}, {nx})" if single else f"({m}, {n}, {nx}, {nx})"
+            raise ValueError(f"guide_cov: expected positive definite covariances of shape {expected}, received "
+                             f"shape {np.shape(guide_cov)}{'' if P.shape != (m, n, nx, nx) else ' not all of them'}.")
+        return g, P
     if guide_std is None:
         raise ValueError("guide_std: required with guide (the prior's standard deviation per "
                          "sample, shape (N, nx)).")
@@ -587,4 +619,4 @@ def _check_guide(guide: Any, guide_std: Any, m: int, n: int, nx: int,
     if s.shape != (n, nx) or not np.all(s > 0):
         raise ValueError(f"guide_std: expected positive values of shape ({n}, {nx}), received "
                          f"shape {s.shape}.")
-    return g, s ** 2
+    return g, np.eye(nx) * (s ** 2)[:, :, None]
