@@ -50,8 +50,9 @@ def reference(system: kc.System, r: float, period: float) -> Callable[[float], t
 
 
 def run_system(name: str, model: Path, *, T: float, horizon: int, n_trials: int, period: float,
-               seed: int, settle: float) -> tuple[list[dict], dict[str, ClosedLoop]]:
-    """Closed loops of the three feeds on ``n_trials`` initial states; rows and trial 0's runs."""
+               seed: int, settle: float, tighten: float = 0.0) -> tuple[list[dict], dict[str, ClosedLoop]]:
+    """Closed loops of the three feeds on ``n_trials`` initial states (and, with ``tighten`` k > 0, the KKL feed
+    with the bound on x2 tightened by k sigma of its covariance head); rows and trial 0's runs."""
     plant = kc.systems.get(name)
     observer = kc.load_observer(model)
     if observer.system.name != name:
@@ -64,13 +65,18 @@ def run_system(name: str, model: Path, *, T: float, horizon: int, n_trials: int,
     x0s = plant.sample_box(n_trials, seed, scale=0.8)
     x0s[:, 1] *= scenario["x2_max"] / (0.5 * (plant.x0_box[1, 1] - plant.x0_box[1, 0]))
     rows, first = [], {}
-    for feed in FEEDS:
+    feeds = [(feed, 0.0) for feed in FEEDS]
+    if tighten > 0:
+        if observer.covariance is None:
+            raise SystemExit(f"error: --tighten: expected a model with a covariance head, received {model}")
+        feeds.append(("KKL", tighten))
+    for feed, k in feeds:
         runs = []
         for i, x0 in enumerate(x0s):
             estimator = {"true state": TrueState, "EKF": lambda: EKFEstimator(plant, observer.dt),
                          "KKL": observer.estimator}[feed]()
-            runs.append(closed_loop(controller, estimator, ref, x0, T, seed=seed + i))
-        label = feed if feed != "KKL" else f"KKL ({observer.method})"
+            runs.append(closed_loop(controller, estimator, ref, x0, T, seed=seed + i, tighten=k))
+        label = feed if feed != "KKL" else f"KKL ({observer.method})" + (f", x2 bound - {k:g} sigma" if k else "")
         first[label] = runs[0]
         rows.append({
             "system": name, "feed": label,
@@ -153,6 +159,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--period", type=float, default=10.0, help="reference period in s")
     parser.add_argument("--settle", type=float, default=5.0, help="s; cost also reported after it")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tighten", type=float, default=0.0, metavar="K",
+                        help="also run the KKL feed with the bound on x2 tightened by K sigma of the observer's "
+                        "covariance head (a model with one, e.g. --method bank)")
     parser.add_argument("--out", default="results/nmpc/all", help="output directory")
     args = parser.parse_args(argv)
     rows, runs = [], {}
@@ -160,7 +169,7 @@ def main(argv: list[str] | None = None) -> dict:
         model = Path(args.models_root) / name / args.method
         system_rows, runs[name] = run_system(name, model, T=args.T, horizon=args.horizon,
                                              n_trials=args.trials, period=args.period,
-                                             seed=args.seed, settle=args.settle)
+                                             seed=args.seed, settle=args.settle, tighten=args.tighten)
         rows += system_rows
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -113,3 +113,62 @@ def test_example_runs_reduced(model_dir_factory, tmp_path):
     assert "| duffing | KKL (inject) |" in (out / "nmpc_table.md").read_text()
     for row in result["rows"]:
         assert row["u_max"] <= 2.0 + 1e-9 and np.isfinite(row["cost"])
+
+
+def test_example_tightens_the_bound_by_k_sigma_of_a_covariance_head(model_dir_factory, tmp_path):
+    from test_observer_covariance import with_head
+
+    root = tmp_path / "models"
+    path, _, _ = with_head(model_dir_factory("bank", "duffing", seed=1))
+    shutil.copytree(path, root / "duffing" / "bank")
+    spec = importlib.util.spec_from_file_location("nmpc_example", EXAMPLE)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    result = example.main(["--systems", "duffing", "--models-root", str(root), "--method", "bank", "--T", "0.3",
+                           "--horizon", "4", "--trials", "1", "--settle", "0.2", "--tighten", "2",
+                           "--out", str(tmp_path / "out")])
+    assert [row["feed"] for row in result["rows"]][-1] == "KKL (bank), x2 bound - 2 sigma"
+
+
+def test_a_margin_tightens_the_soft_state_bounds():
+    """``solve(margin=m)``: the plan keeps ``|x2| <= 0.3 - m`` (the slack's exact L1 penalty keeps it at the
+    tightened bound), where without the margin it reaches 0.3."""
+    plant = kc.systems.get("duffing")
+    x_ref, u_ref = steady_state(plant, 0.8)
+    peaks = []
+    for m in (0.0, 0.2):
+        ctl = NMPC(plant, DT, 10, state_bounds={1: (-0.3, 0.3)})
+        assert not ctl.solve([0.0, 0.0], x_ref, u_ref, margin=[m]).fallback
+        peaks.append(np.max(np.abs(ctl._plan[0][1])))
+    assert peaks[0] == pytest.approx(0.3, abs=1e-3) and peaks[1] == pytest.approx(0.1, abs=1e-3)
+    with pytest.raises(ValueError, match="margin: expected tightenings >= 0"):
+        ctl.solve([0.0, 0.0], x_ref, u_ref, margin=[-0.1])
+
+
+def test_the_closed_loop_tightens_by_k_sigma_of_the_estimate():
+    """``tighten=k`` passes ``k sqrt(P_ii)`` of the estimator's covariance as the margin at every sample (the
+    EKF's here; a learned observer's covariance head the same way), and refuses an estimator without one."""
+    plant = kc.systems.get("duffing")
+    target = steady_state(plant, 0.5)
+    margins = []
+
+    class Recording(NMPC):
+        def solve(self, x_init, x_ref, u_ref, *, margin=None):
+            margins.append(margin)
+            return super().solve(x_init, x_ref, u_ref, margin=margin)
+
+    ctl = Recording(plant, DT, 8, state_bounds={1: (-0.6, 0.6)})
+    ekf = EKFEstimator(plant, DT)
+    stds = []
+    original = ekf.make_step
+
+    def make_step(y, u):
+        xhat = original(y, u)
+        stds.append(np.sqrt(ekf.cov[1, 1]))
+        return xhat
+
+    ekf.make_step = make_step
+    closed_loop(ctl, ekf, lambda t: target, [-0.5, 0.0], 0.5, tighten=2.0)
+    np.testing.assert_array_equal(np.ravel(margins), 2.0 * np.array(stds[:-1]))
+    with pytest.raises(ValueError, match="tighten: expected an estimator that reports its covariance"):
+        closed_loop(ctl, TrueState(), lambda t: target, [-0.5, 0.0], 0.5, tighten=1.0)

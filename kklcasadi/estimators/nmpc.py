@@ -148,8 +148,9 @@ class NMPC:
     Attributes
     ----------
     solver : casadi.Function
-        ``solver(x_init, x_ref, u_ref, X0, U0, S0, lam_g0) -> (u0, X, U, S, lam_g)`` from
-        ``Opti.to_function`` (``S`` is (n_soft, N + 1); with no soft bounds it has zero rows).
+        ``solver(x_init, x_ref, u_ref, margin, X0, U0, S0, lam_g0) -> (u0, X, U, S, lam_g)`` from
+        ``Opti.to_function`` (``S`` is (n_soft, N + 1); with no soft bounds it has zero rows; ``margin``
+        (n_soft,) tightens each soft bound, ``lo + margin <= x_i <= hi - margin``).
     phi : casadi.Function
         ``phi(x, u) -> x_next``, the prediction model.
     """
@@ -189,6 +190,7 @@ class NMPC:
         n_soft = len(self.state_bounds)
         S = opti.variable(n_soft, N + 1)
         x_init, x_ref, u_ref = opti.parameter(nx), opti.parameter(nx), opti.parameter(nu)
+        margin = opti.parameter(n_soft)
         dx, du = X - ca.repmat(x_ref, 1, N + 1), U - ca.repmat(u_ref, 1, N)
         cost = (ca.sum2(ca.sum1(dx[:, :N] * ca.mtimes(ca.DM(self.Q), dx[:, :N])))
                 + ca.sum2(ca.sum1(du * ca.mtimes(ca.DM(self.R), du)))
@@ -202,17 +204,17 @@ class NMPC:
             opti.subject_to(ca.vec(S) >= 0)
             for row, (i, (lo, hi)) in enumerate(self.state_bounds.items()):
                 if hi is not None:
-                    opti.subject_to(X[i, :] - S[row, :] <= hi)
+                    opti.subject_to(X[i, :] - S[row, :] <= hi - margin[row])
                 if lo is not None:
-                    opti.subject_to(X[i, :] + S[row, :] >= lo)
+                    opti.subject_to(X[i, :] + S[row, :] >= lo + margin[row])
         opti.minimize(cost)
         options = ipopt_options(max_iter, **{"warm_start_init_point": "yes",
                                              "mu_init": 1e-3, **extra})
         opti.solver("ipopt", options["plugin"], options["ipopt"])
         self._n_g = int(opti.ng)
-        return opti.to_function("nmpc", [x_init, x_ref, u_ref, X, U, S, opti.lam_g],
+        return opti.to_function("nmpc", [x_init, x_ref, u_ref, margin, X, U, S, opti.lam_g],
                                 [U[:, 0], X, U, S, opti.lam_g],
-                                ["x_init", "x_ref", "u_ref", "X0", "U0", "S0", "lam_g0"],
+                                ["x_init", "x_ref", "u_ref", "margin", "X0", "U0", "S0", "lam_g0"],
                                 ["u0", "X", "U", "S", "lam_g"])
 
     def __repr__(self) -> str:
@@ -225,7 +227,7 @@ class NMPC:
         self._plan: Optional[tuple[np.ndarray, ...]] = None
         self._shifts = 0
 
-    def solve(self, x_init: Any, x_ref: Any, u_ref: Any) -> NMPCStep:
+    def solve(self, x_init: Any, x_ref: Any, u_ref: Any, *, margin: Any = None) -> NMPCStep:
         """Solve from ``x_init`` towards ``(x_ref, u_ref)``; warm-started from the last plan.
 
         Parameters
@@ -233,6 +235,9 @@ class NMPC:
         x_init : array_like, shape (nx,)
         x_ref : array_like, shape (nx,)
         u_ref : array_like, shape (nu,)
+        margin : array_like, shape (n_soft,), optional
+            By how much to tighten each soft state bound, in the order of :attr:`state_bounds`
+            (``k sigma`` of the estimate: :func:`closed_loop`'s ``tighten``); default 0.
 
         Returns
         -------
@@ -244,6 +249,10 @@ class NMPC:
         x_init = self.system.check_state(x_init, "x_init")
         x_ref = self.system.check_state(x_ref, "x_ref")
         u_ref = _vector(u_ref, self.nu, "u_ref")
+        n_soft = len(self.state_bounds)
+        margin = np.zeros(n_soft) if margin is None else _vector(margin, n_soft, "margin")
+        if np.any(margin < 0):
+            raise ValueError(f"margin: expected tightenings >= 0, received {margin.tolist()}.")
         N = self.horizon
         if self._plan is None:
             X0 = np.repeat(x_init[:, None], N + 1, axis=1)
@@ -257,7 +266,7 @@ class NMPC:
             U0 = np.hstack([U[:, 1:], U[:, -1:]])
             S0 = np.hstack([S[:, 1:], S[:, -1:]])
             lam0 = lam
-        outputs, record = solve_compiled(self.solver, [x_init, x_ref, u_ref, X0, U0, S0, lam0])
+        outputs, record = solve_compiled(self.solver, [x_init, x_ref, u_ref, margin, X0, U0, S0, lam0])
         if record.success:
             self._plan = tuple(outputs[1:])
             self._shifts = 0
@@ -313,6 +322,11 @@ class EKFEstimator:
         self._x, self._P = np.asarray(x).ravel(), np.asarray(P)
         self._u = np.atleast_1d(np.asarray(u, dtype=float))
         return self._x.copy()
+
+    @property
+    def cov(self) -> Optional[np.ndarray]:
+        """The filter's covariance (nx, nx) of the last estimate, or None before the first step."""
+        return None if self._P is None else self._P.copy()
 
 
 @dataclass(frozen=True, eq=False)
@@ -385,7 +399,7 @@ class ClosedLoop:
 def closed_loop(controller: NMPC, estimator: Any, reference: Callable[[float], tuple], x0: Any,
                 T: float, *, u0: Any = None, process_std: float = 0.1,
                 measurement_std: float = 0.1, seed: int = 0,
-                plant: Optional[ca.Function] = None) -> ClosedLoop:
+                plant: Optional[ca.Function] = None, tighten: float = 0.0) -> ClosedLoop:
     """Simulate the NMPC in closed loop with an estimator, on the CVODES plant with noise.
 
     Parameters
@@ -409,6 +423,10 @@ def closed_loop(controller: NMPC, estimator: Any, reference: Callable[[float], t
         Noise seed (the same seed gives the same noise to every estimator).
     plant : casadi.Function, optional
         ``(x, u, w) -> x_next``; default :func:`plant_step` of the controller's system.
+    tighten : float
+        ``k``: tighten each soft state bound by ``k`` standard deviations of the estimate at every
+        sample, ``lo + k sigma_i <= x_i <= hi - k sigma_i`` (``sigma_i^2`` the estimator's ``cov[i, i]``:
+        a learned observer's covariance head, ``obs.estimator()``); default 0, the bounds as given.
 
     Returns
     -------
@@ -419,6 +437,11 @@ def closed_loop(controller: NMPC, estimator: Any, reference: Callable[[float], t
     if not callable(getattr(estimator, "make_step", None)):
         raise TypeError(f"estimator: expected an object with make_step(y, u), received "
                         f"{type(estimator).__name__}.")
+    k_sigma = nonnegative_number(tighten, "tighten")
+    bounded = list(controller.state_bounds)
+    if k_sigma > 0 and not hasattr(estimator, "cov"):
+        raise ValueError(f"tighten: expected an estimator that reports its covariance (cov; a learned observer "
+                         f"with a covariance head) for k = {k_sigma} > 0, received {type(estimator).__name__}.")
     system, dt = controller.system, controller.dt
     n = int(round(nonnegative_number(T, "T") / dt))
     if n < 2:
@@ -448,7 +471,14 @@ def closed_loop(controller: NMPC, estimator: Any, reference: Callable[[float], t
         if k + 1 == n:
             break
         x_pred = np.asarray(controller.phi(xhat[k], u[k])).ravel()
-        result = controller.solve(x_pred, x_ref[k + 1], u_ref[k + 1])
+        margin = None
+        if k_sigma > 0:
+            cov = estimator.cov
+            if cov is None:
+                raise ValueError("tighten: expected an estimator with a covariance head, received one whose cov is "
+                                 "None. Load a model with architecture.covariance.")
+            margin = k_sigma * np.sqrt(np.diag(cov)[bounded])
+        result = controller.solve(x_pred, x_ref[k + 1], u_ref[k + 1], margin=margin)
         u[k + 1] = result.u
         seconds[k], iterations[k] = result.record.seconds, result.record.iterations
         failed[k] = result.fallback
