@@ -300,3 +300,28 @@ def test_evaluate_writes_the_consistency_table(headed, tmp_path, capsys, model_d
     assert "--consistency: the covariances are scored on the noisy cells" in capsys.readouterr().err
     assert main(["evaluate", str(model_dir_factory("bank")), "--consistency"]) == 2
     assert "--consistency: expected a model with a covariance head" in capsys.readouterr().err
+
+
+def test_generalise_scores_the_covariances_on_every_case(headed, tmp_path, capsys, model_dir_factory):
+    """``kklcasadi generalise --consistency``: the head and the EKF tuned to the case's noise, case by case; the
+    EKF's row is kklcasadi.consistency of case_ekf's own variances on the case's trials."""
+    import kklcasadi.provenance as provenance
+    from kklcasadi.cli import main
+    from kklcasadi.consistency import consistency
+    from kklcasadi.evaluation import generalisation as gen
+
+    obs, _, _ = headed
+    out = tmp_path / "gen"
+    assert main(["generalise", str(obs.model.path), "--families", "constant", "--regimes", "ood", "--noise-levels",
+                 "0.2", "--trials", "2", "--consistency", "--out", str(out)]) == 0
+    assert "| duffing | constant ood 0.2 | EKF |" in capsys.readouterr().out
+    records = provenance.json_payload(json.loads((out / "duffing_generalisation_consistency.json").read_text()))
+    assert [(r["label"], r["cell"]) for r in records] == [(obs.model.path.name, "constant ood 0.2"),
+                                                           ("EKF", "constant ood 0.2")]
+    case = gen.Case("constant", "ood", 0.2)
+    batch = case.cell(gen.Settings(n_trials=2)).simulate(obs.system)
+    filt = gen.case_ekf(obs.system, 0.2, obs.dt).simulate(batch.t, batch.y, batch.u)
+    expected = consistency(batch.x, filt.xhat, filt.var, t=batch.t).to_json()
+    assert {k: records[1][k] for k in expected} == expected
+    assert main(["generalise", str(model_dir_factory("bank")), "--consistency"]) == 2
+    assert "--consistency: expected a model with a covariance head" in capsys.readouterr().err

@@ -48,6 +48,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_plant(g, "for models of a plant that kklcasadi does not ship")
     g.add_argument("--seed", type=int, default=2026, help="seed of the trials (docs/protocol.md: 2026)")
     g.add_argument("--out", help="directory for the JSON report and the markdown tables")
+    g.add_argument("--consistency", action="store_true",
+                   help="also score the covariances (issue 49): the models' covariance heads and the EKF's own on "
+                   "every case (mean NEES against the chi-square band, 1- and 2-sigma coverage per state, "
+                   "log-likelihood of the truth; PLANT_generalisation_consistency.md and .json under --out)")
     add_cache(g)
     g.add_argument("--vm", action="store_true", help="run the observers and the EKF in the CasADi VM instead of "
                    "compiled C")
@@ -79,6 +83,10 @@ def run(args: argparse.Namespace) -> int:
             raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
                                f"after models for {observers[0][1].system.name!r}")
         observers.append((args.labels[i] if args.labels else Path(model).resolve().name, obs))
+    headed = [(label, obs) for label, obs in observers if obs.covariance is not None]
+    if args.consistency and not headed:
+        raise CommandError("--consistency: expected a model with a covariance head (architecture.covariance), "
+                           "received none")
     settings = gen.Settings(n_trials=args.trials, seed=args.seed)
     t0 = time.perf_counter()
     report = gen.run(observers, case_list, settings, trials=trials, pf_particles=args.pf,
@@ -86,6 +94,13 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(case_list)} cases x {args.trials} trials in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     tables = report.markdown() + "\n\nDomain monitor:\n\n" + report.monitor_markdown()
     print(tables)
+    uncertainty = None
+    if args.consistency:
+        from ..evaluation.uncertainty import score_cases, uncertainty_table
+
+        uncertainty = score_cases(headed, case_list, settings, trials=trials, compiler=compiler,
+                                  n_threads=args.threads)
+        print("\n" + uncertainty_table(uncertainty))
     if args.out:
         from ..provenance import json_record, markdown
 
@@ -95,5 +110,12 @@ def run(args: argparse.Namespace) -> int:
         (out / f"{report.system}_generalisation.md").write_text(markdown(tables + "\n", stamp))
         (out / f"{report.system}_generalisation.json").write_text(
             json.dumps(json_record(report.to_json(), stamp), indent=1) + "\n")
+        if uncertainty is not None:
+            from ..evaluation.uncertainty import uncertainty_record, uncertainty_table
+
+            (out / f"{report.system}_generalisation_consistency.md").write_text(
+                markdown(uncertainty_table(uncertainty) + "\n", stamp))
+            (out / f"{report.system}_generalisation_consistency.json").write_text(
+                json.dumps(json_record(uncertainty_record(uncertainty), stamp), indent=1) + "\n")
         print(f"wrote {out}/", file=sys.stderr)
     return 0

@@ -6,7 +6,8 @@ same trials and scores each covariance against the errors with :func:`kklcasadi.
 against Bar-Shalom's 95 % band of the trials' count, the share of sample times whose trial-averaged NEES lies in it,
 1- and 2-sigma coverage per state and the log-likelihood of the truth, beside the SMAPE. Every estimator is scored
 with its variances (the diagonal of its covariance: the EKF and the particle filter report no more), so NEES and
-likelihood ignore correlations for all alike. :func:`uncertainty_table` writes the markdown table.
+likelihood ignore correlations for all alike. :func:`score_cases` does the same on the generalisation cases (the
+EKF tuned to each case's noise), :func:`uncertainty_table` writes the markdown table.
 """
 
 from __future__ import annotations
@@ -18,8 +19,11 @@ import numpy as np
 
 from .. import metrics
 from ..consistency import SIGMA_LEVELS, Consistency, consistency
+from ..plant.simulate import TrajectoryBatch
 from ..plant.systems import System
+from ..validation import Text, error
 from .compiled import CompiledRecord, Compiler
+from .generalisation import Case, Settings, case_ekf
 from .protocol import Cell, read_cells
 from .trialcache import TrialCache
 
@@ -27,7 +31,7 @@ if TYPE_CHECKING:
     from ..observer.kkl import KKLObserver
 
 __all__ = ["UncertainEstimator", "UncertaintyRow", "observer_uncertainty", "filter_uncertainty", "score_uncertainty",
-           "uncertainty_table", "uncertainty_record"]
+           "score_cases", "uncertainty_table", "uncertainty_record"]
 
 #: The compiler of :func:`observer_uncertainty` by default (the evaluation's cache and flags).
 _COMPILER = Compiler()
@@ -91,16 +95,38 @@ def score_uncertainty(estimators: Sequence[tuple[str, UncertainEstimator]], syst
         Estimator by estimator, cell by cell; the whole horizon is scored (``t_settle`` 0), as the SMAPE.
     """
     batches = read_cells(system, cells, TrialCache(None) if trials is None else trials)
+    return [_row(label, estimator, system, cell.label, batch) for label, estimator in estimators
+            for cell, batch in zip(cells, batches)]
+
+
+def score_cases(observers: Sequence[tuple[str, KKLObserver]], case_list: Sequence[Case], settings: Settings, *,
+                trials: Optional[TrialCache] = None, compiler: Optional[Compiler] = _COMPILER,
+                n_threads: Optional[int] = None) -> list[UncertaintyRow]:
+    """The generalisation cases (:mod:`kklcasadi.evaluation.generalisation`): each observer's covariance head and
+    the EKF's own covariance (the EKF tuned to the case's noise, :func:`~kklcasadi.evaluation.generalisation.case_ekf`,
+    as the benchmark runs it), case by case on the same trials; rows labelled with the case (``family regime
+    noise``)."""
+    if not observers:
+        raise error("observers", "at least one (label, observer) with a covariance head", Text("none"))
+    plant = observers[0][1].system
+    trials = TrialCache(None) if trials is None else trials
+    runners = [(label, observer_uncertainty(obs, compiler=compiler, n_threads=n_threads)) for label, obs in observers]
     rows = []
-    for label, estimator in estimators:
-        for cell, batch in zip(cells, batches):
-            ok = batch.ok
-            xhat, var = estimator(batch.t, batch.y[ok], batch.u[ok])
-            x = batch.x[ok]
-            rows.append(UncertaintyRow(label, system.name, cell.label, float(np.mean(metrics.smape(x, xhat))),
-                                       consistency(x, xhat, var, t=batch.t, angles=system.angle_states),
-                                       int((~ok).sum())))
+    for case in case_list:
+        batch = trials.trials(plant, case.cell(settings))
+        ekf = filter_uncertainty(case_ekf(plant, case.noise, settings.dt))
+        rows += [_row(label, estimator, plant, case.label, batch) for label, estimator in [*runners, ("EKF", ekf)]]
     return rows
+
+
+def _row(label: str, estimator: UncertainEstimator, system: System, cell: str,
+         batch: TrajectoryBatch) -> UncertaintyRow:
+    """One estimator on one batch of trials (those that did not escape)."""
+    ok = batch.ok
+    xhat, var = estimator(batch.t, batch.y[ok], batch.u[ok])
+    x = batch.x[ok]
+    return UncertaintyRow(label, system.name, cell, float(np.mean(metrics.smape(x, xhat))),
+                          consistency(x, xhat, var, t=batch.t, angles=system.angle_states), int((~ok).sum()))
 
 
 def uncertainty_table(rows: Sequence[UncertaintyRow]) -> str:

@@ -103,17 +103,23 @@ __FEEDBACK__
   return 0;
 }
 """
-#: The observer step's buffers: ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat)``, the latent and
-#: the window fed back.
+#: The observer step's buffers: ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat)`` (and the covariance ``P``
+#: where the model has a covariance head), the latent and the window fed back.
 _OBSERVER_DECLS = ("static casadi_real z[__MACRO___NZ], z_next[__MACRO___NZ];",
                    "static casadi_real win[__MACRO___NW], win_next[__MACRO___NW];",
                    "static casadi_real y[__MACRO___NY], y_next[__MACRO___NY], u_next[__MACRO___NU],",
-                   "                   xhat[__MACRO___NX];")
+                   "                   xhat[__MACRO___NX];",
+                   "#ifdef __MACRO___HAS_COVARIANCE",
+                   "static casadi_real P[__MACRO___NX * __MACRO___NX];    /* the step's covariance output */",
+                   "#endif")
 _OBSERVER_INIT = ("  for (i = 0; i < __MACRO___NW; i++) win[i] = 0.3 * ((i % 7) - 3) / 3.0;",
                   "  for (i = 0; i < __MACRO___NY; i++) { y[i] = 0.2; y_next[i] = 0.25; }",
                   "  for (i = 0; i < __MACRO___NU; i++) u_next[i] = -0.4;",
                   "  arg[0] = z; arg[1] = win; arg[2] = y; arg[3] = y_next; arg[4] = u_next;",
-                  "  res[0] = z_next; res[1] = win_next; res[2] = xhat;")
+                  "  res[0] = z_next; res[1] = win_next; res[2] = xhat;",
+                  "#ifdef __MACRO___HAS_COVARIANCE",
+                  "  res[3] = P;",
+                  "#endif")
 _OBSERVER_FEEDBACK = ("      memcpy(z, z_next, sizeof z);", "      memcpy(win, win_next, sizeof win);")
 
 
