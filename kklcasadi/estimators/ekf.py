@@ -57,12 +57,17 @@ class EKF:
         Initial covariance; default the variance of the uniform distribution on the box.
     substeps : int
         RK4 steps per sample interval.
+    params : array_like, shape (n_params,), optional
+        The parameter values of the filter's model, for a plant with parameters; default the
+        nominal ones (:meth:`kklcasadi.System.at`).
     """
 
     def __init__(self, system: System, dt: float, *, Q: object = None, R: object = None, x0: object = None,
-                 P0: object = None, substeps: int = 1) -> None:
+                 P0: object = None, substeps: int = 1, params: object = None) -> None:
         if not isinstance(system, System):
             raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
+        if params is not None:
+            system = system.at(params)
         dt = positive_number(dt, "dt")
         nx, ny = system.nx, system.ny
         width = system.x0_box[:, 1] - system.x0_box[:, 0]
@@ -151,7 +156,7 @@ class EKF:
         measurement_std : float
             Measurement-noise std, >= 0.
         **options
-            ``x0``, ``P0``, ``substeps`` of :class:`EKF`.
+            ``x0``, ``P0``, ``substeps``, ``params`` of :class:`EKF`.
         """
         q = np.maximum(state_stds(process_std, system.nx), NOISE_FLOOR) * np.ones(system.nx)
         r = max(nonnegative_number(measurement_std, "measurement_std"), NOISE_FLOOR)

@@ -212,6 +212,9 @@ class MHE:
         ipopt iteration limit per solve.
     ipopt : dict, optional
         More ipopt options.
+    params : array_like, shape (n_params,), optional
+        The parameter values of the estimator's model, for a plant with parameters; default the
+        nominal ones (:meth:`kklcasadi.System.at`).
 
     Attributes
     ----------
@@ -231,10 +234,12 @@ class MHE:
     def __init__(self, system: System, dt: float, horizon: int = 10, *, process_std: float = 0.1,
                  measurement_std: float = 0.1, x0: Any = None, P0: Any = None, substeps: int = 1,
                  noise_floor: float = 1e-3, max_iter: int = 50,
-                 ipopt: Optional[dict] = None) -> None:
+                 ipopt: Optional[dict] = None, params: Any = None) -> None:
         if not isinstance(system, System):
             raise TypeError(f"system: expected a kklcasadi.System, received "
                             f"{type(system).__name__}.")
+        if params is not None:
+            system = system.at(params)
         dt = nonnegative_number(dt, "dt")
         if dt == 0:
             raise ValueError("dt: expected a sample period > 0, received 0.")

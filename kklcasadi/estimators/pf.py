@@ -126,6 +126,9 @@ class ParticleFilter:
         cached on disk (``kklcasadi evaluate --pf``).
     n_threads : int, optional
         Worker threads over the trials (default: the CPU count); the estimates do not depend on it.
+    params : array_like, shape (n_params,), optional
+        The parameter values of the filter's model, for a plant with parameters; default the
+        nominal ones (:meth:`kklcasadi.System.at`).
 
     Notes
     -----
@@ -140,10 +143,10 @@ class ParticleFilter:
                  measurement_std: float = 0.1, substeps: int = 1, seed: int = 0, resample: str = "systematic",
                  ess_threshold: float = 0.5, roughening: float = 0.0, x0_mean: object = None, x0_cov: object = None,
                  jit: bool = True, compile: Optional[Callable[[ca.Function], ca.Function]] = None,
-                 n_threads: Optional[int] = None) -> None:
+                 n_threads: Optional[int] = None, params: object = None) -> None:
         if not isinstance(system, System):
             raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
-        self.system = system
+        self.system = system if params is None else system.at(params)
         self.dt = positive_number(dt, "dt")
         self.n_particles = positive_int(n_particles, "n_particles")
         self.process_std = nonnegative_number(process_std, "process_std")
@@ -163,8 +166,8 @@ class ParticleFilter:
         if x0_mean is None:
             self.x0_mean = self.x0_cov = None
         else:
-            self.x0_mean = system.check_state(x0_mean, "x0_mean")
-            self.x0_cov = covariance(x0_cov, system.nx, "x0_cov")
+            self.x0_mean = self.system.check_state(x0_mean, "x0_mean")
+            self.x0_cov = covariance(x0_cov, self.system.nx, "x0_cov")
         if not isinstance(jit, (bool, np.bool_)):
             raise error("jit", "a bool", Text(type(jit).__name__), kind=TypeError)
         if compile is not None and not callable(compile):

@@ -123,10 +123,12 @@ def input_samples(u: InputLike, t: np.ndarray, nu: int, arg: str = "u") -> np.nd
 
 
 def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: float = 1e-8, atol: float = 1e-10,
-                  substeps: int = 4) -> ca.Function:
+                  substeps: int = 4, parametric: bool = False) -> ca.Function:
     """One sample interval of the plant: ``step(x, p) -> x_next`` with ``p = [u; w]``.
 
-    ``u`` (nu,) is held over the interval and ``w`` (nx,) is process noise added to ``xdot``.
+    ``u`` (nu,) is held over the interval and ``w`` (nx,) is process noise added to ``xdot``. With
+    ``parametric`` (a plant with parameters), ``p = [u; w; theta]``: the plant's parameter values
+    ``theta`` (n_params,) (:attr:`kklcasadi.System.f_param`); without, the nominal plant.
 
     Parameters
     ----------
@@ -136,28 +138,38 @@ def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: fl
     """
     one_of(method, "method", INTEGRATORS)
     substeps = positive_int(substeps, "substeps")
-    x = ca.SX.sym("x", system.nx)
-    p = ca.SX.sym("p", system.nu + system.nx)
-    ode = system.f(x, p[:system.nu]) + p[system.nu:]
+    nx, nu = system.nx, system.nu
+    n_theta = system.n_params if parametric else 0
+    if parametric and not system.n_params:
+        raise error("parametric", f"False for plant {system.name!r}, which declares no parameters", parametric)
+    x = ca.SX.sym("x", nx)
+    p = ca.SX.sym("p", nu + nx + n_theta)
+
+    def field(xx: ca.SX) -> ca.SX:
+        f = system.f_param(xx, p[:nu], p[nu + nx:]) if parametric else system.f(xx, p[:nu])
+        return f + p[nu:nu + nx]
+
+    ode = field(x)
     if method == "rk":
-        x_next = rk4_step(lambda _s, xx: system.f(xx, p[:system.nu]) + p[system.nu:], x, float(dt), substeps)
+        x_next = rk4_step(lambda _s, xx: field(xx), x, float(dt), substeps)
         return ca.Function("step", [x, p], [x_next], ["x", "p"], ["x_next"])
     opts = {"abstol": float(atol), "reltol": float(rtol), "max_num_steps": 100000, "disable_internal_warnings": True,
             "show_eval_warnings": False}
     integ = ca.integrator(f"{system.name}_plant", "cvodes", {"x": x, "p": p, "ode": ode}, 0.0, float(dt), opts)
-    xs = ca.MX.sym("x", system.nx)
-    ps = ca.MX.sym("p", system.nu + system.nx)
+    xs = ca.MX.sym("x", nx)
+    ps = ca.MX.sym("p", nu + nx + n_theta)
     return ca.Function("step", [xs, ps], [integ(x0=xs, p=ps)["xf"]], ["x", "p"], ["x_next"])
 
 
 def closed_loop_step(system: System, law: OutputFeedback, dt: float, method: str = "cvodes", *, rtol: float = 1e-8,
-                     atol: float = 1e-10, substeps: int = 4) -> ca.Function:
+                     atol: float = 1e-10, substeps: int = 4, parametric: bool = False) -> ca.Function:
     """One sample interval of the plant under an output-feedback law.
 
     ``cl(s, p) -> (s_next, u)`` with ``s = [x; c]`` (plant state, law state) and
     ``p = [w; v; r; theta]``: process noise ``w`` (nx,) added to ``xdot`` over the interval,
     measurement noise ``v`` (ny,) of ``y_k = h(x_k) + v``, the reference ``r_k`` and the law's numbers
-    ``theta``; ``u = law(c, y_k, r_k, theta)`` (nu,) is held over the interval.
+    ``theta``; ``u = law(c, y_k, r_k, theta)`` (nu,) is held over the interval. With ``parametric``,
+    ``p`` ends with the plant's parameter values (see :func:`step_function`).
 
     Parameters
     ----------
@@ -168,15 +180,16 @@ def closed_loop_step(system: System, law: OutputFeedback, dt: float, method: str
         See :func:`step_function`.
     """
     _check_law(system, law, "u")
-    plant = step_function(system, dt, method, rtol=rtol, atol=atol, substeps=substeps)
+    plant = step_function(system, dt, method, rtol=rtol, atol=atol, substeps=substeps, parametric=parametric)
     f = law.function(dt)
     nx, nc, ny = system.nx, law.n_state, system.ny
-    nr, nth = f.size1_in(2), f.size1_in(3)
-    s, p = ca.MX.sym("s", nx + nc), ca.MX.sym("p", nx + ny + nr + nth)
+    nr, nth, npl = f.size1_in(2), f.size1_in(3), system.n_params if parametric else 0
+    s, p = ca.MX.sym("s", nx + nc), ca.MX.sym("p", nx + ny + nr + nth + npl)
     x, c = s[:nx], s[nx:]
-    w, v, r, theta = ca.vertsplit(p, np.cumsum([0, nx, ny, nr, nth]).tolist())
-    u, c_next = f(c, system.h(x) + v, r, theta)
-    x_next = plant(x, ca.vertcat(u, w))
+    w, v, r, theta, plant_theta = ca.vertsplit(p, np.cumsum([0, nx, ny, nr, nth, npl]).tolist())
+    y = system.h_param(x, plant_theta) if parametric else system.h(x)
+    u, c_next = f(c, y + v, r, theta)
+    x_next = plant(x, ca.vertcat(u, w, plant_theta) if parametric else ca.vertcat(u, w))
     return ca.Function("closed_loop_step", [s, p], [ca.vertcat(x_next, c_next), u], ["s", "p"], ["s_next", "u"])
 
 
@@ -198,8 +211,8 @@ def _seeds(seed: int | Sequence[int] | None, m: int) -> list[Any]:
 def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], T: float = 50.0, dt: float = 0.05,
                    *, process_std: float | Sequence[float] = 0.0, measurement_std: float = 0.0,
                    seed: int | Sequence[int] | None = None, method: str = "cvodes", rtol: float = 1e-8,
-                   atol: float = 1e-10, substeps: int = 4, blowup: float = 1e6,
-                   n_threads: int | None = None) -> TrajectoryBatch:
+                   atol: float = 1e-10, substeps: int = 4, blowup: float = 1e6, n_threads: int | None = None,
+                   params: object = None) -> TrajectoryBatch:
     """Simulate M trials at once (one CasADi call, mapped over threads).
 
     Parameters
@@ -229,6 +242,10 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
         A trial whose state exceeds this magnitude is marked failed (``ok`` False).
     n_threads : int, optional
         Worker threads for the trial map (default: the CPU count).
+    params : array_like, shape (n_params,) or (M, n_params), optional
+        The plant's parameter values (a plant with parameters, :class:`kklcasadi.System`): one set
+        for every trial or one per trial; values outside the plant's ``param_box`` are allowed.
+        Default: the nominal plant (:attr:`kklcasadi.System.f`).
     """
     if not isinstance(system, System):
         raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
@@ -249,27 +266,36 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
                     Text(f"{sum(feedback)} laws among {m} inputs"), kind=TypeError)
     process_std = state_stds(process_std, system.nx)
     measurement_std = nonnegative_number(measurement_std, "measurement_std")
+    theta = None if params is None else system.param_rows(params, m)
     rngs = [np.random.default_rng(s) for s in _seeds(seed, m)]
     w = np.stack([rng.normal(0.0, 1.0, (n - 1, system.nx)) for rng in rngs]) * process_std
     v = np.stack([rng.normal(0.0, 1.0, (n, system.ny)) for rng in rngs]) * measurement_std
     x = np.full((m, n, system.nx), np.nan)
     x[:, 0] = x0
-    options = {"rtol": rtol, "atol": atol, "substeps": substeps}
+    options = {"rtol": rtol, "atol": atol, "substeps": substeps, "parametric": theta is not None}
+    held = [] if theta is None else [np.repeat(theta[:, None], n - 1, axis=1)]      # (M, N-1, n_params)
     if all(feedback):
-        us, ok = _closed_loop(system, x0, inputs, t, dt, w, v, x, method, options, n_threads)
+        us, ok = _closed_loop(system, x0, inputs, t, dt, w, v, x, method, options, n_threads, theta)
     else:
         us = np.stack([input_samples(ui, t, system.nu, f"u[{i}]") for i, ui in enumerate(inputs)])
         traj = step_function(system, dt, method, **options).mapaccum("trajectory", n - 1)
-        params = np.concatenate([us[:, :-1, :], w], axis=2)          # (M, N-1, nu+nx)
-        states, ok = _fold(traj, x0.T, params, n_threads)
+        rows = np.concatenate([us[:, :-1, :], w, *held], axis=2)    # (M, N-1, nu+nx[+n_params])
+        states, ok = _fold(traj, x0.T, rows, n_threads)
         x[:, 1:] = states.reshape(m, n - 1, system.nx)
     with np.errstate(invalid="ignore"):
         x[~(np.abs(x) < blowup)] = np.nan                       # inf, NaN and blow-ups become NaN
     ok &= ~np.isnan(x).any(axis=(1, 2))
-    y = system.h_batch(x.reshape(m * n, system.nx)).reshape(m, n, system.ny) + v
+    y = _outputs(system, x, theta) + v
     for arr in (x, us, y):
         arr.setflags(write=False)
     return TrajectoryBatch(t, x, us, y, ok)
+
+
+def _outputs(system: System, x: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
+    """``h(x)`` of (M, N, nx) states, at the nominal parameters or at ``theta`` (M, n_params) per trial."""
+    m, n = x.shape[:2]
+    params = None if theta is None else np.repeat(theta, n, axis=0)
+    return system.h_batch(x.reshape(m * n, system.nx), params=params).reshape(m, n, system.ny)
 
 
 def _fold(traj: ca.Function, s0: np.ndarray, params: np.ndarray,
@@ -301,8 +327,8 @@ def _fold(traj: ca.Function, s0: np.ndarray, params: np.ndarray,
 
 
 def _closed_loop(system: System, x0: np.ndarray, laws: list, t: np.ndarray, dt: float, w: np.ndarray,
-                 v: np.ndarray, x: np.ndarray, method: str, options: dict,
-                 n_threads: int | None) -> tuple[np.ndarray, np.ndarray]:
+                 v: np.ndarray, x: np.ndarray, method: str, options: dict, n_threads: int | None,
+                 plant_theta: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     """Simulate M closed loops in place in ``x`` (M, N, nx); return the applied inputs (M, N, nu) and ``ok``."""
     for i, law in enumerate(laws):
         _check_law(system, law, f"u[{i}]")
@@ -310,18 +336,19 @@ def _closed_loop(system: System, x0: np.ndarray, laws: list, t: np.ndarray, dt: 
     nx, nu = system.nx, system.nu
     refs = np.stack([input_samples(law.reference, t, law.channels, f"u[{i}].reference") for i, law in enumerate(laws)])
     theta = np.stack([np.asarray(law.theta(), dtype=float) for law in laws])           # (M, nth)
-    y0 = system.h_batch(x0) + v[:, 0]
+    y0 = system.h_batch(x0, params=plant_theta) + v[:, 0]
     s0 = np.stack([np.concatenate([x0[i], laws[i].state0(y0[i])]) for i in range(m)])   # (M, nx + nc)
     step = closed_loop_step(system, laws[0], dt, method, **options)
     traj = ca.Function("closed_loop", *_with_inputs(step.mapaccum("closed_loop", n - 1)))
-    params = np.concatenate([w, v[:, :-1], refs[:, :-1], np.repeat(theta[:, None], n - 1, axis=1)], axis=2)
+    held = [] if plant_theta is None else [np.repeat(plant_theta[:, None], n - 1, axis=1)]
+    params = np.concatenate([w, v[:, :-1], refs[:, :-1], np.repeat(theta[:, None], n - 1, axis=1), *held], axis=2)
     out, ok = _fold(traj, s0.T, params, n_threads)
     x[:, 1:] = out[..., :nx]
     us = np.full((m, n, nu), np.nan)
     us[:, :-1] = out[..., nx + laws[0].n_state:]
     # the last input, from the last measurement and the law's last state
     law = laws[0].function(dt)
-    y_last = system.h_batch(np.nan_to_num(x[:, -1])) + v[:, -1]
+    y_last = system.h_batch(np.nan_to_num(x[:, -1]), params=plant_theta) + v[:, -1]
     c_last = out[:, -1, nx:nx + laws[0].n_state]
     us[:, -1] = np.asarray(law.map(m)(np.nan_to_num(c_last).T, y_last.T, refs[:, -1].T, theta.T)[0]).T
     us[~ok] = np.nan
@@ -337,13 +364,15 @@ def _with_inputs(traj: ca.Function) -> tuple[list, list, list, list]:
 
 def simulate(system: System, x0: Any, u: InputLike, T: float = 50.0, dt: float = 0.05, *, process_std: float = 0.0,
              measurement_std: float = 0.0, seed: int | None = None, method: str = "cvodes", rtol: float = 1e-8,
-             atol: float = 1e-10, substeps: int = 4) -> Trajectory:
+             atol: float = 1e-10, substeps: int = 4, params: object = None) -> Trajectory:
     """Simulate one trial with a CasADi integrator (see :func:`simulate_batch` for the parameters).
 
     Parameters
     ----------
     x0 : array_like, shape (nx,)
     u : signal ``u(t) -> (nu,)`` or array, shape (N, nu)
+    params : array_like, shape (n_params,), optional
+        The plant's parameter values; default the nominal ones.
 
     Returns
     -------
@@ -357,7 +386,8 @@ def simulate(system: System, x0: Any, u: InputLike, T: float = 50.0, dt: float =
     """
     x0 = system.check_state(x0, "x0")
     batch = simulate_batch(system, x0[None, :], u, T, dt, process_std=process_std, measurement_std=measurement_std,
-                           seed=[seed], method=method, rtol=rtol, atol=atol, substeps=substeps, n_threads=1)
+                           seed=[seed], method=method, rtol=rtol, atol=atol, substeps=substeps, n_threads=1,
+                           params=None if params is None else np.asarray(params, dtype=float)[None])
     if not batch.ok[0]:
         raise RuntimeError(f"simulation of {system.name!r} from x0 = {x0.tolist()} failed or blew up; "
                            "shorten T, reduce the input, or use method='cvodes'")

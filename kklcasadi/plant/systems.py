@@ -18,9 +18,9 @@ from typing import Callable, Sequence
 import casadi as ca
 import numpy as np
 
-from ..validation import Text, error, index_tuple, one_of, positive_int
+from ..validation import Text, error, finite_array, finite_number, index_tuple, one_of, positive_int
 
-__all__ = ["System", "get", "names", "register", "load_plant"]
+__all__ = ["System", "get", "names", "families", "register", "load_plant"]
 
 
 def _column_symbol(value: object, arg: str) -> ca.SX:
@@ -60,6 +60,18 @@ def _box(value: object, n: int, arg: str = "x0_box", size: str = "nx") -> np.nda
     return box
 
 
+def _nominal(value: object, box: np.ndarray) -> np.ndarray:
+    """The nominal parameter values: the box centre by default, else inside the box."""
+    nominal = box.mean(axis=1) if value is None else np.asarray(value, dtype=float).reshape(-1)
+    if nominal.shape != (len(box),) or not np.all(np.isfinite(nominal)):
+        raise error("param_nominal", f"{len(box)} finite values (one per parameter)", np.asarray(value).tolist())
+    if np.any((nominal < box[:, 0]) | (nominal > box[:, 1])):
+        raise error("param_nominal", "values inside param_box", nominal.tolist(),
+                    f"param_box is {box.tolist()}.")
+    nominal.setflags(write=False)
+    return nominal
+
+
 class System:
     """A controlled plant ``xdot = f(x, u)``, ``y = h(x)`` written with CasADi SX symbols.
 
@@ -90,13 +102,30 @@ class System:
     u_box : array_like, shape (nu, 2), optional
         The range ``[[lo, hi], ...]`` of each input on the rig (e.g. a drive's voltage limits, or
         what its logs reach); in the fingerprint when given. Default None (not declared).
+    params : casadi.SX, shape (n_params, 1), optional
+        Uncertain parameters that ``xdot`` and ``y`` may use (distinct ``ca.SX.sym`` entries). A plant
+        with parameters is a family: :attr:`f` and :attr:`h` (and everything built on them: the EKF,
+        MHE, particle filter, model copies) use :attr:`param_nominal`; :attr:`f_param`, :attr:`h_param`
+        and :func:`kklcasadi.simulate` ``(..., params=)`` take other values, :meth:`at` fixes them.
+    param_box : array_like, shape (n_params, 2)
+        ``[[lo, hi], ...]``, the values the parameters may take; required with ``params``.
+    param_nominal : array_like, shape (n_params,), optional
+        Nominal values, inside the box; default its centre.
 
     Attributes
     ----------
     f : casadi.Function
-        ``f(x, u) -> xdot``.
+        ``f(x, u) -> xdot`` (at the nominal parameters).
     h : casadi.Function
-        ``h(x) -> y``.
+        ``h(x) -> y`` (at the nominal parameters).
+    f_param, h_param : casadi.Function or None
+        ``f_param(x, u, p) -> xdot`` and ``h_param(x, p) -> y`` of a plant with parameters (None without).
+    n_params : int
+        Number of parameters (0 without).
+    param_names : tuple of str
+        The names of the parameters' symbols.
+    param_box : numpy.ndarray, shape (n_params, 2), or None
+    param_nominal : numpy.ndarray, shape (n_params,), or None
     f_jac : casadi.Function
         ``f_jac(x, u) -> (df_dx (nx, nx), df_du (nx, nu))``, exact.
     h_jac : casadi.Function
@@ -118,7 +147,8 @@ class System:
     def __init__(self, name: str, x: ca.SX, u: ca.SX, xdot: ca.SX | Sequence[ca.SX], y: ca.SX | Sequence[ca.SX],
                  x0_box: object, *, description: str = "", paper_design: bool = False,
                  angle_states: Sequence[int] = (), angle_outputs: Sequence[int] = (),
-                 u_box: object = None) -> None:
+                 u_box: object = None, params: ca.SX | None = None, param_box: object = None,
+                 param_nominal: object = None) -> None:
         if not isinstance(name, str) or not name.isidentifier():
             raise error("name", "a Python identifier such as 'duffing'", name)
         x = _column_symbol(x, "x")
@@ -130,11 +160,27 @@ class System:
         if ca.depends_on(y, u):
             raise error("y", "an output map h(x) that does not depend on the input u", Text(str(y)),
                         "Direct feedthrough is not supported.")
+        p = None if params is None else _column_symbol(params, "params")
         free = ca.symvar(ca.vertcat(xdot, y))
-        known = set(ca.symvar(ca.vertcat(x, u)))
+        known = set(ca.symvar(ca.vertcat(x, u) if p is None else ca.vertcat(x, u, p)))
         extra = [str(s) for s in free if s not in known]
         if extra:
-            raise error("xdot, y", "expressions in the symbols of x and u only", Text(f"free symbols {extra}"))
+            what = "x and u" if p is None else "x, u and params"
+            raise error("xdot, y", f"expressions in the symbols of {what} only", Text(f"free symbols {extra}"))
+        if p is None and (param_box is not None or param_nominal is not None):
+            raise error("params", "a casadi.SX symbol of the parameters that param_box and param_nominal describe",
+                        None)
+        self.p_sym = p
+        self.n_params = 0 if p is None else p.size1()
+        self.param_box = None if p is None else _box(param_box, self.n_params, "param_box", "n_params")
+        self.param_nominal = None if p is None else _nominal(param_nominal, self.param_box)
+        self.param_names = () if p is None else tuple(str(e) for e in ca.vertsplit(p))
+        self.f_param = self.h_param = None
+        self.xdot_param_expr, self.y_param_expr = xdot, y
+        if p is not None:
+            self.f_param = ca.Function("f_param", [x, u, p], [xdot], ["x", "u", "p"], ["xdot"])
+            self.h_param = ca.Function("h_param", [x, p], [y], ["x", "p"], ["y"])
+            xdot, y = ca.substitute([xdot, y], [p], [ca.DM(self.param_nominal)])
         self.name = name
         self.description = description
         self.paper_design = bool(paper_design)
@@ -163,7 +209,8 @@ class System:
         expressions are written or on the CasADi version, but changes with the dynamics. Model
         cards record it, and a model refuses to load against a plant with another fingerprint.
         The angle indices and the input range enter only when given, so a plant without them keeps
-        the fingerprint it had before they existed.
+        the fingerprint it had before they existed; likewise the parameters (``f`` and ``h`` on the same
+        points with parameters drawn over their box, the box and the nominal values).
         """
         rng = np.random.default_rng(20261127)
         lo, hi = self.x0_box[:, 0], self.x0_box[:, 1]
@@ -176,6 +223,12 @@ class System:
             text += f";angles x{list(self.angle_states)} y{list(self.angle_outputs)}"
         if self.u_box is not None:
             text += ";u_box " + ",".join(np.format_float_scientific(v, precision=9) for v in self.u_box.ravel())
+        if self.n_params:
+            box = self.param_box
+            p = box[:, 0] + (box[:, 1] - box[:, 0]) * rng.random((64, self.n_params))
+            family = np.concatenate([self.f_batch(x, u, params=p).ravel(), self.h_batch(x, params=p).ravel(),
+                                     box.ravel(), self.param_nominal])
+            text += ";params " + ",".join(np.format_float_scientific(v, precision=9) for v in family)
         return hashlib.sha256(text.encode()).hexdigest()
 
     @property
@@ -191,12 +244,14 @@ class System:
                   "x0_box": np.asarray(self.x0_box, dtype=float).tolist()}
         if self.u_box is not None:
             header["u_box"] = self.u_box.tolist()
+        if self.n_params:
+            header["params"] = {"box": self.param_box.tolist(), "nominal": self.param_nominal.tolist()}
         digest.update(json.dumps(header, sort_keys=True).encode())
-        for function in (self.f, self.h):
+        for function in (self.f, self.h) + ((self.f_param, self.h_param) if self.n_params else ()):
             digest.update(function.serialize().encode())
         return digest.hexdigest()
 
-    def f_batch(self, x: object, u: object = None) -> np.ndarray:
+    def f_batch(self, x: object, u: object = None, *, params: object = None) -> np.ndarray:
         """``f`` on many points in one mapped call.
 
         Parameters
@@ -204,6 +259,8 @@ class System:
         x : array_like, shape (M, nx)
         u : array_like, shape (M, nu), optional
             Default 0 (the autonomous field).
+        params : array_like, shape (M, n_params) or (n_params,), optional
+            Parameter values per point (or one for all); default the nominal ones.
 
         Returns
         -------
@@ -215,14 +272,61 @@ class System:
             raise ValueError(f"u: expected {len(x)} rows (one per row of x), received {len(u)}.")
         if len(x) == 0:
             return np.zeros((0, self.nx))
-        return np.asarray(self.f.map(len(x))(x.T, u.T)).T.reshape(len(x), self.nx)
+        if params is None:
+            return np.asarray(self.f.map(len(x))(x.T, u.T)).T.reshape(len(x), self.nx)
+        p = self.param_rows(params, len(x))
+        return np.asarray(self.f_param.map(len(x))(x.T, u.T, p.T)).T.reshape(len(x), self.nx)
 
-    def h_batch(self, x: object) -> np.ndarray:
-        """``h`` on many points in one mapped call: ``x`` (M, nx) -> ``y`` (M, ny)."""
+    def h_batch(self, x: object, *, params: object = None) -> np.ndarray:
+        """``h`` on many points in one mapped call: ``x`` (M, nx) -> ``y`` (M, ny); ``params`` as in :meth:`f_batch`."""
         x = self._rows(x, self.nx, "x")
         if len(x) == 0:
             return np.zeros((0, self.ny))
-        return np.asarray(self.h.map(len(x))(x.T)).T.reshape(len(x), self.ny)
+        if params is None:
+            return np.asarray(self.h.map(len(x))(x.T)).T.reshape(len(x), self.ny)
+        p = self.param_rows(params, len(x))
+        return np.asarray(self.h_param.map(len(x))(x.T, p.T)).T.reshape(len(x), self.ny)
+
+    def param_rows(self, params: object, m: int, arg: str = "params") -> np.ndarray:
+        """Parameter values as ``(m, n_params)`` rows: one row per point, or one row repeated.
+
+        Raises a ValueError naming ``arg`` for a plant without parameters, a wrong shape or a
+        non-finite value (values outside :attr:`param_box` are allowed: effects beyond the family).
+        """
+        self._require_params(arg)
+        p = np.asarray(params, dtype=float)
+        if p.ndim == 1:
+            p = np.broadcast_to(p, (m, p.size))
+        if p.shape != (m, self.n_params):
+            raise error(arg, f"shape ({self.n_params},) or ({m}, {self.n_params})", Text(f"shape {np.shape(params)}"))
+        return finite_array(p, arg)
+
+    def at(self, params: object) -> System:
+        """The plant with its parameters fixed at ``params`` (n_params,): a :class:`System` without parameters.
+
+        ``system.at(system.param_nominal)`` computes bitwise what :attr:`f` and :attr:`h` compute.
+        """
+        p = self.param_rows(params, 1)[0]
+        xdot, y = ca.substitute([self.xdot_param_expr, self.y_param_expr], [self.p_sym], [ca.DM(p)])
+        return System(self.name, self.x_sym, self.u_sym, xdot, y, self.x0_box, description=self.description,
+                      paper_design=self.paper_design, angle_states=self.angle_states,
+                      angle_outputs=self.angle_outputs, u_box=self.u_box)
+
+    def sample_params(self, n: int, seed: int | np.random.Generator | None = 0, *,
+                      scale: float = 1.0) -> np.ndarray:
+        """Latin-hypercube sample of ``n`` parameter vectors over :attr:`param_box` (scaled about its centre).
+
+        Returns
+        -------
+        numpy.ndarray, shape (n, n_params)
+        """
+        self._require_params("sample_params")
+        return _latin(self.param_box, n, seed, scale)
+
+    def _require_params(self, arg: str) -> None:
+        if not self.n_params:
+            raise error(arg, f"None for plant {self.name!r}, which declares no parameters", Text("parameter values"),
+                        "Give kc.System(..., params=P, param_box=...) to make a family of plants.")
 
     @staticmethod
     def _rows(value: object, width: int, arg: str) -> np.ndarray:
@@ -247,23 +351,33 @@ class System:
         -------
         numpy.ndarray, shape (n, nx)
         """
-        from scipy.stats import qmc
-
-        n = positive_int(n, "n")
-        centre = self.x0_box.mean(axis=1)
-        half = 0.5 * (self.x0_box[:, 1] - self.x0_box[:, 0]) * scale
-        unit = qmc.LatinHypercube(d=self.nx, seed=seed).random(n)
-        return centre + (2.0 * unit - 1.0) * half
+        return _latin(self.x0_box, n, seed, scale)
 
 
-_REGISTRY: dict[str, Callable[[], System]] = {}
+def _latin(box: np.ndarray, n: int, seed: int | np.random.Generator | None, scale: float) -> np.ndarray:
+    from scipy.stats import qmc
+
+    n = positive_int(n, "n")
+    centre = box.mean(axis=1)
+    half = 0.5 * (box[:, 1] - box[:, 0]) * scale
+    unit = qmc.LatinHypercube(d=len(box), seed=seed).random(n)
+    return centre + (2.0 * unit - 1.0) * half
 
 
-def register(name: str, factory: Callable[[], System]) -> None:
-    """Add a plant factory to the registry used by :func:`get` and the CLI."""
+_REGISTRY: dict[str, Callable[..., System]] = {}
+_FAMILIES: set[str] = set()
+
+
+def register(name: str, factory: Callable[..., System], *, family: bool = False) -> None:
+    """Add a plant factory to the registry used by :func:`get` and the CLI.
+
+    With ``family=True`` the factory also takes ``param_spread=s`` and then returns the plant with
+    its coefficients as parameters, each in ``nominal (1 -+ s)`` (:func:`get`).
+    """
     if not callable(factory):
         raise error("factory", "a callable returning a System", Text(type(factory).__name__), kind=TypeError)
     _REGISTRY[name] = factory
+    (_FAMILIES.add if family else _FAMILIES.discard)(name)
 
 
 def names() -> list[str]:
@@ -271,9 +385,29 @@ def names() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def get(name: str) -> System:
-    """Build the registered system ``name`` (e.g. ``"duffing"``)."""
-    return _REGISTRY[one_of(name, "name", names())]()
+def families() -> list[str]:
+    """Names of the registered systems that have a parameterised form (``get(name, param_spread=s)``), sorted."""
+    return sorted(_FAMILIES)
+
+
+def get(name: str, *, param_spread: float | None = None) -> System:
+    """Build the registered system ``name`` (e.g. ``"duffing"``).
+
+    Parameters
+    ----------
+    name : str
+    param_spread : float, optional
+        A relative uncertainty ``0 < s < 1``: the plant's parameterised form, every coefficient a
+        parameter in ``nominal (1 -+ s)`` with the nominal values (today's plant) at its centre
+        (systems of :func:`families`). Default: the plant without parameters.
+    """
+    factory = _REGISTRY[one_of(name, "name", names())]
+    if param_spread is None:
+        return factory()
+    if name not in _FAMILIES:
+        raise error("param_spread", f"None for {name!r}, which has no parameterised form (those that have: "
+                    f"{families()})", param_spread)
+    return factory(param_spread=param_spread)
 
 
 def load_plant(spec: str) -> System:
@@ -331,16 +465,42 @@ def _symbols(nx: int) -> tuple[ca.SX, ca.SX]:
     return ca.SX.sym("x", nx), ca.SX.sym("u", 1)
 
 
-def duffing() -> System:
-    x, u = _symbols(2)
-    return System("duffing", x, u, [x[1], -x[0] - x[0] ** 3 + u], x[0], [[-1, 1], [-1, 1]],
-                  description="Duffing oscillator, y = x1", paper_design=True)
+def _family(name: str, x: ca.SX, u: ca.SX, p: ca.SX, xdot: list, y: ca.SX, box: list, nominal: list,
+            param_spread: float | None, **options: object) -> System:
+    """A plant written with its coefficients ``p``: without ``param_spread`` they are substituted by
+    their nominal values (a plant without parameters), with it they are parameters in
+    ``nominal (1 -+ param_spread)``."""
+    nominal = np.asarray(nominal, dtype=float)
+    if param_spread is None:
+        xdot, y = ca.substitute([ca.vertcat(*xdot), y], [p], [ca.DM(nominal)])
+        return System(name, x, u, xdot, y, box, **options)
+    spread = finite_number(param_spread, "param_spread")
+    if not 0.0 < spread < 1.0:
+        raise error("param_spread", "a relative uncertainty 0 < s < 1 (0.3: every coefficient +-30 %)", param_spread)
+    half = spread * np.abs(nominal)
+    return System(name, x, u, xdot, y, box, params=p, param_box=np.column_stack([nominal - half, nominal + half]),
+                  param_nominal=nominal, **options)
 
 
-def vdp() -> System:
+def _coefficients(*names: str) -> ca.SX:
+    return ca.vertcat(*(ca.SX.sym(n) for n in names))
+
+
+def duffing(*, param_spread: float | None = None) -> System:
+    """Duffing, ``x2' = -alpha x1 - beta x1^3 + u`` with ``alpha = beta = 1`` (parameters with ``param_spread``)."""
     x, u = _symbols(2)
-    return System("vdp", x, u, [x[1], (1 - x[0] ** 2) * x[1] - x[0] + u], x[0], [[-3, 3], [-3, 3]],
-                  description="Van der Pol oscillator (mu = 1), y = x1", paper_design=True)
+    p = _coefficients("alpha", "beta")
+    return _family("duffing", x, u, p, [x[1], -p[0] * x[0] - p[1] * x[0] ** 3 + u], x[0], [[-1, 1], [-1, 1]],
+                   [1.0, 1.0], param_spread, description="Duffing oscillator, y = x1", paper_design=True)
+
+
+def vdp(*, param_spread: float | None = None) -> System:
+    """Van der Pol, ``x2' = (a - b x1^2) x2 - k x1 + u`` with ``a = b = k = 1`` (parameters with ``param_spread``)."""
+    x, u = _symbols(2)
+    p = _coefficients("a", "b", "k")
+    return _family("vdp", x, u, p, [x[1], (p[0] - p[1] * x[0] ** 2) * x[1] - p[2] * x[0] + u], x[0],
+                   [[-3, 3], [-3, 3]], [1.0, 1.0, 1.0], param_spread,
+                   description="Van der Pol oscillator (mu = 1), y = x1", paper_design=True)
 
 
 def rossler() -> System:
@@ -379,4 +539,4 @@ def linear() -> System:
 
 
 for _factory in (duffing, vdp, rossler, fhn, lorenz, linear):
-    register(_factory.__name__, _factory)
+    register(_factory.__name__, _factory, family=_factory in (duffing, vdp))
