@@ -30,6 +30,8 @@ from ..validation import (
     positive_number,
     state_stds,
 )
+from .noise import NoiseModel
+from .noise import noise_model as as_noise_model
 from .rk4 import rk4_step
 from .signals import OutputFeedback
 from .systems import System
@@ -162,14 +164,16 @@ def step_function(system: System, dt: float, method: str = "cvodes", *, rtol: fl
 
 
 def closed_loop_step(system: System, law: OutputFeedback, dt: float, method: str = "cvodes", *, rtol: float = 1e-8,
-                     atol: float = 1e-10, substeps: int = 4, parametric: bool = False) -> ca.Function:
+                     atol: float = 1e-10, substeps: int = 4, parametric: bool = False,
+                     noise: NoiseModel | str | None = None) -> ca.Function:
     """One sample interval of the plant under an output-feedback law.
 
     ``cl(s, p) -> (s_next, u)`` with ``s = [x; c]`` (plant state, law state) and
     ``p = [w; v; r; theta]``: process noise ``w`` (nx,) added to ``xdot`` over the interval,
     measurement noise ``v`` (ny,) of ``y_k = h(x_k) + v``, the reference ``r_k`` and the law's numbers
     ``theta``; ``u = law(c, y_k, r_k, theta)`` (nu,) is held over the interval. With ``parametric``,
-    ``p`` ends with the plant's parameter values (see :func:`step_function`).
+    ``p`` ends with the plant's parameter values (see :func:`step_function`); a quantising ``noise``
+    model (:mod:`kklcasadi.plant.noise`) rounds the measurement the law reads.
 
     Parameters
     ----------
@@ -188,7 +192,7 @@ def closed_loop_step(system: System, law: OutputFeedback, dt: float, method: str
     x, c = s[:nx], s[nx:]
     w, v, r, theta, plant_theta = ca.vertsplit(p, np.cumsum([0, nx, ny, nr, nth, npl]).tolist())
     y = system.h_param(x, plant_theta) if parametric else system.h(x)
-    u, c_next = f(c, y + v, r, theta)
+    u, c_next = f(c, as_noise_model(noise).measure(y + v), r, theta)
     x_next = plant(x, ca.vertcat(u, w, plant_theta) if parametric else ca.vertcat(u, w))
     return ca.Function("closed_loop_step", [s, p], [ca.vertcat(x_next, c_next), u], ["s", "p"], ["s_next", "u"])
 
@@ -212,7 +216,7 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
                    *, process_std: float | Sequence[float] = 0.0, measurement_std: float = 0.0,
                    seed: int | Sequence[int] | None = None, method: str = "cvodes", rtol: float = 1e-8,
                    atol: float = 1e-10, substeps: int = 4, blowup: float = 1e6, n_threads: int | None = None,
-                   params: object = None) -> TrajectoryBatch:
+                   params: object = None, noise_model: NoiseModel | str | None = None) -> TrajectoryBatch:
     """Simulate M trials at once (one CasADi call, mapped over threads).
 
     Parameters
@@ -232,7 +236,7 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
         it): one for every state, or one per state (e.g. zero on the kinematic rows of a
         mechanical plant, so that noise acts as a force).
     measurement_std : float
-        Standard deviation of the measurement noise (added to ``y_k``).
+        Standard deviation (the scale) of the measurement noise (added to ``y_k``).
     seed : int or sequence of M ints, optional
         Trial ``i`` draws its noise from ``default_rng(seed[i])``; an int is spawned into M streams
         (``SeedSequence``). With one trial an int seed is used directly, as in :func:`simulate`.
@@ -246,6 +250,10 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
         The plant's parameter values (a plant with parameters, :class:`kklcasadi.System`): one set
         for every trial or one per trial; values outside the plant's ``param_box`` are allowed.
         Default: the nominal plant (:attr:`kklcasadi.System.f`).
+    noise_model : NoiseModel or str, optional
+        The measurement noise's distribution, outliers and quantisation (:mod:`kklcasadi.plant.noise`:
+        ``"gauss"``, ``"student-t:NU"``, ``"outliers:P,K"``, ``"quantised:STEP"``, combined with ``+``),
+        scaled by ``measurement_std``; default Gaussian.
     """
     if not isinstance(system, System):
         raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
@@ -266,16 +274,17 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
                     Text(f"{sum(feedback)} laws among {m} inputs"), kind=TypeError)
     process_std = state_stds(process_std, system.nx)
     measurement_std = nonnegative_number(measurement_std, "measurement_std")
+    noise = as_noise_model(noise_model)
     theta = None if params is None else system.param_rows(params, m)
     rngs = [np.random.default_rng(s) for s in _seeds(seed, m)]
     w = np.stack([rng.normal(0.0, 1.0, (n - 1, system.nx)) for rng in rngs]) * process_std
-    v = np.stack([rng.normal(0.0, 1.0, (n, system.ny)) for rng in rngs]) * measurement_std
+    v = np.stack([noise.sample(rng, (n, system.ny), 1.0) for rng in rngs]) * measurement_std
     x = np.full((m, n, system.nx), np.nan)
     x[:, 0] = x0
     options = {"rtol": rtol, "atol": atol, "substeps": substeps, "parametric": theta is not None}
     held = [] if theta is None else [np.repeat(theta[:, None], n - 1, axis=1)]      # (M, N-1, n_params)
     if all(feedback):
-        us, ok = _closed_loop(system, x0, inputs, t, dt, w, v, x, method, options, n_threads, theta)
+        us, ok = _closed_loop(system, x0, inputs, t, dt, w, v, x, method, options, n_threads, theta, noise)
     else:
         us = np.stack([input_samples(ui, t, system.nu, f"u[{i}]") for i, ui in enumerate(inputs)])
         traj = step_function(system, dt, method, **options).mapaccum("trajectory", n - 1)
@@ -285,7 +294,7 @@ def simulate_batch(system: System, x0: Any, u: InputLike | Sequence[InputLike], 
     with np.errstate(invalid="ignore"):
         x[~(np.abs(x) < blowup)] = np.nan                       # inf, NaN and blow-ups become NaN
     ok &= ~np.isnan(x).any(axis=(1, 2))
-    y = _outputs(system, x, theta) + v
+    y = noise.measure(_outputs(system, x, theta) + v)
     for arr in (x, us, y):
         arr.setflags(write=False)
     return TrajectoryBatch(t, x, us, y, ok)
@@ -328,7 +337,7 @@ def _fold(traj: ca.Function, s0: np.ndarray, params: np.ndarray,
 
 def _closed_loop(system: System, x0: np.ndarray, laws: list, t: np.ndarray, dt: float, w: np.ndarray,
                  v: np.ndarray, x: np.ndarray, method: str, options: dict, n_threads: int | None,
-                 plant_theta: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+                 plant_theta: np.ndarray | None, noise: NoiseModel) -> tuple[np.ndarray, np.ndarray]:
     """Simulate M closed loops in place in ``x`` (M, N, nx); return the applied inputs (M, N, nu) and ``ok``."""
     for i, law in enumerate(laws):
         _check_law(system, law, f"u[{i}]")
@@ -336,9 +345,9 @@ def _closed_loop(system: System, x0: np.ndarray, laws: list, t: np.ndarray, dt: 
     nx, nu = system.nx, system.nu
     refs = np.stack([input_samples(law.reference, t, law.channels, f"u[{i}].reference") for i, law in enumerate(laws)])
     theta = np.stack([np.asarray(law.theta(), dtype=float) for law in laws])           # (M, nth)
-    y0 = system.h_batch(x0, params=plant_theta) + v[:, 0]
+    y0 = noise.measure(system.h_batch(x0, params=plant_theta) + v[:, 0])
     s0 = np.stack([np.concatenate([x0[i], laws[i].state0(y0[i])]) for i in range(m)])   # (M, nx + nc)
-    step = closed_loop_step(system, laws[0], dt, method, **options)
+    step = closed_loop_step(system, laws[0], dt, method, **options, noise=noise)
     traj = ca.Function("closed_loop", *_with_inputs(step.mapaccum("closed_loop", n - 1)))
     held = [] if plant_theta is None else [np.repeat(plant_theta[:, None], n - 1, axis=1)]
     params = np.concatenate([w, v[:, :-1], refs[:, :-1], np.repeat(theta[:, None], n - 1, axis=1), *held], axis=2)
@@ -348,7 +357,7 @@ def _closed_loop(system: System, x0: np.ndarray, laws: list, t: np.ndarray, dt: 
     us[:, :-1] = out[..., nx + laws[0].n_state:]
     # the last input, from the last measurement and the law's last state
     law = laws[0].function(dt)
-    y_last = system.h_batch(np.nan_to_num(x[:, -1]), params=plant_theta) + v[:, -1]
+    y_last = noise.measure(system.h_batch(np.nan_to_num(x[:, -1]), params=plant_theta) + v[:, -1])
     c_last = out[:, -1, nx:nx + laws[0].n_state]
     us[:, -1] = np.asarray(law.map(m)(np.nan_to_num(c_last).T, y_last.T, refs[:, -1].T, theta.T)[0]).T
     us[~ok] = np.nan
@@ -364,7 +373,8 @@ def _with_inputs(traj: ca.Function) -> tuple[list, list, list, list]:
 
 def simulate(system: System, x0: Any, u: InputLike, T: float = 50.0, dt: float = 0.05, *, process_std: float = 0.0,
              measurement_std: float = 0.0, seed: int | None = None, method: str = "cvodes", rtol: float = 1e-8,
-             atol: float = 1e-10, substeps: int = 4, params: object = None) -> Trajectory:
+             atol: float = 1e-10, substeps: int = 4, params: object = None,
+             noise_model: NoiseModel | str | None = None) -> Trajectory:
     """Simulate one trial with a CasADi integrator (see :func:`simulate_batch` for the parameters).
 
     Parameters
@@ -373,6 +383,8 @@ def simulate(system: System, x0: Any, u: InputLike, T: float = 50.0, dt: float =
     u : signal ``u(t) -> (nu,)`` or array, shape (N, nu)
     params : array_like, shape (n_params,), optional
         The plant's parameter values; default the nominal ones.
+    noise_model : NoiseModel or str, optional
+        The measurement noise (:mod:`kklcasadi.plant.noise`); default Gaussian.
 
     Returns
     -------
@@ -387,7 +399,8 @@ def simulate(system: System, x0: Any, u: InputLike, T: float = 50.0, dt: float =
     x0 = system.check_state(x0, "x0")
     batch = simulate_batch(system, x0[None, :], u, T, dt, process_std=process_std, measurement_std=measurement_std,
                            seed=[seed], method=method, rtol=rtol, atol=atol, substeps=substeps, n_threads=1,
-                           params=None if params is None else np.asarray(params, dtype=float)[None])
+                           params=None if params is None else np.asarray(params, dtype=float)[None],
+                           noise_model=noise_model)
     if not batch.ok[0]:
         raise RuntimeError(f"simulation of {system.name!r} from x0 = {x0.tolist()} failed or blew up; "
                            "shorten T, reduce the input, or use method='cvodes'")
