@@ -22,7 +22,7 @@ from ..plant.rk4 import rk4_step
 from ..plant.systems import System
 from ..validation import Text, covariance, error, nonnegative_number, one_of, positive_number, state_stds
 
-__all__ = ["EKF", "EKFEstimate", "NOISE_FLOOR", "EKF_FORMS"]
+__all__ = ["EKF", "EKFEstimate", "NOISE_FLOOR", "EKF_FORMS", "noise_covariances"]
 
 #: Smallest noise std :meth:`EKF.for_noise` uses (a zero level would make the filter singular).
 NOISE_FLOOR = 1e-6
@@ -37,6 +37,16 @@ class EKFEstimate:
     t: np.ndarray
     xhat: np.ndarray
     var: np.ndarray
+
+
+def noise_covariances(system: System, dt: float, *, process_std: float | Sequence[float],
+                      measurement_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """``Q = diag(process_std dt)^2`` (nx, nx) and ``R = measurement_std^2 I`` (ny, ny) of the simulator's
+    noise model, each std floored at :data:`NOISE_FLOOR` (see :meth:`EKF.for_noise`)."""
+    q = np.maximum(state_stds(process_std, system.nx), NOISE_FLOOR) * np.ones(system.nx)
+    r = max(nonnegative_number(measurement_std, "measurement_std"), NOISE_FLOOR)
+    dt = positive_number(dt, "dt")
+    return np.diag((q * dt) ** 2), r ** 2 * np.eye(system.ny)
 
 
 class EKF:
@@ -158,10 +168,8 @@ class EKF:
         **options
             ``x0``, ``P0``, ``substeps``, ``params`` of :class:`EKF`.
         """
-        q = np.maximum(state_stds(process_std, system.nx), NOISE_FLOOR) * np.ones(system.nx)
-        r = max(nonnegative_number(measurement_std, "measurement_std"), NOISE_FLOOR)
-        dt = positive_number(dt, "dt")
-        return cls(system, dt, Q=np.diag((q * dt) ** 2), R=r ** 2 * np.eye(system.ny), **options)
+        Q, R = noise_covariances(system, dt, process_std=process_std, measurement_std=measurement_std)
+        return cls(system, dt, Q=Q, R=R, **options)
 
     def generate_c(self, out_dir: Union[str, os.PathLike], name: str = "ekf", *, form: str = "sx",
                    overwrite: bool = False, matvec: str = "axpy", math: str = "vector", dispatch: bool = True,

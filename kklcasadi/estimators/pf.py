@@ -37,6 +37,8 @@ from typing import Callable, Optional
 import casadi as ca
 import numpy as np
 
+from ..plant.noise import NoiseModel
+from ..plant.noise import noise_model as as_noise_model
 from ..plant.simulate import step_function
 from ..plant.systems import System
 from ..validation import (
@@ -49,6 +51,7 @@ from ..validation import (
     one_of,
     positive_int,
     positive_number,
+    state_stds,
 )
 
 __all__ = ["ParticleFilter", "PFEstimate", "RESAMPLING", "SUBSTEPS", "ROUGHENING"]
@@ -93,11 +96,16 @@ class ParticleFilter:
         Sample period.
     n_particles : int
         Particles per trial.
-    process_std : float
+    process_std : float or sequence of float (nx,)
         Std of the process noise added to ``xdot``, drawn per particle and interval and held on it
-        (docs/protocol.md: 0.1). 0 propagates the particles deterministically.
+        (docs/protocol.md: 0.1); one for every state or one per state (0 on the parameters of an
+        augmented plant). 0 propagates the particles deterministically.
     measurement_std : float
-        Std of the measurement noise on each output (docs/protocol.md: 0.1); must be > 0.
+        Std (scale) of the measurement noise on each output (docs/protocol.md: 0.1); must be > 0.
+    noise_model : NoiseModel or str, optional
+        The measurement noise's distribution (:mod:`kklcasadi.plant.noise`): the likelihood of the
+        weights is its density (Student-t, outliers), or the probability of the measured
+        quantisation cell (a Gaussian base); default Gaussian.
     substeps : int
         RK4 steps per sample interval.
     seed : int
@@ -143,13 +151,15 @@ class ParticleFilter:
                  measurement_std: float = 0.1, substeps: int = 1, seed: int = 0, resample: str = "systematic",
                  ess_threshold: float = 0.5, roughening: float = 0.0, x0_mean: object = None, x0_cov: object = None,
                  jit: bool = True, compile: Optional[Callable[[ca.Function], ca.Function]] = None,
-                 n_threads: Optional[int] = None, params: object = None) -> None:
+                 n_threads: Optional[int] = None, params: object = None,
+                 noise_model: NoiseModel | str | None = None) -> None:
         if not isinstance(system, System):
             raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
         self.system = system if params is None else system.at(params)
         self.dt = positive_number(dt, "dt")
         self.n_particles = positive_int(n_particles, "n_particles")
-        self.process_std = nonnegative_number(process_std, "process_std")
+        self.process_std = state_stds(process_std, self.system.nx)
+        self.noise_model = as_noise_model(noise_model)
         self.measurement_std = positive_number(measurement_std, "measurement_std",
                                                "The likelihood needs measurement noise.")
         self.substeps = positive_int(substeps, "substeps")
@@ -197,14 +207,18 @@ class ParticleFilter:
         plant = step_function(s, self.dt, "rk", substeps=self.substeps)
 
         def weighted(x_particle: ca.SX) -> tuple[ca.SX, ca.SX]:
-            loglik = -0.5 * ca.sumsqr(y - s.h(x_particle)) / self.measurement_std ** 2
+            if self.noise_model.gaussian:
+                loglik = -0.5 * ca.sumsqr(y - s.h(x_particle)) / self.measurement_std ** 2
+            else:
+                loglik = ca.sum1(self.noise_model.log_likelihood(y, s.h(x_particle), self.measurement_std))
             finite = ca.fabs(loglik) < ca.inf
             for i in range(nx):
                 finite = ca.logic_and(finite, ca.fabs(x_particle[i]) < ca.inf)
             return ca.if_else(finite, x_particle, 0.0), ca.if_else(finite, loglik, -ca.inf)
 
         x_upd, ll_upd = weighted(x)
-        x_next, ll_next = weighted(plant(x, ca.vertcat(u, self.process_std * e)))
+        std = self.process_std if np.ndim(self.process_std) == 0 else ca.DM(self.process_std)
+        x_next, ll_next = weighted(plant(x, ca.vertcat(u, std * e)))
         particle_update = ca.Function("pf_particle_update", [x, y], [x_upd, ll_upd]).map(n, "serial")
         particle_step = ca.Function("pf_particle_step", [x, u, e, y], [x_next, ll_next]).map(n, "serial")
 
@@ -279,6 +293,13 @@ class ParticleFilter:
         # positions scaled into [0, total): a particle of weight 0 has an empty interval, never picked
         return np.searchsorted(cumulative, positions * cumulative[-1], side="right")
 
+    def roughen(self, X: np.ndarray, rng: np.random.Generator) -> None:
+        """Jitter one trial's resampled particles ``X`` (n_particles, nx) in place (``roughening``; nothing at 0)."""
+        if self.roughening > 0:
+            n, nx = X.shape
+            spread = self.roughening * np.ptp(X, axis=0) * n ** (-1.0 / nx)
+            X += spread * rng.standard_normal((n, nx))
+
     def simulate(self, t: object, y: object, u: object) -> PFEstimate:
         """Filter one or many measured trajectories.
 
@@ -329,9 +350,7 @@ class ParticleFilter:
                 idx = self.resample_indices(np.exp(logw[i]), rngs[i])
                 X[i] = X[i][idx]
                 logw[i] = -np.log(n)
-                if self.roughening > 0:
-                    spread = self.roughening * np.ptp(X[i], axis=0) * n ** (-1.0 / nx)
-                    X[i] += spread * rngs[i].standard_normal((n, nx))
+                self.roughen(X[i], rngs[i])
         if single:
             return PFEstimate(t, xhat[0], var[0], ess[0])
         return PFEstimate(t, xhat, var, ess)
