@@ -4,7 +4,8 @@ flags and the one error path in :mod:`.flags`.
 ``demo``, ``train``, ``evaluate``, ``estimate`` (an observer over a recorded log), ``export``,
 ``bench``, ``compare`` (the observer beside the EKF and MHE), ``certificate`` (Proposition 1 of the
 paper for a model), ``tune`` (a design search on Optuna), ``generalise`` (inputs and noise levels the
-observer was not fit on, with the domain monitor). Every error is one line ``error: ...`` on stderr
+observer was not fit on, with the domain monitor), ``robustness`` (plants and noise the EKF's model
+does not describe, beside the tuned and the augmented EKF). Every error is one line ``error: ...`` on stderr
 with exit status 2 (``KKLCASADI_DEBUG=1`` shows the traceback instead).
 """
 
@@ -17,12 +18,12 @@ import sys
 from typing import Sequence
 
 from .. import provenance
-from . import bench, certificate, compare, demo, estimate, evaluate, export, generalise, train, tune
+from . import bench, certificate, compare, demo, estimate, evaluate, export, generalise, robustness, train, tune
 from .flags import USER_ERRORS, Parser
 
 __all__ = ["main", "build_parser"]
 
-COMMANDS = (demo, train, evaluate, estimate, export, bench, compare, certificate, tune, generalise)
+COMMANDS = (demo, train, evaluate, estimate, export, bench, compare, certificate, tune, generalise, robustness)
 
 
 class _Version(argparse.Action):

@@ -28,11 +28,13 @@ from ..validation import error, nonnegative_number, positive_number, state_stds
 from .ekf import EKF, noise_covariances
 from .pf import ParticleFilter
 
-__all__ = ["AugmentedEKF", "ParameterPF", "PARAM_WALKS"]
+__all__ = ["AugmentedEKF", "ParameterPF", "PARAM_WALKS", "SHRINKAGE"]
 
 #: The grid of the random walk's rate (a fraction of the box width per square-root second) that
 #: :meth:`AugmentedEKF.fit` searches with the noise scales.
 PARAM_WALKS = (0.003, 0.01, 0.03, 0.1)
+#: Liu and West's ``h`` of :class:`ParameterPF` (a discount of about 0.99).
+SHRINKAGE = 0.1
 
 
 class _Split:
@@ -159,7 +161,7 @@ class ParameterPF(_Split, ParticleFilter):
     """
 
     def __init__(self, system: System, dt: float, *, process_std: float | Sequence[float] = 0.1,
-                 input_disturbance: bool = False, disturbance_box: Any = None, shrinkage: float = 0.1,
+                 input_disturbance: bool = False, disturbance_box: Any = None, shrinkage: float = SHRINKAGE,
                  **options: Any) -> None:
         aug = augmented(system, input_disturbance=input_disturbance, disturbance_box=disturbance_box)
         self.plant, self.nx = system, system.nx
