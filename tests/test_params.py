@@ -177,3 +177,14 @@ def test_estimators_use_the_nominal_values_unless_told_otherwise():
                                np.asarray(kc.MHE(hand_written("duffing", [1.2, 0.8]), 0.05, 5).phi([0.3, 0.1], 0.2,
                                                                                                    [0.0, 0.0])),
                                rtol=1e-15, atol=1e-15)
+
+
+def test_a_model_loads_against_its_family():
+    """A family is taken at its nominal values: the shipped models load against it."""
+    from kklcasadi.observer.kkl import load_observer
+
+    obs = load_observer(ROOT / "models" / "duffing" / "bank", system=kc.systems.get("duffing", param_spread=0.3))
+    assert obs.system.n_params == 0 and obs.system.fingerprint == kc.systems.get("duffing").fingerprint
+    with pytest.raises(ValueError, match=r"'system.fingerprint': the model was trained for a plant 'duffing'"):
+        load_observer(ROOT / "models" / "duffing" / "bank",
+                      system=hand_written("duffing", [1.1, 1.0]))

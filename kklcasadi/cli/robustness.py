@@ -79,8 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if plant is not None and not plant.n_params:
         raise CommandError(f"--plant: expected a plant with parameters (kc.System(..., params=P, param_box=...)), "
                            f"received {args.plant} without any")
-    nominal = None if plant is None else plant.at(plant.param_nominal)
-    observers = [(args.labels[i] if args.labels else Path(model).resolve().name, load(model, nominal, "MODELS"))
+    observers = [(args.labels[i] if args.labels else Path(model).resolve().name, load(model, plant, "MODELS"))
                  for i, model in enumerate(args.models)]
     family = plant or flagged("--param-spread", systems.get, observers[0][1].system.name,
                               param_spread=args.param_spread)

@@ -657,7 +657,9 @@ def load_observer(path: PathLike, *, system: Optional[System] = None,
         name that exists where it is given wins; :func:`kklcasadi.model.shipped.resolve`).
     system : System, optional
         The plant; default ``kklcasadi.plant.systems.get(card["system"]["name"])``. Its name, nx, nu
-        and ny must match the card.
+        and ny must match the card. A plant with parameters (a family) is taken at its nominal values
+        (:meth:`kklcasadi.System.at`): the model was trained for the family, and its card records the
+        nominal plant and, in ``training.params``, the box the runs drew from.
     discretization : {"exact", "rk4"}, optional
         See :class:`KKLObserver`.
     substeps : int
@@ -681,6 +683,8 @@ def load_observer(path: PathLike, *, system: Optional[System] = None,
                              f"registered system (known: {', '.join(systems.names())}). Pass the "
                              "plant: load_observer(path, system=kc.System(...)).")
         system = systems.get(name)
+    elif isinstance(system, System) and system.n_params:
+        system = system.at(system.param_nominal)
     return KKLObserver(model, system, discretization=discretization, substeps=substeps)
 
 
