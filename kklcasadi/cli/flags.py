@@ -47,7 +47,7 @@ from ..plant.systems import System
 __all__ = ["CommandError", "Parser", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "c_name",
            "flagged", "plant_of", "load", "shipped", "needs_torch", "add_plant", "add_noise", "add_kinds", "add_cache",
            "levels_text", "add_dt", "add_noise_levels", "check_dt", "model_label", "quiet_casadi", "stamp_of",
-           "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS"]
+           "add_system", "run_noise", "PROTOCOL_STD", "NOISE", "USER_ERRORS", "labelled_models", "benchmark_caches"]
 
 #: Noise std of a run (and its EKF) where a model's card records no levels (docs/protocol.md).
 PROTOCOL_STD = 0.1
@@ -121,6 +121,32 @@ def load(model: str | Path, plant: Optional[System], flag: str = "--model") -> A
     from ..observer.kkl import load_observer
 
     return flagged(flag, load_observer, model, system=plant)
+
+
+def labelled_models(args: argparse.Namespace, plant: Optional[System]) -> list[tuple[str, Any]]:
+    """The observers of ``MODELS`` (of one plant) with their ``--labels`` (default: the directories' names)."""
+    if args.labels is not None and len(args.labels) != len(args.models):
+        raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
+                           f"received {len(args.labels)}")
+    observers: list[tuple[str, Any]] = []
+    for i, model in enumerate(args.models):
+        obs = load(model, plant, "MODELS")
+        if observers and obs.system.fingerprint != observers[0][1].system.fingerprint:
+            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
+                               f"after models for {observers[0][1].system.name!r}")
+        observers.append((args.labels[i] if args.labels else Path(model).resolve().name, obs))
+    return observers
+
+
+def benchmark_caches(args: argparse.Namespace) -> tuple[Any, Any]:
+    """The trial cache and the compiler of ``--cache-dir``, ``--no-cache`` and ``--vm`` (None: the CasADi VM)."""
+    from ..evaluation.compiled import Compiler
+    from ..evaluation.trialcache import TrialCache, cache_root
+    from ..observer.codegen import fast_kernels
+
+    root = Path(args.cache_dir) if args.cache_dir else cache_root()
+    trials = TrialCache(None if args.no_cache else root / "trials")
+    return trials, None if args.vm else Compiler(cache_dir=root / "compiled", postprocess=fast_kernels)
 
 
 def shipped(system: str, method: str) -> Path:

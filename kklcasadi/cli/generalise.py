@@ -18,7 +18,8 @@ from .flags import (
     add_cache,
     add_plant,
     add_roughening,
-    load,
+    benchmark_caches,
+    labelled_models,
     plant_of,
     positive_float,
     positive_int,
@@ -57,28 +58,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..evaluation import generalisation as gen
-    from ..evaluation.compiled import Compiler
-    from ..evaluation.trialcache import TrialCache, cache_root
-    from ..observer.codegen import fast_kernels
 
-    if args.labels is not None and len(args.labels) != len(args.models):
-        raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
-                           f"received {len(args.labels)}")
     case_list = gen.cases(args.families, args.noise_levels, args.regimes)
     if not case_list:
         raise CommandError(f"--families, --regimes: no case: the families {args.families} have no regime among "
                            f"{args.regimes} (chirp, random and feedback are held_out; zero is id)")
-    root = Path(args.cache_dir) if args.cache_dir else cache_root()
-    trials = TrialCache(None if args.no_cache else root / "trials")
-    compiler = None if args.vm else Compiler(cache_dir=root / "compiled", postprocess=fast_kernels)
-    plant = plant_of(args)
-    observers = []
-    for i, model in enumerate(args.models):
-        obs = load(model, plant, "MODELS")
-        if observers and obs.system.fingerprint != observers[0][1].system.fingerprint:
-            raise CommandError(f"MODELS: expected models of one plant, received {model} for {obs.system.name!r} "
-                               f"after models for {observers[0][1].system.name!r}")
-        observers.append((args.labels[i] if args.labels else Path(model).resolve().name, obs))
+    trials, compiler = benchmark_caches(args)
+    observers = labelled_models(args, plant_of(args))
     settings = gen.Settings(n_trials=args.trials, seed=args.seed)
     t0 = time.perf_counter()
     report = gen.run(observers, case_list, settings, trials=trials, pf_particles=args.pf,

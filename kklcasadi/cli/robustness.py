@@ -18,8 +18,9 @@ from .flags import (
     add_cache,
     add_plant,
     add_roughening,
+    benchmark_caches,
     flagged,
-    load,
+    labelled_models,
     plant_of,
     positive_float,
     positive_int,
@@ -68,19 +69,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..evaluation import robustness as rb
-    from ..evaluation.compiled import Compiler
-    from ..evaluation.trialcache import TrialCache, cache_root
-    from ..observer.codegen import fast_kernels
 
-    if args.labels is not None and len(args.labels) != len(args.models):
-        raise CommandError(f"--labels: expected one label per model ({len(args.models)}), "
-                           f"received {len(args.labels)}")
     plant = plant_of(args)
     if plant is not None and not plant.n_params:
         raise CommandError(f"--plant: expected a plant with parameters (kc.System(..., params=P, param_box=...)), "
                            f"received {args.plant} without any")
-    observers = [(args.labels[i] if args.labels else Path(model).resolve().name, load(model, plant, "MODELS"))
-                 for i, model in enumerate(args.models)]
+    observers = labelled_models(args, plant)
     family = plant or flagged("--param-spread", systems.get, observers[0][1].system.name,
                               param_spread=args.param_spread)
     case_list = flagged("--kinds", rb.cases, family, damping=args.damping, input_gain=args.input_gain,
@@ -96,9 +90,7 @@ def run(args: argparse.Namespace) -> int:
     if existing:
         raise CommandError(f"--out: expected a directory without a report of {family.name!r}, received "
                            f"{out} with {existing[0].name}; choose another --out or move it")
-    root = Path(args.cache_dir) if args.cache_dir else cache_root()
-    trials = TrialCache(None if args.no_cache else root / "trials")
-    compiler = None if args.vm else Compiler(cache_dir=root / "compiled", postprocess=fast_kernels)
+    trials, compiler = benchmark_caches(args)
     t0 = time.perf_counter()
     report = flagged("MODELS", rb.run, observers, family, case_list, settings, trials=trials, pf_particles=args.pf,
                      pf_roughening=args.pf_roughening, compiler=compiler, n_threads=args.threads, progress=True)

@@ -50,6 +50,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--process-std": ("process_std", lambda a: a.process_std),
                  "--box-scale": ("box_scale", lambda a: a.box_scale),
                  "--kinds": ("kinds", lambda a: None if a.kinds is None else tuple(a.kinds)),
+                 "--noise-model": ("noise_models", lambda a: None if a.noise_model is None else tuple(a.noise_model)),
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
                  "--copies": ("copies", lambda a: None if a.copies is None else tuple(a.copies)),
@@ -86,6 +87,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="the input families of the training data. bank: kklcasadi.train.operational.FAMILIES "
                    "(default: the benchmark's four, multisine and a proportional feedback loop; add pd for a plant "
                    "that a controller with derivative action will drive); obs, dyn: the benchmark's kinds")
+    t.add_argument("--noise-model", nargs="+", metavar="MODEL",
+                   help="bank: the measurement noise of the training runs, scaled by --measurement-std: gauss (the "
+                   "default), student-t:NU, outliers:P,K (P of the samples at K times the noise), quantised:STEP, "
+                   "or a combination with '+'; with several, each run draws one (kklcasadi.plant.noise)")
+    t.add_argument("--param-spread", type=positive_float, metavar="S",
+                   help="bank, with --system: train over the family of the plant, every coefficient in nominal "
+                   f"(1 -+ S), each run's drawn from that box ({', '.join(systems.families())}); a --plant with "
+                   "params= trains over its own box without this flag. The card records the box and the draw")
     t.add_argument("--width", type=positive_int, help="autonomous: hidden width of T and T* (default 150; the "
                    "paper uses 350 for rossler and fhn)")
     t.add_argument("--members", type=positive_int, metavar="K",
@@ -229,7 +238,10 @@ def envelope_text(envelope: Any, plant: systems.System) -> str:
 def run(args: argparse.Namespace) -> int:
     if (args.plant is None) == (args.system is None):
         raise CommandError("--system/--plant: give exactly one: a shipped system name or your plant FILE.py:NAME")
-    plant = plant_of(args) or systems.get(args.system)
+    if args.param_spread is not None and args.system is None:
+        raise CommandError("--param-spread: makes the family of a shipped --system; your --plant declares its own "
+                           "parameters (kc.System(..., params=P, param_box=...))")
+    plant = plant_of(args) or flagged("--param-spread", systems.get, args.system, param_spread=args.param_spread)
     needs_torch("kklcasadi train")
     from ..train import train_observer
 

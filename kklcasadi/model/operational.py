@@ -164,6 +164,8 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
     factors: list[float] = []
     substeps = 0
     cut_by_kind: dict[str, list[int]] = {}
+    models: dict[str, int] = {}
+    drawn: list[np.ndarray] = []
     for batch, escape, noise in _chunks(system, config, seed, dt, measurement_std, process_std, time_scale, progress,
                                         "operational runs"):
         cut += int(np.sum(escape < n))
@@ -174,6 +176,10 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         failed += int(np.sum(~np.all(np.isfinite(batch.x), axis=(1, 2))))
         factors.extend(noise["measurement"].tolist())
         substeps = noise["substeps"]
+        for name in noise["noise_models"]:
+            models[name] = models.get(name, 0) + 1
+        if noise["params"] is not None:
+            drawn.append(noise["params"])
         valid = np.arange(n)[None, :] < escape[:, None]
         y = np.where(valid[..., None], batch.y, 0.0)          # after an escape: ignored, kept finite
         u = np.where(valid[..., None], batch.u, 0.0)
@@ -192,7 +198,13 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
               "escape_scale": float(plan.escape_scale), "stabilised": bool(plan.stabilise),
               "drifting_states": list(drifting_states(system)),
               "kinds": {kind: {"runs": runs_, "cut": cut_} for kind, (runs_, cut_) in cut_by_kind.items()},
-              "seconds": round(time.perf_counter() - t0, 2)}
+              "noise_models": models, "seconds": round(time.perf_counter() - t0, 2)}
+    if drawn:
+        values = np.concatenate(drawn)
+        record["params"] = {"names": list(system.param_names), "box": system.param_box.tolist(),
+                            "nominal": system.param_nominal.tolist(),
+                            "draw": f"a Latin hypercube over the box, one value per run (default_rng([{seed}, 6]))",
+                            "drawn_range": [values.min(axis=0).tolist(), values.max(axis=0).tolist()]}
     return OperationalData(data["z"], data["y"], data["u"], data["x"], data["t"], data["run"], record)
 
 

@@ -2,7 +2,9 @@
 
 The runs start from initial states in the X0 box, take inputs from the ``train`` (or ``wide``) ranges of
 :mod:`kklcasadi.plant.signals` and the families of :data:`FAMILIES` (open loop, or closed around the noisy
-output), and carry process and measurement noise at levels drawn per run about the design level. A ``bank``
+output), and carry process and measurement noise at levels drawn per run about the design level (the
+measurement noise of a model of :mod:`kklcasadi.plant.noise` drawn per run among ``noise_models``), and,
+for a plant with parameters, the parameters of each run drawn from the plant's box. A ``bank``
 decoder is fitted on the latents the observer sees along them (:mod:`kklcasadi.model.operational`); no torch.
 
 Budgets count simulated seconds and runs, not samples: the runs are simulated in chunks (a progress
@@ -26,6 +28,7 @@ from tqdm.auto import tqdm
 from . import signals as sig
 from .design import time_scales
 from .envelope import LIKE_AMPLITUDE_FACTORS, LIKE_TIME_FACTORS, OUTPUT_MARGIN, Envelope
+from .noise import GAUSS, NoiseModel, noise_model
 from .simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
 from .systems import System
 
@@ -87,6 +90,11 @@ class RolloutConfig:
         Each run's noise levels are the nominal ones times factors drawn log-uniformly from this
         range (measurement noise per run, process noise per chunk of runs); ``(1, 1)``: the nominal
         levels.
+    noise_models : tuple of str
+        The measurement noise's model (:mod:`kklcasadi.plant.noise`: ``gauss``, ``student-t:NU``,
+        ``outliers:P,K``, ``quantised:STEP``, combined with ``+``), its scale the run's measurement
+        std; with several, each run's drawn uniformly among them (``default_rng([seed, 3])``, after
+        the chunk's noise factors).
     method, substeps : str, int or None
         Plant integrator (see :func:`kklcasadi.plant.simulate.step_function`); ``substeps=None``
         takes the fewest RK4 steps per sample with ``h * omega <= RK_STEP`` (``omega``: the plant's
@@ -133,6 +141,7 @@ class RolloutConfig:
     kinds: tuple[str, ...] = DEFAULT_KINDS
     regime: str = "wide"
     noise_range: tuple[float, float] = (0.5, 2.0)
+    noise_models: tuple[str, ...] = ("gauss",)
     method: str = "rk"
     substeps: int | None = None
     box_scale: float | tuple[float, float] = 1.0
@@ -154,6 +163,10 @@ class RolloutConfig:
         bad = [k for k in self.kinds if k not in FAMILIES]
         if bad or not self.kinds:
             raise ValueError(f"kinds: expected a non-empty subset of {FAMILIES}, received {self.kinds!r}.")
+        if not isinstance(self.noise_models, tuple) or not self.noise_models:
+            raise ValueError(f"noise_models: expected a non-empty tuple of noise models, received "
+                             f"{self.noise_models!r}.")
+        object.__setattr__(self, "noise_models", tuple(str(noise_model(m)) for m in self.noise_models))
         lo, hi = self.noise_range
         if not (0 < lo <= hi and math.isfinite(hi)):
             raise ValueError(f"noise_range: expected factors 0 < lo <= hi, received {self.noise_range!r}.")
@@ -540,12 +553,15 @@ def loop_signs(system: System) -> np.ndarray:
 
 
 def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: np.ndarray, process: np.ndarray,
-                 seeds: Sequence[object], v: np.ndarray, method: str, substeps: int) -> TrajectoryBatch:
-    """Runs under their feedback laws, one sample at a time (``v``: the measurement noise (M, N, ny))."""
+                 seeds: Sequence[object], v: np.ndarray, method: str, substeps: int, theta: np.ndarray | None,
+                 measure: Sequence[NoiseModel]) -> TrajectoryBatch:
+    """Runs under their feedback laws, one sample at a time (``v``: the measurement noise (M, N, ny); ``theta``:
+    the runs' parameter values (M, n_params) or None; ``measure``: each run's noise model, which quantises)."""
     m, n = len(x0), t.size
     dt = float(t[1] - t[0])
-    step = step_function(system, dt, method, substeps=substeps).map(m)
-    h = system.h.map(m)
+    step = step_function(system, dt, method, substeps=substeps, parametric=theta is not None).map(m)
+    h = system.h.map(m) if theta is None else system.h_param.map(m)
+    held = [] if theta is None else [theta]
     w = np.stack([np.random.default_rng(s).normal(0.0, 1.0, (n - 1, system.nx)) for s in seeds]) * process
     x = np.full((m, n, system.nx), np.nan)
     u, y = np.zeros((m, n, system.nu)), np.zeros((m, n, system.ny))
@@ -553,7 +569,7 @@ def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: n
     pull = np.array([1.0 - np.exp(-dt / law.lag) if law.lag > 0 else 1.0 for law in laws])[:, None]
     yf = np.zeros((m, system.ny))
     for k in range(n):
-        y[:, k] = np.asarray(h(x[:, k].T)).T + v[:, k]
+        y[:, k] = _measured(np.asarray(h(x[:, k].T, *[a.T for a in held])).T + v[:, k], measure)
         yf_next = y[:, k] if k == 0 else yf + pull * (y[:, k] - yf)       # the lagged output, from y_0
         dyf = (yf_next - yf) / dt if k else np.zeros_like(yf)
         yf = yf_next
@@ -561,7 +577,7 @@ def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: n
             u[i, k] = laws[i](t[k], y[i, k], dyf[i], k)
         if k < n - 1:
             with np.errstate(invalid="ignore", over="ignore"):
-                x[:, k + 1] = np.asarray(step(x[:, k].T, np.concatenate([u[:, k], w[:, k]], axis=1).T)).T
+                x[:, k + 1] = np.asarray(step(x[:, k].T, np.concatenate([u[:, k], w[:, k], *held], axis=1).T)).T
                 x[:, k + 1][~(np.abs(x[:, k + 1]) < 1e6)] = np.nan
     ok = np.all(np.isfinite(x), axis=(1, 2))
     return TrajectoryBatch(t, x, u, y, ok)
@@ -614,6 +630,11 @@ def _inputs(system: System, config: RolloutConfig, seed: int, t: np.ndarray, rat
     return inputs, x0, names
 
 
+def _measured(y: np.ndarray, models: Sequence[NoiseModel]) -> np.ndarray:
+    """Each run's (row's) noisy output ``h(x) + v`` as its noise model measures it (quantised or not)."""
+    return np.stack([model.measure(row) for model, row in zip(models, y)]) if len(y) else y
+
+
 def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measurement_std: float,
             process_std: float | Sequence[float], rate: float, progress: bool,
             desc: str) -> Iterator[tuple[TrajectoryBatch, np.ndarray, dict]]:
@@ -631,12 +652,20 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
     log_lo, log_hi = np.log(config.noise_range)
     substeps = _substeps(system, config, dt)
     process = np.asarray(process_std, dtype=float)
+    theta = system.sample_params(config.n_traj, np.random.default_rng([seed, 6])) if system.n_params else None
+    models = [noise_model(m) for m in config.noise_models]
     with tqdm(total=config.n_traj, desc=desc, unit="run", disable=not progress, leave=False) as bar:
         for start in range(0, config.n_traj, config.chunk):
             idx = np.arange(start, min(start + config.chunk, config.n_traj))
             p_factor = float(np.exp(noise.uniform(log_lo, log_hi)))
             m_factor = np.exp(noise.uniform(log_lo, log_hi, len(idx)))
-            v = noise.normal(size=(len(idx), t.size, system.ny)) * (measurement_std * m_factor)[:, None, None]
+            which = noise.integers(len(models), size=len(idx)) if len(models) > 1 else np.zeros(len(idx), int)
+            if models == [GAUSS]:
+                base = noise.normal(size=(len(idx), t.size, system.ny))
+            else:
+                base = np.stack([models[j].sample(noise, (t.size, system.ny), 1.0) for j in which])
+            v = base * (measurement_std * m_factor)[:, None, None]
+            measure = [models[j] for j in which]
             loop = np.array([isinstance(inputs[i], _Feedback) for i in idx])
             x = np.full((len(idx), t.size, system.nx), np.nan)
             u, y = np.zeros((len(idx), t.size, system.nu)), np.zeros((len(idx), t.size, system.ny))
@@ -644,15 +673,18 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
                 if not part.size:
                     continue
                 where = part - start
+                params = None if theta is None else theta[part]
+                runs_measure = [measure[i] for i in where]
                 if closed:
                     batch = _closed_loop(system, x0[part], [inputs[i] for i in part], t, process * p_factor,
-                                         [seeds[i] for i in part], v[where], config.method, substeps)
+                                         [seeds[i] for i in part], v[where], config.method, substeps, params,
+                                         runs_measure)
                     y[where] = batch.y
                 else:
                     batch = simulate_batch(system, x0[part], [inputs[i] for i in part], horizon, dt,
                                            process_std=process * p_factor, seed=[seeds[i] for i in part],
-                                           method=config.method, substeps=substeps)
-                    y[where] = np.asarray(batch.y) + v[where]
+                                           method=config.method, substeps=substeps, params=params)
+                    y[where] = _measured(np.asarray(batch.y) + v[where], runs_measure)
                 x[where], u[where] = batch.x, batch.u
             escape = _escaped(system, x.copy(), config.escape_scale)
             if bounds is not None:
@@ -660,7 +692,9 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
             bar.update(len(idx))
             yield (TrajectoryBatch(t, x, u, y, escape == t.size), escape,
                    {"process": p_factor, "measurement": m_factor, "substeps": substeps,
-                    "kinds": [kinds[i] for i in idx]})
+                    "kinds": [kinds[i] for i in idx],
+                    "noise_models": [str(models[j]) for j in which],
+                    "params": None if theta is None else theta[idx]})
 
 
 def rollouts(system: System, config: RolloutConfig, seed: int, *, dt: float = 0.05, measurement_std: float = 0.1,

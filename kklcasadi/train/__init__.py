@@ -28,7 +28,7 @@ from ..model.files import derive_model, load_model, save_model
 from ..plant import systems
 from ..plant.design import Design
 from ..plant.systems import System
-from ..validation import error, positive_int
+from ..validation import Text, error, positive_int
 from .config import (
     CurriculumConfig,
     DynConfig,
@@ -112,7 +112,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     Parameters
     ----------
     system : System or str
-        The plant (or a registered name).
+        The plant (or a registered name). A plant with parameters (``bank`` only) is a family: each
+        training run draws its parameters from the box, and the card records the nominal plant (the
+        one the observer runs with) and, in ``training.runs.params``, the box and the draw.
     method : str
         A key of :data:`kklcasadi.model.variants.VARIANTS` (see :data:`METHODS`). ``autonomous``: Phase 1
         (with ``base``: keep the base's encoder and train only a new decoder, e.g. for another noise
@@ -155,6 +157,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
     if (out / "card.json").exists() and not overwrite and not resume:
         raise FileExistsError(f"{out} already holds a model; pass overwrite=True (CLI: --overwrite) to replace it")
     variant = variants.get(method)
+    if plant.n_params and method != "bank":
+        raise error("system", f"a plant without parameters for method {method!r} (only 'bank' trains over a family "
+                    "of plants)", Text(f"plant {plant.name!r} with parameters {list(plant.param_names)}"))
     if variant.needs_base and base is None and not (out.parent / "autonomous" / "card.json").exists():
         if progress:
             print(f"training the Phase-1 model {out.parent / 'autonomous'} first ({method} builds on it)")
@@ -181,7 +186,8 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
                                               progress=progress, workdir=workdir, resume=resume)
     training = {**_jsonable(trained.training), "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1),
                 "device": device}
-    card = make_card(plant, trained.design, method, trained.spec, dt=dt, window=trained.window,
+    nominal = plant.at(plant.param_nominal) if plant.n_params else plant    # the plant the observer runs with
+    card = make_card(nominal, trained.design, method, trained.spec, dt=dt, window=trained.window,
                      training=training, measurement_std=trained.measurement_std, domain=trained.domain,
                      base=None if base_model is None else _base_reference(out, base_model),
                      coverage=trained.coverage,
