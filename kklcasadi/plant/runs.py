@@ -632,7 +632,13 @@ def _inputs(system: System, config: RolloutConfig, seed: int, t: np.ndarray, rat
 
 def _measured(y: np.ndarray, models: Sequence[NoiseModel]) -> np.ndarray:
     """Each run's (row's) noisy output ``h(x) + v`` as its noise model measures it (quantised or not)."""
-    return np.stack([model.measure(row) for model, row in zip(models, y)]) if len(y) else y
+    if not any(model.step for model in models):
+        return y
+    out = np.array(y, dtype=float)
+    for model in set(models):
+        rows = np.array([m == model for m in models])
+        out[rows] = model.measure(out[rows])
+    return out
 
 
 def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measurement_std: float,
