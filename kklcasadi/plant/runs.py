@@ -553,12 +553,14 @@ def loop_signs(system: System) -> np.ndarray:
 
 
 def _closed_loop(system: System, x0: np.ndarray, laws: Sequence[_Feedback], t: np.ndarray, process: np.ndarray,
-                 seeds: Sequence[object], v: np.ndarray, method: str, substeps: int, theta: np.ndarray | None,
-                 measure: Sequence[NoiseModel]) -> TrajectoryBatch:
+                 seeds: Sequence[object], v: np.ndarray, method: str, substeps: int, theta: np.ndarray | None = None,
+                 measure: Sequence[NoiseModel] = ()) -> TrajectoryBatch:
     """Runs under their feedback laws, one sample at a time (``v``: the measurement noise (M, N, ny); ``theta``:
-    the runs' parameter values (M, n_params) or None; ``measure``: each run's noise model, which quantises)."""
+    the runs' parameter values (M, n_params) or None; ``measure``: each run's noise model, which quantises; default
+    Gaussian)."""
     m, n = len(x0), t.size
     dt = float(t[1] - t[0])
+    measure = list(measure) or [GAUSS] * m
     step = step_function(system, dt, method, substeps=substeps, parametric=theta is not None).map(m)
     h = system.h.map(m) if theta is None else system.h_param.map(m)
     held = [] if theta is None else [theta]
