@@ -32,7 +32,7 @@ __all__ = ["AugmentedEKF", "ParameterPF", "PARAM_WALKS", "SHRINKAGE"]
 
 #: The grid of the random walk's rate (a fraction of the box width per square-root second) that
 #: :meth:`AugmentedEKF.fit` searches with the noise scales.
-PARAM_WALKS = (0.003, 0.01, 0.03, 0.1)
+PARAM_WALKS = (0.001, 0.003, 0.01, 0.03, 0.1)
 #: Liu and West's ``h`` of :class:`ParameterPF` (a discount of about 0.99).
 SHRINKAGE = 0.1
 
@@ -122,7 +122,7 @@ class AugmentedEKF(_Split, EKF):
         tuning : TrajectoryBatch or tuple ``(t, x, y, u)``
             Tuning trials (their own seed; never the scored trials).
         q_scales, r_scales, param_walks : sequence of float
-            The grid (default 3 x 2 x 4 = 24 filters).
+            The grid (default 3 x 2 x 5 = 30 filters).
         **options
             The other arguments of :class:`AugmentedEKF`.
         """
