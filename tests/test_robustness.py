@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.cli import main
 from kklcasadi.estimators import AugmentedEKF, ParameterPF, TunedEKF
 from kklcasadi.estimators.pf import ROUGHENING
@@ -126,7 +127,9 @@ def test_the_command(model_dir_factory, tmp_path, capsys):
                  "--no-cache", "--labels", "mine", "--out", str(out)]) == 0
     assert "| exact | exact | 2 |" in capsys.readouterr().out          # the smallest case, end to end
     data = json.loads((out / "duffing_robustness.json").read_text())
-    assert data["command"].startswith("kklcasadi ") and len(data["commit"]) in (7, 40) or data["commit"] == "unknown"
+    for written in (out / "duffing_robustness.json", out / "duffing_robustness.md", out / "duffing_robustness.png"):
+        stamp = provenance.read(written)
+        assert stamp.command.startswith("kklcasadi robustness ") and stamp.seeds == {"trials": 2026, "tuning": 4242}
     assert data["settings"]["seed"] == 2026 and data["settings"]["tuning_seed"] == 4242
     assert (out / "duffing_robustness.png").exists() and (out / "duffing_robustness.md").exists()
     assert main(["robustness", str(path), "--kinds", "exact", "--trials", "2", "--out", str(out)]) == 2

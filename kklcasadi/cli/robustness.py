@@ -24,6 +24,7 @@ from .flags import (
     plant_of,
     positive_float,
     positive_int,
+    stamp_of,
 )
 
 
@@ -99,24 +100,15 @@ def run(args: argparse.Namespace) -> int:
     table = report.markdown()
     print(table)
     if args.out:
+        from ..provenance import json_record, markdown
+
         out.mkdir(parents=True, exist_ok=True)
-        record = {**report.to_json(), "command": "kklcasadi " + " ".join(sys.argv[1:]) if sys.argv else "",
-                  "commit": _commit(), "wall_s": wall}
-        for path, text in ((paths[0], table + "\n"), (paths[1], json.dumps(record, indent=1) + "\n")):
+        stamp = stamp_of(args, trials=args.seed, tuning=args.tuning_seed,
+                         **({} if args.pf is None else {"pf": args.seed}))
+        record = json_record({**report.to_json(), "wall_s": round(wall, 1)}, stamp)
+        for path, text in ((paths[0], markdown(table + "\n", stamp)), (paths[1], json.dumps(record, indent=1) + "\n")):
             with open(path, "x") as handle:                 # exclusive: never over a file written meanwhile
                 handle.write(text)
-        report.plot(paths[2])
+        report.plot(paths[2], stamp=stamp)
         print(f"wrote {', '.join(str(p) for p in paths)}", file=sys.stderr)
     return 0
-
-
-def _commit() -> str:
-    """The checkout's commit (``git rev-parse HEAD``), or ``unknown`` outside one."""
-    import subprocess
-
-    try:
-        done = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                              cwd=Path(__file__).resolve().parent)
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-    return done.stdout.strip()

@@ -28,7 +28,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from .. import metrics
+from .. import metrics, provenance
 from ..estimators.augmented import SHRINKAGE, AugmentedEKF, ParameterPF
 from ..estimators.pf import ROUGHENING, SUBSTEPS
 from ..estimators.tuned import TunedEKF
@@ -297,8 +297,9 @@ class Report:
                 "settings": asdict(self.settings), "pf_particles": self.pf_particles, "flag_share": FLAG_SHARE,
                 "targets": {k: [list(t) for t in v] for k, v in TARGETS.items()}, "cases": entries, **self.extra}
 
-    def plot(self, path: Any) -> None:
-        """Per model, each case's ratio to the tuned EKF (and to the augmented EKF and the PF), the targets drawn."""
+    def plot(self, path: Any, *, stamp: Optional[provenance.Stamp] = None) -> None:
+        """Per model, each case's ratio to every baseline, the targets drawn; ``stamp`` (default: this process's)
+        goes into the PNG's metadata."""
         import matplotlib
 
         matplotlib.use("Agg")
@@ -325,7 +326,7 @@ class Report:
             ax.set_title(f"{self.system}: {label} against the baselines (black: the targets)")
             ax.legend(fontsize=8, ncol=len(names), loc="upper left", bbox_to_anchor=(0, -0.35))
         fig.tight_layout()
-        fig.savefig(path, dpi=110)
+        fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
         plt.close(fig)
 
 
