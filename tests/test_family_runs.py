@@ -70,3 +70,22 @@ def test_training_over_a_family_records_the_box_and_the_draw(tmp_path):
     assert kc.load_observer(path, system=family).system.fingerprint == kc.systems.get("duffing").fingerprint
     with pytest.raises(ValueError, match=r"^system: expected a plant without parameters for method 'autonomous'"):
         train_observer(family, "autonomous", tmp_path / "auto", progress=False)
+
+
+def test_the_training_flags(capsys, tmp_path):
+    from kklcasadi.cli import build_parser, main
+    from kklcasadi.cli.train import training_config
+
+    args = build_parser().parse_args(["train", "--system", "duffing", "--param-spread", "0.3", "--runs", "40",
+                                      "--noise-model", "gauss", "student-t:3", "--out", str(tmp_path / "m")])
+    config = training_config(kc.systems.get("duffing"), "bank", args)
+    assert config.rollouts.n_traj == 40 and config.rollouts.noise_models == ("gauss", "student-t:3")
+    assert main(["train", "--system", "rossler", "--param-spread", "0.3", "--out", str(tmp_path / "r")]) == 2
+    assert "error: --param-spread: expected None for 'rossler', which has no parameterised form" in \
+        capsys.readouterr().err
+    assert main(["train", "--plant", "examples/damped3_plant.py:make_plant", "--param-spread", "0.3",
+                 "--out", str(tmp_path / "p")]) == 2
+    assert "error: --param-spread: makes the family of a shipped --system" in capsys.readouterr().err
+    assert main(["train", "--system", "duffing", "--method", "autonomous", "--noise-model", "student-t:3",
+                 "--out", str(tmp_path / "a")]) == 2
+    assert "error: --noise-model: only --method bank takes it" in capsys.readouterr().err

@@ -50,6 +50,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--process-std": ("process_std", lambda a: a.process_std),
                  "--box-scale": ("box_scale", lambda a: a.box_scale),
                  "--kinds": ("kinds", lambda a: None if a.kinds is None else tuple(a.kinds)),
+                 "--runs": ("n_traj", lambda a: a.runs),
                  "--noise-model": ("noise_models", lambda a: None if a.noise_model is None else tuple(a.noise_model)),
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
@@ -87,6 +88,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="the input families of the training data. bank: kklcasadi.train.operational.FAMILIES "
                    "(default: the benchmark's four, multisine and a proportional feedback loop; add pd for a plant "
                    "that a controller with derivative action will drive); obs, dyn: the benchmark's kinds")
+    t.add_argument("--runs", type=positive_int, metavar="N",
+                   help="bank: the number of operational runs the decoders are fit on (the budget with --epochs; "
+                   "default the recipe's: 8000 for Duffing and Van der Pol, 1000 for a new plant)")
     t.add_argument("--noise-model", nargs="+", metavar="MODEL",
                    help="bank: the measurement noise of the training runs, scaled by --measurement-std: gauss (the "
                    "default), student-t:NU, outliers:P,K (P of the samples at K times the noise), quantised:STEP, "
