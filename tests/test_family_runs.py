@@ -19,7 +19,7 @@ NOISE = {"process_std": 0.1, "measurement_std": 0.1}
 def test_each_run_draws_its_parameters_from_the_box():
     family = kc.systems.get("vdp", param_spread=0.3)
     batch = rollouts(family, CFG, seed=3, **NOISE)
-    theta = family.sample_params(8, np.random.default_rng([3, 5]))
+    theta = family.sample_params(8, np.random.default_rng([3, 7]))
     assert np.all((theta >= 0.7) & (theta <= 1.3)) and len(np.unique(theta[:, 0])) == 8
     # every run, open or closed loop, is the run of the plant at its values (the same draws otherwise)
     for i in range(8):
@@ -65,7 +65,7 @@ def test_training_over_a_family_records_the_box_and_the_draw(tmp_path):
     assert card["system"]["fingerprint"] == kc.systems.get("duffing").fingerprint     # the nominal plant
     runs = card["training"]["runs"]
     assert runs["params"]["names"] == ["alpha", "beta"] and runs["params"]["box"] == [[0.7, 1.3], [0.7, 1.3]]
-    assert "default_rng([0, 5])" in runs["params"]["draw"] and sum(runs["noise_models"].values()) == 8
+    assert "default_rng([0, 7])" in runs["params"]["draw"] and sum(runs["noise_models"].values()) == 8
     assert card["training"]["rollouts"]["noise_models"] == ["gauss", "student-t:2"]
     assert kc.load_observer(path, system=family).system.fingerprint == kc.systems.get("duffing").fingerprint
     with pytest.raises(ValueError, match=r"^system: expected a plant without parameters for method 'autonomous'"):

@@ -203,7 +203,7 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         values = np.concatenate(drawn)
         record["params"] = {"names": list(system.param_names), "box": system.param_box.tolist(),
                             "nominal": system.param_nominal.tolist(),
-                            "draw": f"a Latin hypercube over the box, one value per run (default_rng([{seed}, 6]))",
+                            "draw": f"a Latin hypercube over the box, one value per run (default_rng([{seed}, 7]))",
                             "drawn_range": [values.min(axis=0).tolist(), values.max(axis=0).tolist()]}
     return OperationalData(data["z"], data["y"], data["u"], data["x"], data["t"], data["run"], record)
 

@@ -68,7 +68,7 @@ def augmented(system: System, *, input_disturbance: bool = False, disturbance_bo
     n_extra = sum(s.size1() for s in states[1:])
     return System(f"{system.name}_augmented", ca.vertcat(*states), u, ca.vertcat(xdot, ca.SX.zeros(n_extra, 1)), y,
                   np.vstack(boxes), description=f"{system.name} with its parameters as states",
-                  angle_states=system.angle_states, angle_outputs=system.angle_outputs)
+                  angle_states=system.angle_states, angle_outputs=system.angle_outputs, u_box=system.u_box)
 
 
 def forced_rows(system: System) -> list[int]:
@@ -105,4 +105,4 @@ def perturbed(system: System, *, damping: float = 0.0, input_gain: float = 1.0) 
         options = {"params": system.p_sym, "param_box": system.param_box, "param_nominal": system.param_nominal}
     return System(system.name, x, u, xdot, system.y_param_expr, system.x0_box, description=system.description,
                   paper_design=system.paper_design, angle_states=system.angle_states,
-                  angle_outputs=system.angle_outputs, **options)
+                  angle_outputs=system.angle_outputs, u_box=system.u_box, **options)

@@ -660,7 +660,7 @@ def _chunks(system: System, config: RolloutConfig, seed: int, dt: float, measure
     log_lo, log_hi = np.log(config.noise_range)
     substeps = _substeps(system, config, dt)
     process = np.asarray(process_std, dtype=float)
-    theta = system.sample_params(config.n_traj, np.random.default_rng([seed, 6])) if system.n_params else None
+    theta = system.sample_params(config.n_traj, np.random.default_rng([seed, 7])) if system.n_params else None
     models = [noise_model(m) for m in config.noise_models]
     with tqdm(total=config.n_traj, desc=desc, unit="run", disable=not progress, leave=False) as bar:
         for start in range(0, config.n_traj, config.chunk):
