@@ -313,7 +313,7 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
         if not ok.any():
             continue
         est = obs.simulate(batch.t, batch.y[ok], batch.u[ok])
-        ours = metrics.smape(batch.x[ok], est.xhat, angles=plant.angle_states)
+        ours = np.asarray(metrics.smape(batch.x[ok], est.xhat, angles=plant.angle_states))
         theirs = ekf.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat
         kept = np.isfinite(theirs).all(axis=(1, 2))            # an EKF can diverge (a stiff plant, a large P0)
         if not kept.any():

@@ -21,7 +21,7 @@ ones the whole box (what the training runs span: :func:`kklcasadi.plant.runs.inp
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, Mapping
+from typing import Any, Mapping, overload
 
 import casadi as ca
 import numpy as np
@@ -392,6 +392,10 @@ def box_map(u_box: Any) -> tuple[np.ndarray, np.ndarray]:
     return box.mean(axis=1), 0.5 * (box[:, 1] - box[:, 0]) / UNIT_LEVEL
 
 
+@overload
+def in_box(u: Signal, u_box: Any) -> Signal: ...
+@overload
+def in_box(u: OutputFeedback, u_box: Any) -> OutputFeedback: ...
 def in_box(u: Signal | OutputFeedback, u_box: Any) -> Signal | OutputFeedback:
     """The input ``u``, drawn in the benchmark's units, in the units of a plant whose inputs span ``u_box``.
 
