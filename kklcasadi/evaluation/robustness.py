@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import asdict, dataclass, field
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -466,21 +466,20 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
                                             smape=models[label]["smape"][-1], escaped=escaped))
         case_rows = []
 
-        def score(name: str, xhat: np.ndarray, var: np.ndarray) -> None:
-            """A baseline's SMAPE on the case's trials (its first ``len(xhat)``), and its covariance's consistency."""
+        def score(name: str, est: Any, part: Callable[[np.ndarray], np.ndarray] = np.asarray) -> None:
+            """A baseline's SMAPE on the case's trials (its first ``len(xhat)``) from its estimate ``est`` (``part``:
+            the plant's states of it), and its covariance's consistency."""
+            xhat = part(est.xhat)
             baselines[name].append(metrics.smape(x[:len(xhat)], xhat, angles=family.angle_states))
             if consistency:
-                case_rows.append(uncertainty_row(TITLES[name], family, case.name, t, x[:len(xhat)], xhat, var,
-                                                 smape=baselines[name][-1], escaped=escaped))
+                case_rows.append(uncertainty_row(TITLES[name], family, case.name, t, x[:len(xhat)], xhat,
+                                                 part(est.var), smape=baselines[name][-1], escaped=escaped))
 
-        ekf = case_ekf(nominal, settings.noise, settings.dt).simulate(t, y, u, n_threads=n_threads)
-        score("ekf", ekf.xhat, ekf.var)
+        score("ekf", case_ekf(nominal, settings.noise, settings.dt).simulate(t, y, u, n_threads=n_threads))
         tuned = TunedEKF.fit(nominal, settings.dt, tuning, process_std=settings.noise, measurement_std=settings.noise)
-        fitted = tuned.simulate(t, y, u, n_threads=n_threads)
-        score("tuned", fitted.xhat, fitted.var)
+        score("tuned", tuned.simulate(t, y, u, n_threads=n_threads))
         aekf, record = _augmented(family, settings, tuning)
-        est = aekf.simulate(t, y, u)
-        score("augmented", aekf.split(est.xhat)[0], aekf.split(est.var)[0])
+        score("augmented", aekf.simulate(t, y, u), lambda a: aekf.split(a)[0])
         tuning_records.append({"tuned": {**tuned.tuning.best, "score": tuned.tuning.best_score,
                                          "grid": tuned.tuning.to_json()},
                                "augmented": record, "tuning_trials": int(tuning.ok.sum())})
@@ -491,8 +490,7 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
                              substeps=SUBSTEPS.get(family.name, 1), roughening=pf_roughening, seed=settings.seed,
                              n_threads=n_threads, **how)
             k = len(x) if pf_trials is None else min(pf_trials, len(x))
-            est = pf.simulate(t, y[:k], u[:k])
-            score("pf", pf.split(est.xhat)[0], pf.split(est.var)[0])
+            score("pf", pf.simulate(t, y[:k], u[:k]), lambda a: pf.split(a)[0])
         rows += case_rows
     return Report(family.name, family.param_names, family.param_box.tolist(), settings, list(case_list), models,
                   baselines, tuning_records, pf_particles,
