@@ -171,8 +171,11 @@ def consistency() -> str:
             fits.append(f"| {system} | no head | | | | |")
             continue
         v = record["validation"]
+        dense = record.get("fit_dense_until", 0.0)
         fits.append(f"| {system} | {record['fit_trials_per_regime']} x 4 (seed {record['fit_seed']}), "
-                    f"{record['samples']} samples | {record['validation_trials_per_regime']} x 4 (seed "
+                    f"{record['samples']} samples (every {record['fit_every']}th"
+                    + (f", every one before {dense:g} s" if dense else "") + ") | "
+                    f"{record['validation_trials_per_regime']} x 4 (seed "
                     f"{record['validation_seed']}) | {', '.join(f'{f:.3f}' for f in record['scale'])} | "
                     f"{v['nees']:.3g} ({v['nees_band'][0]:.3g}-{v['nees_band'][1]:.3g}) | "
                     f"{' / '.join(f'{100 * c:.1f}' for c in v['coverage']['2sigma'])} |")
