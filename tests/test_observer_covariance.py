@@ -124,9 +124,11 @@ def test_a_head_with_wrong_sizes_is_refused(model_dir_factory):
 
 
 @needs_gcc
-@pytest.mark.parametrize("math, tol", [("libm", 0.0), ("vector", 1e-12)])
-def test_the_c_step_gains_the_covariance_output(headed, tmp_path, math, tol):
-    obs, _, _ = headed
+@pytest.mark.parametrize("math, tol, asinh", [("libm", 0.0, None), ("vector", 1e-12, None), ("libm", 0.0, [0.0, 0.4]),
+                                              ("vector", 1e-12, [0.0, 0.4])])
+def test_the_c_step_gains_the_covariance_output(model_dir_factory, tmp_path, math, tol, asinh):
+    """C equals the CasADi VM, with a state decoded through ``s sinh(v)`` (its interval gain) or without."""
+    obs = load_observer(with_head(model_dir_factory("bank", hidden=(9, 7)), asinh=asinh)[0])
     files = generate_c(obs, tmp_path, "cov", math=math)
     header = files[1].read_text()
     assert "#define COV_HAS_COVARIANCE 1" in header and "res[3] P_next" in header
