@@ -170,7 +170,7 @@ def _off_distribution(path: Path, title: str) -> str:
     """The covariances scored on the cases of one off-distribution run (``generalise`` or ``robustness
     --consistency``): per case and estimator the consistency, and per model the verdicts against the EKF's."""
     if not path.exists():
-        return f"{title}: not measured (`{path.relative_to(ROOT)}` holds no run).\n"
+        return f"{title}: not measured (no run written to {path.relative_to(ROOT)} yet).\n"
     stamp = provenance.read(path)
     data = _records(path)
     records = data["consistency"] if isinstance(data, dict) else data
@@ -206,7 +206,7 @@ def _primed_mhe() -> str:
     """The KKL-primed MHE with the observer's covariance against the constant profile (issue 49's item 3)."""
     path = RESULTS / "mhe" / "duffing" / "duffing_primed_mhe.json"
     if not path.exists():
-        return "The KKL-primed MHE with the covariance head: not measured (`results/mhe/duffing/` holds no run).\n"
+        return "The KKL-primed MHE with the covariance head: not measured (no run written to results/mhe/duffing/ yet).\n"
     stamp = provenance.read(path)
     rows = _records(path)["rows"]
     lines = ["| regime | estimator | trials | SMAPE % | RMSE after 5 s |", "|---|---|---|---|---|"]
