@@ -206,7 +206,8 @@ def _primed_mhe() -> str:
     """The KKL-primed MHE with the observer's covariance against the constant profile (issue 49's item 3)."""
     path = RESULTS / "mhe" / "duffing" / "duffing_primed_mhe.json"
     if not path.exists():
-        return "The KKL-primed MHE with the covariance head: not measured (no run written to results/mhe/duffing/ yet).\n"
+        return ("The KKL-primed MHE with the covariance head: not measured (no run written to results/mhe/duffing/ "
+                "yet).\n")
     stamp = provenance.read(path)
     rows = _records(path)["rows"]
     lines = ["| regime | estimator | trials | SMAPE % | RMSE after 5 s |", "|---|---|---|---|---|"]
