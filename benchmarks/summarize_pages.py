@@ -222,6 +222,25 @@ def _primed_mhe() -> str:
             f"{len(head)} regimes.\n\n" + "\n".join(lines) + "\n")
 
 
+def _tightening() -> str:
+    """The output-feedback NMPC with its x2 bound tightened by k sigma of the head (issue 49's item 3)."""
+    path = RESULTS / "nmpc" / "tighten" / "nmpc.json"
+    if not path.exists():
+        return "The NMPC tightened by k sigma: not measured (no run written to results/nmpc/tighten/ yet).\n"
+    stamp = provenance.read(path)
+    rows = _records(path)["rows"]
+    lines = ["| system | feed | trials | cost | x1 RMSE | max violation | max violation t>=5s | violating samples |",
+             "|---|---|---|---|---|---|---|---|"]
+    lines += [f"| {r['system']} | {r['feed']} | {r['trials']} | {r['cost']:.3f} | {r['tracking_rmse_x1']:.3f} | "
+              f"{r['violation_max']:.3f} | {r['violation_max_after_settle']:.3f} | "
+              f"{100 * r['violation_fraction']:.1f} % |" for r in rows]
+    return ("\nThe output-feedback NMPC (`examples/nmpc_output_feedback.py`: soft bound on |x2|, noise on) fed by the "
+            "observer, with and without its x2 bound tightened by k sigma of the covariance head, beside the true "
+            f"state and the EKF, from `{path.relative_to(ROOT)}` (`{stamp.command}`, commit `{stamp.commit[:12]}`; "
+            "cost: the mean stage cost of the true trajectory; violation: by how much the true |x2| exceeded its "
+            "bound):\n\n" + "\n".join(lines) + "\n")
+
+
 def consistency() -> str:
     """The covariance heads of the shipped banks beside the EKF's own, on the protocol's noisy cells."""
     lines, verdicts, fits = [], [], []
@@ -290,7 +309,7 @@ def consistency() -> str:
             + _off_distribution(RESULTS / "consistency" / "duffing" / "generalise"
                                 / "duffing_generalisation_consistency.json",
                                 "The generalisation cases (`kklcasadi generalise --consistency`)")
-            + "\n## Used downstream\n\n" + _primed_mhe())
+            + "\n## Used downstream\n\n" + _primed_mhe() + _tightening())
 
 
 PAGES = {"estimators.md": estimators, "speed.md": speed, "tune.md": tune, "own_plant.md": own_plant,
