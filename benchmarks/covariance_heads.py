@@ -1,12 +1,13 @@
 """Fit the covariance head of a shipped ``bank`` model (issue 49): the decoder and every other array unchanged.
 
     OMP_NUM_THREADS=2 python benchmarks/covariance_heads.py MODEL --out DIR [--fit-seed 11] [--val-seed 12]
-        [--fit-trials 50] [--val-trials 25] [--every 4] [--epochs 20] [--hidden 16] [--seed 0]
+        [--fit-trials 50] [--val-trials 25] [--every 4] [--dense-until 0] [--epochs 20] [--hidden 16] [--seed 0]
 
 The head (:mod:`kklcasadi.model.variants.covariance`) is fit by the Gaussian likelihood of the observer's own
 errors (:func:`kklcasadi.train.covariance.fit_covariance`) on noisy runs of the protocol's four input regimes
 (docs/protocol.md: its noise levels, horizon and ``id`` ranges) drawn from ``--fit-seed`` (``--fit-trials`` per
-regime, every ``--every``-th sample), then calibrated per state
+regime, every ``--every``-th sample, and every sample before ``--dense-until`` seconds: the start of a run, where
+the errors are largest and change fastest, would otherwise be a few samples in a thousand), then calibrated per state
 (:func:`kklcasadi.train.covariance.calibrate`) on other runs of the same recipe from ``--val-seed``. Neither seed
 is the protocol's scored seed (2026). DIR gets the model with the head (``architecture.covariance``, the arrays
 ``covariance/*``, and ``training.covariance``: seeds, samples, the fit, the calibration factors and the validation
@@ -66,6 +67,8 @@ def main() -> None:
     p.add_argument("--fit-trials", type=int, default=50, help="fit runs per input regime")
     p.add_argument("--val-trials", type=int, default=25, help="calibration runs per input regime")
     p.add_argument("--every", type=int, default=4, help="keep every n-th sample of the fit runs")
+    p.add_argument("--dense-until", type=float, default=0.0, metavar="T",
+                   help="and every sample before T seconds (default 0: none)")
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--hidden", type=int, nargs="+", default=[16])
     p.add_argument("--seed", type=int, default=0, help="the head's initialisation and batches")
@@ -82,7 +85,7 @@ def main() -> None:
     start = time.perf_counter()
 
     t, x, xhat, f = runs(obs, args.fit_seed, args.fit_trials)
-    k = slice(None, None, args.every)
+    k = (np.arange(t.size) % args.every == 0) | (t < args.dense_until)
     fit_f = f[:, k].reshape(-1, f.shape[-1])
     fit_e = output_errors(x[:, k], xhat[:, k], out_std, asinh).reshape(-1, obs.nx)
     config = CovarianceConfig(hidden=tuple(args.hidden), loop=replace(CovarianceConfig().loop, epochs=args.epochs))
@@ -106,7 +109,8 @@ def main() -> None:
         "how": "Gaussian negative log-likelihood of the observer's errors on noisy protocol runs (docs/protocol.md "
                "noise, id ranges, RK4 plant), then one calibration factor per state on other runs",
         "command": stamp.command, "commit": stamp.commit, "fit_seed": args.fit_seed, "fit_trials_per_regime":
-        args.fit_trials, "fit_every": args.every, "samples": int(len(fit_f)), "head_seed": args.seed,
+        args.fit_trials, "fit_every": args.every, "fit_dense_until": args.dense_until, "samples": int(len(fit_f)),
+        "head_seed": args.seed,
         "config": {"hidden": list(config.hidden), "activation": config.activation, "epochs": args.epochs},
         "fit": fitted.fit.summary(), "validation_seed": args.val_seed, "validation_trials_per_regime":
         args.val_trials, "scale": scale.tolist(), "validation": score,

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from kklcasadi import metrics, provenance
-from kklcasadi.estimators.mhe import KKLPrimedMHE, kkl_error_profile
+from kklcasadi.estimators.kkl_mhe import KKLPrimedMHE, kkl_error_profile
 from kklcasadi.evaluation.compare import MHE_SUBSTEPS
 from kklcasadi.evaluation.protocol import Protocol
 from kklcasadi.observer.kkl import load_observer

@@ -325,6 +325,7 @@ def test_a_reformatted_card_still_loads(valid_model, tmp_path):
 
 
 # -- the shipped models: their cards were signed once (kklcasadi.model.files.resign_model), nothing else changed ----
+# -- but for the covariance heads benchmarks/covariance_heads.py fits again (issue 49) ---------------------------
 
 SIGNED_AFTER = "3672a05"             # a commit whose shipped cards had format_version 1 and no digest
 
@@ -357,6 +358,29 @@ def _committed_first(path):
     return commits[-1]
 
 
+def _signed_commit(path, unsigned):
+    """The commit that signed ``path``: the first to change it after ``unsigned``."""
+    history = _git("log", "--format=%H", "--", path).decode().split()
+    return history[history.index(unsigned) - 1] if history.index(unsigned) else None
+
+
+def _weights(commit, where):
+    blob = _git("show", f"{commit}:{where}/weights.npz")
+    with np.load(io.BytesIO(blob)) as data:
+        return {name: data[name] for name in data.files}
+
+
+#: What benchmarks/covariance_heads.py writes into a shipped bank's card (its head and how it was fit).
+HEAD_FIELDS = (("architecture", "covariance"), ("training", "covariance"))
+
+
+def _without_head(card):
+    card = json.loads(json.dumps(card))
+    for parent, name in HEAD_FIELDS:
+        card.get(parent, {}).pop(name, None)
+    return {k: v for k, v in card.items() if k not in (DIGEST, "format_version", "weights_sha256")}
+
+
 def test_the_shipped_cards_were_only_signed(tmp_path):
     if _git("cat-file", "-e", f"{SIGNED_AFTER}^{{commit}}") is None:
         pytest.skip(f"not a git checkout with commit {SIGNED_AFTER}")
@@ -369,13 +393,25 @@ def test_the_shipped_cards_were_only_signed(tmp_path):
             for name in ("card.json", "weights.npz"):
                 assert _git("rev-parse", f"{first}:{where}/{name}") == _git("hash-object", f"{where}/{name}"), where
             continue
+        signed = _signed_commit(f"{where}/card.json", before)
         old = json.loads(_git("show", f"{before}:{where}/card.json"))
-        new = _card(ROOT / where)
-        assert old["format_version"] == 1 and new["format_version"] == 2 and DIGEST not in old
-        assert {k: v for k, v in new.items() if k not in (DIGEST, "format_version")} == \
+        assert signed is not None, f"{where}: never signed after {before}"
+        at_signing = json.loads(_git("show", f"{signed}:{where}/card.json"))
+        assert old["format_version"] == 1 and at_signing["format_version"] == 2 and DIGEST not in old
+        assert {k: v for k, v in at_signing.items() if k not in (DIGEST, "format_version")} == \
             {k: v for k, v in old.items() if k != "format_version"}
-        # the weights bit for bit: the blob of the commit before is the file now
-        assert _git("rev-parse", f"{before}:{where}/weights.npz") == _git("hash-object", f"{where}/weights.npz")
+        # the weights bit for bit: the blob of the commit before is the one signed
+        assert _git("rev-parse", f"{before}:{where}/weights.npz") == _git("rev-parse", f"{signed}:{where}/weights.npz")
+        # since then only the covariance head may have been fit again (its card entries and its covariance/* arrays)
+        new = _card(ROOT / where)
+        assert new["format_version"] == 2 and _without_head(new) == _without_head(at_signing)
+        then = _weights(signed, where)
+        with np.load(ROOT / where / "weights.npz") as now:
+            assert {n for n in now.files if not n.startswith("covariance/")} == \
+                {n for n in then if not n.startswith("covariance/")}
+            for name in now.files:
+                if not name.startswith("covariance/"):
+                    np.testing.assert_array_equal(now[name], then[name], err_msg=f"{where}: {name}")
     # and the estimates of a model loaded from the old card (signed as it was) and from the new one, bit for bit
     import kklcasadi as kc
 
@@ -383,7 +419,9 @@ def test_the_shipped_cards_were_only_signed(tmp_path):
         old_dir = tmp_path / system / "bank"
         shutil.copytree(ROOT / "models" / system / "bank", old_dir)
         where = f"models/{system}/bank/card.json"
-        old = json.loads(_git("show", f"{_unsigned_commit(where)}:{where}"))
+        before = _unsigned_commit(where)
+        old = json.loads(_git("show", f"{before}:{where}"))
+        (old_dir / "weights.npz").write_bytes(_git("show", f"{before}:models/{system}/bank/weights.npz"))
         write_signed_card(old_dir, {**old, "format_version": 2})
         plant = kc.systems.get(system)
         tr = kc.simulate(plant, plant.sample_box(1, 3)[0], kc.signals.make("sinusoid", amplitude=0.5, omega=1.0),

@@ -47,11 +47,16 @@ def test_numpy_and_casadi_covariances_agree_and_are_positive_definite(nx):
     fun = ca.Function("P", [fs, xs], [cov.covariance_expression(spec, arrays, fs, xs, out_std, asinh)])
     for k in range(7):
         np.testing.assert_allclose(np.array(fun(f[k], xhat[k])), P[k], rtol=1e-13, atol=1e-300)
-    # the delta method through xhat = s sinh(v): the variance scales with (s cosh v)^2 = s^2 + xhat^2
+    # through xhat = s sinh(v): xhat +- 2 sd is as wide as the image of v +- 2 sigma_v (sigma_v the variance of the
+    # state decoded as v, calibrated: plain / scale^2), calibrated by the state's factor; the others unchanged
     if nx > 1:
         plain = cov.covariance_numpy(spec, arrays, f, xhat, out_std, np.zeros(nx))
-        vv = np.arcsinh(xhat[:, -1] / 0.01)
-        np.testing.assert_allclose(P[:, -1, -1], plain[:, -1, -1] * (0.01 * np.cosh(vv)) ** 2, rtol=1e-12)
+        np.testing.assert_array_equal(P[:, :-1, :-1], plain[:, :-1, :-1])
+        vv, scale = np.arcsinh(xhat[:, -1] / 0.01), arrays[cov.SCALE][-1]
+        sigma = np.sqrt(plain[:, -1, -1]) / scale
+        image = 0.01 * (np.sinh(vv + 2 * sigma) - np.sinh(vv - 2 * sigma))
+        np.testing.assert_allclose(4 * np.sqrt(P[:, -1, -1]), scale * image, rtol=1e-12)
+        assert np.all(P[:, -1, -1] > plain[:, -1, -1] * (0.01 * np.cosh(vv)) ** 2)    # wider than the delta method
 
 
 def test_the_likelihood_is_the_gaussian_one():

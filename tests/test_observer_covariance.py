@@ -124,9 +124,11 @@ def test_a_head_with_wrong_sizes_is_refused(model_dir_factory):
 
 
 @needs_gcc
-@pytest.mark.parametrize("math, tol", [("libm", 0.0), ("vector", 1e-12)])
-def test_the_c_step_gains_the_covariance_output(headed, tmp_path, math, tol):
-    obs, _, _ = headed
+@pytest.mark.parametrize("math, tol, asinh", [("libm", 0.0, None), ("vector", 1e-12, None), ("libm", 0.0, [0.0, 0.4]),
+                                              ("vector", 1e-12, [0.0, 0.4])])
+def test_the_c_step_gains_the_covariance_output(model_dir_factory, tmp_path, math, tol, asinh):
+    """C equals the CasADi VM, with a state decoded through ``s sinh(v)`` (its interval gain) or without."""
+    obs = load_observer(with_head(model_dir_factory("bank", hidden=(9, 7)), asinh=asinh)[0])
     files = generate_c(obs, tmp_path, "cov", math=math)
     header = files[1].read_text()
     assert "#define COV_HAS_COVARIANCE 1" in header and "res[3] P_next" in header
@@ -332,6 +334,61 @@ def test_generalise_scores_the_covariances_on_every_case(headed, tmp_path, capsy
 
 
 # ----------------------------------------------------------------------------- the shipped heads
+
+def test_robustness_scores_every_covariance_on_the_cases_trials(headed, tmp_path, capsys):
+    """``kklcasadi robustness --consistency``, the smallest case end to end: the head's, the EKF's, the tuned EKF's,
+    the augmented EKF's (its plant states) and the particle filter's (on its trials) covariances, each row
+    kklcasadi.consistency of that estimator's own variances on the case's trials, beside the SMAPE of the table."""
+    import kklcasadi as kc
+    import kklcasadi.provenance as provenance
+    from kklcasadi.cli import main
+    from kklcasadi.consistency import consistency
+    from kklcasadi.estimators import AugmentedEKF, ParameterPF, TunedEKF
+    from kklcasadi.estimators.pf import ROUGHENING
+    from kklcasadi.evaluation import generalisation as gen
+    from kklcasadi.evaluation import robustness as rb
+
+    obs, _, _ = headed
+    out = tmp_path / "rob"
+    assert main(["robustness", str(obs.model.path), "--kinds", "exact", "--trials", "2", "--tuning-trials", "2",
+                 "--pf", "20", "--pf-trials", "1", "--vm", "--no-cache", "--consistency", "--labels", "kkl",
+                 "--out", str(out)]) == 0
+    assert "| duffing | exact | augmented EKF |" in capsys.readouterr().out
+    assert "mean NEES (95 % band)" in (out / "duffing_robustness.md").read_text()
+    data = provenance.json_payload(json.loads((out / "duffing_robustness.json").read_text()))
+    records = {r["label"]: r for r in data["consistency"]}
+    assert list(records) == ["kkl", "EKF", "tuned EKF", "augmented EKF", "PF (x, p)"]
+    assert {r["cell"] for r in records.values()} == {"exact"}
+    family, nominal = kc.systems.get("duffing", param_spread=0.3), kc.systems.get("duffing")
+    settings = rb.Settings(n_trials=2, n_tuning=2)
+    case = rb.RobustCase("exact", "exact")
+    batch = rb.RobustCell(case, settings).simulate(family)
+    tuning = rb.RobustCell(case, settings, tuning=True).simulate(family)
+    t, x, y, u = batch.t, batch.x, batch.y, batch.u
+    chosen = data["cases"][0]["tuning"]["augmented"]
+    aekf = AugmentedEKF(family, 0.05, q_scale=chosen["q_scale"], r_scale=chosen["r_scale"],
+                        param_walk=chosen["param_walk"], input_disturbance=chosen["input_disturbance"])
+    pf = ParameterPF(family, 0.05, n_particles=20, roughening=ROUGHENING, seed=2026, jit=False)
+    a, p = aekf.simulate(t, y, u), pf.simulate(t, y[:1], u[:1])
+    head = obs.simulate(t, y, u)
+    estimates = {"kkl": (x, head.xhat, head.var),
+                 "EKF": (x, *(lambda e: (e.xhat, e.var))(gen.case_ekf(nominal, 0.1, 0.05).simulate(t, y, u))),
+                 "tuned EKF": (x, *(lambda e: (e.xhat, e.var))(TunedEKF.fit(
+                     nominal, 0.05, tuning, process_std=0.1, measurement_std=0.1).simulate(t, y, u))),
+                 "augmented EKF": (x, aekf.split(a.xhat)[0], aekf.split(a.var)[0]),
+                 "PF (x, p)": (x[:1], pf.split(p.xhat)[0], pf.split(p.var)[0])}
+    smape = {"kkl": data["cases"][0]["models"]["kkl"]["smape_mean"],
+             **{rb.TITLES[b]: data["cases"][0]["baselines"][b]["smape_mean"] for b in rb.BASELINES}}
+    for label, (truth, xhat, var) in estimates.items():
+        expected = consistency(truth, xhat, var, t=t).to_json()
+        got = {k: records[label][k] for k in expected}
+        assert got["trials"] == expected["trials"] and got["samples"] == expected["samples"]
+        assert got["nees"] == pytest.approx(expected["nees"], rel=1e-9), label
+        assert got["log_likelihood"] == pytest.approx(expected["log_likelihood"], rel=1e-9), label
+        assert got["coverage"] == expected["coverage"] and got["nees_band"] == expected["nees_band"], label
+        assert records[label]["smape"] == smape[label] == pytest.approx(np.mean(kc.metrics.smape(truth, xhat)),
+                                                                        rel=1e-9)
+
 
 def test_a_sample_the_domain_monitor_flags_has_a_large_variance():
     """The shipped duffing/bank on ood square-wave trials (10 of 25 s, seed 5): where the domain monitor flags a

@@ -66,6 +66,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="run the particle filter on the first M scored trials of each case only (default: all; "
                    "the table says so, and its ratios are on those trials)")
     add_roughening(g)
+    g.add_argument("--consistency", action="store_true",
+                   help="also score the covariances (issue 49) on every case: the models' covariance heads (models "
+                   "without one have none), the EKF's, the tuned EKF's, the augmented EKF's (its plant states) and "
+                   "the particle filter's (mean NEES against the chi-square band, 1- and 2-sigma coverage per state, "
+                   "log-likelihood of the truth; a table in the markdown, records in the JSON)")
     g.add_argument("--out", help="directory for the markdown table, the JSON report and the plot")
     add_cache(g)
     g.add_argument("--vm", action="store_true", help="run the observers in the CasADi VM instead of compiled C")
@@ -103,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
                            f"{args.pf_trials} without --pf")
     report = flagged("MODELS", rb.run, observers, family, case_list, settings, trials=trials, pf_particles=args.pf,
                      pf_trials=args.pf_trials, pf_roughening=args.pf_roughening, compiler=compiler,
-                     n_threads=args.threads, progress=True)
+                     n_threads=args.threads, consistency=args.consistency, progress=True)
     wall = time.perf_counter() - t0
     print(f"{len(case_list)} cases x {args.trials} trials in {wall:.1f} s", file=sys.stderr)
     table = report.markdown()

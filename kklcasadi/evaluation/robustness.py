@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import asdict, dataclass, field
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -42,9 +42,10 @@ from ..validation import Text, error, nonnegative_number, one_of, positive_int, 
 from .compiled import Compiler, observer_estimator
 from .generalisation import DEFAULT_COMPILER, FLAG_SHARE, MonitoredObserver, case_ekf
 from .trialcache import TrialCache
+from .uncertainty import UncertaintyRow, observer_uncertainty, uncertainty_record, uncertainty_row, uncertainty_table
 
 __all__ = ["RobustCase", "RobustCell", "Settings", "Report", "cases", "run", "targets", "ID_FAMILIES", "KINDS",
-           "BASELINES", "DEFAULT_NOISE_MODELS"]
+           "BASELINES", "TITLES", "DEFAULT_NOISE_MODELS"]
 
 #: The input families of the trials, in turn (the protocol's ``id`` ranges).
 ID_FAMILIES = ("zero", "constant", "sinusoid", "square")
@@ -53,6 +54,8 @@ ID_FAMILIES = ("zero", "constant", "sinusoid", "square")
 KINDS = ("exact", "corner", "inside", "outside", "noise")
 #: The baselines beside the models, as the report names them.
 BASELINES = ("ekf", "tuned", "augmented", "pf")
+#: The baselines' names in the tables.
+TITLES = {"ekf": "EKF", "tuned": "tuned EKF", "augmented": "augmented EKF", "pf": "PF (x, p)"}
 #: The noise cases of the default grid.
 DEFAULT_NOISE_MODELS = ("student-t:2", "outliers:0.05,10", "quantised:0.2")
 #: The issue's targets per case kind: (baseline, largest ratio of the model's mean SMAPE to the baseline's).
@@ -220,6 +223,9 @@ class Report:
     tuning : list of dict
         Per case, the choices made on the tuning trials (the tuned and the augmented EKF's).
     pf_particles : int or None
+    consistency : list of UncertaintyRow
+        With :func:`run`'s ``consistency``: per case, each estimator's covariance scored on its trials (the models
+        with a covariance head, then the baselines, labelled as :data:`TITLES`); empty otherwise.
     """
 
     system: str
@@ -232,6 +238,7 @@ class Report:
     tuning: list
     pf_particles: Optional[int] = None
     extra: dict = field(default_factory=dict)
+    consistency: list[UncertaintyRow] = field(default_factory=list)
 
     def mean(self, label: str, i: int) -> float:
         """The mean SMAPE of a model or a baseline on case ``i``."""
@@ -259,9 +266,10 @@ class Report:
         return out
 
     def markdown(self) -> str:
-        """One table per model: the mean SMAPE of every estimator per case, the ratios, the targets."""
+        """One table per model: the mean SMAPE of every estimator per case, the ratios, the targets; then, where the
+        covariances were scored, their consistency (:func:`kklcasadi.evaluation.uncertainty.uncertainty_table`)."""
         names = [b for b in BASELINES if b in self.baselines]
-        titles = {"ekf": "EKF", "tuned": "tuned EKF", "augmented": "augmented EKF", "pf": "PF (x, p)"}
+        titles = TITLES
         pf_trials = self.extra.get("pf_trials")
         pf_text = f"; the PF on the first {pf_trials} of each case's trials" if pf_trials is not None else ""
         blocks = []
@@ -282,6 +290,11 @@ class Report:
                     [target or "-", "-" if flagged is None else f"{flagged:.2f}"]
                 lines.append("| " + " | ".join(row) + " |")
             blocks.append("\n".join(lines))
+        if self.consistency:
+            blocks.append(f"**{self.system}: the covariances** (each estimator's own variances against its errors, "
+                          "on the trials of its SMAPE: mean NEES against the 95 % band of the trials' count, 1- and "
+                          "2-sigma coverage per state, log-likelihood of the truth)\n\n"
+                          + uncertainty_table(self.consistency))
         return "\n\n".join(blocks)
 
     def to_json(self) -> dict:
@@ -303,7 +316,8 @@ class Report:
             entries.append(entry)
         return {"system": self.system, "param_names": list(self.param_names), "param_box": self.param_box,
                 "settings": asdict(self.settings), "pf_particles": self.pf_particles, "flag_share": FLAG_SHARE,
-                "targets": {k: [list(t) for t in v] for k, v in TARGETS.items()}, "cases": entries, **self.extra}
+                "targets": {k: [list(t) for t in v] for k, v in TARGETS.items()}, "cases": entries, **self.extra,
+                **({"consistency": uncertainty_record(self.consistency)} if self.consistency else {})}
 
     def plot(self, path: Any, *, stamp: Optional[provenance.Stamp] = None) -> None:
         """Per model, each case's ratio to every baseline, the targets drawn, as a PNG to ``path`` (a file path or a
@@ -378,7 +392,7 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
         settings: Settings = Settings(), *, trials: Optional[TrialCache] = None, pf_particles: Optional[int] = None,
         pf_trials: Optional[int] = None, pf_roughening: float = ROUGHENING,
         compiler: Optional[Compiler] = DEFAULT_COMPILER, n_threads: Optional[int] = None,
-        progress: bool = False) -> Report:
+        consistency: bool = False, progress: bool = False) -> Report:
     """Score observers of one plant family and the baselines on every case.
 
     Parameters
@@ -402,6 +416,10 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
     compiler : Compiler or None
         How the observers and the particle filter are compiled (None: the CasADi VM); the EKFs run in the VM.
     n_threads : int, optional
+    consistency : bool
+        Also score every covariance on each case's trials (:attr:`Report.consistency`): the observers with a
+        covariance head (the others have none), the EKF's, the tuned EKF's, the augmented EKF's on the plant's states
+        and the particle filter's (on its trials), as ``kklcasadi evaluate --consistency`` scores them.
     progress : bool
 
     Returns
@@ -426,6 +444,9 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
             raise error("pf_trials", "None without pf_particles (no particle filter runs)", pf_trials)
     trials = TrialCache(None) if trials is None else trials
     runners = {label: _model_runner(obs, compiler, n_threads) for label, obs in observers}
+    uncertain = {label: observer_uncertainty(obs, compiler=compiler, n_threads=n_threads) for label, obs in observers
+                 if consistency and obs.covariance is not None}
+    rows: list[UncertaintyRow] = []
     models = {label: {"smape": [], "flagged_share": []} for label in runners}
     baselines: dict[str, list] = {b: [] for b in BASELINES if b != "pf" or pf_particles is not None}
     tuning_records = []
@@ -435,20 +456,30 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
         ok = batch.ok
         t, x, y, u = batch.t, batch.x[ok], batch.y[ok], batch.u[ok]
         after = t >= settings.t_settle
+        escaped = int((~ok).sum())
         for label, runner in runners.items():
             xhat, inside = runner(t, y, u)
             models[label]["smape"].append(metrics.smape(x, xhat, angles=family.angle_states))
             models[label]["flagged_share"].append(None if inside is None else (~inside[:, after]).mean(axis=1))
+            if label in uncertain:
+                rows.append(uncertainty_row(label, family, case.name, t, x, *uncertain[label](t, y, u),
+                                            smape=models[label]["smape"][-1], escaped=escaped))
+        case_rows = []
 
-        def score(xhat: np.ndarray) -> np.ndarray:
-            return metrics.smape(x, xhat, angles=family.angle_states)
+        def score(name: str, est: Any, part: Callable[[np.ndarray], np.ndarray] = np.asarray) -> None:
+            """A baseline's SMAPE on the case's trials (its first ``len(xhat)``) from its estimate ``est`` (``part``:
+            the plant's states of it), and its covariance's consistency."""
+            xhat = part(est.xhat)
+            baselines[name].append(metrics.smape(x[:len(xhat)], xhat, angles=family.angle_states))
+            if consistency:
+                case_rows.append(uncertainty_row(TITLES[name], family, case.name, t, x[:len(xhat)], xhat,
+                                                 part(est.var), smape=baselines[name][-1], escaped=escaped))
 
-        baselines["ekf"].append(score(case_ekf(nominal, settings.noise, settings.dt).simulate(t, y, u,
-                                                                                           n_threads=n_threads).xhat))
+        score("ekf", case_ekf(nominal, settings.noise, settings.dt).simulate(t, y, u, n_threads=n_threads))
         tuned = TunedEKF.fit(nominal, settings.dt, tuning, process_std=settings.noise, measurement_std=settings.noise)
-        baselines["tuned"].append(score(tuned.simulate(t, y, u, n_threads=n_threads).xhat))
+        score("tuned", tuned.simulate(t, y, u, n_threads=n_threads))
         aekf, record = _augmented(family, settings, tuning)
-        baselines["augmented"].append(score(aekf(t, y, u)))
+        score("augmented", aekf.simulate(t, y, u), lambda a: aekf.split(a)[0])
         tuning_records.append({"tuned": {**tuned.tuning.best, "score": tuned.tuning.best_score,
                                          "grid": tuned.tuning.to_json()},
                                "augmented": record, "tuning_trials": int(tuning.ok.sum())})
@@ -459,8 +490,9 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
                              substeps=SUBSTEPS.get(family.name, 1), roughening=pf_roughening, seed=settings.seed,
                              n_threads=n_threads, **how)
             k = len(x) if pf_trials is None else min(pf_trials, len(x))
-            baselines["pf"].append(metrics.smape(x[:k], pf(t, y[:k], u[:k]), angles=family.angle_states))
+            score("pf", pf.simulate(t, y[:k], u[:k]), lambda a: pf.split(a)[0])
+        rows += case_rows
     return Report(family.name, family.param_names, family.param_box.tolist(), settings, list(case_list), models,
                   baselines, tuning_records, pf_particles,
                   {"pf_roughening": None if pf_particles is None else pf_roughening, "pf_trials": pf_trials,
-                   "pf_shrinkage": None if pf_particles is None else SHRINKAGE})
+                   "pf_shrinkage": None if pf_particles is None else SHRINKAGE}, rows)

@@ -7,7 +7,8 @@ against Bar-Shalom's 95 % band of the trials' count, the share of sample times w
 1- and 2-sigma coverage per state and the log-likelihood of the truth, beside the SMAPE. Every estimator is scored
 with its variances (the diagonal of its covariance: the EKF and the particle filter report no more), so NEES and
 likelihood ignore correlations for all alike. :func:`score_cases` does the same on the generalisation cases (the
-EKF tuned to each case's noise), :func:`uncertainty_table` writes the markdown table.
+EKF tuned to each case's noise), :func:`uncertainty_row` scores estimates already run (the robustness benchmark's,
+``kklcasadi robustness --consistency``), :func:`uncertainty_table` writes the markdown table.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ if TYPE_CHECKING:
     from ..observer.kkl import KKLObserver
 
 __all__ = ["UncertainEstimator", "UncertaintyRow", "observer_uncertainty", "RecordedObserver", "filter_uncertainty",
-           "score_uncertainty", "score_cases", "uncertainty_table", "uncertainty_record"]
+           "score_uncertainty", "score_cases", "uncertainty_row", "uncertainty_table", "uncertainty_record"]
 
 #: The compiler of :func:`observer_uncertainty` by default (the evaluation's cache and flags).
 _COMPILER = Compiler()
@@ -151,9 +152,29 @@ def _row(label: str, estimator: UncertainEstimator, system: System, cell: str,
     """One estimator on one batch of trials (those that did not escape)."""
     ok = batch.ok
     xhat, var = estimator(batch.t, batch.y[ok], batch.u[ok])
-    x = batch.x[ok]
-    return UncertaintyRow(label, system.name, cell, float(np.mean(metrics.smape(x, xhat))),
-                          consistency(x, xhat, var, t=batch.t, angles=system.angle_states), int((~ok).sum()))
+    return uncertainty_row(label, system, cell, batch.t, batch.x[ok], xhat, var, escaped=int((~ok).sum()))
+
+
+def uncertainty_row(label: str, system: System, cell: str, t: np.ndarray, x: np.ndarray, xhat: np.ndarray,
+                    var: np.ndarray, *, smape: Optional[np.ndarray] = None, escaped: int = 0) -> UncertaintyRow:
+    """Score one estimator's estimates and variances on the trials of one cell (the whole horizon).
+
+    Parameters
+    ----------
+    label, cell : str
+        The row's estimator and cell (or case).
+    system : System
+    t : numpy.ndarray, shape (N,)
+    x, xhat, var : numpy.ndarray, shape (M, N, nx)
+        The true states, the estimates and their variances.
+    smape : numpy.ndarray, shape (M,), optional
+        The trials' SMAPE as the caller scored them (default :func:`kklcasadi.metrics.smape` of ``x``, ``xhat``).
+    escaped : int
+        Trials left out because the plant escaped.
+    """
+    value = metrics.smape(x, xhat) if smape is None else smape
+    return UncertaintyRow(label, system.name, cell, float(np.mean(value)),
+                          consistency(x, xhat, var, t=t, angles=system.angle_states), escaped)
 
 
 def uncertainty_table(rows: Sequence[UncertaintyRow]) -> str:
