@@ -28,7 +28,8 @@ import casadi as ca
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..observer.codegen import axpy_matvec, fast_kernels
+from ..observer.codegen import fast_kernels
+from ..observer.compiled import BITWISE, CHUNK, chunk_size
 from ..validation import positive_int
 from .compiled import CompiledObserver, Compiler
 
@@ -38,13 +39,9 @@ if TYPE_CHECKING:
 
 __all__ = ["ChunkedObserver", "ChunkedEKF", "CHUNK", "FAST", "BITWISE"]
 
-#: Most steps per compiled call (a shorter record runs the smallest power of two >= 64 that holds it).
-CHUNK = 4096
 #: The default compiler of the chunks: the axpy mat-vec kernels and the vectorised exp/tanh (within
 #: 1e-14 relative of the VM per step, as ``kklcasadi evaluate``'s default).
 FAST = Compiler(postprocess=fast_kernels)
-#: The axpy mat-vec kernels and the C library's exp/tanh: bitwise the VM.
-BITWISE = Compiler(postprocess=axpy_matvec)
 
 
 class _Chunked(ABC):
@@ -78,9 +75,8 @@ class _Chunked(ABC):
         """The state after a chunk from its outputs."""
 
     def size(self, n: int) -> int:
-        """Steps per call for a record of ``n`` samples: :attr:`chunk`, or for a shorter record the
-        smallest power of two >= 64 that holds its ``n - 1`` steps (few sizes to compile, little padding)."""
-        return min(self.chunk, max(64, 1 << max(0, n - 2).bit_length()))
+        """Steps per call for a record of ``n`` samples (:func:`~kklcasadi.observer.compiled.chunk_size`)."""
+        return chunk_size(n, self.chunk)
 
     def function(self, size: int) -> ca.Function:
         """The Function of ``size`` steps as it runs: compiled (cached on disk and here), or the VM's
