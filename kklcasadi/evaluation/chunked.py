@@ -71,8 +71,8 @@ class _Chunked(ABC):
         """The state after the first sample and the first sample's outputs (columns of 1)."""
 
     @abstractmethod
-    def _carry(self, outputs: list[np.ndarray]) -> list[np.ndarray]:
-        """The state after a chunk from its outputs."""
+    def _carry(self, outputs: list[np.ndarray], steps: int) -> list[np.ndarray]:
+        """The state after the first ``steps`` steps of a chunk, from its outputs."""
 
     def size(self, n: int) -> int:
         """Steps per call for a record of ``n`` samples (:func:`~kklcasadi.observer.compiled.chunk_size`)."""
@@ -98,32 +98,56 @@ class _Chunked(ABC):
         progress : bool
             A progress bar over the samples (tqdm).
         """
+        y, u = self._samples(y, u)
+        n = y.shape[0]
+        state, first = self.start(y[0], u[0])
+        outputs = [np.empty((n, o.shape[1])) for o in first]
+        for out, value in zip(outputs, first):
+            out[0] = value[0]
+        with tqdm(total=n, unit="sample", disable=not progress, unit_scale=True) as bar:
+            bar.update(1)
+            for k in range(0, n - 1, self.size(n)):
+                state, rest = self.advance(state, y[k:], u[k:], n, steps=min(self.size(n), n - 1 - k))
+                for out, value in zip(outputs, rest):
+                    out[k + 1:k + 1 + value.shape[0]] = value
+                bar.update(rest[0].shape[0])
+        return outputs
+
+    def _samples(self, y: Any, u: Any) -> tuple[np.ndarray, np.ndarray]:
         y, u = np.asarray(y, dtype=float), np.asarray(u, dtype=float)
         if y.ndim != 2 or y.shape[1] != self.ny or y.shape[0] < 1:
             raise ValueError(f"y: expected shape (N, {self.ny}) with N >= 1, received {y.shape}.")
         if u.shape != (y.shape[0], self.nu):
             raise ValueError(f"u: expected shape ({y.shape[0]}, {self.nu}), received {u.shape}.")
-        n = y.shape[0]
+        return y, u
+
+    def start(self, y0: np.ndarray, u0: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The state after the first sample, and that sample's outputs, ``(1, .)`` each."""
+        state, first = self._start(np.asarray(y0, dtype=float), np.asarray(u0, dtype=float))
+        return state, [np.asarray(value)[:, 0][None, :] for value in first]
+
+    def advance(self, state: list[np.ndarray], y: np.ndarray, u: np.ndarray, n: int, *,
+                steps: Optional[int] = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The steps from ``y[0], u[0]`` (the last sample already run) over the samples after it, a chunk per
+        call (the calls' size that of a record of ``n`` samples, :meth:`size`): the state after the last
+        step, and the outputs of the samples after the first, ``(len(y) - 1, .)`` each (``steps`` of them,
+        default all). A record run in pieces that overlap by one sample gives :meth:`run`'s values."""
+        total = y.shape[0] - 1 if steps is None else steps
         c = self.size(n)
-        state, first = self._start(y[0], u[0])
-        outputs = [np.empty((n, o.shape[0])) for o in first]
-        for out, value in zip(outputs, first):
-            out[0] = value[:, 0]
-        f = self.function(c) if n > 1 else None
-        with tqdm(total=n, unit="sample", disable=not progress, unit_scale=True) as bar:
-            bar.update(1)
-            for k in range(0, n - 1, c):
-                m = min(c, n - 1 - k)                                  # steps k -> k + 1 .. k + m
-                y_part, u_part = y[k:k + m + 1], u[k:k + m + 1]
-                if m < c:                                              # pad: repeat the last sample
-                    y_part = np.concatenate([y_part, np.repeat(y_part[-1:], c - m, axis=0)])
-                    u_part = np.concatenate([u_part, np.repeat(u_part[-1:], c - m, axis=0)])
-                result = [np.asarray(r) for r in f.call([*state, y_part.T, u_part.T])]
-                for out, value in zip(outputs, self._per_step(result)):
-                    out[k + 1:k + 1 + m] = value[:, :m].T
-                state = self._carry(result)
-                bar.update(m)
-        return outputs
+        f = self.function(c)
+        pieces: list[list[np.ndarray]] = []
+        for k in range(0, total, c):
+            m = min(c, total - k)                                      # steps k -> k + 1 .. k + m
+            y_part, u_part = y[k:k + m + 1], u[k:k + m + 1]
+            if m < c:                                                  # pad: repeat the last sample
+                y_part = np.concatenate([y_part, np.repeat(y_part[-1:], c - m, axis=0)])
+                u_part = np.concatenate([u_part, np.repeat(u_part[-1:], c - m, axis=0)])
+            result = [np.asarray(r) for r in f.call([*state, y_part.T, u_part.T])]
+            pieces.append([value[:, :m].T for value in self._per_step(result)])
+            state = self._carry(result, m)
+        if not pieces:
+            return state, []
+        return state, [np.concatenate(parts) if len(parts) > 1 else parts[0] for parts in zip(*pieces)]
 
     def _per_step(self, result: list[np.ndarray]) -> list[np.ndarray]:
         """The chunk's outputs as ``(., chunk)`` columns, one per step (the default: as they come)."""
@@ -164,7 +188,7 @@ class ChunkedObserver(_Chunked):
         states = list(range(2 + len(carried)))
         steps = self.step.mapaccum("chunk", n, states, states)
         z_all, w_all, xhat = steps(z, w, *carried, y[:, :n], y[:, 1:], u[:, 1:])[:3]
-        outputs, names = [xhat, z_all, w_all[:, -cols:]], ["xhat", "z", "w_last"]
+        outputs, names = [xhat, z_all, w_all], ["xhat", "z", "w"]
         if obs.domain_check is not None:
             outputs.append(obs.domain_check.map(n)(z_all, w_all, xhat))
             names.append("in_domain")
@@ -191,9 +215,11 @@ class ChunkedObserver(_Chunked):
     def _per_step(self, result: list[np.ndarray]) -> list[np.ndarray]:
         return [result[0], result[1]] + result[3:]
 
-    def _carry(self, outputs: list[np.ndarray]) -> list[np.ndarray]:
-        xhat, z, w_last = outputs[:3]
-        return [z[:, -1], w_last] + ([xhat[:, -1]] if self.carries else [])
+    def _carry(self, outputs: list[np.ndarray], steps: int) -> list[np.ndarray]:
+        xhat, z, w_all = outputs[:3]
+        cols = self.observer.memory_shape[1]
+        return [z[:, steps - 1], w_all[:, (steps - 1) * cols:steps * cols]] + ([xhat[:, steps - 1]] if self.carries
+                                                                               else [])
 
     def estimate(self, y: Any, u: Any, *, progress: bool = False) -> tuple[np.ndarray, np.ndarray,
                                                                           Optional[np.ndarray]]:
@@ -243,8 +269,8 @@ class ChunkedEKF(_Chunked):
     def _per_step(self, result: list[np.ndarray]) -> list[np.ndarray]:
         return [result[0][:self.nx]]
 
-    def _carry(self, outputs: list[np.ndarray]) -> list[np.ndarray]:
-        return [outputs[0][:, -1]]
+    def _carry(self, outputs: list[np.ndarray], steps: int) -> list[np.ndarray]:
+        return [outputs[0][:, steps - 1]]
 
 
 def _c_name(text: str) -> str:
