@@ -186,15 +186,32 @@ class ChunkedObserver(_Chunked):
         carried = [ca.MX.sym("xhat", obs.nx)] if self.carries else []
         y, u = ca.MX.sym("y", obs.ny, n + 1), ca.MX.sym("u", obs.nu, n + 1)
         states = list(range(2 + len(carried)))
-        steps = self.step.mapaccum("chunk", n, states, states)
-        z_all, w_all, xhat = steps(z, w, *carried, y[:, :n], y[:, 1:], u[:, 1:])[:3]
+        monitored = self._monitored_step()
+        steps = (self.step if monitored is None else monitored).mapaccum("chunk", n, states, states)
+        results = steps(z, w, *carried, y[:, :n], y[:, 1:], u[:, 1:])
+        z_all, w_all, xhat = results[:3]
         outputs, names = [xhat, z_all, w_all], ["xhat", "z", "w"]
         if obs.domain_check is not None:
-            outputs.append(obs.domain_check.map(n)(z_all, w_all, xhat))
+            outputs.append(obs.domain_check.map(n)(z_all, w_all, xhat) if monitored is None else results[3])
             names.append("in_domain")
         name = f"{_c_name(obs.system.name)}_{_c_name(obs.method)}_chunk{n}"
         return ca.Function(name, [z, w, *carried, y, u], outputs,
                            ["z0", "w0", *(["xhat0"] if carried else []), "y", "u"], names)
+
+    def _monitored_step(self) -> Optional[ca.Function]:
+        """The step with its domain flag, the estimate and the ensemble's spread from one evaluation of the
+        members (:attr:`KKLObserver.decoded`: the same values as the step's estimate and the domain check's spread,
+        the members run once where the step and the check would each run them); None where the check tests no
+        spread (or the step reads its previous estimate)."""
+        obs = self.observer
+        if obs.decoded is None or obs.domain_check_of_spread is None or self.carries:
+            return None
+        args = [ca.MX.sym(name, self.step.sparsity_in(i)) for i, name in enumerate(self.step.name_in())]
+        z_next, w_next = self.step.call(args, True)[:2]          # its own estimate is left out of the graph
+        xhat, spread = obs.decoded(z_next, w_next)
+        flag = obs.domain_check_of_spread(z_next, w_next, xhat, spread)
+        return ca.Function("step_monitored", args, [z_next, w_next, xhat, flag], self.step.name_in(),
+                           self.step.name_out() + ["in_domain"])
 
     def _start(self, y0: np.ndarray, u0: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
         obs = self.observer

@@ -64,18 +64,34 @@ class CompiledTrajectory:
         compiled (cached on disk and here)."""
         if size not in self._functions:
             obs = self.observer
-            step = obs.step_covariance if self.covariance else obs.step
+            step = self._step()
             z, w = ca.MX.sym("z", obs.nz), ca.MX.sym("w", *obs.memory_shape)
             y, u = ca.MX.sym("y", obs.ny, size + 1), ca.MX.sym("u", obs.nu, size + 1)
             out = step.mapaccum("chunk", size, [0, 1], [0, 1])(z, w, y[:, :size], y[:, 1:], u[:, 1:])
             outputs, names = list(out), ["z", "w", "xhat"] + (["P"] if self.covariance else [])
-            if self.spread:
+            if self.spread and obs.decoded is None:
                 outputs.append(obs.spread.map(size)(out[0], out[1]))
+            if self.spread:
                 names.append("spread")
             name = f"{c_name(obs.system.name)}_{c_name(obs.method)}_simulate{size}"
             f = ca.Function(name, [z, w, y, u], outputs, ["z0", "w0", "y", "u"], names)
             self._functions[size] = self.compiler.compile(f)
         return self._functions[size]
+
+    def _step(self) -> ca.Function:
+        """The step (with the covariance head), and where the domain monitor tests the ensemble's spread, the
+        spread as its last output, the estimate and the spread from one evaluation of the members
+        (:attr:`~kklcasadi.observer.kkl.KKLObserver.decoded`: the same values, the members run once)."""
+        obs = self.observer
+        step = obs.step_covariance if self.covariance else obs.step
+        if not self.spread or obs.decoded is None:
+            return step
+        args = [ca.MX.sym(name, step.sparsity_in(i)) for i, name in enumerate(step.name_in())]
+        z_next, w_next, own, *covariance = step.call(args, True)
+        xhat, spread = obs.decoded(z_next, w_next)
+        covariance = ca.graph_substitute(covariance, [own], [xhat]) if covariance else []   # of the same estimate
+        return ca.Function("step_spread", args, [z_next, w_next, xhat, *covariance, spread], step.name_in(),
+                           step.name_out() + ["spread"])
 
     def run(self, z0: np.ndarray, w0: np.ndarray, y: np.ndarray, u: np.ndarray, *, n_threads: int = 1
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Optional[np.ndarray], Optional[np.ndarray]]:

@@ -147,6 +147,12 @@ class KKLObserver:
         ``domain_check(z, w, xhat) -> in_domain`` (1 or 0): the domain monitor of one sample (the
         card's boxes and, with :attr:`monitor`, the decoder's input ``[z; vec(w)]``); None when the
         card records neither. The C function ``name_in_domain`` of :func:`kklcasadi.generate_c`.
+    decoded : casadi.Function or None
+        ``decoded(z, w) -> (xhat, spread)``: :attr:`decode` and :attr:`spread` from one evaluation of the
+        ensemble's members (the same values); None without a spread.
+    domain_check_of_spread : casadi.Function or None
+        ``(z, w, xhat, spread) -> in_domain``: :attr:`domain_check` with the spread given (from :attr:`decoded`);
+        None where the check tests no spread.
     covariance : casadi.Function or None
         ``covariance(z, w, xhat) -> P (nx, nx)``: the covariance of the error of the estimate ``xhat``
         at ``(z, w)``, from the card's covariance head (a ``bank`` with ``architecture.covariance``;
@@ -213,7 +219,8 @@ class KKLObserver:
             raise ValueError(f"{model.path / CARD_FILE}: 'monitor.spread': expected a decoder ensemble (a 'bank' with "
                              "architecture.bank.members >= 2) for the spread test, received a single decoder. Remove "
                              "'monitor.spread' or add the members' networks.")
-        self.domain_check = self._build_domain_check()
+        self.decoded: Optional[ca.Function] = nets.decoded
+        self.domain_check, self.domain_check_of_spread = self._build_domain_check()
         self._trajectories: Optional[Any] = None                  # simulate's compiled trajectories, when first run
 
     # ------------------------------------------------------------------ construction
@@ -255,9 +262,11 @@ class KKLObserver:
                                  [z_next, w_next, xhat_next, self.covariance(z_next, w_next, xhat_next)],
                                  names[0], names[1] + ["P_next"])
 
-    def _build_domain_check(self) -> Optional[ca.Function]:
+    def _build_domain_check(self) -> tuple[Optional[ca.Function], Optional[ca.Function]]:
+        """:attr:`domain_check`, and where it tests the ensemble's spread the same check of a spread given
+        (:attr:`domain_check_of_spread`)."""
         if self._domain_bounds is None and self.monitor is None:
-            return None
+            return None, None
         z, w, xhat = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape), ca.MX.sym("xhat", self.nx)
         inside = ca.MX(1.0)
         if self._domain_bounds is not None:
@@ -266,9 +275,13 @@ class KKLObserver:
             inside = ca.mmin(ca.vertcat(point - lo, hi - point)) >= 0
         if self.monitor is not None:
             inside = ca.logic_and(inside, self.monitor.expression(ca.vertcat(z, ca.vec(w))))
-            if self.monitor.spec.spread is not None:
-                inside = ca.logic_and(inside, self.spread(z, w) <= self.monitor.spec.spread[0])
-        return ca.Function("domain_check", [z, w, xhat], [inside], ["z", "w", "xhat"], ["in_domain"])
+        names = ["z", "w", "xhat"], ["in_domain"]
+        if self.monitor is None or self.monitor.spec.spread is None or self.spread is None:
+            return ca.Function("domain_check", [z, w, xhat], [inside], *names), None
+        s, bound = ca.MX.sym("spread"), self.monitor.spec.spread[0]
+        return (ca.Function("domain_check", [z, w, xhat], [ca.logic_and(inside, self.spread(z, w) <= bound)], *names),
+                ca.Function("domain_check_of_spread", [z, w, xhat, s], [ca.logic_and(inside, s <= bound)],
+                            names[0] + ["spread"], names[1]))
 
     def in_domain(self, xhat: Any, z: Any, w: Any = None) -> Optional[np.ndarray]:
         """Whether estimates lie in the domain the maps were trained on (the domain monitor).
