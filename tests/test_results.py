@@ -3,6 +3,8 @@ results/<study>/<system>/, and the index is what benchmarks/results_index.py wri
 
 import re
 import runpy
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -65,3 +67,28 @@ def test_the_check_flag_says_when_the_index_is_stale(monkeypatch, capsys):
     with pytest.raises(SystemExit) as done:
         runpy.run_path(str(SCRIPT), run_name="__main__")
     assert done.value.code == 0
+
+
+STAMPED = [p for top in ("results", "docs", "models") for p in sorted((ROOT / top).rglob("*"))
+           if p.is_file() and p.suffix in (".md", ".json", ".csv", ".png")] + [ROOT / "README.md"]
+
+
+def _git(*args: str) -> "subprocess.CompletedProcess[str]":
+    return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True, timeout=60)
+
+
+def test_every_stamped_commit_is_in_the_history():
+    """A stamp's commit can be checked out from a clone: results made on a branch that was rebased before it
+    landed name a commit outside main's history unless that commit is merged in (`git merge -s ours COMMIT`
+    leaves the tree as it is)."""
+    if shutil.which("git") is None or _git("rev-parse", "--show-toplevel").returncode != 0:
+        pytest.skip("not a git checkout: the history cannot be read")
+    if _git("rev-parse", "--is-shallow-repository").stdout.strip() == "true":
+        pytest.skip("a shallow clone holds part of the history only")
+    commits: dict[str, list[str]] = {}
+    for path in STAMPED:
+        for found in re.finditer(rb'"commit"\s*:\s*"([0-9a-f]{40})(?:-dirty)?"', path.read_bytes()):
+            commits.setdefault(found.group(1).decode(), []).append(str(path.relative_to(ROOT)))
+    assert len(commits) > 20
+    outside = {c: files for c, files in commits.items() if _git("merge-base", "--is-ancestor", c, "HEAD").returncode}
+    assert outside == {}, "stamps naming commits outside the history (merge them in with git merge -s ours)"
