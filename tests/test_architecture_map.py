@@ -228,13 +228,15 @@ def test_the_circle_check_can_fail(monkeypatch, tmp_path):
 
 
 def test_the_rows_follow_the_import_order():
-    """Each row of the table may import only rows above it and its own: the table states the real order."""
+    """Each row of the table may import only rows above it and its own: the table states the real order (a
+    module with a row of its own inside a room, such as ``observer.codegen.kernels``, by that row)."""
     rows = list(TABLE)
     for i, name in enumerate(rows):
         for target in TABLE[name]:
             if target == "-" or target == name or name.startswith(target + "."):
                 continue
-            below = [r for r in rows[i + 1:] if r == target or r.startswith(target + ".") or target.startswith(r + ".")]
+            below = [r for r in rows[i + 1:] if r == target or r.startswith(target + ".")
+                     or (target.startswith(r + ".") and _row(target) == r)]
             assert not below, f"docs/architecture.md: {name} may import {target}, whose row {below[0]} comes below it"
 
 

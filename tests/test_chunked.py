@@ -67,6 +67,24 @@ def test_the_monitored_bank_flags_as_simulate(monitored_bank):
     np.testing.assert_array_equal(flags, expected.in_domain)
 
 
+@needs_gcc
+def test_the_shipped_bank_runs_its_members_once_for_the_estimate_and_the_spread():
+    """duffing/bank's monitor tests the ensemble's spread: the chunk decodes once for the estimate and the spread
+    (KKLObserver.decoded), with simulate's estimates, latent states and flags bit for bit."""
+    obs = load_observer("duffing/bank")
+    assert obs.monitor.spec.spread is not None and obs.decoded is not None
+    chunked = ChunkedObserver(obs, compiler=BITWISE, chunk=64)
+    assert chunked._monitored_step() is not None
+    t, y, u = record(300, seed=2)
+    expected = obs.simulate(t, y, u, vm=True)
+    for got, want in zip(chunked.estimate(y, u), (expected.xhat, expected.z, expected.in_domain)):
+        np.testing.assert_array_equal(got, want)
+    z, w = expected.z[-1], obs.memory_init(y[-1], u[-1])
+    xhat, spread = obs.decoded(z, w)
+    assert float(spread) == float(obs.spread(z, w))
+    np.testing.assert_array_equal(np.asarray(xhat), np.asarray(obs.decode(z, w)))
+
+
 def test_the_vm_runs_the_same_chunks(model_dir_factory):
     obs = load_observer(model_dir_factory("inject", window=4))
     t, y, u = record(150, zero_until=20)

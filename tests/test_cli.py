@@ -297,6 +297,25 @@ def test_every_cli_error_is_one_line_with_exit_status_2(args, expected):
     assert len(lines) == 1 and lines[0].startswith("error: ") and expected in lines[0], result.stderr
 
 
+def test_a_warning_of_a_command_is_one_line_and_the_library_keeps_pythons(monkeypatch, capsys):
+    import warnings
+
+    from kklcasadi.cli import estimate
+
+    def warn_twice(args):
+        warnings.warn("a note\nover two lines", UserWarning, stacklevel=2)
+        warnings.warn("another note", RuntimeWarning, stacklevel=2)
+        return 0
+
+    monkeypatch.setattr(estimate, "run", warn_twice)
+    shown = warnings.showwarning
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        assert main(["estimate", "m", "--data", "d.csv", "--y-cols", "y", "--out", "o.csv"]) == 0
+        assert warnings.showwarning is shown                          # Python's display is back after the command
+    assert capsys.readouterr().err.splitlines() == ["warning: a note over two lines", "warning: another note"]
+
+
 def test_torch_free_install_says_how_to_get_training(tmp_path, no_torch_env):
     env = no_torch_env
     for args in (["train", "--system", "duffing", "--method", "autonomous", "--out", str(tmp_path / "m")],

@@ -1,6 +1,9 @@
-"""kklcasadi estimate and evaluation.logged.estimate_log: an observer and the EKF over a recorded log (the Qube's)."""
+"""kklcasadi estimate and evaluation.logged.estimate_log: an observer and the EKF over a recorded log (the Qube's); a
+log a block at a time (evaluation.streamed on plant.logstream): the whole-log path's values and file bit for bit
+across blocks, and the logs it leaves to the whole-log reader."""
 
 import csv
+import math
 import re
 import shlex
 import subprocess
@@ -13,9 +16,13 @@ import pytest
 import kklcasadi as kc
 from kklcasadi import provenance
 from kklcasadi.cli import main
+from kklcasadi.evaluation.chunked import BITWISE
 from kklcasadi.evaluation.logged import ekf_for_model, estimate_log, read_plant_log
+from kklcasadi.evaluation.streamed import estimate_streamed
+from kklcasadi.plant import logs, logstream
 from kklcasadi.plant.envelope import output_ranges
 from kklcasadi.plant.logs import read_log
+from kklcasadi.plant.logstream import scan_log
 
 QUBE = Path(__file__).resolve().parents[1] / "examples" / "qube"
 RUN = QUBE / "data" / "free_swing_1.csv"
@@ -360,3 +367,82 @@ def test_an_absurd_sample_is_held_flagged_and_exit_status_3(demo_run, tmp_path, 
     assert np.flatnonzero(values[:, 4]).tolist() == [100] and np.all(np.isfinite(values[:, 1:3]))
     clean = kc.load_observer(DUFFING).simulate(tr.t[::50], tr.y[::50], tr.u[::50]).xhat
     np.testing.assert_allclose(values[-50:, 1:3], clean[-50:], rtol=0, atol=1e-4)
+
+
+# ---------------------------------------------------------------- a block at a time
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Blocks of 37 rows read and 50 samples estimated: every log of the tests spans several."""
+    monkeypatch.setattr(logs, "_BLOCK", 37)
+    monkeypatch.setattr(logstream, "BLOCK", 50)
+
+
+def test_blocks_are_read_logs_grid_bit_for_bit_with_angles_unwrapped_across_blocks(tmp_path, small_blocks):
+    rng = np.random.default_rng(0)
+    n = 400
+    t = 2.0 + np.cumsum(0.01 * (1 + 0.02 * rng.uniform(-1, 1, n)))           # at the model's rate, jittered
+    angle = np.cumsum(rng.normal(0.4, 0.3, n))                               # turns many times
+    wrapped = (angle + np.pi) % (2 * np.pi) - np.pi
+    path = _write(tmp_path / "log.csv", ["t", "a", "y", "u", "v"],
+                  [t, wrapped, np.sin(t), np.round(np.cos(3 * t), 1), angle])
+    arguments = dict(time_col="t", y_cols=("a", "y"), u_cols=("u",), reference_cols=("v",), dt=0.01,
+                     angle_cols=("a", "v"), box={"a": (100.0, 110.0), "y": (-1.0, 1.0)}, box_margin=math.inf)
+    whole = read_log(path, **arguments)
+    with scan_log(path, **arguments) as scan:
+        parts = [np.concatenate(p) for p in zip(*scan.blocks())]
+        resampling = scan.resampling
+    for part, expected in zip(parts, (whole.t, whole.y, whole.u, whole.reference)):
+        np.testing.assert_array_equal(part, expected)
+    assert resampling.angle_shifts == whole.resampling.angle_shifts and resampling.angle_shifts[0] != 0
+    assert resampling.dt_mean == pytest.approx(whole.resampling.dt_mean, rel=1e-13)    # summed a block at a time
+    assert resampling == logs.Resampling(**{**vars(whole.resampling), "dt_mean": resampling.dt_mean})
+
+
+@pytest.mark.parametrize("edit, why", [
+    (lambda t, y: (t, np.where(np.arange(t.size) == 250, np.nan, y)), "not finite"),
+    (lambda t, y: (np.where(np.arange(t.size) == 250, t[249], t), y), "times not increasing"),
+    (lambda t, y: (np.where(np.arange(t.size) >= 250, t + 0.5, t), y), "a gap"),
+    (lambda t, y: (t, np.where(np.arange(t.size) == 300, 5.0, y)), "outside its box"),
+    (lambda t, y: (np.linspace(0.0, 1.0, t.size), y), "faster than the model"),
+    (lambda t, y: (np.concatenate([[0.0], np.cumsum(np.where(np.arange(t.size - 1) % 2, 0.008, 0.0125))]), y),
+     "a median between two spacings on either side of a bound"),      # 0.01025: at the rate, as read_log finds
+])
+def test_logs_the_stream_leaves_to_the_whole_log_reader(tmp_path, small_blocks, edit, why):
+    t, y = edit(np.arange(401) * 0.01, np.sin(np.arange(401) * 0.01))
+    path = _write(tmp_path / "log.csv", ["t", "y"], [t, y])
+    assert scan_log(path, time_col="t", y_cols=("y",), dt=0.01, box={"y": (-1.0, 1.0)}) is None, why
+    if why.startswith("a median"):
+        assert read_log(path, time_col="t", y_cols=("y",), dt=0.01).resampling.u_method == logs.U_HOLD
+
+
+def test_a_streamed_estimate_writes_the_whole_log_paths_file(model, plant, tmp_path, small_blocks, capsys):
+    run = short_log(tmp_path, rows=300)
+    out = tmp_path / "est.csv"
+    args = ["estimate", str(model), "--plant", PLANT, "--data", str(run), "--y-cols", "theta,alpha", "--u-zero",
+            "--reference-cols", STATES, "--ekf", "--settle", "0.4", "--state-names", STATES, "--out", str(out),
+            "--math", "libm"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    obs = kc.load_observer(model, system=plant)
+    whole = estimate_log(obs, run, y_cols=("theta", "alpha"), u_zero=True, reference_cols=tuple(STATES.split(",")),
+                         ekf=True, settle=0.4, compiler=BITWISE)
+    expected = whole.write(tmp_path / "whole.csv", state_names=STATES.split(","))
+    assert out.read_text().splitlines()[1:] == expected.read_text().splitlines()[1:]
+    assert whole.table(STATES.split(",")) in printed and f"domain   {int(whole.in_domain.sum())} of" in printed
+    streamed = estimate_streamed(obs, run, out=tmp_path / "again.csv", y_cols=("theta", "alpha"), u_zero=True,
+                                 reference_cols=tuple(STATES.split(",")), ekf=True, settle=0.4, compiler=BITWISE)
+    assert streamed is not None and streamed.n == whole.t.size == 300 and streamed.ekf_noise == whole.ekf_noise
+    for i, score in whole.scores.items():
+        assert streamed.scores[i]["rmse"] == pytest.approx(score["rmse"], rel=1e-12)
+        assert streamed.scores[i]["rmse_ekf"] == pytest.approx(score["rmse_ekf"], rel=1e-12)
+
+
+def test_a_sample_the_guard_holds_leaves_the_file_to_the_whole_log_path(demo_run, tmp_path, small_blocks):
+    tr = demo_run
+    y = tr.y[::50, 0].copy()
+    y[120] = 1e300                                                           # in the third block
+    data = _write(tmp_path / "spike.csv", ["time", "y", "u"], [tr.t[::50], y, tr.u[::50, 0]])
+    out = tmp_path / "est.csv"
+    assert estimate_streamed(kc.load_observer(DUFFING), data, out=out, y_cols=("y",), u_cols=("u",),
+                             range_check=False) is None
+    assert not out.exists() and not list(tmp_path.glob(".est.csv.*"))       # nothing written, no temporary left

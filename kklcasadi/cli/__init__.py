@@ -7,7 +7,9 @@ paper for a model), ``tune`` (a design search on Optuna), ``generalise`` (inputs
 observer was not fit on, with the domain monitor), ``robustness`` (plants and noise the EKF's model
 does not describe, beside the tuned and the augmented EKF), ``resign`` (accept a checked edit of a model card).
 Every error is one line ``error: ...`` on stderr with exit status 2 (``KKLCASADI_DEBUG=1`` shows the
-traceback instead).
+traceback instead); every warning a command raises (a note such as the C compiler's absence) is one line
+``warning: ...`` on stderr (:func:`show_warning`: the command line's own display; the library's warnings are
+Python's as ever).
 """
 
 from __future__ import annotations
@@ -16,13 +18,14 @@ import argparse
 import os
 import shlex
 import sys
-from typing import Sequence
+import warnings
+from typing import Any, Optional, Sequence, TextIO
 
 from .. import provenance
 from . import bench, certificate, compare, demo, estimate, evaluate, export, generalise, resign, robustness, train, tune
 from .flags import USER_ERRORS, Parser
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "show_warning"]
 
 COMMANDS = (demo, train, evaluate, estimate, export, bench, compare, certificate, tune, generalise, robustness,
             resign)
@@ -51,13 +54,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                 file: Optional[TextIO] = None, line: Optional[str] = None) -> None:
+    """A warning as the command line shows it: one line ``warning: TEXT`` on stderr (or ``file``), without
+    Python's ``file:line: Category:`` prefix and source line (a :func:`warnings.showwarning`)."""
+    stream: Any = sys.stderr if file is None else file
+    if stream is not None:
+        stream.write(f"warning: {' '.join(str(message).split())}\n")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command line; a user error prints one line ``error: ...`` and returns 2."""
+    """Run the command line; a user error prints one line ``error: ...`` and returns 2, a warning one line
+    ``warning: ...`` (:func:`show_warning`, for the command's run only)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     args.command_line = shlex.join(["kklcasadi", *argv])         # what the result files' stamps record
     try:
-        return args.func(args)
+        with warnings.catch_warnings():                           # restores Python's display afterwards
+            warnings.showwarning = show_warning
+            return args.func(args)
     except USER_ERRORS as exc:
         if os.environ.get("KKLCASADI_DEBUG"):
             raise

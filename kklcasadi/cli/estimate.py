@@ -9,9 +9,11 @@ estimates, the domain flags and with ``--ekf`` the EKF's estimates are written
 (:meth:`kklcasadi.evaluation.logged.LogEstimate.write`), and ``--reference-cols`` scores them against
 recorded states. Every error is one line naming a flag (a bad log: ``--data`` with its row and column),
 exit status 2; a sample the guard did not feed to the observer (:mod:`kklcasadi.observer.guard`) is
-flagged in the ``status`` column, and the command then ends with exit status 3. The observer and the
-EKF run their compiled steps a chunk of samples per call (:mod:`kklcasadi.evaluation.chunked`: a log
-of any length in memory proportional to its estimates, with a progress bar), with the vectorised
+flagged in the ``status`` column, and the command then ends with exit status 3. The log is read, estimated
+and written a block of samples at a time (:mod:`kklcasadi.evaluation.streamed`: memory independent of its
+length, with a progress bar), or read whole where it must be (a log faster than the model, a sample the
+guard acts on: :func:`kklcasadi.evaluation.logged.estimate_log`); the observer and the EKF run their compiled
+steps a chunk of samples per call (:mod:`kklcasadi.evaluation.chunked`), with the vectorised
 exp/tanh (within 1e-14 per step of the VM; ``--math libm``: bitwise :meth:`KKLObserver.simulate`);
 ``--vm`` (or no C compiler) runs the CasADi VM the same way.
 """
@@ -23,6 +25,7 @@ import os
 from pathlib import Path
 from typing import Any, Optional
 
+from ..validation import ArgumentError
 from .flags import (
     CommandError,
     add_noise_levels,
@@ -95,11 +98,16 @@ def _read(args: argparse.Namespace, obs: Any, reference: tuple[Optional[str], ..
                               u_zero=args.u_zero, reference_cols=reference, angle_cols=args.angle_cols,
                               range_check=not args.no_range_check)
     except (ValueError, TypeError) as exc:
-        message = str(exc)
-        head, sep, rest = message.partition(": ")
-        if sep and head in _FLAGS:
-            raise CommandError(f"{_FLAGS[head]}: {rest}") from exc
-        raise CommandError(f"--data: {rest}" if sep and head.isidentifier() else f"--data: {message}") from exc
+        return _read_error(exc)
+
+
+def _read_error(exc: Exception) -> Any:
+    """An error reading the log as the command's: a column argument names its flag, any other ``--data``."""
+    message = str(exc)
+    head, sep, rest = message.partition(": ")
+    if sep and head in _FLAGS:
+        raise CommandError(f"{_FLAGS[head]}: {rest}") from exc
+    raise CommandError(f"--data: {rest}" if sep and head.isidentifier() else f"--data: {message}") from exc
 
 
 def _inputs(args: argparse.Namespace) -> dict[str, Path]:
@@ -158,35 +166,69 @@ def run(args: argparse.Namespace) -> int:
     if args.state_names is not None:
         _check_count("--state-names", args.state_names, plant.nx, f"the states of {plant.name!r}")
     reference: tuple[Optional[str], ...] = tuple(None if name == "-" else name for name in args.reference_cols)
-    log, recorded = _read(args, obs, reference)
     ekf = False
     if args.ekf:
         ekf, levels = flagged("--ekf", ekf_for_model, obs, process_std=args.process_std,
                               measurement_std=args.measurement_std)
     compiler = None if args.vm else {"vector": FAST, "libm": BITWISE}[args.math]
-    result = flagged("--settle", estimate_log, obs, log, u_zero=args.u_zero, ekf=ekf, settle=args.settle,
-                     reference=recorded, compiler=compiler, progress=True)
-    r = log.resampling
+    streamed = _streamed(args, obs, reference, ekf, compiler)
+    if streamed is not None:                   # a block at a time: the memory of a block, whatever the length
+        r, source, n, in_domain = streamed.resampling, streamed.source, streamed.n, streamed.in_domain
+        status = np.zeros(n, dtype=np.int8)                     # it streams only where the guard does nothing
+        scores, path = streamed.table(args.state_names) if reference else None, streamed.path
+    else:                                      # the whole log: a faster log, or the guard holds or restarts
+        log, recorded = _read(args, obs, reference)
+        result = flagged("--settle", estimate_log, obs, log, u_zero=args.u_zero, ekf=ekf, settle=args.settle,
+                         reference=recorded, compiler=compiler, progress=True)
+        r, source, n, status = log.resampling, log.source, log.t.size, result.status
+        in_domain = None if result.in_domain is None else int(result.in_domain.sum())
+        scores = result.table(args.state_names) if recorded else None
+        path = flagged("--out", result.write, args.out, state_names=args.state_names, stamp=stamp_of(args))
     print(f"model    {model_label(args.model)}  ({obs.method}, system {plant.name}, dt {obs.dt:g} s)")
     inputs = "none" if not plant.nu else "zero (--u-zero)" if args.u_zero else r.u_method
-    print(f"log      {log.source}: {r.n_raw} rows over {r.t_last - r.t_first:.6g} s (spacing {r.dt_min:.4g} to "
-          f"{r.dt_max:.4g} s, mean {r.dt_mean:.4g}) -> {log.t.size} samples every {obs.dt:g} s; y {r.y_method}, "
+    print(f"log      {source}: {r.n_raw} rows over {r.t_last - r.t_first:.6g} s (spacing {r.dt_min:.4g} to "
+          f"{r.dt_max:.4g} s, mean {r.dt_mean:.4g}) -> {n} samples every {obs.dt:g} s; y {r.y_method}, "
           f"u {inputs}" + (f"; angles unwrapped: {', '.join(r.angle_cols)}" if r.angle_cols else "")
           + ("; outputs not checked against the training domain (--no-range-check)" if args.no_range_check else ""))
-    if result.in_domain is not None:
-        print(f"domain   {int(result.in_domain.sum())} of {log.t.size} estimates in the domain the maps were "
-              "trained on")
-    flagged_samples = int(np.count_nonzero(result.status))
+    if in_domain is not None:
+        print(f"domain   {in_domain} of {n} estimates in the domain the maps were trained on")
+    flagged_samples = int(np.count_nonzero(status))
     if flagged_samples:
-        print(f"guard    {flagged_samples} of {log.t.size} samples flagged in the status column: "
-              f"{int(np.count_nonzero(result.status & HELD))} not fed (not finite or absurd), "
-              f"{int(np.count_nonzero(result.status & RESTARTED))} restarts (exit status 3)")
+        print(f"guard    {flagged_samples} of {n} samples flagged in the status column: "
+              f"{int(np.count_nonzero(status & HELD))} not fed (not finite or absurd), "
+              f"{int(np.count_nonzero(status & RESTARTED))} restarts (exit status 3)")
     if args.ekf:
         q = levels_text(levels[0])
         print(f"EKF      Q = ({q} dt)^2 I, R = {levels[1]:g}^2 I" if "(" not in q else
               f"EKF      Q = diag({q[1:-1]})^2 dt^2, R = {levels[1]:g}^2 I")
-    if recorded:
-        print(result.table(args.state_names))
-    path = flagged("--out", result.write, args.out, state_names=args.state_names, stamp=stamp_of(args))
+    if scores is not None:
+        print(scores)
     print(f"wrote    {path}")
     return 3 if flagged_samples else 0
+
+
+def _streamed(args: argparse.Namespace, obs: Any, reference: tuple[Optional[str], ...], ekf: Any,
+              compiler: Any) -> Any:
+    """The log estimated and written a block at a time (:func:`kklcasadi.evaluation.streamed.estimate_streamed`), or
+    None where it must be read whole; errors name their flags as :func:`_read`'s and the run's do."""
+    from ..evaluation.streamed import estimate_streamed
+
+    def run() -> Any:
+        return estimate_streamed(obs, args.data, out=args.out, time_col=args.time_col, y_cols=args.y_cols,
+                                 u_cols=args.u_cols, u_zero=args.u_zero, reference_cols=reference,
+                                 angle_cols=args.angle_cols, range_check=not args.no_range_check, ekf=ekf,
+                                 settle=args.settle, compiler=compiler, state_names=args.state_names,
+                                 stamp=stamp_of(args), progress=True)
+
+    try:
+        return run()
+    except ArgumentError as exc:
+        if exc.argument in _WRITE_ARGUMENTS or exc.argument == "settle":
+            raise CommandError(f"{'--settle' if exc.argument == 'settle' else '--out'}: {exc.detail}") from exc
+        return _read_error(exc)
+    except (ValueError, TypeError) as exc:
+        return _read_error(exc)
+
+
+#: The arguments of the estimates' writer (:class:`kklcasadi.plant.logs.EstimatesWriter`): errors of ``--out``.
+_WRITE_ARGUMENTS = ("path", "state_names", "extra", "t", "xhat", "in_domain", "status", "columns", "blocks")

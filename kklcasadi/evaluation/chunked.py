@@ -28,7 +28,8 @@ import casadi as ca
 import numpy as np
 from tqdm.auto import tqdm
 
-from ..observer.codegen import axpy_matvec, fast_kernels
+from ..observer.codegen import fast_kernels
+from ..observer.compiled import BITWISE, CHUNK, chunk_size
 from ..validation import positive_int
 from .compiled import CompiledObserver, Compiler
 
@@ -38,13 +39,9 @@ if TYPE_CHECKING:
 
 __all__ = ["ChunkedObserver", "ChunkedEKF", "CHUNK", "FAST", "BITWISE"]
 
-#: Most steps per compiled call (a shorter record runs the smallest power of two >= 64 that holds it).
-CHUNK = 4096
 #: The default compiler of the chunks: the axpy mat-vec kernels and the vectorised exp/tanh (within
 #: 1e-14 relative of the VM per step, as ``kklcasadi evaluate``'s default).
 FAST = Compiler(postprocess=fast_kernels)
-#: The axpy mat-vec kernels and the C library's exp/tanh: bitwise the VM.
-BITWISE = Compiler(postprocess=axpy_matvec)
 
 
 class _Chunked(ABC):
@@ -74,13 +71,12 @@ class _Chunked(ABC):
         """The state after the first sample and the first sample's outputs (columns of 1)."""
 
     @abstractmethod
-    def _carry(self, outputs: list[np.ndarray]) -> list[np.ndarray]:
-        """The state after a chunk from its outputs."""
+    def _carry(self, outputs: list[np.ndarray], steps: int) -> list[np.ndarray]:
+        """The state after the first ``steps`` steps of a chunk, from its outputs."""
 
     def size(self, n: int) -> int:
-        """Steps per call for a record of ``n`` samples: :attr:`chunk`, or for a shorter record the
-        smallest power of two >= 64 that holds its ``n - 1`` steps (few sizes to compile, little padding)."""
-        return min(self.chunk, max(64, 1 << max(0, n - 2).bit_length()))
+        """Steps per call for a record of ``n`` samples (:func:`~kklcasadi.observer.compiled.chunk_size`)."""
+        return chunk_size(n, self.chunk)
 
     def function(self, size: int) -> ca.Function:
         """The Function of ``size`` steps as it runs: compiled (cached on disk and here), or the VM's
@@ -102,32 +98,56 @@ class _Chunked(ABC):
         progress : bool
             A progress bar over the samples (tqdm).
         """
+        y, u = self._samples(y, u)
+        n = y.shape[0]
+        state, first = self.start(y[0], u[0])
+        outputs = [np.empty((n, o.shape[1])) for o in first]
+        for out, value in zip(outputs, first):
+            out[0] = value[0]
+        with tqdm(total=n, unit="sample", disable=not progress, unit_scale=True) as bar:
+            bar.update(1)
+            for k in range(0, n - 1, self.size(n)):
+                state, rest = self.advance(state, y[k:], u[k:], n, steps=min(self.size(n), n - 1 - k))
+                for out, value in zip(outputs, rest):
+                    out[k + 1:k + 1 + value.shape[0]] = value
+                bar.update(rest[0].shape[0])
+        return outputs
+
+    def _samples(self, y: Any, u: Any) -> tuple[np.ndarray, np.ndarray]:
         y, u = np.asarray(y, dtype=float), np.asarray(u, dtype=float)
         if y.ndim != 2 or y.shape[1] != self.ny or y.shape[0] < 1:
             raise ValueError(f"y: expected shape (N, {self.ny}) with N >= 1, received {y.shape}.")
         if u.shape != (y.shape[0], self.nu):
             raise ValueError(f"u: expected shape ({y.shape[0]}, {self.nu}), received {u.shape}.")
-        n = y.shape[0]
+        return y, u
+
+    def start(self, y0: np.ndarray, u0: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The state after the first sample, and that sample's outputs, ``(1, .)`` each."""
+        state, first = self._start(np.asarray(y0, dtype=float), np.asarray(u0, dtype=float))
+        return state, [np.asarray(value)[:, 0][None, :] for value in first]
+
+    def advance(self, state: list[np.ndarray], y: np.ndarray, u: np.ndarray, n: int, *,
+                steps: Optional[int] = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The steps from ``y[0], u[0]`` (the last sample already run) over the samples after it, a chunk per
+        call (the calls' size that of a record of ``n`` samples, :meth:`size`): the state after the last
+        step, and the outputs of the samples after the first, ``(len(y) - 1, .)`` each (``steps`` of them,
+        default all). A record run in pieces that overlap by one sample gives :meth:`run`'s values."""
+        total = y.shape[0] - 1 if steps is None else steps
         c = self.size(n)
-        state, first = self._start(y[0], u[0])
-        outputs = [np.empty((n, o.shape[0])) for o in first]
-        for out, value in zip(outputs, first):
-            out[0] = value[:, 0]
-        f = self.function(c) if n > 1 else None
-        with tqdm(total=n, unit="sample", disable=not progress, unit_scale=True) as bar:
-            bar.update(1)
-            for k in range(0, n - 1, c):
-                m = min(c, n - 1 - k)                                  # steps k -> k + 1 .. k + m
-                y_part, u_part = y[k:k + m + 1], u[k:k + m + 1]
-                if m < c:                                              # pad: repeat the last sample
-                    y_part = np.concatenate([y_part, np.repeat(y_part[-1:], c - m, axis=0)])
-                    u_part = np.concatenate([u_part, np.repeat(u_part[-1:], c - m, axis=0)])
-                result = [np.asarray(r) for r in f.call([*state, y_part.T, u_part.T])]
-                for out, value in zip(outputs, self._per_step(result)):
-                    out[k + 1:k + 1 + m] = value[:, :m].T
-                state = self._carry(result)
-                bar.update(m)
-        return outputs
+        f = self.function(c)
+        pieces: list[list[np.ndarray]] = []
+        for k in range(0, total, c):
+            m = min(c, total - k)                                      # steps k -> k + 1 .. k + m
+            y_part, u_part = y[k:k + m + 1], u[k:k + m + 1]
+            if m < c:                                                  # pad: repeat the last sample
+                y_part = np.concatenate([y_part, np.repeat(y_part[-1:], c - m, axis=0)])
+                u_part = np.concatenate([u_part, np.repeat(u_part[-1:], c - m, axis=0)])
+            result = [np.asarray(r) for r in f.call([*state, y_part.T, u_part.T])]
+            pieces.append([value[:, :m].T for value in self._per_step(result)])
+            state = self._carry(result, m)
+        if not pieces:
+            return state, []
+        return state, [np.concatenate(parts) if len(parts) > 1 else parts[0] for parts in zip(*pieces)]
 
     def _per_step(self, result: list[np.ndarray]) -> list[np.ndarray]:
         """The chunk's outputs as ``(., chunk)`` columns, one per step (the default: as they come)."""
@@ -166,15 +186,32 @@ class ChunkedObserver(_Chunked):
         carried = [ca.MX.sym("xhat", obs.nx)] if self.carries else []
         y, u = ca.MX.sym("y", obs.ny, n + 1), ca.MX.sym("u", obs.nu, n + 1)
         states = list(range(2 + len(carried)))
-        steps = self.step.mapaccum("chunk", n, states, states)
-        z_all, w_all, xhat = steps(z, w, *carried, y[:, :n], y[:, 1:], u[:, 1:])[:3]
-        outputs, names = [xhat, z_all, w_all[:, -cols:]], ["xhat", "z", "w_last"]
+        monitored = self._monitored_step()
+        steps = (self.step if monitored is None else monitored).mapaccum("chunk", n, states, states)
+        results = steps(z, w, *carried, y[:, :n], y[:, 1:], u[:, 1:])
+        z_all, w_all, xhat = results[:3]
+        outputs, names = [xhat, z_all, w_all], ["xhat", "z", "w"]
         if obs.domain_check is not None:
-            outputs.append(obs.domain_check.map(n)(z_all, w_all, xhat))
+            outputs.append(obs.domain_check.map(n)(z_all, w_all, xhat) if monitored is None else results[3])
             names.append("in_domain")
         name = f"{_c_name(obs.system.name)}_{_c_name(obs.method)}_chunk{n}"
         return ca.Function(name, [z, w, *carried, y, u], outputs,
                            ["z0", "w0", *(["xhat0"] if carried else []), "y", "u"], names)
+
+    def _monitored_step(self) -> Optional[ca.Function]:
+        """The step with its domain flag, the estimate and the ensemble's spread from one evaluation of the
+        members (:attr:`KKLObserver.decoded`: the same values as the step's estimate and the domain check's spread,
+        the members run once where the step and the check would each run them); None where the check tests no
+        spread (or the step reads its previous estimate)."""
+        obs = self.observer
+        if obs.decoded is None or obs.domain_check_of_spread is None or self.carries:
+            return None
+        args = [ca.MX.sym(name, self.step.sparsity_in(i)) for i, name in enumerate(self.step.name_in())]
+        z_next, w_next = self.step.call(args, True)[:2]          # its own estimate is left out of the graph
+        xhat, spread = obs.decoded(z_next, w_next)
+        flag = obs.domain_check_of_spread(z_next, w_next, xhat, spread)
+        return ca.Function("step_monitored", args, [z_next, w_next, xhat, flag], self.step.name_in(),
+                           self.step.name_out() + ["in_domain"])
 
     def _start(self, y0: np.ndarray, u0: np.ndarray) -> tuple[list[np.ndarray], list[np.ndarray]]:
         obs = self.observer
@@ -195,9 +232,11 @@ class ChunkedObserver(_Chunked):
     def _per_step(self, result: list[np.ndarray]) -> list[np.ndarray]:
         return [result[0], result[1]] + result[3:]
 
-    def _carry(self, outputs: list[np.ndarray]) -> list[np.ndarray]:
-        xhat, z, w_last = outputs[:3]
-        return [z[:, -1], w_last] + ([xhat[:, -1]] if self.carries else [])
+    def _carry(self, outputs: list[np.ndarray], steps: int) -> list[np.ndarray]:
+        xhat, z, w_all = outputs[:3]
+        cols = self.observer.memory_shape[1]
+        return [z[:, steps - 1], w_all[:, (steps - 1) * cols:steps * cols]] + ([xhat[:, steps - 1]] if self.carries
+                                                                               else [])
 
     def estimate(self, y: Any, u: Any, *, progress: bool = False) -> tuple[np.ndarray, np.ndarray,
                                                                           Optional[np.ndarray]]:
@@ -247,8 +286,8 @@ class ChunkedEKF(_Chunked):
     def _per_step(self, result: list[np.ndarray]) -> list[np.ndarray]:
         return [result[0][:self.nx]]
 
-    def _carry(self, outputs: list[np.ndarray]) -> list[np.ndarray]:
-        return [outputs[0][:, -1]]
+    def _carry(self, outputs: list[np.ndarray], steps: int) -> list[np.ndarray]:
+        return [outputs[0][:, steps - 1]]
 
 
 def _c_name(text: str) -> str:

@@ -35,7 +35,8 @@ from ..validation import Text, error, nonnegative_number, state_stds
 from .chunked import FAST, ChunkedEKF, ChunkedObserver
 from .compiled import Compiler
 
-__all__ = ["LogEstimate", "estimate_log", "read_plant_log", "ekf_for_model"]
+__all__ = ["LogEstimate", "estimate_log", "read_plant_log", "ekf_for_model", "log_arguments", "check_inputs",
+           "recorded_column", "score_table"]
 
 @dataclass(frozen=True, eq=False)
 class LogEstimate:
@@ -107,14 +108,19 @@ class LogEstimate:
 
     def table(self, state_names: Optional[Sequence[str]] = None) -> str:
         """The scores as a few lines of text (one per recorded state)."""
-        if not self.scores:
-            return "no recorded states to score against (reference columns)"
-        lines = [f"RMSE for t >= {self.settle:g} s after the start (angle states wrapped):"]
-        for i, s in self.scores.items():
-            name = state_names[i] if state_names is not None else f"x{i + 1}"
-            ekf = "" if s["rmse_ekf"] is None else f"   EKF {s['rmse_ekf']:.4g}"
-            lines.append(f"  {name:<12s} against {s['column']!r}: KKL {s['rmse']:.4g}{ekf}")
-        return "\n".join(lines)
+        return score_table(self.scores, self.settle, state_names)
+
+
+def score_table(scores: dict, settle: float, state_names: Optional[Sequence[str]] = None) -> str:
+    """Scores ``{state index: {"column", "rmse", "rmse_ekf"}}`` as a few lines of text (one per recorded state)."""
+    if not scores:
+        return "no recorded states to score against (reference columns)"
+    lines = [f"RMSE for t >= {settle:g} s after the start (angle states wrapped):"]
+    for i, s in scores.items():
+        name = state_names[i] if state_names is not None else f"x{i + 1}"
+        ekf = "" if s["rmse_ekf"] is None else f"   EKF {s['rmse_ekf']:.4g}"
+        lines.append(f"  {name:<12s} against {s['column']!r}: KKL {s['rmse']:.4g}{ekf}")
+    return "\n".join(lines)
 
 
 def _reference_columns(reference_cols: Sequence[Optional[str]], nx: int) -> dict:
@@ -161,11 +167,24 @@ def read_plant_log(path: str | os.PathLike, observer: KKLObserver, *, time_col: 
     dict
         ``{state index: column}`` of the reference columns.
     """
+    arguments, reference = log_arguments(observer, time_col=time_col, y_cols=y_cols, u_cols=u_cols, u_zero=u_zero,
+                                         reference_cols=reference_cols, angle_cols=angle_cols,
+                                         max_dt_ratio=max_dt_ratio, range_check=range_check)
+    return read_log(path, t0=t0, **arguments), reference
+
+
+def log_arguments(observer: KKLObserver, *, time_col: str, y_cols: Sequence[str], u_cols: Sequence[str] = (),
+                  u_zero: bool = False, reference_cols: Sequence[Optional[str]] = (),
+                  angle_cols: Optional[Sequence[str]] = None, max_dt_ratio: float = 1.5,
+                  range_check: bool = True) -> tuple[dict, dict]:
+    """:func:`read_plant_log`'s arguments checked against ``observer``: the keyword arguments of
+    :func:`~kklcasadi.plant.logs.read_log` but the path and ``t0``, and ``{state index: column}`` of the
+    reference columns."""
     plant = observer.system
     y_cols = tuple(y_cols)
     if len(y_cols) != plant.ny:
         raise error("y_cols", f"{plant.ny} columns (the outputs of {plant.name!r}, in order)", list(y_cols))
-    _check_inputs(plant, len(u_cols), u_zero)
+    check_inputs(plant, len(u_cols), u_zero)
     if u_cols and len(u_cols) != plant.nu:
         raise error("u_cols", f"{plant.nu} columns (the inputs of {plant.name!r}, in order)", list(u_cols))
     if not isinstance(range_check, bool):
@@ -179,13 +198,12 @@ def read_plant_log(path: str | os.PathLike, observer: KKLObserver, *, time_col: 
     ranges = output_ranges(plant, training_box(observer))
     box = {name: tuple(ranges[j]) for j, name in enumerate(y_cols)
            if ranges[j, 1] > ranges[j, 0] and (range_check or name in angle_cols)}
-    log = read_log(path, time_col=time_col, y_cols=y_cols, u_cols=tuple(u_cols), reference_cols=extra,
-                   dt=observer.dt, angle_cols=angle_cols, t0=t0, max_dt_ratio=max_dt_ratio, box=box,
-                   box_margin=0.1 if range_check else math.inf)
-    return log, reference
+    return dict(time_col=time_col, y_cols=y_cols, u_cols=tuple(u_cols), reference_cols=extra, dt=observer.dt,
+                angle_cols=angle_cols, max_dt_ratio=max_dt_ratio, box=box,
+                box_margin=0.1 if range_check else math.inf), reference
 
 
-def _check_inputs(plant: System, n_columns: int, u_zero: bool) -> None:
+def check_inputs(plant: System, n_columns: int, u_zero: bool) -> None:
     """A plant with inputs needs their columns, or ``u_zero`` saying the input was zero."""
     if not isinstance(u_zero, bool):
         raise error("u_zero", "a bool", Text(type(u_zero).__name__), kind=TypeError)
@@ -223,10 +241,17 @@ def ekf_for_model(observer: KKLObserver, *, process_std: Optional[float | Sequen
 
 def _recorded(log: Log, name: str) -> np.ndarray:
     """The column ``name`` of a log on its grid, (N,): a reference column, or a measured output."""
-    for key, values in (("reference", log.reference), ("y", log.y)):
-        if name in log.columns[key]:
-            return values[:, log.columns[key].index(name)]
-    raise error("reference", f"columns of the log {list(log.columns['y'] + log.columns['reference'])}", name)
+    key, j = recorded_column(log.columns, name)
+    return (log.reference if key == "reference" else log.y)[:, j]
+
+
+def recorded_column(columns: dict, name: str) -> tuple[str, int]:
+    """Where a log's column ``name`` is: ``("reference", j)``, or ``("y", j)`` for a measured output (``columns``
+    as :attr:`Log.columns`)."""
+    for key in ("reference", "y"):
+        if name in columns[key]:
+            return key, columns[key].index(name)
+    raise error("reference", f"columns of the log {list(columns['y'] + columns['reference'])}", name)
 
 
 def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, time_col: str = "time",
@@ -274,7 +299,7 @@ def estimate_log(observer: KKLObserver, log: Union[Log, str, os.PathLike], *, ti
         reference = {} if reference is None else dict(reference)
         if log.y.shape[1] != plant.ny:
             raise error("log", f"a log of {plant.ny} outputs", Text(f"{log.y.shape[1]} outputs"))
-        _check_inputs(plant, log.u.shape[1], u_zero)
+        check_inputs(plant, log.u.shape[1], u_zero)
         if log.u.shape[1] not in (0, plant.nu):
             raise error("log", f"a log of {plant.nu} inputs", Text(f"{log.u.shape[1]} inputs"))
     else:

@@ -46,14 +46,13 @@ import casadi as ca
 import numpy as np
 import scipy
 
+from ..cache import CACHE_ENV, cache_root
 from ..plant.simulate import TrajectoryBatch
 from ..plant.systems import System
 from ..version import __version__
 
 __all__ = ["TrialCache", "TrialCacheWarning", "Cell", "cache_root", "cell_description", "CACHE_ENV", "CACHE_FORMAT"]
 
-#: Environment variable naming the root of kklcasadi's caches (trials and compiled code).
-CACHE_ENV = "KKLCASADI_CACHE"
 #: Version of the cell file layout; part of every key.
 CACHE_FORMAT = 1
 
@@ -64,22 +63,6 @@ PathLike = Union[str, os.PathLike]
 
 class TrialCacheWarning(UserWarning):
     """A cached cell was unreadable or did not match its key; it is simulated again."""
-
-
-def cache_root() -> Path:
-    """The root of kklcasadi's on-disk caches.
-
-    Returns
-    -------
-    Path
-        ``$KKLCASADI_CACHE`` if set, else ``$XDG_CACHE_HOME/kklcasadi``, else
-        ``~/.cache/kklcasadi``. Not created here.
-    """
-    explicit = os.environ.get(CACHE_ENV)
-    if explicit:
-        return Path(explicit).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    return (Path(xdg).expanduser() if xdg else Path.home() / ".cache") / "kklcasadi"
 
 
 class Cell(typing.Protocol):

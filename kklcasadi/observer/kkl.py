@@ -38,12 +38,14 @@ input held at ``u_k`` (``docs/protocol.md`` "Observer"). ``w_k`` is the observer
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Any, Optional, Union
 
 import casadi as ca
 import numpy as np
 
+from ..compiler import CompilerWarning
 from ..estimate import Estimate
 from ..model import variants
 from ..model.files import CARD_FILE, Model, derive_model, load_model
@@ -69,8 +71,10 @@ from .checks import (
 from .estimator import Estimator
 
 __all__ = ["KKLObserver", "Estimate", "Estimator", "load_observer", "make_inject_model",
-           "DISCRETIZATIONS", "INTEGRATOR_SOLVERS", "MODEL_BASED_INJECTION", "DOMAIN_MARGIN"]
+           "DISCRETIZATIONS", "INTEGRATOR_SOLVERS", "COMPILED_FROM", "MODEL_BASED_INJECTION", "DOMAIN_MARGIN"]
 
+#: Steps (all trials together) from which :meth:`KKLObserver.simulate` runs the compiled step by default.
+COMPILED_FROM = 20_000
 #: ``ca.integrator`` plugins accepted by :meth:`KKLObserver.integrator`.
 INTEGRATOR_SOLVERS = ("cvodes", "idas", "rk", "collocation")
 
@@ -143,6 +147,12 @@ class KKLObserver:
         ``domain_check(z, w, xhat) -> in_domain`` (1 or 0): the domain monitor of one sample (the
         card's boxes and, with :attr:`monitor`, the decoder's input ``[z; vec(w)]``); None when the
         card records neither. The C function ``name_in_domain`` of :func:`kklcasadi.generate_c`.
+    decoded : casadi.Function or None
+        ``decoded(z, w) -> (xhat, spread)``: :attr:`decode` and :attr:`spread` from one evaluation of the
+        ensemble's members (the same values); None without a spread.
+    domain_check_of_spread : casadi.Function or None
+        ``(z, w, xhat, spread) -> in_domain``: :attr:`domain_check` with the spread given (from :attr:`decoded`);
+        None where the check tests no spread.
     covariance : casadi.Function or None
         ``covariance(z, w, xhat) -> P (nx, nx)``: the covariance of the error of the estimate ``xhat``
         at ``(z, w)``, from the card's covariance head (a ``bank`` with ``architecture.covariance``;
@@ -209,7 +219,9 @@ class KKLObserver:
             raise ValueError(f"{model.path / CARD_FILE}: 'monitor.spread': expected a decoder ensemble (a 'bank' with "
                              "architecture.bank.members >= 2) for the spread test, received a single decoder. Remove "
                              "'monitor.spread' or add the members' networks.")
-        self.domain_check = self._build_domain_check()
+        self.decoded: Optional[ca.Function] = nets.decoded
+        self.domain_check, self.domain_check_of_spread = self._build_domain_check()
+        self._trajectories: Optional[Any] = None                  # simulate's compiled trajectories, when first run
 
     # ------------------------------------------------------------------ construction
     def _context_of(self, w: ca.MX) -> Optional[ca.MX]:
@@ -250,9 +262,11 @@ class KKLObserver:
                                  [z_next, w_next, xhat_next, self.covariance(z_next, w_next, xhat_next)],
                                  names[0], names[1] + ["P_next"])
 
-    def _build_domain_check(self) -> Optional[ca.Function]:
+    def _build_domain_check(self) -> tuple[Optional[ca.Function], Optional[ca.Function]]:
+        """:attr:`domain_check`, and where it tests the ensemble's spread the same check of a spread given
+        (:attr:`domain_check_of_spread`)."""
         if self._domain_bounds is None and self.monitor is None:
-            return None
+            return None, None
         z, w, xhat = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape), ca.MX.sym("xhat", self.nx)
         inside = ca.MX(1.0)
         if self._domain_bounds is not None:
@@ -261,9 +275,13 @@ class KKLObserver:
             inside = ca.mmin(ca.vertcat(point - lo, hi - point)) >= 0
         if self.monitor is not None:
             inside = ca.logic_and(inside, self.monitor.expression(ca.vertcat(z, ca.vec(w))))
-            if self.monitor.spec.spread is not None:
-                inside = ca.logic_and(inside, self.spread(z, w) <= self.monitor.spec.spread[0])
-        return ca.Function("domain_check", [z, w, xhat], [inside], ["z", "w", "xhat"], ["in_domain"])
+        names = ["z", "w", "xhat"], ["in_domain"]
+        if self.monitor is None or self.monitor.spec.spread is None or self.spread is None:
+            return ca.Function("domain_check", [z, w, xhat], [inside], *names), None
+        s, bound = ca.MX.sym("spread"), self.monitor.spec.spread[0]
+        return (ca.Function("domain_check", [z, w, xhat], [ca.logic_and(inside, self.spread(z, w) <= bound)], *names),
+                ca.Function("domain_check_of_spread", [z, w, xhat, s], [ca.logic_and(inside, s <= bound)],
+                            names[0] + ["spread"], names[1]))
 
     def in_domain(self, xhat: Any, z: Any, w: Any = None) -> Optional[np.ndarray]:
         """Whether estimates lie in the domain the maps were trained on (the domain monitor).
@@ -286,6 +304,10 @@ class KKLObserver:
             decoder ensemble's members agree within its threshold (:meth:`spread_of`); None when
             the model records neither.
         """
+        return self._in_domain(xhat, z, w)
+
+    def _in_domain(self, xhat: Any, z: Any, w: Any, spread: Optional[np.ndarray] = None) -> Optional[np.ndarray]:
+        """:meth:`in_domain`, with the ensemble's ``spread`` at the samples where it was computed already."""
         if self._domain_bounds is None and self.monitor is None:
             return None
         xhat, z = np.asarray(xhat, dtype=float), np.asarray(z, dtype=float)
@@ -304,7 +326,7 @@ class KKLObserver:
             flat = np.swapaxes(w, -1, -2).reshape(z.shape[:-1] + (-1,))          # column-major vec
             inside &= self.monitor.inside(np.concatenate([z, flat], axis=-1))
             if self.monitor.spec.spread is not None:
-                inside &= self.spread_of(z, w) <= self.monitor.spec.spread[0]
+                inside &= (self.spread_of(z, w) if spread is None else spread) <= self.monitor.spec.spread[0]
         return inside
 
     def spread_of(self, z: Any, w: Any) -> np.ndarray:
@@ -370,12 +392,15 @@ class KKLObserver:
                              0.0, self.dt, opts)
 
     def simulate(self, t: Any, y: Any, u: Any, *, z0: Any = None,
-                 n_threads: Optional[int] = None) -> Estimate:
+                 n_threads: Optional[int] = None, vm: Optional[bool] = None) -> Estimate:
         """Run the observer on sampled measurements and inputs.
 
         ``z_0 = 0`` (or ``z0``), ``w_0 = memory_init(y_0, u_0)`` (the window filled with ``u_0``),
-        ``xhat_0 = decode(z_0, w_0)``; then :attr:`step` over every interval, as one ``mapaccum``
-        call per trajectory and one ``map(M, "thread")`` over trials.
+        ``xhat_0 = decode(z_0, w_0)``; then :attr:`step` over every interval, mapped over the trials on
+        threads: compiled to C (:mod:`kklcasadi.observer.compiled`: gcc, cached on disk, a chunk of samples
+        per call; bitwise the CasADi VM's values) where the trials hold at least :data:`COMPILED_FROM` steps
+        in all, else one ``mapaccum`` per trajectory in the CasADi VM (a first compile costs about a
+        second, a cached library's look-up a fraction of one: more than a short run in the VM).
 
         Parameters
         ----------
@@ -389,6 +414,10 @@ class KKLObserver:
             Initial latent state; default 0 (docs/protocol.md). ``(nz,)`` is used for every trial.
         n_threads : int, optional
             Worker threads for M trials (default: the CPU count).
+        vm : bool, optional
+            True: the CasADi VM; False: the compiled step whatever the length; None (default): by the
+            length, as above. Where the compiled step is due and there is no C compiler, the VM runs
+            with a one-line :class:`~kklcasadi.compiler.CompilerWarning` (the same values).
 
         Returns
         -------
@@ -405,6 +434,8 @@ class KKLObserver:
         """
         if n_threads is not None:
             positive_int(n_threads, "n_threads")
+        if vm is not None and not isinstance(vm, bool):
+            raise TypeError(f"vm: expected True, False or None, received {type(vm).__name__}.")
         t = check_time(t, self.dt)
         n = t.size
         ys, batched_y = check_samples(y, "y", n, self.ny)
@@ -431,11 +462,25 @@ class KKLObserver:
         memory = np.empty((m, n, rows, cols)) if self.monitor is not None else None
         if memory is not None:
             memory[:, 0] = np.asarray(w0_cols).reshape(rows, m, cols).transpose(1, 0, 2)
-        if n > 1:
+        threads = (os.cpu_count() or 1) if n_threads is None else n_threads
+        due = n > 1 and (vm is False or (vm is None and m * (n - 1) >= COMPILED_FROM))
+        compiled = self._compiled() if due else None
+        spread = None
+        if compiled is not None:
+            z[:, 1:], w_steps, xhat[:, 1:], P_steps, spread_steps = compiled.run(z_start, np.asarray(w0_cols), ys,
+                                                                                 us, n_threads=threads)
+            if memory is not None:
+                memory[:, 1:] = w_steps
+            if cov is not None:
+                cov[:, 1:] = P_steps
+            if spread_steps is not None and self.spread is not None:   # the monitor's spread, computed with the steps
+                spread = np.empty((m, n))
+                spread[:, 0] = np.asarray(self.spread.map(m)(z_start, w0_cols)).ravel()
+                spread[:, 1:] = spread_steps
+        elif n > 1:
             step = self.step if cov is None else self.step_covariance
             trajectory = step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
             if m > 1:
-                threads = (os.cpu_count() or 1) if n_threads is None else n_threads
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
             z_out, w_out, xhat_out, *P_out = trajectory(
@@ -448,7 +493,7 @@ class KKLObserver:
             xhat[:, 1:] = np.asarray(xhat_out).T.reshape(m, n - 1, self.nx)
             if memory is not None:
                 memory[:, 1:] = np.asarray(w_out).reshape(rows, m, n - 1, cols).transpose(1, 2, 0, 3)
-        flags = self.in_domain(xhat, z, memory)
+        flags = self._in_domain(xhat, z, memory, spread)
         for array in (xhat, z, flags, cov):
             if array is not None:
                 array.setflags(write=False)
@@ -456,6 +501,20 @@ class KKLObserver:
             return Estimate(t, xhat, z=z, in_domain=flags, cov=cov)
         return Estimate(t, xhat[0], z=z[0], in_domain=None if flags is None else flags[0],
                         cov=None if cov is None else cov[0])
+
+    def _compiled(self) -> Optional[Any]:
+        """The compiled trajectories of :meth:`simulate` (:class:`~kklcasadi.observer.compiled.CompiledTrajectory`),
+        or None with a one-line :class:`~kklcasadi.compiler.CompilerWarning` where there is no C compiler."""
+        from .compiled import BITWISE, CompiledTrajectory  # here, not above: the C kernels' package imports this module
+
+        if not BITWISE.available():
+            warnings.warn(f"C compiler {BITWISE.command!r} not found on PATH; KKLObserver.simulate runs the CasADi VM "
+                          "(slower, the same values). Install gcc, or pass vm=True to choose the VM.", CompilerWarning,
+                          stacklevel=3)
+            return None
+        if self._trajectories is None:
+            self._trajectories = CompiledTrajectory(self)
+        return self._trajectories
 
     def estimator(self, *, guard: Any = None) -> Estimator:
         """A stateful, do-mpc-style estimator: ``xhat = est.make_step(y, u)`` per sample.

@@ -57,8 +57,8 @@ import numpy as np
 from .. import provenance
 from ..validation import Text, error, finite_number, is_int, nonnegative_number, positive_int, positive_number
 
-__all__ = ["Log", "Resampling", "read_log", "write_estimates", "savgol_derivative", "Y_METHOD", "U_HOLD", "U_MEAN",
-           "RATE_TOLERANCE", "NUMBER", "FIELD_LIMIT"]
+__all__ = ["Log", "Resampling", "read_log", "write_estimates", "EstimatesWriter", "table_blocks", "savgol_derivative",
+           "Y_METHOD", "U_HOLD", "U_MEAN", "RATE_TOLERANCE", "NUMBER", "FIELD_LIMIT"]
 
 #: How ``y`` and the reference are put on the grid.
 Y_METHOD = "sampled at the grid times (linear between logged samples; angle columns unwrapped first)"
@@ -242,6 +242,18 @@ def _read_table(path: Path, wanted: tuple[str, ...], arguments: tuple[str, ...])
 
     ``arguments`` names, per wanted column, the argument that asked for it (for a missing column).
     """
+    blocks, line_blocks = zip(*table_blocks(path, wanted, arguments))
+    return np.concatenate(blocks), np.concatenate(line_blocks)
+
+
+def table_blocks(path: Path, wanted: tuple[str, ...], arguments: tuple[str, ...]) -> Iterator[tuple[np.ndarray,
+                                                                                                      np.ndarray]]:
+    """The ``wanted`` columns of a CSV file as floats, a block of at most :data:`_BLOCK` rows at a time
+    ``(values (b, len(wanted)), line numbers (b,))``, the header checked before the first; a file of fewer
+    than 2 data rows is an error before any block.
+
+    ``arguments`` names, per wanted column, the argument that asked for it (for a missing column).
+    """
     source = str(path)
     rows = _rows(path, source)
     first = next(rows, None)
@@ -256,9 +268,7 @@ def _read_table(path: Path, wanted: tuple[str, ...], arguments: tuple[str, ...])
             raise error(argument, f"a column of {source}", name,
                         f"Its header holds {header if len(header) <= 20 else header[:20] + ['...']}.")
     index = [header.index(name) for name in wanted]
-    blocks: list[np.ndarray] = []                 # a block of rows at a time as float64 (not lists of floats)
-    line_blocks: list[np.ndarray] = []
-    values: list[list[float]] = []
+    values: list[list[float]] = []                # a block of rows at a time as float64 (not lists of floats)
     lines: list[int] = []
     count = 0
     for line, row in rows:
@@ -269,15 +279,12 @@ def _read_table(path: Path, wanted: tuple[str, ...], arguments: tuple[str, ...])
         lines.append(line)
         count += 1
         if len(values) == _BLOCK:
-            blocks.append(np.array(values, dtype=np.float64))
-            line_blocks.append(np.array(lines))
+            yield np.array(values, dtype=np.float64), np.array(lines)
             values, lines = [], []
     if count < 2:
         raise error(source, "at least 2 data rows", Text(f"{count} rows"))
     if values:
-        blocks.append(np.array(values, dtype=np.float64))
-        line_blocks.append(np.array(lines))
-    return np.concatenate(blocks), np.concatenate(line_blocks)
+        yield np.array(values, dtype=np.float64), np.array(lines)
 
 
 def _interval_means(t_raw: np.ndarray, values: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -359,6 +366,100 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
     TypeError
         Column arguments that are not sequences of strings, or a box that is not a mapping.
     """
+    a = _arguments(path, time_col, y_cols, u_cols, reference_cols, dt, angle_cols, max_dt_ratio, box, box_margin)
+    path, source, time_col, dt = a.path, a.source, a.time_col, a.dt
+    y_cols, u_cols, reference_cols, angle_cols, data_cols = a.y_cols, a.u_cols, a.reference_cols, a.angle_cols, \
+        a.data_cols
+    bounds, box_margin = a.bounds, a.box_margin
+    table, lines = _read_table(path, a.wanted, a.asked)
+    bad = np.argwhere(~np.isfinite(table))
+    if bad.size:
+        k, c = bad[0]
+        raise error(_where(source, int(k), int(lines[k]), a.wanted[c]), "a finite number", float(table[k, c]))
+    t_raw = table[:, 0]
+    steps = np.diff(t_raw)
+    if np.any(steps <= 0):
+        k = int(np.argmax(steps <= 0)) + 1
+        raise _order_error(source, time_col, k, int(lines[k]), t_raw[k - 1], t_raw[k])
+    dt_min, dt_mean, dt_max = float(steps.min()), float(steps.mean()), float(steps.max())
+    spacing = float(np.median(steps))                     # the log's rate, whatever its gaps
+    _check_spacing(a, spacing, dt_min, dt_max, int(np.argmax(steps)) + 1, lines)
+
+    columns = {name: table[:, 1 + i].copy() for i, name in enumerate(data_cols)}
+    shifts = []
+    for name in angle_cols:
+        columns[name] = np.unwrap(columns[name])
+        shift = _angle_shift(bounds.get(name), float(columns[name].mean()))
+        if name in bounds:
+            columns[name] = columns[name] + shift
+        shifts.append(shift)
+    for name in bounds:
+        _check_box(a, name, columns[name], lines)
+
+    t0 = float(t_raw[0]) if t0 is None else finite_number(t0, "t0")
+    if not t_raw[0] <= t0 < t_raw[-1]:
+        raise error("t0", f"a time within the log [{t_raw[0]:.6g}, {t_raw[-1]:.6g})", t0)
+    edges = t0 + np.arange(_grid_size(t0, float(t_raw[-1]), dt) + 1) * dt
+    t = edges[:-1]
+
+    def sampled(names: tuple[str, ...]) -> np.ndarray:
+        return np.column_stack([np.interp(t, t_raw, columns[name]) for name in names]) if names \
+            else np.zeros((t.size, 0))
+
+    at_rate = spacing >= dt / (1.0 + RATE_TOLERANCE)
+    logged_u = np.column_stack([columns[name] for name in u_cols]) if u_cols else np.zeros((t_raw.size, 0))
+    if not u_cols:
+        u = np.zeros((t.size, 0))
+    elif at_rate:
+        u = logged_u[np.searchsorted(t_raw, t, side="right") - 1]
+    else:
+        u = _interval_means(t_raw, logged_u, edges)
+    y = sampled(y_cols)
+    reference = sampled(reference_cols) if reference_cols else None
+    for array in (t, y, u, reference):
+        if array is not None:
+            array.setflags(write=False)
+    record = Resampling(dt, t0, int(t_raw.size), float(t_raw[0]), float(t_raw[-1]), dt_min, dt_mean, dt_max,
+                        Y_METHOD, U_HOLD if at_rate else U_MEAN, angle_cols, tuple(shifts))
+    names = {"time": (time_col,), "y": y_cols, "u": u_cols, "reference": reference_cols}
+    return Log(t, y, u, reference, names, source, record)
+
+
+@dataclass(frozen=True)
+class _Arguments:
+    """The checked arguments of :func:`read_log` (and of the streamed reader)."""
+
+    path: Path
+    source: str
+    time_col: str
+    y_cols: tuple[str, ...]
+    u_cols: tuple[str, ...]
+    reference_cols: tuple[str, ...]
+    angle_cols: tuple[str, ...]
+    dt: float
+    max_dt_ratio: float
+    bounds: dict
+    box_margin: float
+
+    @property
+    def data_cols(self) -> tuple[str, ...]:
+        return self.y_cols + self.u_cols + self.reference_cols
+
+    @property
+    def wanted(self) -> tuple[str, ...]:
+        """The columns read: the time, then the data columns."""
+        return (self.time_col,) + self.data_cols
+
+    @property
+    def asked(self) -> tuple[str, ...]:
+        """Per wanted column, the argument that asked for it."""
+        return ("time_col",) + ("y_cols",) * len(self.y_cols) + ("u_cols",) * len(self.u_cols) + (
+            "reference_cols",) * len(self.reference_cols)
+
+
+def _arguments(path: Any, time_col: Any, y_cols: Any, u_cols: Any, reference_cols: Any, dt: Any, angle_cols: Any,
+               max_dt_ratio: Any, box: Any, box_margin: Any) -> _Arguments:
+    """:func:`read_log`'s arguments checked, before the file is read."""
     path = Path(path)
     source = str(path)
     if not isinstance(time_col, str) or not time_col:
@@ -384,91 +485,78 @@ def read_log(path: str | os.PathLike, *, time_col: str, y_cols: Sequence[str], u
     bounds = _box_bounds(box, data_cols)
     if not path.is_file():
         raise error("path", "an existing CSV file", source)
+    return _Arguments(path, source, time_col, y_cols, u_cols, reference_cols, angle_cols, dt, max_dt_ratio, bounds,
+                      box_margin)
 
-    wanted = (time_col,) + data_cols
-    asked = ("time_col",) + ("y_cols",) * len(y_cols) + ("u_cols",) * len(u_cols) + ("reference_cols",) * len(
-        reference_cols)
-    table, lines = _read_table(path, wanted, asked)
-    bad = np.argwhere(~np.isfinite(table))
-    if bad.size:
-        k, c = bad[0]
-        raise error(_where(source, int(k), int(lines[k]), wanted[c]), "a finite number", float(table[k, c]))
-    t_raw = table[:, 0]
-    steps = np.diff(t_raw)
-    if np.any(steps <= 0):
-        k = int(np.argmax(steps <= 0)) + 1
-        raise error(_where(source, k, int(lines[k]), time_col), f"a time after row {k - 1}'s {t_raw[k - 1]!r}",
-                    float(t_raw[k]), "Times must be strictly increasing.")
-    dt_min, dt_mean, dt_max = float(steps.min()), float(steps.mean()), float(steps.max())
-    spacing = float(np.median(steps))                     # the log's rate, whatever its gaps
+
+def _grid_size(t0: float, t_last: float, dt: float) -> int:
+    """Samples of the grid ``t0 + k dt`` up to the last logged time ``t_last`` (to 1e-9 ``dt``, so that a log at the
+    model's rate keeps its last sample whatever the rounding of its times; the grid never extrapolates beyond it);
+    fewer than 2 is an error naming ``t0``."""
+    k = int(math.floor((t_last - t0) / dt * (1.0 + 1e-12))) + 1
+    while k > 0 and t0 + (k - 1) * dt > t_last + 1e-9 * dt:
+        k -= 1
+    if k < 2:
+        raise error("t0", f"a time at least dt = {dt:g} s before the last logged time {t_last:.6g}", t0)
+    return k
+
+
+def _order_error(source: str, time_col: str, k: int, line: int, before: float, after: float) -> Exception:
+    """Row ``k``'s time is not after row ``k - 1``'s."""
+    return error(_where(source, k, line, time_col), f"a time after row {k - 1}'s {before!r}", float(after),
+                 "Times must be strictly increasing.")
+
+
+def _check_spacing(a: _Arguments, spacing: float, dt_min: float, dt_max: float, k_max: int, lines: Any) -> None:
+    """A log slower than the model (its median spacing), or a gap (the first longest spacing, before row ``k_max``;
+    ``lines[k_max]`` its line), is an error."""
+    dt = a.dt
     if spacing > dt * (1.0 + RATE_TOLERANCE):
-        raise error(f"{source}: column {time_col!r}",
+        raise error(f"{a.source}: column {a.time_col!r}",
                     f"a log at least as fast as the model: a median sample time of at most dt = {dt:g} s "
                     f"(+{RATE_TOLERANCE:.0%} for jitter)",
                     Text(f"a median sample time of {spacing:.6g} s (spacings {dt_min:.6g} to {dt_max:.6g} s)"),
                     f"A slower log cannot be put on the model's grid: use a model trained at the log's rate "
                     f"(kklcasadi train --dt {spacing:.6g}).")
-    if dt_max > dt * max_dt_ratio:
-        k = int(np.argmax(steps)) + 1
-        raise error(_where(source, k, int(lines[k]), time_col),
-                    f"spacings of at most max_dt_ratio dt = {dt * max_dt_ratio:.6g} s",
-                    Text(f"a gap of {dt_max:.6g} s after row {k - 1}"), "Split the log at the gap.")
-
-    columns = {name: table[:, 1 + i].copy() for i, name in enumerate(data_cols)}
-    shifts = []
-    for name in angle_cols:
-        columns[name] = np.unwrap(columns[name])
-        shift = 0.0
-        if name in bounds:
-            lo, hi = bounds[name]
-            shift = 2.0 * math.pi * round((0.5 * (lo + hi) - float(columns[name].mean())) / (2.0 * math.pi))
-            columns[name] = columns[name] + shift
-        shifts.append(shift)
-    for name, (lo, hi) in bounds.items():
-        margin = box_margin * (hi - lo) if box_margin < math.inf else math.inf
-        values = columns[name]
-        outside = (values < lo - margin) | (values > hi + margin)
-        if outside.any():
-            k = int(np.argmax(outside))
-            side = f"below lo = {lo:g}" if values[k] < lo else f"above hi = {hi:g}"
-            raise error(_where(source, k, int(lines[k]), name),
-                        f"values within the box [{lo:g}, {hi:g}] widened by {box_margin:g} of its width",
-                        Text(f"{values[k]:.6g}, {side}"))
-
-    t0 = float(t_raw[0]) if t0 is None else finite_number(t0, "t0")
-    if not t_raw[0] <= t0 < t_raw[-1]:
-        raise error("t0", f"a time within the log [{t_raw[0]:.6g}, {t_raw[-1]:.6g})", t0)
-    edges = t0 + np.arange(int(math.floor((t_raw[-1] - t0) / dt * (1.0 + 1e-12))) + 2) * dt
-    t = edges[:-1][edges[:-1] <= t_raw[-1] + 1e-9 * dt]   # the grid never extrapolates (beyond the rounding of t)
-    if t.size < 2:
-        raise error("t0", f"a time at least dt = {dt:g} s before the last logged time {t_raw[-1]:.6g}", t0)
-    edges = edges[:t.size + 1]
-
-    def sampled(names: tuple[str, ...]) -> np.ndarray:
-        return np.column_stack([np.interp(t, t_raw, columns[name]) for name in names]) if names \
-            else np.zeros((t.size, 0))
-
-    at_rate = spacing >= dt / (1.0 + RATE_TOLERANCE)
-    logged_u = np.column_stack([columns[name] for name in u_cols]) if u_cols else np.zeros((t_raw.size, 0))
-    if not u_cols:
-        u = np.zeros((t.size, 0))
-    elif at_rate:
-        u = logged_u[np.searchsorted(t_raw, t, side="right") - 1]
-    else:
-        u = _interval_means(t_raw, logged_u, edges)
-    y = sampled(y_cols)
-    reference = sampled(reference_cols) if reference_cols else None
-    for array in (t, y, u, reference):
-        if array is not None:
-            array.setflags(write=False)
-    record = Resampling(dt, t0, int(t_raw.size), float(t_raw[0]), float(t_raw[-1]), dt_min, dt_mean, dt_max,
-                        Y_METHOD, U_HOLD if at_rate else U_MEAN, angle_cols, tuple(shifts))
-    names = {"time": (time_col,), "y": y_cols, "u": u_cols, "reference": reference_cols}
-    return Log(t, y, u, reference, names, source, record)
+    if dt_max > dt * a.max_dt_ratio:
+        raise error(_where(a.source, k_max, int(lines[k_max]), a.time_col),
+                    f"spacings of at most max_dt_ratio dt = {dt * a.max_dt_ratio:.6g} s",
+                    Text(f"a gap of {dt_max:.6g} s after row {k_max - 1}"), "Split the log at the gap.")
 
 
-def _finite(value: Any, argument: str, ndim: int, n: Optional[int] = None) -> np.ndarray:
-    """``value`` as float64 with ``ndim`` axes (the first of length ``n`` if given), all finite."""
+def _angle_shift(bounds: Optional[tuple[float, float]], mean: float) -> float:
+    """The multiple of ``2 pi`` that brings an unwrapped angle's ``mean`` closest to the middle of its box (0.0
+    without one)."""
+    if bounds is None:
+        return 0.0
+    lo, hi = bounds
+    return 2.0 * math.pi * round((0.5 * (lo + hi) - mean) / (2.0 * math.pi))
+
+
+def _outside(a: _Arguments, name: str, values: np.ndarray) -> np.ndarray:
+    """Where the values of column ``name`` lie outside its box widened by the margin."""
+    lo, hi = a.bounds[name]
+    margin = a.box_margin * (hi - lo) if a.box_margin < math.inf else math.inf
+    return (values < lo - margin) | (values > hi + margin)
+
+
+def _check_box(a: _Arguments, name: str, values: np.ndarray, lines: Any, offset: int = 0) -> None:
+    """A value of column ``name`` outside its box widened by the margin is an error naming its row (``values[0]``
+    is row ``offset``, ``lines`` the lines of ``values``)."""
+    lo, hi = a.bounds[name]
+    outside = _outside(a, name, values)
+    if outside.any():
+        k = int(np.argmax(outside))
+        side = f"below lo = {lo:g}" if values[k] < lo else f"above hi = {hi:g}"
+        raise error(_where(a.source, k + offset, int(lines[k]), name),
+                    f"values within the box [{lo:g}, {hi:g}] widened by {a.box_margin:g} of its width",
+                    Text(f"{values[k]:.6g}, {side}"))
+
+
+
+def _finite(value: Any, argument: str, ndim: int, n: Optional[int] = None, offset: int = 0) -> np.ndarray:
+    """``value`` as float64 with ``ndim`` axes (the first of length ``n`` if given), all finite; a row in an error
+    is counted from ``offset``."""
     array = np.asarray(value, dtype=np.float64)
     if array.ndim != ndim or (n is not None and array.shape[0] != n) or array.shape[0] == 0:
         rows = "N" if n is None else str(n)
@@ -476,9 +564,137 @@ def _finite(value: Any, argument: str, ndim: int, n: Optional[int] = None) -> np
         raise error(argument, expected, Text(f"shape {array.shape}"))
     bad = np.argwhere(~np.isfinite(array))
     if bad.size:
-        where = f"row {bad[0][0]}" + (f", column {bad[0][1]}" if array.ndim == 2 else "")
+        where = f"row {bad[0][0] + offset}" + (f", column {bad[0][1]}" if array.ndim == 2 else "")
         raise error(argument, "finite values", Text(f"{array[tuple(bad[0])]} at {where}"))
     return array
+
+
+def _columns(t: Any, xhat: Any, names: tuple[str, ...], in_domain: Any, status: Any,
+             extra: Optional[Mapping[str, Any]], offset: int = 0) -> tuple[list[str], list[np.ndarray]]:
+    """The header and the columns of a block of estimates (see :func:`write_estimates`), checked; rows in errors
+    counted from ``offset``."""
+    t = _finite(t, "t", 1, offset=offset)
+    n = t.size
+    xhat = _finite(xhat, "xhat", 2, n, offset)
+    if len(names) != xhat.shape[1]:
+        raise error("state_names", f"{xhat.shape[1]} names (one per column of xhat)", list(names))
+    header = ["time", *names]
+    body: list[np.ndarray] = [t, *xhat.T]
+    if in_domain is not None:
+        flags = np.asarray(in_domain)
+        if flags.shape != (n,) or not (flags.dtype == bool or np.isin(flags, (0, 1)).all()):
+            raise error("in_domain", f"{n} booleans", Text(f"shape {flags.shape}, dtype {flags.dtype}"))
+        header.append("in_domain")
+        body.append(flags.astype(bool).astype(np.int64))              # written 0 or 1
+    if status is not None:
+        codes = np.asarray(status)
+        if codes.shape != (n,) or not np.issubdtype(codes.dtype, np.integer) or np.any(codes < 0):
+            raise error("status", f"{n} integers >= 0", Text(f"shape {codes.shape}, dtype {codes.dtype}"))
+        header.append("status")
+        body.append(codes.astype(np.int64))
+    if extra is not None:
+        if not isinstance(extra, Mapping):
+            raise error("extra", "a mapping {name: values (N,)}", Text(type(extra).__name__), kind=TypeError)
+        _names(list(extra), "extra", allow_empty=True)
+        for name, values in extra.items():
+            header.append(name)
+            body.append(_finite(values, f"extra[{name!r}]", 1, n, offset))
+    repeated = sorted({name for name in header if header.count(name) > 1})
+    if repeated:
+        raise error("state_names, extra", "names distinct from each other and from 'time', 'in_domain', 'status'",
+                    Text(f"repeated {repeated}"))
+    return header, body
+
+
+class EstimatesWriter:
+    """:func:`write_estimates` a block of rows at a time: a record of any length in the memory of one block.
+
+    :meth:`write` checks a block (rows in errors counted over the whole file) and appends it to a temporary file in
+    the folder of ``path``; :meth:`commit` then replaces ``path`` with it (:func:`os.replace`), :meth:`discard`
+    removes it. As a context manager it commits on success and discards on an exception. Every block has the
+    columns of the first (the header).
+
+    Parameters
+    ----------
+    path : str or path-like
+        The file to write; its folder must exist.
+    state_names : sequence of str
+    stamp : kklcasadi.provenance.Stamp, optional
+        The file's provenance (default: this process's).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, state_names: Sequence[str],
+                 stamp: Optional[provenance.Stamp] = None) -> None:
+        self.path = Path(path)
+        self.names = _names(state_names, "state_names", allow_empty=False)
+        self.stamp = stamp
+        self.rows = 0
+        self._header: Optional[list[str]] = None
+        self._stream: Any = None
+        self._temp: Optional[str] = None
+
+    def write(self, t: Any, xhat: Any, *, in_domain: Any = None, status: Any = None,
+              extra: Optional[Mapping[str, Any]] = None) -> None:
+        """Append a block: ``t`` (n,), ``xhat`` (n, nx) and the optional columns of :func:`write_estimates`."""
+        header, body = _columns(t, xhat, self.names, in_domain, status, extra, self.rows)
+        self._rows(header, body)
+
+    def _rows(self, header: list[str], body: list[np.ndarray]) -> None:
+        if self._header is None:
+            self._open(header)
+        elif header != self._header:
+            raise error("columns", f"the columns of the first block {self._header}", header)
+        n = body[0].size
+        for start in range(0, n, _BLOCK):                 # Python floats repr as the shortest round trip
+            columns = [column[start:start + _BLOCK].tolist() for column in body]
+            self._stream.write("".join(",".join(map(repr, row)) + "\n" for row in zip(*columns)))
+        self.rows += n
+
+    def _open(self, header: list[str]) -> None:
+        path = self.path
+        if not path.parent.is_dir():
+            raise error("path", "a file in an existing folder", str(path))
+        if path.is_dir():
+            raise error("path", "a file path", Text(f"{str(path)!r}, a folder"))
+        text = io.StringIO(provenance.csv_comment(self.stamp or provenance.stamp()))
+        text.seek(0, io.SEEK_END)
+        csv.writer(text, lineterminator="\n").writerow(header)
+        handle, self._temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        self._stream = os.fdopen(handle, "w", newline="")
+        self._header = header
+        self._stream.write(text.getvalue())
+
+    def commit(self) -> Path:
+        """Replace ``path`` with the rows written; ``path``."""
+        if self._stream is None or self._temp is None:
+            raise error("blocks", "at least one block written", Text("none"))
+        try:
+            self._stream.flush()
+            os.fsync(self._stream.fileno())
+            self._stream.close()
+            os.replace(self._temp, self.path)
+        except BaseException:
+            self.discard()
+            raise
+        self._stream = self._temp = None
+        return self.path
+
+    def discard(self) -> None:
+        """Remove the temporary file; ``path`` stays as it was."""
+        if self._stream is not None:
+            self._stream.close()
+        if self._temp is not None:
+            Path(self._temp).unlink(missing_ok=True)
+        self._stream = self._temp = None
+
+    def __enter__(self) -> EstimatesWriter:
+        return self
+
+    def __exit__(self, kind: Any, value: Any, traceback: Any) -> None:
+        if kind is None:
+            self.commit()
+        else:
+            self.discard()
 
 
 def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: Sequence[str],
@@ -515,60 +731,15 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     pathlib.Path
         ``path``.
     """
-    path = Path(path)
-    t = _finite(t, "t", 1)
-    n = t.size
-    xhat = _finite(xhat, "xhat", 2, n)
     names = _names(state_names, "state_names", allow_empty=False)
-    if len(names) != xhat.shape[1]:
-        raise error("state_names", f"{xhat.shape[1]} names (one per column of xhat)", list(names))
-    header = ["time", *names]
-    body: list[np.ndarray] = [t, *xhat.T]
-    if in_domain is not None:
-        flags = np.asarray(in_domain)
-        if flags.shape != (n,) or not (flags.dtype == bool or np.isin(flags, (0, 1)).all()):
-            raise error("in_domain", f"{n} booleans", Text(f"shape {flags.shape}, dtype {flags.dtype}"))
-        header.append("in_domain")
-        body.append(flags.astype(bool).astype(np.int64))              # written 0 or 1
-    if status is not None:
-        codes = np.asarray(status)
-        if codes.shape != (n,) or not np.issubdtype(codes.dtype, np.integer) or np.any(codes < 0):
-            raise error("status", f"{n} integers >= 0", Text(f"shape {codes.shape}, dtype {codes.dtype}"))
-        header.append("status")
-        body.append(codes.astype(np.int64))
-    if extra is not None:
-        if not isinstance(extra, Mapping):
-            raise error("extra", "a mapping {name: values (N,)}", Text(type(extra).__name__), kind=TypeError)
-        _names(list(extra), "extra", allow_empty=True)
-        for name, values in extra.items():
-            header.append(name)
-            body.append(_finite(values, f"extra[{name!r}]", 1, n))
-    repeated = sorted({name for name in header if header.count(name) > 1})
-    if repeated:
-        raise error("state_names, extra", "names distinct from each other and from 'time', 'in_domain', 'status'",
-                    Text(f"repeated {repeated}"))
-    text = io.StringIO(provenance.csv_comment(stamp or provenance.stamp()))
-    text.seek(0, io.SEEK_END)
-    csv.writer(text, lineterminator="\n").writerow(header)
-
-    if not path.parent.is_dir():
-        raise error("path", "a file in an existing folder", str(path))
-    if path.is_dir():
-        raise error("path", "a file path", Text(f"{str(path)!r}, a folder"))
-    handle, temp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    header, body = _columns(t, xhat, names, in_domain, status, extra)
+    writer = EstimatesWriter(path, state_names=names, stamp=stamp)
     try:
-        with os.fdopen(handle, "w", newline="") as stream:
-            stream.write(text.getvalue())
-            for start in range(0, n, _BLOCK):             # Python floats repr as the shortest round trip
-                columns = [column[start:start + _BLOCK].tolist() for column in body]
-                stream.write("".join(",".join(map(repr, row)) + "\n" for row in zip(*columns)))
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(temp, path)
+        writer._rows(header, body)
+        return writer.commit()
     except BaseException:
-        Path(temp).unlink(missing_ok=True)
+        writer.discard()
         raise
-    return path
 
 
 def savgol_derivative(t: Any, angle: Any, window: int = 15, order: int = 3, *, unwrap: bool = True) -> np.ndarray:

@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 import casadi as ca
 import numpy as np
 
+from ...compiler import Compiler, c_name, children_cpu
 from ..protocol import Profile, phase
-from .compiler import Compiler, c_name, children_cpu
 from .shortcuts import reuse_decoded, skip_at_zero_input, split_step
 
 if TYPE_CHECKING:

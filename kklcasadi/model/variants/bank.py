@@ -48,10 +48,10 @@ from .bankdecoder import (
     ASINH_SCALE,
     Angles,
     DecoderSpec,
+    decoder_and_spread_expression,
     decoder_expression,
     feature_expression,
     member_prefixes,
-    spread_expression,
 )
 from .base import Memory, Networks, Sizes, Variant
 from .copies import ModelCopies
@@ -280,10 +280,14 @@ class Bank(Variant):
         memory = feedthrough_memory(system.ny, system.nu)
         z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", *memory.shape)
         decoder_spec, y, u = spec.decoder_spec, w[:system.ny], w[system.ny:]
-        xhat = decoder_expression(decoder_spec, arrays, bank, z, y, u)
+        spread = decoded = None
+        if spec.members < 2:
+            xhat = decoder_expression(decoder_spec, arrays, bank, z, y, u)
+        else:                                       # the members run once for the estimate and their spread
+            xhat, s = decoder_and_spread_expression(decoder_spec, arrays, bank, z, y, u)
+            spread = ca.Function("spread", [z, w], [s], ["z", "w"], ["spread"])
+            decoded = ca.Function("decoded", [z, w], [xhat, s], ["z", "w"], ["xhat", "spread"])
         decoder = ca.Function("decoder", [z, w], [xhat], ["z", "w"], ["xhat"])
-        spread = None if spec.members < 2 else ca.Function(
-            "spread", [z, w], [spread_expression(decoder_spec, arrays, bank, z, y, u)], ["z", "w"], ["spread"])
         covariance = None
         if spec.covariance is not None:
             xs = ca.MX.sym("xhat", spec.nx)
@@ -298,4 +302,5 @@ class Bank(Variant):
             return filters if copies is None else ca.vertcat(filters, copies.remainder(zz[n:], u))
 
         return Networks(None, decoder, None, input_term, memory=memory,
-                        exact_step=latent_step(bank, spec.dt, copies=copies), spread=spread, covariance=covariance)
+                        exact_step=latent_step(bank, spec.dt, copies=copies), spread=spread, covariance=covariance,
+                        decoded=decoded)

@@ -36,7 +36,8 @@ from .filterbank import FilterBank, as_trials, bank_from_arrays, check_copies, l
 
 __all__ = ["Angles", "NO_ANGLES", "DecoderSpec", "dc_gains", "decoder_features", "decoder_targets",
            "decoder_outputs", "decode", "decoder_function", "decoder_expression", "estimate", "observer_step",
-           "ASINH_SCALE", "member_prefixes", "spread", "spread_expression", "feature_expression"]
+           "ASINH_SCALE", "member_prefixes", "spread", "spread_expression", "feature_expression",
+           "decoder_and_spread_expression"]
 
 #: Array name of the per-state output transform scales (0: identity, > 0: asinh scale).
 ASINH_SCALE = "decoder/asinh_scale"
@@ -391,8 +392,34 @@ def decoder_expression(spec: DecoderSpec, arrays: Mapping[str, Any], bank: Filte
     (what :func:`decoder_function` wraps; the ``bank`` variant builds its decoder from it). ``arrays`` are
     taken as checked (:meth:`DecoderSpec.check`); ``bank`` gives the gains of angle outputs."""
     v = _member_expressions(spec, arrays, bank, z, y, u, mlp_name)
-    mean = v[0] if spec.members == 1 else sum(v[1:], v[0]) / spec.members
+    return _decoded(spec, arrays, _mean(spec, v), y)
+
+
+def _mean(spec: DecoderSpec, v: list) -> Any:
+    """The members' mean output."""
+    return v[0] if spec.members == 1 else sum(v[1:], v[0]) / spec.members
+
+
+def _decoded(spec: DecoderSpec, arrays: Mapping[str, Any], mean: Any, y: ca.MX) -> ca.MX:
+    """The estimate from the members' mean output."""
     return decoder_outputs(mean, y, np.asarray(arrays[ASINH_SCALE], dtype=float), spec.angles, lib=ca)
+
+
+def _spread_of(arrays: Mapping[str, Any], v: list, mean: Any) -> ca.MX:
+    """The members' spread about their mean output, in units of the first member's output std."""
+    unit = ca.DM(1.0 / _spread_scale(arrays))
+    return ca.sqrt(sum(ca.sumsqr((vj - mean) * unit) for vj in v) / len(v))
+
+
+def decoder_and_spread_expression(spec: DecoderSpec, arrays: Mapping[str, Any], bank: FilterBank, z: ca.MX,
+                                  y: ca.MX, u: ca.MX, *, mlp_name: str = "decoder_mlp") -> tuple[ca.MX, ca.MX]:
+    """:func:`decoder_expression` and :func:`spread_expression` from one evaluation of the members: the same two
+    values, each member's network run once for both (the domain monitor's spread test costs no second decode)."""
+    if spec.members < 2:
+        raise error("members", "at least 2 networks for a spread", spec.members)
+    v = _member_expressions(spec, arrays, bank, z, y, u, mlp_name)
+    mean = _mean(spec, v)
+    return _decoded(spec, arrays, mean, y), _spread_of(arrays, v, mean)
 
 
 def spread_expression(spec: DecoderSpec, arrays: Mapping[str, Any], bank: FilterBank, z: ca.MX, y: ca.MX,
@@ -402,9 +429,7 @@ def spread_expression(spec: DecoderSpec, arrays: Mapping[str, Any], bank: Filter
     if spec.members < 2:
         raise error("members", "at least 2 networks for a spread", spec.members)
     v = _member_expressions(spec, arrays, bank, z, y, u, mlp_name)
-    mean = sum(v[1:], v[0]) / spec.members
-    unit = ca.DM(1.0 / _spread_scale(arrays))
-    return ca.sqrt(sum(ca.sumsqr((vj - mean) * unit) for vj in v) / spec.members)
+    return _spread_of(arrays, v, _mean(spec, v))
 
 
 def observer_step(spec: DecoderSpec, arrays: Mapping[str, Any], dt: float, name: str = "step", *,

@@ -144,6 +144,9 @@ class Networks:
     covariance : casadi.Function or None
         ``covariance(z (nz,1), w, xhat (nx,1)) -> P (nx,nx)``: the covariance of the estimate ``xhat``
         (:mod:`kklcasadi.model.variants.covariance`); None for a model without a covariance head.
+    decoded : casadi.Function or None
+        ``decoded(z, w) -> (xhat, s)``: ``decoder`` and ``spread`` from one evaluation of the ensemble's members
+        (the same values); None without a spread.
     """
 
     encoder: Optional[ca.Function]
@@ -155,6 +158,7 @@ class Networks:
     exact_step: Optional[ca.Function] = None
     spread: Optional[ca.Function] = None
     covariance: Optional[ca.Function] = None
+    decoded: Optional[ca.Function] = None
 
 
 class Variant:

@@ -1,12 +1,14 @@
-"""Compiled trajectories: a CasADi Function as C, built once with gcc and loaded with ``ca.external``.
+"""Any CasADi Function as C, built once with gcc and loaded with ``ca.external``: the compiled paths of the
+observer's :meth:`~kklcasadi.observer.kkl.KKLObserver.simulate` and of the benchmarks.
 
 :class:`Compiler` turns any :class:`casadi.Function` into a shared library: the C source from
 :class:`casadi.CodeGenerator`, an optional source post-processing hook, then the C compiler. The
 library is cached on disk under the SHA-256 of the source, the compiler and its flags, so a
 Function is compiled once per machine; an unchanged Function loads in milliseconds. Without the
 compiler the Function runs in the CasADi VM, with a :class:`CompilerWarning`. :meth:`Compiler.build`
-separates the CasADi part (the source) from the C compiler's run, so that :func:`precompile` runs
-several compilers at once while the caller's thread does other work (simulating trials).
+separates the CasADi part (the source) from the C compiler's run, so that ``precompile`` runs
+several compilers at once while the caller's thread does other work (simulating trials)
+(:func:`kklcasadi.evaluation.compiled.precompile`).
 
 The default flags are portable (``-O3 -ffp-contract=off``, no ``-march=native``): with the same
 expression graph the compiled Function returns bitwise the VM's values (``-ffp-contract=off``
@@ -27,7 +29,7 @@ from typing import Callable, Optional, Union
 
 import casadi as ca
 
-from ..trialcache import cache_root
+from .cache import cache_root
 
 __all__ = ["Compiler", "CompilerWarning", "Build", "compile_function", "DEFAULT_FLAGS", "children_cpu", "c_name"]
 
