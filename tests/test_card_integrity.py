@@ -342,12 +342,20 @@ def _shipped():
 
 
 def _unsigned_commit(path):
-    """The last commit whose ``path`` was a card of format_version 1 (before it was signed)."""
+    """The last commit whose ``path`` was a card of format_version 1 (before it was signed), or None for a card
+    that was signed when it was first committed."""
     for commit in _git("log", "--format=%H", "--", path).decode().split():
         text = _git("show", f"{commit}:{path}")
         if text is not None and json.loads(text).get("format_version") == 1:
             return commit
-    raise AssertionError(f"{path} never had an unsigned card in this checkout's history")
+    return None
+
+
+def _committed_first(path):
+    """The first commit that holds ``path``."""
+    commits = _git("log", "--format=%H", "--diff-filter=A", "--", path).decode().split()
+    assert commits, f"{path} is not committed"
+    return commits[-1]
 
 
 def _signed_commit(path, unsigned):
@@ -379,6 +387,12 @@ def test_the_shipped_cards_were_only_signed(tmp_path):
     for system, method in _shipped():
         where = f"models/{system}/{method}"
         before = _unsigned_commit(f"{where}/card.json")          # its last card without a digest
+        if before is None:          # written signed (models/vdp/compact): card and weights as first committed
+            first = _committed_first(f"{where}/card.json")
+            load_model(ROOT / where)
+            for name in ("card.json", "weights.npz"):
+                assert _git("rev-parse", f"{first}:{where}/{name}") == _git("hash-object", f"{where}/{name}"), where
+            continue
         signed = _signed_commit(f"{where}/card.json", before)
         old = json.loads(_git("show", f"{before}:{where}/card.json"))
         assert signed is not None, f"{where}: never signed after {before}"

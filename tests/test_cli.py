@@ -527,3 +527,35 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
         training_config(plant_of(args), "autonomous", args)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["train", "--system", "duffing", "--copies", "-1", "--out", "x"])
+
+
+def test_the_closing_summary_counts_the_runs_on_which_the_ekf_diverged(model_dir_factory, monkeypatch):
+    """An EKF can diverge (a stiff plant, a first update from a wide prior): its runs with non-finite estimates
+    are counted and left out of the ratio, instead of a 'nan %' for the whole input kind."""
+    import dataclasses
+
+    import kklcasadi as kc
+    from kklcasadi import metrics
+    from kklcasadi.cli.train import summary
+    from kklcasadi.estimators.ekf import EKF
+    from kklcasadi.evaluation.protocol import Protocol
+
+    path = model_dir_factory("autonomous")
+    simulate = EKF.simulate
+
+    def first_run_lost(self, t, y, u, **kw):
+        est = simulate(self, t, y, u, **kw)
+        xhat = est.xhat.copy()
+        xhat[0, 5:] = np.nan
+        return dataclasses.replace(est, xhat=xhat)
+
+    monkeypatch.setattr(EKF, "simulate", first_run_lost)
+    obs = kc.load_observer(path)
+    text = summary(path, obs.system, None)
+    batch = Protocol(n_trials=3, dt=obs.dt, seed=7).trials(obs.system, "square")
+    ours = metrics.smape(batch.x, obs.simulate(batch.t, batch.y, batch.u).xhat)
+    theirs = np.mean(metrics.smape(batch.x[1:], first_run_lost(kc.EKF.for_noise(obs.system, obs.dt, process_std=0.1,
+                                                                                 measurement_std=0.1),
+                                                               batch.t, batch.y, batch.u).xhat[1:]))
+    assert (f"square {np.mean(ours):.2f} % / {theirs:.2f} % ({np.mean(ours[1:]) / theirs:.2f}x, the EKF diverged "
+            "on 1 of 3: ratio on the rest)") in text

@@ -112,3 +112,31 @@ def test_the_noise_columns_of_a_regime_go_in_one_call_and_score_as_cell_by_cell(
     assert "read" in again.wall and "simulate" not in again.wall
     with pytest.raises(ValueError, match="cells: expected the same sample times"):
         evaluate_cells(_first_state_is_y, s, [p.cell("zero"), Protocol(n_trials=3, T=4.0, method="rk").cell("zero")])
+
+
+def _boxed_plant() -> kc.System:
+    """A stable first-order plant whose input lives in [10, 20] (its rest point at u = 15 is x = 0)."""
+    import casadi as ca
+    x, u = ca.SX.sym("x", 1), ca.SX.sym("u", 1)
+    return kc.System("boxed", x, u, -x + 0.1 * (u - 15.0), x, [[-1.0, 1.0]], u_box=[[10.0, 20.0]])
+
+
+@pytest.mark.parametrize("kind", ["zero", "constant", "sinusoid", "square"])
+def test_a_plant_with_a_u_box_is_scored_on_inputs_in_its_box(kind):
+    """The protocol's id families span the u_box's central half (not the benchmark's |u| <= 1 around 0); the ood
+    ones the whole box; the held-out families (a PD loop included) the same way."""
+    from kklcasadi.evaluation.generalisation import Case, Settings
+    plant = _boxed_plant()
+    batch = Protocol(n_trials=4, T=3.0, method="rk").trials(plant, kind)
+    assert np.all(batch.u >= 12.5 - 1e-12) and np.all(batch.u <= 17.5 + 1e-12)
+    if kind == "zero":
+        np.testing.assert_array_equal(batch.u, 15.0)
+    ood = Protocol(n_trials=8, T=3.0, method="rk", regime="ood").trials(plant, kind)
+    assert np.all(ood.u >= 10.0 - 1e-12) and np.all(ood.u <= 20.0 + 1e-12)
+    if kind != "zero":
+        assert np.abs(ood.u - 15.0).max() > 2.5                   # beyond the central half
+    settings = Settings(n_trials=4, T=3.0, method="rk")
+    for family in ("chirp", "random", "feedback"):
+        held = Case(family, "held_out", 0.1).cell(settings).simulate(plant)
+        assert np.all(held.u >= 12.5 - 1e-12) and np.all(held.u <= 17.5 + 1e-12), family
+        assert held.u.std() > 0, family

@@ -74,3 +74,44 @@ def test_bad_signals_give_clear_errors():
         sig.sample("square", 0)
     with pytest.raises(ValueError, match="t: expected finite times"):
         sig.make("zero")(np.array([0.0, np.inf]))
+
+
+U_BOX = [[280.0, 310.0], [-3.0, 1.0]]
+
+
+def test_a_drawn_input_is_mapped_onto_the_plants_u_box():
+    """``in_box``: the benchmark's +-UNIT_LEVEL goes to the box's edges, so id (|v| <= 1) spans its central half."""
+    offset, scale = sig.box_map(U_BOX)
+    np.testing.assert_allclose(offset, [295.0, -1.0], rtol=0, atol=0)
+    np.testing.assert_allclose(scale, [7.5, 1.0], rtol=0, atol=0)
+    t = np.linspace(0.0, 10.0, 201)
+    edges = sig.in_box(sig.make("constant", value=[2.0, -2.0]), U_BOX)(t)
+    np.testing.assert_array_equal(edges, np.tile([310.0, -3.0], (t.size, 1)))
+    rng = np.random.default_rng(0)
+    for kind in sig.BENCHMARK_KINDS:
+        for _ in range(20):
+            inner = sig.sample(kind, rng, "id", nu=2)
+            u = sig.in_box(inner, U_BOX)(t)
+            np.testing.assert_allclose(u, offset + scale * inner(t), rtol=0, atol=1e-12)
+            assert np.all(u >= [287.5 - 1e-9, -2.0 - 1e-9]) and np.all(u <= [302.5 + 1e-9, 0.0 + 1e-9]), kind
+    same = sig.make("sinusoid", amplitude=1.0, omega=1.0)
+    assert sig.in_box(same, None) is same                        # a plant without a u_box: the benchmark's units
+
+
+def test_a_feedback_law_in_a_plants_units_sends_offset_plus_scale_times_its_input():
+    law = sig.PDFeedback(sig.make("constant", value=[0.5]), kp=2.0, kd=0.0, u_max=1.0)
+    mapped = sig.in_box(law, [[280.0, 310.0]])
+    assert isinstance(mapped, sig.PDFeedback)
+    f = mapped.function(0.05)
+    for y, expected in ((0.4, 0.2), (-3.0, 1.0), (3.0, -1.0)):                  # inside and at both saturations
+        u, _ = f(np.array([y]), np.array([y]), np.array([0.5]), mapped.theta())
+        assert float(u) == pytest.approx(295.0 + 7.5 * expected, abs=1e-12)
+        u0, _ = law.function(0.05)(np.array([y]), np.array([y]), np.array([0.5]), law.theta())
+        assert float(u0) == pytest.approx(expected, abs=1e-12)
+
+
+@pytest.mark.parametrize("u_box, message", [([[1.0, 1.0]], "u_box"), ([[0.0, np.inf]], "u_box"),
+                                            ([1.0, 2.0], "u_box")])
+def test_a_bad_u_box_is_named(u_box, message):
+    with pytest.raises(ValueError, match=message):
+        sig.in_box(sig.make("zero", size=1), u_box)

@@ -292,7 +292,8 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
     The observer and the EKF (``Q``, ``R`` of the card's noise levels, else docs/protocol.md's 0.1) on
     :data:`SUMMARY_TRIALS` noisy runs per input kind of docs/protocol.md, drawn with :data:`SUMMARY_SEED`
     (runs nothing was fit or chosen on): mean SMAPE of each and their ratio per kind, the share of the
-    estimates inside the domain the maps were trained on, and the trials whose state escaped.
+    estimates inside the domain the maps were trained on, and the trials whose state escaped. Runs on which the
+    EKF diverges (non-finite estimates) are counted and left out of the ratio.
     """
     from .. import metrics
     from ..estimators.ekf import EKF
@@ -312,10 +313,16 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
         if not ok.any():
             continue
         est = obs.simulate(batch.t, batch.y[ok], batch.u[ok])
-        ours = float(np.mean(metrics.smape(batch.x[ok], est.xhat, angles=plant.angle_states)))
-        theirs = float(np.mean(metrics.smape(batch.x[ok], ekf.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat,
-                                             angles=plant.angle_states)))
-        rows.append(f"{kind} {ours:.2f} % / {theirs:.2f} % ({ours / theirs:.2f}x)")
+        ours = np.asarray(metrics.smape(batch.x[ok], est.xhat, angles=plant.angle_states))
+        theirs = ekf.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat
+        kept = np.isfinite(theirs).all(axis=(1, 2))            # an EKF can diverge (a stiff plant, a large P0)
+        if not kept.any():
+            rows.append(f"{kind} {float(np.mean(ours)):.2f} % / the EKF diverged on every run")
+            continue
+        ekf_smape = float(np.mean(metrics.smape(batch.x[ok][kept], theirs[kept], angles=plant.angle_states)))
+        lost = "" if kept.all() else f", the EKF diverged on {int((~kept).sum())} of {kept.size}: ratio on the rest"
+        rows.append(f"{kind} {float(np.mean(ours)):.2f} % / {ekf_smape:.2f} % "
+                    f"({float(np.mean(ours[kept])) / ekf_smape:.2f}x{lost})")
         if est.in_domain is not None:
             inside.append(est.in_domain.mean())
     noise = f"noise std {levels_text(process_std)} / {measurement_std:g}"

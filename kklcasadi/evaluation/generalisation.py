@@ -150,12 +150,13 @@ class FamilyCell:
         return self.settings.n_trials, round(self.settings.T / self.settings.dt)
 
     def inputs(self, system: System) -> list:
-        """The per-trial inputs (signals, or output-feedback laws for ``feedback``)."""
+        """The per-trial inputs (signals, or output-feedback laws for ``feedback``), in the plant's input units
+        where it declares a ``u_box`` (:func:`kklcasadi.plant.signals.in_box`)."""
         s = self.settings
         rng = np.random.default_rng([s.seed, FAMILY_STREAMS[self.family]])
         span = output_range(system) if self.family == "feedback" else None
-        return [sig.draw(self.family, rng, self.ranges, nu=system.nu, horizon=s.T, output_range=span)
-                for _ in range(s.n_trials)]
+        return [sig.in_box(sig.draw(self.family, rng, self.ranges, nu=system.nu, horizon=s.T, output_range=span),
+                           system.u_box) for _ in range(s.n_trials)]
 
     def simulate(self, system: System) -> TrajectoryBatch:
         s = self.settings

@@ -66,11 +66,13 @@ class Protocol:
         return replace(self, process_std=0.0, measurement_std=0.0)
 
     def signals(self, system: System, kind: str) -> list[sig.Signal]:
-        """The per-trial inputs of the ``kind`` column (seeded, identical for every method)."""
+        """The per-trial inputs of the ``kind`` column (seeded, identical for every method), in the plant's input
+        units where it declares a ``u_box`` (:func:`kklcasadi.plant.signals.in_box`)."""
         if kind not in sig.BENCHMARK_KINDS:
             raise ValueError(f"unknown input regime {kind!r}; known: {', '.join(sig.BENCHMARK_KINDS)}")
         rng = np.random.default_rng([self.seed, sig.BENCHMARK_KINDS.index(kind)])
-        return [sig.sample(kind, rng, self.regime, nu=system.nu) for _ in range(self.n_trials)]
+        return [sig.in_box(sig.sample(kind, rng, self.regime, nu=system.nu), system.u_box)
+                for _ in range(self.n_trials)]
 
     def trials(self, system: System, kind: str) -> TrajectoryBatch:
         """Simulate the cell ``(system, kind)``: ``n_trials`` runs of ``T`` seconds."""

@@ -198,8 +198,8 @@ class RobustCell:
         plant = perturbed(system, damping=case.damping, input_gain=case.input_gain) \
             if case.damping or case.input_gain != 1.0 else system
         rng = np.random.default_rng([self.seed, 2])
-        inputs = [sig.draw(ID_FAMILIES[i % 4], rng, sig.family_ranges(ID_FAMILIES[i % 4], "id"), nu=system.nu,
-                           horizon=s.T) for i in range(n)]
+        inputs = [sig.in_box(sig.draw(ID_FAMILIES[i % 4], rng, sig.family_ranges(ID_FAMILIES[i % 4], "id"),
+                                      nu=system.nu, horizon=s.T), system.u_box) for i in range(n)]
         return simulate_batch(plant, system.sample_box(n, self.seed), inputs, s.T, s.dt, process_std=s.noise,
                               measurement_std=s.noise, seed=np.random.SeedSequence([self.seed, 3]).spawn(n),
                               method=s.method, params=self.params(system), noise_model=case.noise_model)

@@ -120,6 +120,7 @@ def cell_description(system: System, cell: Cell) -> dict:
             "versions": {"kklcasadi": __version__, "casadi": ca.__version__, "numpy": np.__version__,
                          "scipy": scipy.__version__},
             "system": {"name": system.name, "fingerprint": system.definition_digest},
+            **({} if system.u_box is None else {"inputs": "mapped onto the plant's u_box"}),
             **description}
 
 

@@ -29,7 +29,8 @@ SHIPPED_MODELS = {
                 "robust"),
     "fhn": ("autonomous", "bank", "curriculum", "dyn", "inject", "obs"),
     "rossler": ("autonomous", "bank", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream"),
-    "vdp": ("autonomous", "bank", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream", "robust"),
+    "vdp": ("autonomous", "bank", "compact", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream",
+            "robust"),
 }
 #: Order of the shipped methods in tables; other model directories follow alphabetically.
 METHOD_ORDER = ("autonomous", "inject", "obs", "obs-inject", "dyn", "curriculum")

@@ -478,7 +478,8 @@ def phase2(system: System, n_traj: int = 20, signals: Sequence[sig.Signal] | int
         Initial states from a Latin hypercube over X0 (seeded by ``seed``).
     signals : sequence of Signal or int
         The inputs, or how many to draw from ``kinds`` (cycled) with :func:`kklcasadi.plant.signals.sample`
-        in ``regime`` using ``numpy.random.default_rng(seed)``.
+        in ``regime`` using ``numpy.random.default_rng(seed)`` (in the plant's input units where it declares a
+        ``u_box``: :func:`kklcasadi.plant.signals.in_box`).
     window : int
         Input window length in samples.
     T, dt : float
@@ -494,7 +495,8 @@ def phase2(system: System, n_traj: int = 20, signals: Sequence[sig.Signal] | int
             raise error("signals", "a positive count or a sequence of signals", int(signals))
         if not kinds:
             raise error("kinds", "at least one signal kind", kinds)
-        signals = [sig.sample(kinds[i % len(kinds)], rng, regime, nu=system.nu) for i in range(int(signals))]
+        signals = [sig.in_box(sig.sample(kinds[i % len(kinds)], rng, regime, nu=system.nu), system.u_box)
+                   for i in range(int(signals))]
     signals = tuple(signals)
     for j, s in enumerate(signals):
         if not callable(s):

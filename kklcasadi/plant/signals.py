@@ -11,12 +11,17 @@ simulator computes ``u_k`` from the measured ``y_k`` and the law's own state, an
 :func:`draw` draws any family from explicit parameter ranges, among them the held-out families of
 docs/protocol.md "Generalisation" (:data:`HELD_OUT_RANGES`: a swept sine, random steps and a PD
 controller around a stepping set point).
+
+The families are drawn in the benchmark's units (``|u| <= 2``). For a plant that declares its input range
+(``kc.System(..., u_box=...)``), :func:`in_box` maps a drawn input onto it: the benchmark's widest level
+:data:`UNIT_LEVEL` goes to the box's edges, so the ``id`` families span the box's central half and the ``ood``
+ones the whole box (what the training runs span: :func:`kklcasadi.plant.runs.input_range`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any, Mapping
+from dataclasses import dataclass, field, replace
+from typing import Any, Mapping, overload
 
 import casadi as ca
 import numpy as np
@@ -24,8 +29,8 @@ import numpy as np
 from ..validation import Text, error, finite_number, nonnegative_number, one_of, positive_int, positive_number
 
 __all__ = ["Signal", "Zero", "Constant", "Sinusoid", "Square", "Step", "Chirp", "RandomSteps",
-           "OutputFeedback", "PDFeedback", "make", "kinds", "sample", "draw", "family_ranges",
-           "RANGES", "REGIMES", "BENCHMARK_KINDS", "HELD_OUT_RANGES", "FAMILIES"]
+           "OutputFeedback", "PDFeedback", "Mapped", "make", "kinds", "sample", "draw", "family_ranges", "in_box",
+           "box_map", "RANGES", "REGIMES", "BENCHMARK_KINDS", "HELD_OUT_RANGES", "FAMILIES", "UNIT_LEVEL"]
 
 
 def _vector(value: Any, arg: str) -> np.ndarray:
@@ -282,6 +287,9 @@ class PDFeedback(OutputFeedback):
         Time constant of the measurement filter of the derivative term, seconds (> 0).
     u_max : float or array_like (channels,)
         Saturation of the input (> 0).
+    u_offset, u_scale : float or array_like (channels,)
+        The input sent is ``u_offset + u_scale * u_k`` (> 0 scale): the law in a plant's input units
+        (:func:`in_box`); 0 and 1 by default.
     """
 
     setpoint: Signal = field(default_factory=Zero)
@@ -289,13 +297,15 @@ class PDFeedback(OutputFeedback):
     kd: Any = 0.5
     tau: Any = 0.2
     u_max: Any = 1.0
+    u_offset: Any = 0.0
+    u_scale: Any = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.setpoint, Signal):
             raise error("setpoint", "a kklcasadi signal r(t)", Text(type(self.setpoint).__name__), kind=TypeError)
         n = self.setpoint.nu
         for name, check in (("kp", nonnegative_number), ("kd", nonnegative_number), ("tau", positive_number),
-                            ("u_max", positive_number)):
+                            ("u_max", positive_number), ("u_offset", finite_number), ("u_scale", positive_number)):
             value = _vector(getattr(self, name), name)
             if value.size not in (1, n):
                 raise error(name, f"a scalar or {n} entries (one per set-point channel)", Text(f"size {value.size}"))
@@ -320,14 +330,14 @@ class PDFeedback(OutputFeedback):
     def function(self, dt: float) -> ca.Function:
         dt = positive_number(dt, "dt")
         n = self.channels
-        c, y, r, theta = ca.SX.sym("c", n), ca.SX.sym("y", n), ca.SX.sym("r", n), ca.SX.sym("theta", 4 * n)
-        kp, kd, tau, u_max = ca.vertsplit(theta, [0, n, 2 * n, 3 * n, 4 * n])
+        c, y, r, theta = ca.SX.sym("c", n), ca.SX.sym("y", n), ca.SX.sym("r", n), ca.SX.sym("theta", 6 * n)
+        kp, kd, tau, u_max, u_offset, u_scale = ca.vertsplit(theta, [0, n, 2 * n, 3 * n, 4 * n, 5 * n, 6 * n])
         yf = c + (1.0 - ca.exp(-dt / tau)) * (y - c)
-        u = ca.fmin(ca.fmax(kp * (r - y) - kd * (yf - c) / dt, -u_max), u_max)
+        u = u_offset + u_scale * ca.fmin(ca.fmax(kp * (r - y) - kd * (yf - c) / dt, -u_max), u_max)
         return ca.Function("pd_feedback", [c, y, r, theta], [u, yf], ["c", "y", "r", "theta"], ["u", "c_next"])
 
     def theta(self) -> np.ndarray:
-        return np.concatenate([self.kp, self.kd, self.tau, self.u_max])
+        return np.concatenate([self.kp, self.kd, self.tau, self.u_max, self.u_offset, self.u_scale])
 
     def reference(self, t: Any) -> np.ndarray:
         times, _ = _times(t)
@@ -335,6 +345,81 @@ class PDFeedback(OutputFeedback):
 
     def state0(self, y0: Any) -> np.ndarray:
         return np.asarray(y0, dtype=float).reshape(self.channels).copy()
+
+
+@dataclass(frozen=True)
+class Mapped(Signal):
+    """``u(t) = offset + scale * inner(t)``: a signal drawn in the benchmark's units, in a plant's (:func:`in_box`).
+
+    Attributes
+    ----------
+    inner : Signal
+    offset, scale : array_like (nu,)
+        Per input; ``scale > 0``.
+    """
+
+    inner: Signal
+    offset: Any
+    scale: Any
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.inner, Signal):
+            raise error("inner", "a kklcasadi signal u(t)", Text(type(self.inner).__name__), kind=TypeError)
+        for name, check in (("offset", finite_number), ("scale", positive_number)):
+            value = np.broadcast_to(_vector(getattr(self, name), name), (self.inner.nu,)).copy()
+            for v in value:
+                check(float(v), name)
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    @property
+    def nu(self) -> int:
+        return self.inner.nu
+
+    def _eval(self, t: np.ndarray) -> np.ndarray:
+        return self.offset + self.scale * self.inner(t)
+
+
+#: The benchmark's widest input level (the ``ood`` constant's ``|u|``): :func:`in_box` maps it to a ``u_box``'s edges.
+UNIT_LEVEL = 2.0
+
+
+def box_map(u_box: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``(offset, scale)``, each (nu,), mapping the benchmark's ``[-UNIT_LEVEL, UNIT_LEVEL]`` onto ``u_box`` (nu, 2)."""
+    box = np.asarray(u_box, dtype=float)
+    if box.ndim != 2 or box.shape[1] != 2 or not np.all(np.isfinite(box)) or np.any(box[:, 1] <= box[:, 0]):
+        raise error("u_box", "finite rows [lo, hi] with lo < hi, one per input", Text(repr(box.tolist())))
+    return box.mean(axis=1), 0.5 * (box[:, 1] - box[:, 0]) / UNIT_LEVEL
+
+
+@overload
+def in_box(u: Signal, u_box: Any) -> Signal: ...
+@overload
+def in_box(u: OutputFeedback, u_box: Any) -> OutputFeedback: ...
+def in_box(u: Signal | OutputFeedback, u_box: Any) -> Signal | OutputFeedback:
+    """The input ``u``, drawn in the benchmark's units, in the units of a plant whose inputs span ``u_box``.
+
+    Parameters
+    ----------
+    u : Signal or PDFeedback
+        As :func:`sample` or :func:`draw` return it.
+    u_box : array_like (nu, 2) or None
+        The plant's ``u_box``; None returns ``u`` itself (the shipped plants: the benchmark's units are theirs).
+
+    Returns
+    -------
+    Signal or PDFeedback
+        ``offset + scale * u`` with :func:`box_map`'s numbers (a :class:`Mapped` signal, or the law with its
+        ``u_offset`` and ``u_scale``).
+    """
+    if u_box is None:
+        return u
+    offset, scale = box_map(u_box)
+    if isinstance(u, PDFeedback):
+        return replace(u, u_offset=offset, u_scale=scale)
+    if isinstance(u, Signal):
+        return Mapped(u, offset, scale)
+    raise error("u", "a kklcasadi signal or a PDFeedback law", Text(type(u).__name__), kind=TypeError)
 
 
 _KINDS: dict[str, type[Signal]] = {

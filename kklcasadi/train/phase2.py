@@ -250,7 +250,7 @@ def train_curriculum(system: System, design: Design, base: Model | None, config:
     rng = np.random.default_rng(seed + 7)
     histories, summaries = {}, {}
     for s, kinds in enumerate(config.stages):
-        signals = [sig.sample(kinds[j % len(kinds)], rng, "train", nu=system.nu)
+        signals = [sig.in_box(sig.sample(kinds[j % len(kinds)], rng, "train", nu=system.nu), system.u_box)
                    for j in range(config.n_signals_per_stage * len(kinds))]
         lab = kdata.driven_labels(system, design, signals, config.n_traj, seed + 11 * s, t_keep=config.t_keep, dt=dt)
         # the PDE term keeps the autonomous field f(x, 0): a static map is fine-tuned, run as autonomous

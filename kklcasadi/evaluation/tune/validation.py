@@ -90,7 +90,8 @@ class ValidationCell:
     def simulate(self, system: System) -> TrajectoryBatch:
         x0 = system.sample_box(self.n_trials, np.random.default_rng([self.seed, 100 + self.index, 1]))
         seeds = np.random.SeedSequence([self.seed, 100 + self.index]).spawn(self.n_trials)
-        return simulate_batch(system, x0, self.signals(system.nu), self.T, self.dt, process_std=self.process_std,
+        inputs = [sig.in_box(u, system.u_box) for u in self.signals(system.nu)]
+        return simulate_batch(system, x0, inputs, self.T, self.dt, process_std=self.process_std,
                               measurement_std=self.measurement_std, seed=seeds)
 
 
