@@ -28,7 +28,7 @@ SHIPPED_MODELS = {
     "duffing": ("autonomous", "bank", "compact", "curriculum", "dyn", "inject", "obs", "obs-inject", "obs_stream",
                 "robust"),
     "fhn": ("autonomous", "bank", "compact", "curriculum", "dyn", "inject", "obs"),
-    "rossler": ("autonomous", "bank", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream"),
+    "rossler": ("autonomous", "bank", "compact", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream"),
     "vdp": ("autonomous", "bank", "compact", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream",
             "robust"),
 }
