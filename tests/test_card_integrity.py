@@ -351,11 +351,11 @@ def _unsigned_commit(path):
     return None
 
 
-def _committed_first(path):
-    """The first commit that holds ``path``."""
-    commits = _git("log", "--format=%H", "--diff-filter=A", "--", path).decode().split()
-    assert commits, f"{path} is not committed"
-    return commits[-1]
+def _last_commit(path):
+    """The last commit that changed ``path``."""
+    commit = _git("log", "-1", "--format=%H", "--", path).decode().strip()
+    assert commit, f"{path} is not committed"
+    return commit
 
 
 def _signed_commit(path, unsigned):
@@ -387,11 +387,12 @@ def test_the_shipped_cards_were_only_signed(tmp_path):
     for system, method in _shipped():
         where = f"models/{system}/{method}"
         before = _unsigned_commit(f"{where}/card.json")          # its last card without a digest
-        if before is None:          # written signed (models/vdp/compact): card and weights as first committed
-            first = _committed_first(f"{where}/card.json")
+        if before is None:          # written signed (the compacts): card and weights committed together, as written
+            last = _last_commit(f"{where}/card.json")
+            assert _last_commit(f"{where}/weights.npz") == last, f"{where}: its card changed without its weights"
             load_model(ROOT / where)
             for name in ("card.json", "weights.npz"):
-                assert _git("rev-parse", f"{first}:{where}/{name}") == _git("hash-object", f"{where}/{name}"), where
+                assert _git("rev-parse", f"{last}:{where}/{name}") == _git("hash-object", f"{where}/{name}"), where
             continue
         signed = _signed_commit(f"{where}/card.json", before)
         old = json.loads(_git("show", f"{before}:{where}/card.json"))

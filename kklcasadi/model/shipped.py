@@ -27,8 +27,8 @@ SHIPPED_ROOT = (Path(__file__).resolve().parents[1] / "_models").resolve()
 SHIPPED_MODELS = {
     "duffing": ("autonomous", "bank", "compact", "curriculum", "dyn", "inject", "obs", "obs-inject", "obs_stream",
                 "robust"),
-    "fhn": ("autonomous", "bank", "curriculum", "dyn", "inject", "obs"),
-    "rossler": ("autonomous", "bank", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream"),
+    "fhn": ("autonomous", "bank", "compact", "curriculum", "dyn", "inject", "obs"),
+    "rossler": ("autonomous", "bank", "compact", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream"),
     "vdp": ("autonomous", "bank", "compact", "curriculum", "dyn", "dyn_stream", "inject", "obs", "obs_stream",
             "robust"),
 }
