@@ -445,3 +445,17 @@ def test_a_damaged_digest_of_a_field_is_refused(valid_model, tmp_path):
                                          r"with, received other digests") as info:
         load_model(work / "obs")
     _one_line(info.value)
+
+
+@pytest.mark.parametrize("name", ["\n", "a\tb", "x\r\ny", "\x00"])
+def test_a_field_with_a_control_character_in_its_name_is_named_on_one_line(valid_model, tmp_path, name):
+    """Found by the property test above: a card edited to hold a field named "\\n" was refused with a message
+    broken over two lines; the field's name is shown escaped."""
+    body = {key: value for key, value in _card(valid_model).items() if key != DIGEST}
+    work = tmp_path / "m"
+    shutil.copytree(valid_model.parent, work)
+    write_signed_card(work / "obs", {**body, name: None})
+    with pytest.raises((ValueError, TypeError)) as refused:
+        load_model(work / "obs")
+    _one_line(refused.value)
+    assert name.encode("unicode_escape").decode("ascii") in str(refused.value)

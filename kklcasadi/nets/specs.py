@@ -48,7 +48,8 @@ def field_error(where: str, field_name: str, expected: str, received: Any, fix: 
     fix : str
         What the user should do about it.
     """
-    return error(f"{where}: '{field_name}'", expected, received, fix)
+    shown = field_name if field_name.isprintable() else field_name.encode("unicode_escape").decode("ascii")
+    return error(f"{where}: '{shown}'", expected, received, fix)        # a field named "\n" stays on one line
 
 
 def _positive_field(value: Any, where: str, field_name: str, fix: str) -> int:
