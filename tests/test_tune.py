@@ -170,6 +170,7 @@ def _running_trial_of(study_name: str, out: Path, pid: int, timeout: float = 300
     pytest.fail(f"worker {pid} started no trial within {timeout} s")
 
 
+@pytest.mark.slow           # three worker processes that each train (52 s): the default run stays under 10 minutes
 def test_two_workers_one_killed_mid_trial_is_retried_and_the_study_resumes(tmp_path):
     out = tmp_path / "study"
     url = tn.storage_url(None, out)
