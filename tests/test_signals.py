@@ -115,3 +115,10 @@ def test_a_feedback_law_in_a_plants_units_sends_offset_plus_scale_times_its_inpu
 def test_a_bad_u_box_is_named(u_box, message):
     with pytest.raises(ValueError, match=message):
         sig.in_box(sig.make("zero", size=1), u_box)
+
+
+def test_a_mapped_signal_with_the_wrong_number_of_entries_is_named():
+    with pytest.raises(ValueError, match=r"offset: expected a scalar or 2 entries \(one per input\), received size 3"):
+        sig.Mapped(sig.make("constant", value=[0.0, 0.0]), offset=[1.0, 2.0, 3.0], scale=1.0)
+    with pytest.raises(ValueError, match="scale"):
+        sig.Mapped(sig.make("zero", size=1), offset=0.0, scale=-1.0)

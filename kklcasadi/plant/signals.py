@@ -43,6 +43,20 @@ def _vector(value: Any, arg: str) -> np.ndarray:
     return arr
 
 
+def _per_channel(obj: Any, n: int, channel: str, checks: tuple) -> None:
+    """Set each ``(name, check)`` field of the frozen ``obj`` to a read-only (n,) vector: a scalar broadcast, or
+    ``n`` entries, each passing ``check``."""
+    for name, check in checks:
+        value = _vector(getattr(obj, name), name)
+        if value.size not in (1, n):
+            raise error(name, f"a scalar or {n} entries (one per {channel})", Text(f"size {value.size}"))
+        value = np.broadcast_to(value, (n,)).copy()
+        for v in value:
+            check(float(v), name)
+        value.setflags(write=False)
+        object.__setattr__(obj, name, value)
+
+
 def _times(t: Any) -> tuple[np.ndarray, bool]:
     arr = np.asarray(t, dtype=float)
     if arr.ndim > 1:
@@ -303,17 +317,9 @@ class PDFeedback(OutputFeedback):
     def __post_init__(self) -> None:
         if not isinstance(self.setpoint, Signal):
             raise error("setpoint", "a kklcasadi signal r(t)", Text(type(self.setpoint).__name__), kind=TypeError)
-        n = self.setpoint.nu
-        for name, check in (("kp", nonnegative_number), ("kd", nonnegative_number), ("tau", positive_number),
-                            ("u_max", positive_number), ("u_offset", finite_number), ("u_scale", positive_number)):
-            value = _vector(getattr(self, name), name)
-            if value.size not in (1, n):
-                raise error(name, f"a scalar or {n} entries (one per set-point channel)", Text(f"size {value.size}"))
-            value = np.broadcast_to(value, (n,)).copy()
-            for v in value:
-                check(float(v), name)
-            value.setflags(write=False)
-            object.__setattr__(self, name, value)
+        _per_channel(self, self.setpoint.nu, "set-point channel",
+                     (("kp", nonnegative_number), ("kd", nonnegative_number), ("tau", positive_number),
+                      ("u_max", positive_number), ("u_offset", finite_number), ("u_scale", positive_number)))
 
     @property
     def channels(self) -> int:
@@ -365,12 +371,7 @@ class Mapped(Signal):
     def __post_init__(self) -> None:
         if not isinstance(self.inner, Signal):
             raise error("inner", "a kklcasadi signal u(t)", Text(type(self.inner).__name__), kind=TypeError)
-        for name, check in (("offset", finite_number), ("scale", positive_number)):
-            value = np.broadcast_to(_vector(getattr(self, name), name), (self.inner.nu,)).copy()
-            for v in value:
-                check(float(v), name)
-            value.setflags(write=False)
-            object.__setattr__(self, name, value)
+        _per_channel(self, self.inner.nu, "input", (("offset", finite_number), ("scale", positive_number)))
 
     @property
     def nu(self) -> int:
