@@ -5,7 +5,7 @@ import pickle
 
 import pytest
 
-from kklcasadi.cli.flags import CommandError, flagged
+from kklcasadi.cli.flags import CommandError, flagged, flagged_by
 from kklcasadi.validation import ArgumentError, ArgumentTypeError, Text, error, positive_int
 
 
@@ -55,6 +55,23 @@ def test_flagged_passes_values_and_other_errors_through():
     assert flagged("--threads", positive_int, 3, "threads") == 3
     with pytest.raises(KeyError):
         flagged("--threads", _raises(KeyError("k")))
+
+
+def test_flagged_passes_keywords_named_like_its_own_parameters_through():
+    # Compiler(flags=...) through flagged("--flags", ...) once raised "got multiple values for argument 'flags'"
+    def echo(**kwargs):
+        return kwargs
+    kwargs = {"flags": ("-O2",), "flag": 1, "default": 2, "fn": 3, "fn_args": 4}
+    assert flagged("--flags", echo, **kwargs) == kwargs
+    assert flagged_by({"flags": "--flags"}, "--x", echo, **kwargs) == kwargs
+
+
+def test_the_bench_command_builds_its_compiler_from_the_flags():
+    from kklcasadi.cli import build_parser
+    from kklcasadi.cli.bench import _compiler
+
+    args = build_parser().parse_args(["bench", "protocol", "--flags=-O2 -ffp-contract=off"])
+    assert _compiler(args).flags == ("-O2", "-ffp-contract=off")
 
 
 # -- --plant runs code: what it does wrong is one line, and only a function that returns a System is called -------

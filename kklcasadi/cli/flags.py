@@ -111,7 +111,7 @@ def c_name(text: str) -> str:
         raise argparse.ArgumentTypeError(exc.detail) from None
 
 
-def flagged(flag: str, fn: Callable[..., Any], *fn_args: Any, **kwargs: Any) -> Any:
+def flagged(flag: str, fn: Callable[..., Any], /, *fn_args: Any, **kwargs: Any) -> Any:
     """Call ``fn``; an error about one of its arguments becomes one about ``flag``.
 
     An :class:`~kklcasadi.validation.ArgumentError` (or ``ArgumentTypeError``) whose ``argument`` is a
@@ -121,7 +121,8 @@ def flagged(flag: str, fn: Callable[..., Any], *fn_args: Any, **kwargs: Any) -> 
     return flagged_by({}, flag, fn, *fn_args, **kwargs)
 
 
-def flagged_by(flags: dict[str, str], default: str, fn: Callable[..., Any], *fn_args: Any, **kwargs: Any) -> Any:
+def flagged_by(flags: dict[str, str], default: str, fn: Callable[..., Any], /, *fn_args: Any,
+               **kwargs: Any) -> Any:
     """:func:`flagged`, with the errors about the Python arguments ``flags`` names said of their own flags
     (``{"resume": "--resume"}``) and the others of ``default``."""
     try:
