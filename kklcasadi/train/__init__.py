@@ -59,8 +59,8 @@ METHODS = variants.trainable()
 #: torch CPU threads of a training unless told (``threads``). One: the networks are small (the ``bank`` decoder
 #: 16-256-256-256-3 at batch 1024), and where the cores are shared torch's threads wait on each other at every
 #: operation: the damped 3-state plant's decoder fit ran 5 958 samples/s with torch's default of 2 threads on the
-#: 2 shared cores (load 5-6) and 40 040 with one (load 6), the whole one command 1527 s wall / 799 s CPU against
-#: 294 s / 149 s (docs/notes/speed.md, "A first observer for a new plant"). A quiet machine with many cores may
+#: 2 shared cores (load 5-6) and 41 335 with one (load 6), the whole one command 1541 s wall / 799 s CPU against
+#: 273 s / 141 s (docs/notes/speed.md, "A first observer for a new plant"). A quiet machine with many cores may
 #: gain from more (``--threads``).
 TRAIN_THREADS = 1
 
