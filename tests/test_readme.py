@@ -69,9 +69,9 @@ def test_the_readme_is_a_front_door_under_300_lines():
 def test_the_readme_commands_are_the_ones_ci_runs():
     commands = re.findall(r"```bash\n(python3 -m venv .*?)\n```", README)
     assert len(commands) == 2 and commands[0].endswith("kklcasadi demo")
-    assert commands[1].endswith("ruff check . && python -m pytest -q")
+    assert commands[1].endswith("ruff check . && python -m pytest -q -n 2")
     ci = (ROOT / ".ci" / "run").read_text()
-    assert 'pip install -q -e ".[test]" && ruff check . && python -m pytest -q' in ci
+    assert 'pip install -q -e ".[test]" && ruff check . && python -m pytest -q -n 2' in ci
 
 
 def test_the_python_snippet_runs_from_a_directory_outside_the_clone_and_prints_a_recomputation(
