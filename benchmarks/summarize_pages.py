@@ -301,14 +301,16 @@ def consistency() -> str:
               "factors | mean NEES (band) | 2-sigma coverage % |\n|---|---|---|---|---|---|\n" + "\n".join(fits)
             + "\n\nOn the scored trials:\n\n" + "\n".join(verdicts) + "\n\n" + head + "\n"
             + "\n".join(lines) + "\n\nFrom " + (", ".join(sources) or "no run") + ".\n"
-            + "\n## Off distribution (duffing)\n\nThe target: 2-sigma coverage at least "
+            + "\n## Off distribution\n\nThe target: 2-sigma coverage at least "
             f"{COVERAGE_OFF:g} % per state, and better calibrated than the EKF's own covariance where the EKF's is off "
-            "(its mean NEES outside its band; closer to nx is better).\n\n"
-            + _off_distribution(RESULTS / "consistency" / "duffing" / "robustness" / "duffing_robustness.json",
-                                "The robustness cases (`kklcasadi robustness --consistency`)") + "\n"
-            + _off_distribution(RESULTS / "consistency" / "duffing" / "generalise"
-                                / "duffing_generalisation_consistency.json",
-                                "The generalisation cases (`kklcasadi generalise --consistency`)")
+            "(its mean NEES outside its band; closer to nx is better).\n"
+            + "".join(f"\n### {system}\n\n"
+                      + _off_distribution(RESULTS / "consistency" / system / "robustness" / f"{system}_robustness.json",
+                                          "The robustness cases (`kklcasadi robustness --consistency`)") + "\n"
+                      + _off_distribution(RESULTS / "consistency" / system / "generalise"
+                                          / f"{system}_generalisation_consistency.json",
+                                          "The generalisation cases (`kklcasadi generalise --consistency`)")
+                      for system in ("duffing", "vdp", "rossler", "fhn"))
             + "\n## Used downstream\n\n" + _primed_mhe() + _tightening())
 
 
