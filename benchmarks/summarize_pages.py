@@ -20,6 +20,7 @@ from pathlib import Path
 from pages import ROOT, header, publish
 
 from kklcasadi import provenance
+from kklcasadi.plant import systems
 
 RESULTS = ROOT / "results"
 KINDS = ("zero", "constant", "sinusoid", "square")
@@ -202,6 +203,20 @@ def _off_distribution(path: Path, title: str) -> str:
             + "\n".join(verdicts) + "\n\n" + "\n".join(lines) + "\n")
 
 
+def _off_distribution_of(system: str) -> str:
+    """One system's section of the off-distribution results: its robustness run (for a plant with a parameterised
+    family) and its generalisation run."""
+    where = RESULTS / "consistency" / system
+    robustness = (_off_distribution(where / "robustness" / f"{system}_robustness.json",
+                                    "The robustness cases (`kklcasadi robustness --consistency`)")
+                  if system in systems.families() else
+                  "The robustness cases: none (the plant has no parameterised family for `kklcasadi robustness` to "
+                  "perturb).\n")
+    return (f"\n### {system}\n\n" + robustness + "\n"
+            + _off_distribution(where / "generalise" / f"{system}_generalisation_consistency.json",
+                                "The generalisation cases (`kklcasadi generalise --consistency`)"))
+
+
 def _primed_mhe() -> str:
     """The KKL-primed MHE with the observer's covariance against the constant profile (issue 49's item 3)."""
     path = RESULTS / "mhe" / "duffing" / "duffing_primed_mhe.json"
@@ -304,13 +319,7 @@ def consistency() -> str:
             + "\n## Off distribution\n\nThe target: 2-sigma coverage at least "
             f"{COVERAGE_OFF:g} % per state, and better calibrated than the EKF's own covariance where the EKF's is off "
             "(its mean NEES outside its band; closer to nx is better).\n"
-            + "".join(f"\n### {system}\n\n"
-                      + _off_distribution(RESULTS / "consistency" / system / "robustness" / f"{system}_robustness.json",
-                                          "The robustness cases (`kklcasadi robustness --consistency`)") + "\n"
-                      + _off_distribution(RESULTS / "consistency" / system / "generalise"
-                                          / f"{system}_generalisation_consistency.json",
-                                          "The generalisation cases (`kklcasadi generalise --consistency`)")
-                      for system in ("duffing", "vdp", "rossler", "fhn"))
+            + "".join(_off_distribution_of(system) for system in ("duffing", "vdp", "rossler", "fhn"))
             + "\n## Used downstream\n\n" + _primed_mhe() + _tightening())
 
 
