@@ -383,3 +383,17 @@ def test_the_robust_observers_section_follows_from_the_results():
         in text
     assert f"({span(ratio['augmented', 'corner'])} `robust`'s error at the corners)" in text
     assert "[docs/results/robustness.md](docs/results/robustness.md)" in text
+
+
+def test_the_first_observers_training_time_is_its_cards():
+    """The README's training time of a first observer is the stored card's (``training.wall_time_s``), on the threads
+    that card records (kklcasadi.train.TRAIN_THREADS, the default)."""
+    card = json.loads((ROOT / "results" / "own_plant" / "damped3" / "fast" / "card_seed0.json").read_text())
+    training = card["training"]
+    text = " ".join(README.split())
+    assert f"the damped 3-state plant's took {round(training['wall_time_s'])} s on 2 cores" in text
+    assert "`results/own_plant/damped3/fast`; one torch thread unless `--threads N`" in text
+    assert training["threads"] == 1 and training["machine"]["cpus"] == 2
+    command = card[provenance.KEY]["command"].split()          # the one command: no flag beyond the plant and --out
+    assert command[:4] == ["kklcasadi", "train", "--plant", "examples/damped3_plant.py:make_plant"]
+    assert command[4] == "--out" and len(command) == 6

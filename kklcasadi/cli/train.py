@@ -154,7 +154,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--resume", action="store_true", help="continue from the checkpoints in OUT/.train")
     t.add_argument("--overwrite", action="store_true", help="replace a model already in OUT")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
-    t.add_argument("--threads", type=positive_int, help="torch CPU threads (1 per process on a shared machine)")
+    t.add_argument("--threads", type=positive_int, help="torch CPU threads (default 1: on shared cores more threads "
+                   "wait on each other; a quiet machine with many cores may gain from more)")
     t.set_defaults(func=run)
 
 
