@@ -607,10 +607,51 @@ def test_the_closing_summary_scores_in_the_trained_box_and_names_the_runs_that_l
             old = np.mean(metrics.smape(batch.x, ours)) / np.mean(metrics.smape(batch.x, theirs))
             assert f"{kind}: every run left the box" in text and f"({old:.2f}x)" not in text
     assert "constant" in left and stayed > 0                     # both cases are exercised
+    assert "\ntraining " not in text                             # this card records no recipe of training runs
     assert (f"outside  {sum(left.values())} run(s) left that box ("
             + ", ".join(f"{kind} {n}" for kind, n in left.items())
             + "; x[0] integrates: open-loop inputs drive it out): not the observer's domain, it extrapolates there"
             ) in text
+
+
+def test_the_closing_summary_scores_runs_drawn_by_the_cards_training_recipe(model_dir_factory):
+    """A card that records its training runs' recipe (``training.config.rollouts``, as a bank model's; here the
+    shipped duffing bank model's, on a small random model): the summary's line draws 12 held-out runs by it (seed
+    7, not the training seed 11) and scores the observer and the EKF on them, recomputed here."""
+    import json
+    from dataclasses import fields, replace
+    from pathlib import Path
+
+    import kklcasadi as kc
+    from kklcasadi import metrics
+    from kklcasadi.cli.train import recipe_lines
+    from kklcasadi.plant.runs import RolloutConfig, rollouts
+
+    shipped = json.loads((Path(__file__).resolve().parents[1] / "models/duffing/bank/card.json").read_text())
+    record = shipped["training"]["config"]["rollouts"]
+    assert shipped["training"]["seed"] != 7 and shipped["training"]["time_scale"] == 1.0
+    path = model_dir_factory("autonomous", card_extra={"training": {"config": {"rollouts": record}, "time_scale": 1.0}})
+    obs = kc.load_observer(path)
+    box = obs.system.x0_box
+    ekf = kc.EKF.for_noise(obs.system, obs.dt, process_std=0.1, measurement_std=0.1)
+    lines = recipe_lines(obs, box, ekf, 0.1, 0.1)
+    recipe = RolloutConfig(**{f.name: tuple(record[f.name]) if isinstance(record[f.name], list) else record[f.name]
+                              for f in fields(RolloutConfig) if f.name in record})
+    runs = rollouts(obs.system, replace(recipe, n_traj=12, chunk=12), 7, dt=obs.dt, measurement_std=0.1,
+                    process_std=0.1, time_scale=1.0)
+    assert len(runs.x) == 12                                     # escape_scale 10: none is cut
+    ours = obs.simulate(runs.t, runs.y, runs.u).xhat
+    theirs = ekf.simulate(runs.t, runs.y, runs.u).xhat
+    late = runs.t >= 5.0
+
+    def rmse(xhat):
+        return np.mean([100 * np.sqrt(np.mean(((xhat[i, late] - runs.x[i, late]) / (box[:, 1] - box[:, 0])) ** 2))
+                        for i in range(12)])
+
+    assert lines == [f"training the same on 12 held-out runs drawn as its training runs were (families zero, "
+                     f"constant, sinusoid, square, multisine, feedback; seed 7): RMSE {rmse(ours):.3g} % / "
+                     f"{rmse(theirs):.3g} % ({rmse(ours) / rmse(theirs):.2f}x), SMAPE "
+                     f"{np.mean(metrics.smape(runs.x, ours)):.2f} % / {np.mean(metrics.smape(runs.x, theirs)):.2f} %"]
 
 
 def test_the_closing_summary_counts_the_runs_on_which_the_ekf_diverged(model_dir_factory, monkeypatch):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -19,7 +20,7 @@ import numpy as np
 from ..model import variants
 from ..plant import signals as sig
 from ..plant import systems
-from ..plant.runs import ENVELOPE_ESCAPE, drifting_states
+from ..plant.runs import ENVELOPE_ESCAPE, RolloutConfig, drifting_states, resolved, rollouts
 from .flags import (
     CommandError,
     add_dt,
@@ -45,6 +46,10 @@ RECOMMENDED = "bank"
 #: The closing quality summary: runs per input kind of docs/protocol.md, and their seed (a validation seed: not
 #: the protocol's scored 2026, and not a training seed's runs, which come from the training sampler).
 SUMMARY_TRIALS, SUMMARY_SEED = 3, 7
+#: Runs of the summary drawn by the card's training recipe (before the ones that leave the box are cut).
+RECIPE_RUNS = 12
+#: The summary's RMSE is over the samples after this time, s (docs/protocol.md's settling time).
+SETTLE_S = 5.0
 
 #: Flags that set a field of the method's training configuration: flag -> (field, value from args). A
 #: field is found at the top of the configuration or in the one nested configuration that holds it
@@ -300,9 +305,10 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
     time in % of the box's width (a scale the states' values near zero do not distort, as they do SMAPE) of each
     and their ratio, and their SMAPE.
     The runs that leave the box (open-loop inputs on an integrating state, where training ran under a
-    stabilising loop) are counted apart with their RMSE: there the observer extrapolates. Also the share of
-    the estimates inside the domain the maps were trained on, and the trials whose state escaped. Runs on
-    which the EKF diverges (non-finite estimates) are counted and left out of the ratio.
+    stabilising loop) are counted apart with their RMSE: there the observer extrapolates. Where the card
+    records the recipe of its training runs, the same scores on runs drawn by it (:func:`recipe_lines`). Also
+    the share of the estimates inside the domain the maps were trained on, and the trials whose state escaped.
+    Runs on which the EKF diverges (non-finite estimates) are counted and left out of the ratio.
     """
     from ..estimators.ekf import EKF
     from ..evaluation.protocol import Protocol
@@ -311,7 +317,7 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
     obs = load(path, plant, "--out")
     process_std, measurement_std = run_noise(obs)
     draw = Protocol(n_trials=SUMMARY_TRIALS, dt=obs.dt, seed=SUMMARY_SEED, process_std=process_std,
-                    measurement_std=measurement_std)
+                    measurement_std=measurement_std, t_settle=SETTLE_S)
     ekf = EKF.for_noise(plant, obs.dt, process_std=process_std, measurement_std=measurement_std)
     box = training_box(obs)
     rows, inside, escaped, left, outside = [], [], 0, {}, ([], [])
@@ -329,7 +335,7 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
             inside.append(est.in_domain.mean())
         kept = np.isfinite(theirs).all(axis=(1, 2))            # an EKF can diverge (a stiff plant, a large P0)
         stays = in_box(x, box, plant.angle_states, scale=ENVELOPE_ESCAPE)
-        late = batch.t >= draw.t_settle                         # the RMSE after the observers' transients
+        late = batch.t >= SETTLE_S                              # the RMSE after the observers' transients
         ours = box_rmse(x[:, late], est.xhat[:, late], box, plant.angle_states)
         ekf_rmse = box_rmse(x[:, late], theirs[:, late], box, plant.angle_states)
         if (~stays).any():
@@ -341,7 +347,7 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
     noise = f"noise std {levels_text(process_std)} / {measurement_std:g}"
     lines = [f"quality  the observer / the EKF on {draw.n_trials} held-out runs per input ({noise}, seed "
              f"{SUMMARY_SEED}; not the benchmark's trials), scored on the runs that stay in the box it was trained "
-             f"in: RMSE after {draw.t_settle:g} s in % of the box's width (ratio), SMAPE:",
+             f"in: RMSE after {SETTLE_S:g} s in % of the box's width (ratio), SMAPE:",
              "         " + ("; ".join(rows) if rows else "every run escaped")
              + (f"; {escaped} run(s) escaped, not scored" if escaped else "")]
     if left:
@@ -353,6 +359,7 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
                      + ", ".join(f"{kind} {n}" for kind, n in left.items()) + f"{why}): not the observer's domain, "
                      f"it extrapolates there (RMSE {np.mean(np.concatenate(outside[0])):.3g} %"
                      + (f", the EKF's {np.mean(theirs_out):.3g} %" if theirs_out.size else "") + ")")
+    lines += recipe_lines(obs, box, ekf, process_std, measurement_std)
     if inside:
         lines.append(f"domain   {100 * float(np.mean(inside)):.1f} % of the estimates inside the domain the maps were "
                      "trained on")
@@ -405,3 +412,38 @@ def _quality_row(kind: str, x: np.ndarray, ours: np.ndarray, theirs: np.ndarray,
     return (f"{kind} {np.mean(ours_rmse):.3g} % / {np.mean(ekf_rmse[kept]):.3g} % "
             f"({np.mean(ours_rmse[kept]) / np.mean(ekf_rmse[kept]):.2f}x{lost}), SMAPE {np.mean(ours_smape):.2f} % "
             f"/ {ekf_smape:.2f} %{count}")
+
+
+def recipe_lines(obs: Any, box: np.ndarray, ekf: Any, process_std: Any, measurement_std: float) -> list[str]:
+    """The observer and ``ekf`` on :data:`RECIPE_RUNS` held-out runs drawn as the card's training runs were (its
+    ``training.config.rollouts`` recipe as :func:`~kklcasadi.plant.runs.resolved` for the plant: families,
+    stabilising loop, input range, runs cut where they leave the box), seed :data:`SUMMARY_SEED`: RMSE after 5 s
+    in % of the box's width and SMAPE, one line; none where the card records no recipe or one replaying logs
+    (``--like``: the card keeps no log segments to replay)."""
+    training = obs.model.card.get("training")
+    record = training.get("config") if isinstance(training, dict) else None
+    record = record.get("rollouts") if isinstance(record, dict) else None
+    if not isinstance(record, dict) or record.get("envelope") is not None:
+        return []
+    plant = obs.system
+    names = {f.name for f in fields(RolloutConfig)} - {"envelope"}
+    recipe = RolloutConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in record.items() if k in names})
+    recipe = resolved(plant, replace(recipe, n_traj=RECIPE_RUNS, chunk=RECIPE_RUNS))
+    with quiet_casadi():
+        runs = rollouts(plant, recipe, SUMMARY_SEED, dt=obs.dt, measurement_std=measurement_std,
+                        process_std=process_std, time_scale=float(training.get("time_scale", 1.0)))
+    cut = RECIPE_RUNS - len(runs.x)
+    cut_text = f", {cut} of {RECIPE_RUNS} left the box: not scored, training cuts them there" if cut else ""
+    if not len(runs.x):
+        return [f"training every one of {RECIPE_RUNS} runs drawn as its training runs left the box"]
+    ours = obs.simulate(runs.t, runs.y, runs.u).xhat
+    theirs = ekf.simulate(runs.t, runs.y, runs.u).xhat
+    kept = np.isfinite(theirs).all(axis=(1, 2))
+    loop = "under the stabilising loop, " if recipe.stabilise else ""
+    head = (f"training the same on {len(runs.x)} held-out runs drawn as its training runs were ({loop}families "
+            f"{', '.join(recipe.kinds)}; seed {SUMMARY_SEED}{cut_text}): RMSE ")
+    late = runs.t >= SETTLE_S
+    row = _quality_row("", runs.x, ours, theirs, box_rmse(runs.x[:, late], ours[:, late], box, plant.angle_states),
+                       box_rmse(runs.x[:, late], theirs[:, late], box, plant.angle_states), kept,
+                       plant.angle_states, len(runs.x))
+    return [head + row.strip()]
