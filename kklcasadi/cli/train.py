@@ -297,18 +297,17 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
     """How good the trained observer is, in a few lines, and the commands to run next.
 
     The observer and the EKF (``Q``, ``R`` of the card's noise levels, else docs/protocol.md's 0.1) on
-    :data:`SUMMARY_TRIALS` noisy runs per input kind of docs/protocol.md, drawn with :data:`SUMMARY_SEED`
-    (runs nothing was fit or chosen on). Scored per kind on the runs whose state stays in the box the observer
-    was trained in (:func:`~kklcasadi.observer.guard.training_box`, widened by a quarter of its half-width, where
-    training cuts the runs of a plant that declares where it lives: :data:`~kklcasadi.plant.runs.ENVELOPE_ESCAPE`):
-    the RMSE after docs/protocol.md's settling
-    time in % of the box's width (a scale the states' values near zero do not distort, as they do SMAPE) of each
-    and their ratio, and their SMAPE.
-    The runs that leave the box (open-loop inputs on an integrating state, where training ran under a
-    stabilising loop) are counted apart with their RMSE: there the observer extrapolates. Where the card
-    records the recipe of its training runs, the same scores on runs drawn by it (:func:`recipe_lines`). Also
-    the share of the estimates inside the domain the maps were trained on, and the trials whose state escaped.
-    Runs on which the EKF diverges (non-finite estimates) are counted and left out of the ratio.
+    :data:`SUMMARY_TRIALS` noisy runs per input kind of docs/protocol.md, drawn with :data:`SUMMARY_SEED` (runs
+    nothing was fit or chosen on). Scored per kind on the runs whose state stays in the box the observer was trained
+    in (:func:`~kklcasadi.observer.guard.training_box`, widened by a quarter of its half-width, where training cuts
+    the runs of a plant that declares where it lives: :data:`~kklcasadi.plant.runs.ENVELOPE_ESCAPE`): the RMSE after
+    docs/protocol.md's settling time in % of the box's width (a scale the states' values near zero do not distort,
+    as they do SMAPE) of each and their ratio, and their SMAPE. The runs that leave the box (open-loop inputs on an
+    integrating state, where training ran under a stabilising loop) are counted apart with their RMSE: there the
+    observer extrapolates. Where the card records the recipe of its training runs, the same scores on runs drawn by
+    it (:func:`recipe_lines`). Also the share of the estimates inside the domain the maps were trained on, and the
+    trials whose state escaped. Runs on which the EKF diverges (non-finite estimates) are counted and left out of
+    the ratio.
     """
     from ..estimators.ekf import EKF
     from ..evaluation.protocol import Protocol
@@ -417,9 +416,9 @@ def _quality_row(kind: str, x: np.ndarray, ours: np.ndarray, theirs: np.ndarray,
 def recipe_lines(obs: Any, box: np.ndarray, ekf: Any, process_std: Any, measurement_std: float) -> list[str]:
     """The observer and ``ekf`` on :data:`RECIPE_RUNS` held-out runs drawn as the card's training runs were (its
     ``training.config.rollouts`` recipe as :func:`~kklcasadi.plant.runs.resolved` for the plant: families,
-    stabilising loop, input range, runs cut where they leave the box), seed :data:`SUMMARY_SEED`: RMSE after 5 s
-    in % of the box's width and SMAPE, one line; none where the card records no recipe or one replaying logs
-    (``--like``: the card keeps no log segments to replay)."""
+    stabilising loop, input range, runs cut where they leave the box), seed :data:`SUMMARY_SEED`: RMSE after
+    :data:`SETTLE_S` in % of the box's width and SMAPE, one line; none where the card records no recipe or one
+    replaying logs (``--like``: the card keeps no log segments to replay)."""
     training = obs.model.card.get("training")
     record = training.get("config") if isinstance(training, dict) else None
     record = record.get("rollouts") if isinstance(record, dict) else None
