@@ -191,7 +191,7 @@ def test_the_whole_pipeline_runs_as_written(tmp_path):
     """The four commands verbatim, training included (about 2 minutes on 2 cores)."""
     plant, commands = _pipeline(tmp_path)
     printed = _run(commands[0], tmp_path)
-    assert "quality  SMAPE of the observer / the EKF" in printed and "next     kklcasadi evaluate" in printed
+    assert "quality  the observer / the EKF" in printed and "next     kklcasadi evaluate" in printed
     for line in commands[1:]:
         _run(line, tmp_path)
     _check_pipeline_outputs(tmp_path, plant)
