@@ -46,6 +46,7 @@ def test_bank_card_records_its_noise_level_design_and_domain(bank_dir):
                                                   "clock": 0.2, "time_scale": 1.0}
     training = model.card["training"]
     assert training["measurement_std"] == 0.1 and training["process_std"] == [0.1, 0.1, 0.1]
+    assert training["threads"] == 1                     # kklcasadi.train.TRAIN_THREADS, torch's count while it trained
     assert training["runs"]["runs"] == 8 and training["runs"]["cut"] == 0 and training["runs"]["simulated_s"] == 32.0
     assert model.spec.nz == 2 + 1 + 1 and model.spec.domain is not None
     assert np.array_equal(model.arrays["decoder/asinh_scale"], [0.0, 0.0, 0.01])

@@ -65,3 +65,25 @@ def test_the_step_figures_were_measured_on_the_shipped_cards():
             shown.add(name)
     compact = {f"{system}/compact" for system, methods in shipped().items() if "compact" in methods}
     assert compact and compact | {name.replace("compact", "bank") for name in compact} <= shown
+
+
+def test_bench_write_is_refused_for_a_benchmark_without_a_table(tmp_path, capsys):
+    out = tmp_path / "training.md"
+    assert main(["bench", "training", "--write", str(out)]) == 2
+    assert "--write" in capsys.readouterr().err and not out.exists()
+
+
+def test_bench_protocol_writes_what_it_prints_stamped(tmp_path, capsys):
+    """``kklcasadi bench protocol --write``: the stamped file holds the printed tables; an existing file is
+    refused before the benchmark runs."""
+    out = tmp_path / "protocol.md"
+    argv = ["bench", "protocol", "--models", str(ROOT / "models" / "duffing" / "autonomous"), "--trials", "1",
+            "--vm-trials", "1", "--plain-trials", "0", "--no-ekf", "--threads", "1", "--write", str(out)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    body = provenance.strip_markdown(out.read_text())
+    assert "| autonomous |" in body and "- warm caches" in body and body.strip() in printed
+    assert provenance.read(out).command.startswith("kklcasadi bench protocol")
+    kept = out.read_text()
+    assert main(argv) == 2
+    assert "--write" in capsys.readouterr().err and out.read_text() == kept

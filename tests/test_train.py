@@ -382,3 +382,31 @@ def test_epochs_change_only_the_epochs():
     assert obs.loop.epochs == 5 and obs.loop.batch_size == default_config("duffing", "obs").loop.batch_size
     with pytest.raises(TypeError, match="epochs: expected a positive int"):
         default_config("duffing", "obs", epochs=2.5)
+
+
+def test_a_training_runs_on_its_own_threads_and_gives_torch_its_count_back(monkeypatch, tmp_path):
+    import kklcasadi.train as kt
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        if len(seen) == 3:
+            raise RuntimeError("a training that fails")
+        return tmp_path
+
+    monkeypatch.setattr(kt, "_train", spy)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        kt.train_observer("rossler", "bank", tmp_path / "m", progress=False)
+        kt.train_observer("rossler", "bank", tmp_path / "m", progress=False, threads=3)
+        assert torch.get_num_threads() == 2
+        with pytest.raises(RuntimeError, match="a training that fails"):
+            kt.train_observer("rossler", "bank", tmp_path / "m", progress=False, threads=4)
+        assert seen == [kt.TRAIN_THREADS, 3, 4] and kt.TRAIN_THREADS == 1
+        assert torch.get_num_threads() == 2
+        with pytest.raises(ValueError, match="threads"):
+            kt.train_observer("rossler", "bank", tmp_path / "m", progress=False, threads=0)
+    finally:
+        torch.set_num_threads(before)

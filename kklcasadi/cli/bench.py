@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
+from typing import Optional
 
 from ..model.shipped import shipped as shipped_listing
 from .flags import CommandError, add_system, flagged, needs_torch, nonnegative_int, positive_int, shipped, stamp_of
@@ -18,9 +20,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--model", nargs="+", help="observer benchmark: model directories or shipped models by name "
                    "SYSTEM/METHOD (default: the system's shipped obs)")
     b.add_argument("--write", metavar="OUT_MD",
-                   help="observer benchmark: also write the step figures of each model (microseconds per step of "
-                   "the C builds and the CasADi VM, the default build's instructions) with its card's digest, "
-                   "stamped, to OUT_MD, a markdown file (results/speed/SYSTEM/ is what docs/results/speed.md reads)")
+                   help="observer or protocol benchmark: also write its tables, stamped, to OUT_MD, a markdown file "
+                   "(the observer benchmark: the step figures of each model, microseconds per step of the C builds "
+                   "and the CasADi VM and the default build's instructions, with its card's digest; the protocol "
+                   "benchmark: what it prints; results/speed/SYSTEM/ is what docs/results/speed.md reads)")
     b.add_argument("--overwrite", action="store_true", help="with --write: replace OUT_MD if it exists")
     b.add_argument("--models", nargs="+", help="protocol benchmark: model directories (default: the shipped ones)")
     b.add_argument("--trials", type=positive_int,
@@ -70,15 +73,11 @@ def _compiler(args: argparse.Namespace):
 def _bench_observer(args: argparse.Namespace) -> None:
     """The observer step of each ``--model``; with ``--write`` its figures as a stamped table."""
     import os
-    from pathlib import Path
 
     from ..evaluation.bench.observer_step import bench_observer_step, card_digest, step_table
     from ..model.shipped import is_shipped, resolve
-    from ..provenance import markdown
 
-    out = None if args.write is None else Path(args.write)
-    if out is not None and out.exists() and not args.overwrite:
-        raise CommandError(f"--write: {out} exists; pass --overwrite to replace it")
+    out = _write_target(args)
     results = []
     for given in args.model or [shipped(args.system, "obs")]:
         path = flagged("--model", resolve, given)
@@ -86,16 +85,35 @@ def _bench_observer(args: argparse.Namespace) -> None:
         name = "/".join(path.resolve().parts[-2:]) if is_shipped(path) else str(given)
         results.append((name, card_digest(path), bench_observer_step(path)))
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        temporary = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-        temporary.write_text(markdown(step_table(results, os.getloadavg()), stamp_of(args)))
-        temporary.replace(out)
-        print(f"wrote {out}")
+        _write(args, out, step_table(results, os.getloadavg()))
+
+
+def _write_target(args: argparse.Namespace) -> Optional[Path]:
+    """``--write``'s file, refused before any work where it exists without ``--overwrite``."""
+    if args.write is None:
+        return None
+    out = Path(args.write)
+    if out.is_dir() or (out.exists() and not args.overwrite):
+        what = "a directory" if out.is_dir() else "exists; pass --overwrite to replace it"
+        raise CommandError(f"--write: {out} {what}")
+    return out
+
+
+def _write(args: argparse.Namespace, out: Path, table: str) -> None:
+    """``table`` under the stamp of this command, written atomically to ``out``."""
+    from ..provenance import markdown
+    from ..writes import write_file
+
+    flagged("--write", write_file, out, markdown(table, stamp_of(args)), overwrite=args.overwrite, argument="--write")
+    print(f"wrote {out}")
 
 
 def run(args: argparse.Namespace) -> int:
     from ..evaluation.bench.simulation import bench_simulation
 
+    if args.write is not None and args.what not in ("observer", "protocol"):
+        raise CommandError(f"--write: the observer and protocol benchmarks write a table; received the {args.what!r} "
+                           "benchmark (name observer or protocol)")
     if args.what in ("observer", "training", "scaling"):
         needs_torch(f"kklcasadi bench {args.what} (it times torch beside CasADi, or trains)")
     if args.what == "scaling":
@@ -124,10 +142,14 @@ def run(args: argparse.Namespace) -> int:
     if args.what in ("all", "protocol"):
         from ..evaluation.bench.protocol import bench_protocol
 
+        out = _write_target(args)
+
         print("== the full protocol of one system, cold and warm caches: every method, the plain step and the VM "
               "beside them ==")
         result = flagged("--system", bench_protocol, args.system, models=args.models, n_trials=args.trials or 100,
                          vm_trials=args.vm_trials, plain_trials=args.plain_trials, ekf=not args.no_ekf,
                          compiler=_compiler(args), n_threads=args.threads, instructions=args.instructions)
         print(result.table())
+        if out is not None:
+            _write(args, out, result.table())
     return 0

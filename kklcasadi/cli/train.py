@@ -11,14 +11,16 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import fields, replace
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
 from ..model import variants
 from ..plant import signals as sig
 from ..plant import systems
+from ..plant.runs import ENVELOPE_ESCAPE, RolloutConfig, drifting_states, resolved, rollouts
 from .flags import (
     CommandError,
     add_dt,
@@ -44,6 +46,10 @@ RECOMMENDED = "bank"
 #: The closing quality summary: runs per input kind of docs/protocol.md, and their seed (a validation seed: not
 #: the protocol's scored 2026, and not a training seed's runs, which come from the training sampler).
 SUMMARY_TRIALS, SUMMARY_SEED = 3, 7
+#: Runs of the summary drawn by the card's training recipe (before the ones that leave the box are cut).
+RECIPE_RUNS = 12
+#: The summary's RMSE is over the samples after this time, s (docs/protocol.md's settling time).
+SETTLE_S = 5.0
 
 #: Flags that set a field of the method's training configuration: flag -> (field, value from args). A
 #: field is found at the top of the configuration or in the one nested configuration that holds it
@@ -154,7 +160,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--resume", action="store_true", help="continue from the checkpoints in OUT/.train")
     t.add_argument("--overwrite", action="store_true", help="replace a model already in OUT")
     t.add_argument("--quiet", action="store_true", help="no progress bars")
-    t.add_argument("--threads", type=positive_int, help="torch CPU threads (1 per process on a shared machine)")
+    t.add_argument("--threads", type=positive_int, help="torch CPU threads (default 1: on shared cores more threads "
+                   "wait on each other; a quiet machine with many cores may gain from more)")
     t.set_defaults(func=run)
 
 
@@ -290,21 +297,29 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
     """How good the trained observer is, in a few lines, and the commands to run next.
 
     The observer and the EKF (``Q``, ``R`` of the card's noise levels, else docs/protocol.md's 0.1) on
-    :data:`SUMMARY_TRIALS` noisy runs per input kind of docs/protocol.md, drawn with :data:`SUMMARY_SEED`
-    (runs nothing was fit or chosen on): mean SMAPE of each and their ratio per kind, the share of the
-    estimates inside the domain the maps were trained on, and the trials whose state escaped. Runs on which the
-    EKF diverges (non-finite estimates) are counted and left out of the ratio.
+    :data:`SUMMARY_TRIALS` noisy runs per input kind of docs/protocol.md, drawn with :data:`SUMMARY_SEED` (runs
+    nothing was fit or chosen on). Scored per kind on the runs whose state stays in the box the observer was trained
+    in (:func:`~kklcasadi.observer.guard.training_box`, widened by a quarter of its half-width, where training cuts
+    the runs of a plant that declares where it lives: :data:`~kklcasadi.plant.runs.ENVELOPE_ESCAPE`): the RMSE after
+    docs/protocol.md's settling time in % of the box's width (a scale the states' values near zero do not distort,
+    as they do SMAPE) of each and their ratio, and their SMAPE. The runs that leave the box (open-loop inputs on an
+    integrating state, where training ran under a stabilising loop) are counted apart with their RMSE: there the
+    observer extrapolates. Where the card records the recipe of its training runs, the same scores on runs drawn by
+    it (:func:`recipe_lines`). Also the share of the estimates inside the domain the maps were trained on, and the
+    trials whose state escaped. Runs on which the EKF diverges (non-finite estimates) are counted and left out of
+    the ratio.
     """
-    from .. import metrics
     from ..estimators.ekf import EKF
     from ..evaluation.protocol import Protocol
+    from ..observer.guard import training_box
 
     obs = load(path, plant, "--out")
     process_std, measurement_std = run_noise(obs)
     draw = Protocol(n_trials=SUMMARY_TRIALS, dt=obs.dt, seed=SUMMARY_SEED, process_std=process_std,
-                    measurement_std=measurement_std)
+                    measurement_std=measurement_std, t_settle=SETTLE_S)
     ekf = EKF.for_noise(plant, obs.dt, process_std=process_std, measurement_std=measurement_std)
-    rows, inside, escaped = [], [], 0
+    box = training_box(obs)
+    rows, inside, escaped, left, outside = [], [], 0, {}, ([], [])
     for kind in sig.BENCHMARK_KINDS:
         with quiet_casadi():
             batch = draw.trials(plant, kind)
@@ -312,24 +327,38 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
         escaped += int((~ok).sum())
         if not ok.any():
             continue
+        x = batch.x[ok]
         est = obs.simulate(batch.t, batch.y[ok], batch.u[ok])
-        ours = np.asarray(metrics.smape(batch.x[ok], est.xhat, angles=plant.angle_states))
         theirs = ekf.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat
-        kept = np.isfinite(theirs).all(axis=(1, 2))            # an EKF can diverge (a stiff plant, a large P0)
-        if not kept.any():
-            rows.append(f"{kind} {float(np.mean(ours)):.2f} % / the EKF diverged on every run")
-            continue
-        ekf_smape = float(np.mean(metrics.smape(batch.x[ok][kept], theirs[kept], angles=plant.angle_states)))
-        lost = "" if kept.all() else f", the EKF diverged on {int((~kept).sum())} of {kept.size}: ratio on the rest"
-        rows.append(f"{kind} {float(np.mean(ours)):.2f} % / {ekf_smape:.2f} % "
-                    f"({float(np.mean(ours[kept])) / ekf_smape:.2f}x{lost})")
         if est.in_domain is not None:
             inside.append(est.in_domain.mean())
+        kept = np.isfinite(theirs).all(axis=(1, 2))            # an EKF can diverge (a stiff plant, a large P0)
+        stays = in_box(x, box, plant.angle_states, scale=ENVELOPE_ESCAPE)
+        late = batch.t >= SETTLE_S                              # the RMSE after the observers' transients
+        ours = box_rmse(x[:, late], est.xhat[:, late], box, plant.angle_states)
+        ekf_rmse = box_rmse(x[:, late], theirs[:, late], box, plant.angle_states)
+        if (~stays).any():
+            left[kind] = int((~stays).sum())
+            outside[0].append(ours[~stays])
+            outside[1].append(ekf_rmse[~stays & kept])
+        rows.append(_quality_row(kind, x[stays], est.xhat[stays], theirs[stays], ours[stays], ekf_rmse[stays],
+                                 kept[stays], plant.angle_states, len(x)))
     noise = f"noise std {levels_text(process_std)} / {measurement_std:g}"
-    lines = [f"quality  SMAPE of the observer / the EKF on {draw.n_trials} held-out runs per input ({noise}, seed "
-             f"{SUMMARY_SEED}; not the benchmark's trials):",
+    lines = [f"quality  the observer / the EKF on {draw.n_trials} held-out runs per input ({noise}, seed "
+             f"{SUMMARY_SEED}; not the benchmark's trials), scored on the runs that stay in the box it was trained "
+             f"in: RMSE after {SETTLE_S:g} s in % of the box's width (ratio), SMAPE:",
              "         " + ("; ".join(rows) if rows else "every run escaped")
              + (f"; {escaped} run(s) escaped, not scored" if escaped else "")]
+    if left:
+        drifting = drifting_states(plant)
+        why = (f"; {', '.join(f'x[{i}]' for i in drifting)} integrates: open-loop inputs drive it out"
+               if drifting else "")
+        theirs_out = np.concatenate(outside[1])
+        lines.append(f"outside  {sum(left.values())} run(s) left that box ("
+                     + ", ".join(f"{kind} {n}" for kind, n in left.items()) + f"{why}): not the observer's domain, "
+                     f"it extrapolates there (RMSE {np.mean(np.concatenate(outside[0])):.3g} %"
+                     + (f", the EKF's {np.mean(theirs_out):.3g} %" if theirs_out.size else "") + ")")
+    lines += recipe_lines(obs, box, ekf, process_std, measurement_std)
     if inside:
         lines.append(f"domain   {100 * float(np.mean(inside)):.1f} % of the estimates inside the domain the maps were "
                      "trained on")
@@ -338,3 +367,82 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
               f"         kklcasadi demo --model {path}{own}          # one run, printed and plotted",
               f"         kklcasadi export {path}{own} --c build/obs   # the observer step as C"]
     return "\n".join(lines)
+
+
+def in_box(x: np.ndarray, box: np.ndarray, angles: Sequence[int] = (), *, scale: float = 1.0) -> np.ndarray:
+    """Whether each run's state stays in ``box`` (nx, 2) scaled by ``scale`` about its centre at every sample,
+    (M,); ``x`` (M, N, nx), its angle states compared wrapped to [-pi, pi)."""
+    from ..metrics import wrap_angle
+
+    x = np.array(x, dtype=float)
+    if angles:
+        x[..., list(angles)] = wrap_angle(x[..., list(angles)])
+    centre, half = box.mean(axis=1), 0.5 * scale * (box[:, 1] - box[:, 0])
+    return np.all(np.abs(x - centre) <= half, axis=(1, 2))
+
+
+def box_rmse(x: np.ndarray, xhat: np.ndarray, box: np.ndarray, angles: Sequence[int] = ()) -> np.ndarray:
+    """Each run's RMSE over its samples and states of the error in units of the box's width per state, in %,
+    (M,); ``x``, ``xhat`` (M, N, nx), ``box`` (nx, 2); angle states' error wrapped. NaN where ``xhat`` is not
+    finite."""
+    from ..metrics import wrap_angle
+
+    error = np.asarray(xhat, dtype=float) - np.asarray(x, dtype=float)
+    if angles:
+        error[..., list(angles)] = wrap_angle(error[..., list(angles)])
+    width = box[:, 1] - box[:, 0]
+    return 100 * np.sqrt(np.mean((error / np.where(width > 0, width, 1.0)) ** 2, axis=(1, 2)))
+
+
+def _quality_row(kind: str, x: np.ndarray, ours: np.ndarray, theirs: np.ndarray, ours_rmse: np.ndarray,
+                 ekf_rmse: np.ndarray, kept: np.ndarray, angles: Sequence[int], total: int) -> str:
+    """One input kind's entry of the summary, on its runs that stayed in the box (``x`` (M, N, nx)) of the
+    ``total`` it scored."""
+    from .. import metrics
+
+    if not len(x):
+        return f"{kind}: every run left the box"
+    count = "" if len(x) == total else f" on {len(x)} of {total} runs"
+    ours_smape = np.asarray(metrics.smape(x, ours, angles=angles))
+    if not kept.any():
+        return f"{kind} {np.mean(ours_rmse):.3g} % / the EKF diverged on every run{count}"
+    ekf_smape = float(np.mean(metrics.smape(x[kept], theirs[kept], angles=angles)))
+    lost = "" if kept.all() else f", the EKF diverged on {int((~kept).sum())} of {kept.size}: ratio on the rest"
+    return (f"{kind} {np.mean(ours_rmse):.3g} % / {np.mean(ekf_rmse[kept]):.3g} % "
+            f"({np.mean(ours_rmse[kept]) / np.mean(ekf_rmse[kept]):.2f}x{lost}), SMAPE {np.mean(ours_smape):.2f} % "
+            f"/ {ekf_smape:.2f} %{count}")
+
+
+def recipe_lines(obs: Any, box: np.ndarray, ekf: Any, process_std: Any, measurement_std: float) -> list[str]:
+    """The observer and ``ekf`` on :data:`RECIPE_RUNS` held-out runs drawn as the card's training runs were (its
+    ``training.config.rollouts`` recipe as :func:`~kklcasadi.plant.runs.resolved` for the plant: families,
+    stabilising loop, input range, runs cut where they leave the box), seed :data:`SUMMARY_SEED`: RMSE after
+    :data:`SETTLE_S` in % of the box's width and SMAPE, one line; none where the card records no recipe or one
+    replaying logs (``--like``: the card keeps no log segments to replay)."""
+    training = obs.model.card.get("training")
+    record = training.get("config") if isinstance(training, dict) else None
+    record = record.get("rollouts") if isinstance(record, dict) else None
+    if not isinstance(record, dict) or record.get("envelope") is not None:
+        return []
+    plant = obs.system
+    names = {f.name for f in fields(RolloutConfig)} - {"envelope"}
+    recipe = RolloutConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in record.items() if k in names})
+    recipe = resolved(plant, replace(recipe, n_traj=RECIPE_RUNS, chunk=RECIPE_RUNS))
+    with quiet_casadi():
+        runs = rollouts(plant, recipe, SUMMARY_SEED, dt=obs.dt, measurement_std=measurement_std,
+                        process_std=process_std, time_scale=float(training.get("time_scale", 1.0)))
+    cut = RECIPE_RUNS - len(runs.x)
+    cut_text = f", {cut} of {RECIPE_RUNS} left the box: not scored, training cuts them there" if cut else ""
+    if not len(runs.x):
+        return [f"training every one of {RECIPE_RUNS} runs drawn as its training runs left the box"]
+    ours = obs.simulate(runs.t, runs.y, runs.u).xhat
+    theirs = ekf.simulate(runs.t, runs.y, runs.u).xhat
+    kept = np.isfinite(theirs).all(axis=(1, 2))
+    loop = "under the stabilising loop, " if recipe.stabilise else ""
+    head = (f"training the same on {len(runs.x)} held-out runs drawn as its training runs were ({loop}families "
+            f"{', '.join(recipe.kinds)}; seed {SUMMARY_SEED}{cut_text}): RMSE ")
+    late = runs.t >= SETTLE_S
+    row = _quality_row("", runs.x, ours, theirs, box_rmse(runs.x[:, late], ours[:, late], box, plant.angle_states),
+                       box_rmse(runs.x[:, late], theirs[:, late], box, plant.angle_states), kept,
+                       plant.angle_states, len(runs.x))
+    return [head + row.strip()]

@@ -9,9 +9,10 @@ from __future__ import annotations
 import json
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import fields, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -51,10 +52,17 @@ from .result import Trained
 
 __all__ = ["train_observer", "default_config", "with_epochs", "config_field", "has_field", "with_field", "LoopConfig",
            "Phase1Config", "Phase2DataConfig", "ObsConfig", "DynConfig", "CurriculumConfig", "ObsStreamConfig",
-           "DynStreamConfig", "Trained", "METHODS", "RUN_RECORD"]
+           "DynStreamConfig", "Trained", "METHODS", "RUN_RECORD", "TRAIN_THREADS"]
 
 #: Methods :func:`train_observer` makes (read from :mod:`kklcasadi.model.variants`).
 METHODS = variants.trainable()
+#: torch CPU threads of a training unless told (``threads``). One: the networks are small (the ``bank`` decoder
+#: 16-256-256-256-3 at batch 1024), and where the cores are shared torch's threads wait on each other at every
+#: operation: the damped 3-state plant's decoder fit ran 5 958 samples/s with torch's default of 2 threads on the
+#: 2 shared cores (load 5-6) and 41 335 with one (load 6), the whole one command 1541 s wall / 799 s CPU against
+#: 273 s / 141 s (docs/notes/speed.md, "A first observer for a new plant"). A quiet machine with many cores may
+#: gain from more (``--threads``).
+TRAIN_THREADS = 1
 
 
 def _jsonable(value: Any) -> Any:
@@ -175,8 +183,9 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         same plant (fingerprint), method, configuration, design, sample time, seed and base model; never a
         finished model (that takes ``overwrite``). Without it, old checkpoints there are removed.
     threads : int, optional
-        CPU threads for torch (``torch.set_num_threads``). On a shared or small machine use 1 per
-        training process: oversubscribed threads slowed small matrix products 40x here.
+        CPU threads for torch while it trains (``torch.set_num_threads``; the count before is restored
+        afterwards); default :data:`TRAIN_THREADS` (1: oversubscribed threads slowed the decoder fit 6.7x on
+        2 shared cores).
 
     Returns
     -------
@@ -214,8 +223,26 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         config = default_config(plant.name, method)
     if epochs is not None:
         config = with_epochs(config, epochs)
-    if threads is not None:
-        torch.set_num_threads(positive_int(threads, "threads"))
+    threads = TRAIN_THREADS if threads is None else positive_int(threads, "threads")
+    with _torch_threads(threads):
+        return _train(plant, method, out, variant, base_model, config, design, dt=dt, seed=seed, device=device,
+                      resume=resume, overwrite=overwrite, progress=progress)
+
+
+@contextmanager
+def _torch_threads(threads: int) -> Iterator[None]:
+    """torch's CPU threads set to ``threads`` inside, restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _train(plant: System, method: str, out: Path, variant: Any, base_model: Any, config: Any, design: Design | None,
+           *, dt: float, seed: int, device: str, resume: bool, overwrite: bool, progress: bool) -> Path:
+    """:func:`train_observer` after its checks, with torch's threads set."""
     if base_model is not None:
         design = Design(base_model.A, base_model.B)
     design = design or (Design.paper(plant) if plant.paper_design else Design.default(plant))
@@ -232,7 +259,7 @@ def train_observer(system: System | str, method: str = "autonomous", out_dir: st
         trained: Trained = trainer(method).hook(plant, design, base_model, config, dt=dt, seed=seed, device=device,
                                                 progress=progress, workdir=workdir, resume=resume)
         training = {**_jsonable(trained.training), "seed": seed, "wall_time_s": round(time.perf_counter() - t0, 1),
-                    "device": device}
+                    "device": device, "threads": torch.get_num_threads()}
         nominal = plant.at(plant.param_nominal) if plant.n_params else plant    # the plant the observer runs with
         card = make_card(nominal, trained.design, method, trained.spec, dt=dt, window=trained.window,
                          training=training, measurement_std=trained.measurement_std, domain=trained.domain,

@@ -227,7 +227,9 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
         f_mean, white = feats.mean(axis=0), np.diag(1.0 / (feats.std(axis=0) + 1e-12))
     mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), v.mean(axis=0), v.std(axis=0) + 1e-12)
     mlp = mlp.to(dtype)
-    data_set = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v, "x": data.x, "y": data.y}, dtype=dtype)
+    uses_smape = config.loss in ("smape", "mse+smape")         # only the SMAPE term reads x and y: not gathered else
+    data_set = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v,
+                             **({"x": data.x, "y": data.y} if uses_smape else {})}, dtype=dtype)
     out_std = torch.as_tensor(mlp.out_std.detach().clone())
 
     def loss_fn(batch: Mapping[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
@@ -238,7 +240,7 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
             mse = (((pred - batch["v"]) / out_std) ** 2).mean()
             parts["mse"] = mse.item()
             total = total + mse
-        if config.loss in ("smape", "mse+smape"):
+        if uses_smape:
             xhat = _torch_outputs(pred, batch["y"], scale, angles)
             xt = batch["x"]
             sm = (2.0 * (xt - xhat).abs() / (xt.abs() + xhat.abs() + config.smape_eps)).mean()

@@ -191,7 +191,9 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
                     Text(f"{n} samples, {n - n_val} of them for training"), "Generate more data or lower batch_size.")
     perm = np.random.default_rng(seed).permutation(n)
     val_idx, train_idx = perm[:n_val], perm[n_val:]
-    opt = torch.optim.Adam(params, lr=config.lr)
+    # torch's fused Adam on the CPU: one kernel for all parameters (the per-tensor loop was 8 % of the bank decoder's
+    # fit); not on CUDA, where its step counters would have to live on the device for the checkpoints
+    opt = torch.optim.Adam(params, lr=config.lr, fused=all(p.device.type == "cpu" for p in params) or None)
     if config.schedule == "plateau":
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=5)
     else:

@@ -16,12 +16,12 @@ PHASE2_WINDOW_METHODS = ("obs", "dyn")
 
 def bench_training(system: str = "duffing", *, device: str = "cpu", threads: Optional[int] = None) -> list[Timing]:
     """Training throughput (samples/s) of each stage with the default architectures, on a short run
-    (``threads``: torch CPU threads, default torch's)."""
+    (``threads``: torch CPU threads, default :data:`kklcasadi.train.TRAIN_THREADS`)."""
     import tempfile
     from dataclasses import replace
 
     from ...model.files import load_model
-    from ...train import LoopConfig, Phase2DataConfig, default_config, train_observer
+    from ...train import TRAIN_THREADS, LoopConfig, Phase2DataConfig, default_config, train_observer
 
     loop = LoopConfig(epochs=1, batch_size=512, samples_per_epoch=4096, schedule="cosine")
     stages = []
@@ -41,7 +41,7 @@ def bench_training(system: str = "duffing", *, device: str = "cpu", threads: Opt
                            load_model(f"{tmp}/{method}").card["training"][method]))
     out = [Timing(label, summary["wall_time_s"], summary["trained_samples"]) for label, summary in stages]
     for timing in out:
-        print(f"{timing.label:<44s} {timing.rate:12.0f} samples/s ({device}, {threads or 'default'} threads)")
+        print(f"{timing.label:<44s} {timing.rate:12.0f} samples/s ({device}, {threads or TRAIN_THREADS} threads)")
     return out
 
 
@@ -61,7 +61,7 @@ def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = PHASE2
         The training data (default: each method's default, as a full training run uses).
     device : {"cpu", "cuda"}
     threads : int, optional
-        torch CPU threads.
+        torch CPU threads (default :data:`kklcasadi.train.TRAIN_THREADS`).
 
     Returns
     -------
@@ -74,7 +74,7 @@ def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = PHASE2
     from dataclasses import replace
 
     from ...model.files import load_model
-    from ...train import default_config, train_observer
+    from ...train import TRAIN_THREADS, default_config, train_observer
 
     unknown = [m for m in methods if m not in PHASE2_WINDOW_METHODS]
     if isinstance(methods, str) or not methods or unknown:
@@ -97,7 +97,7 @@ def bench_phase2_epoch(system: str, base: str | Path, *, methods: tuple = PHASE2
             (before, _, held_out), (after, scoring, _) = runs
             epochs = default_config(system, method).loop.epochs
             print(f"{method}: {held_out} samples held out, {after.items} trained per epoch, "
-                  f"{epochs} epochs by default ({device}, {threads or 'default'} threads)")
+                  f"{epochs} epochs by default ({device}, {threads or TRAIN_THREADS} threads)")
             for timing in (before, after):
                 print(f"  {timing.label:<40s} {timing.seconds:8.2f} s/epoch {timing.rate:10.0f} samples/s"
                       f"  -> {epochs} epochs {timing.seconds * epochs / 60:6.1f} min")
