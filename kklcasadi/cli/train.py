@@ -305,9 +305,9 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
     as they do SMAPE) of each and their ratio, and their SMAPE. The runs that leave the box (open-loop inputs on an
     integrating state, where training ran under a stabilising loop) are counted apart with their RMSE: there the
     observer extrapolates. Where the card records the recipe of its training runs, the same scores on runs drawn by
-    it (:func:`recipe_lines`). Also the share of the estimates inside the domain the maps were trained on, and the
-    trials whose state escaped. Runs on which the EKF diverges (non-finite estimates) are counted and left out of
-    the ratio.
+    it (:func:`recipe_lines`). Also the share of the estimates inside the domain the maps were trained on (on the
+    runs that stay in the box, and over every run where some leave it: :func:`domain_line`), and the trials whose
+    state escaped. Runs on which the EKF diverges (non-finite estimates) are counted and left out of the ratio.
     """
     from ..estimators.ekf import EKF
     from ..evaluation.protocol import Protocol
@@ -330,10 +330,11 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
         x = batch.x[ok]
         est = obs.simulate(batch.t, batch.y[ok], batch.u[ok])
         theirs = ekf.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat
-        if est.in_domain is not None:
-            inside.append(est.in_domain.mean())
         kept = np.isfinite(theirs).all(axis=(1, 2))            # an EKF can diverge (a stiff plant, a large P0)
         stays = in_box(x, box, plant.angle_states, scale=ENVELOPE_ESCAPE)
+        if est.in_domain is not None:                           # the share of each run's samples inside
+            share = np.asarray(est.in_domain, dtype=float).reshape(len(x), -1).mean(axis=1)
+            inside.append((share, stays))
         late = batch.t >= SETTLE_S                              # the RMSE after the observers' transients
         ours = box_rmse(x[:, late], est.xhat[:, late], box, plant.angle_states)
         ekf_rmse = box_rmse(x[:, late], theirs[:, late], box, plant.angle_states)
@@ -360,13 +361,23 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
                      + (f", the EKF's {np.mean(theirs_out):.3g} %" if theirs_out.size else "") + ")")
     lines += recipe_lines(obs, box, ekf, process_std, measurement_std)
     if inside:
-        lines.append(f"domain   {100 * float(np.mean(inside)):.1f} % of the estimates inside the domain the maps were "
-                     "trained on")
+        lines.append(domain_line(*(np.concatenate(parts) for parts in zip(*inside))))
     own = f" --plant {plant_flag}" if plant_flag else ""
     lines += ["next     kklcasadi evaluate " + f"{path}{own} --ekf" + "      # the benchmark, 100 trials per cell",
               f"         kklcasadi demo --model {path}{own}          # one run, printed and plotted",
               f"         kklcasadi export {path}{own} --c build/obs   # the observer step as C"]
     return "\n".join(lines)
+
+
+def domain_line(share: np.ndarray, stays: np.ndarray) -> str:
+    """The summary's ``domain`` line: the mean share of the estimates inside the trained domain on the runs that stay
+    in the box (``share`` (n_runs,), each run's share in [0, 1]; ``stays`` (n_runs,) bool), with the mean over every
+    run beside it where some runs leave the box (there the observer extrapolates and is rightly flagged)."""
+    what = "of the estimates inside the domain the maps were trained on"
+    if not stays.any():
+        return f"domain   {100 * float(np.mean(share)):.1f} % {what} (every run left the box)"
+    every = "" if stays.all() else f" ({100 * float(np.mean(share)):.1f} % over every run)"
+    return f"domain   {100 * float(np.mean(share[stays])):.1f} % {what}, on the runs that stay in the box{every}"
 
 
 def in_box(x: np.ndarray, box: np.ndarray, angles: Sequence[int] = (), *, scale: float = 1.0) -> np.ndarray:
