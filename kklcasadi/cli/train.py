@@ -319,7 +319,11 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
                     measurement_std=measurement_std, t_settle=SETTLE_S)
     ekf = EKF.for_noise(plant, obs.dt, process_std=process_std, measurement_std=measurement_std)
     box = training_box(obs)
-    rows, inside, escaped, left, outside = [], [], 0, {}, ([], [])
+    rows: list[str] = []
+    inside: list[tuple[np.ndarray, np.ndarray]] = []
+    left: dict[str, int] = {}
+    outside: tuple[list[np.ndarray], list[np.ndarray]] = ([], [])
+    escaped = 0
     for kind in sig.BENCHMARK_KINDS:
         with quiet_casadi():
             batch = draw.trials(plant, kind)
@@ -437,7 +441,8 @@ def recipe_lines(obs: Any, box: np.ndarray, ekf: Any, process_std: Any, measurem
         return []
     plant = obs.system
     names = {f.name for f in fields(RolloutConfig)} - {"envelope"}
-    recipe = RolloutConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in record.items() if k in names})
+    given: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in record.items() if k in names}
+    recipe = RolloutConfig(**given)
     recipe = resolved(plant, replace(recipe, n_traj=RECIPE_RUNS, chunk=RECIPE_RUNS))
     with quiet_casadi():
         runs = rollouts(plant, recipe, SUMMARY_SEED, dt=obs.dt, measurement_std=measurement_std,
