@@ -84,6 +84,7 @@ def test_bench_protocol_writes_what_it_prints_stamped(tmp_path, capsys):
     body = provenance.strip_markdown(out.read_text())
     assert "| autonomous |" in body and "- warm caches" in body and body.strip() in printed
     assert provenance.read(out).command.startswith("kklcasadi bench protocol")
+    assert provenance.read(out).seeds == {"trials": 2026}                   # docs/protocol.md's trial seed
     kept = out.read_text()
     assert main(argv) == 2
     assert "--write" in capsys.readouterr().err and out.read_text() == kept

@@ -99,12 +99,13 @@ def _write_target(args: argparse.Namespace) -> Optional[Path]:
     return out
 
 
-def _write(args: argparse.Namespace, out: Path, table: str) -> None:
-    """``table`` under the stamp of this command, written atomically to ``out``."""
+def _write(args: argparse.Namespace, out: Path, table: str, **seeds: int) -> None:
+    """``table`` under the stamp of this command (``seeds`` by role, of what it drew), written atomically to ``out``."""
     from ..provenance import markdown
     from ..writes import write_file
 
-    flagged("--write", write_file, out, markdown(table, stamp_of(args)), overwrite=args.overwrite, argument="--write")
+    flagged("--write", write_file, out, markdown(table, stamp_of(args, **seeds)), overwrite=args.overwrite,
+            argument="--write")
     print(f"wrote {out}")
 
 
@@ -151,5 +152,7 @@ def run(args: argparse.Namespace) -> int:
                          compiler=_compiler(args), n_threads=args.threads, instructions=args.instructions)
         print(result.table())
         if out is not None:
-            _write(args, out, result.table())
+            from ..evaluation.protocol import Protocol
+
+            _write(args, out, result.table(), trials=Protocol().seed)      # the protocol's trials, its seed
     return 0
