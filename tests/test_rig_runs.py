@@ -252,3 +252,22 @@ def test_fit_after_leaves_the_latents_first_moments_out_of_the_fit():
     assert data.t.min() >= 2.0 - 1e-9 and len(data) == 4 * int(full[40:].sum())
     with pytest.raises(ValueError, match="fit_after: expected a time >= 0 and below T"):
         replace(cfg, fit_after=6.0)
+
+
+@pytest.mark.parametrize("x,scale,angles,expected", [
+    ([[0.5, 2.9]], 1.0, (), [True]),                  # box [0, 1] x [1, 3]: inside
+    ([[1.1, 2.0]], 1.0, (), [False]),                 # past hi on state 0
+    ([[1.1, 2.0]], 1.25, (), [True]),                 # inside the box widened by a quarter about its centre
+    ([[-0.14, 2.0]], 1.25, (), [False]),              # centre 0.5, half-width 0.625: below -0.125
+    ([[0.5, 3.0 + 2 * np.pi]], 1.0, (1,), [True]),    # an angle state one turn off: the same point
+    ([[0.5, 3.0 + 2 * np.pi]], 1.0, (), [False]),     # ... not for a plain state
+    ([[np.nan, 2.0], [0.2, np.inf]], 1.0, (), [False, False]),   # not finite: outside
+])
+def test_inside_box_against_hand_computations(x, scale, angles, expected):
+    """``kklcasadi.plant.runs.inside_box``: the per-sample box test training cuts its runs with and the train
+    summary scores by."""
+    from kklcasadi.plant.runs import inside_box
+
+    box = np.array([[0.0, 1.0], [1.0, 3.0]])
+    got = inside_box(np.array(x), box, angles, scale=scale)
+    assert got.tolist() == expected

@@ -20,7 +20,7 @@ import numpy as np
 from ..model import variants
 from ..plant import signals as sig
 from ..plant import systems
-from ..plant.runs import ENVELOPE_ESCAPE, RolloutConfig, drifting_states, resolved, rollouts
+from ..plant.runs import ENVELOPE_ESCAPE, RolloutConfig, drifting_states, inside_box, resolved, rollouts
 from .flags import (
     CommandError,
     add_dt,
@@ -335,7 +335,7 @@ def summary(path: Path, plant: systems.System, plant_flag: Optional[str]) -> str
         est = obs.simulate(batch.t, batch.y[ok], batch.u[ok])
         theirs = ekf.simulate(batch.t, batch.y[ok], batch.u[ok]).xhat
         kept = np.isfinite(theirs).all(axis=(1, 2))            # an EKF can diverge (a stiff plant, a large P0)
-        stays = in_box(x, box, plant.angle_states, scale=ENVELOPE_ESCAPE)
+        stays = np.asarray(inside_box(x, box, plant.angle_states, scale=ENVELOPE_ESCAPE).all(axis=1))
         if est.in_domain is not None:                           # the share of each run's samples inside
             share = np.asarray(est.in_domain, dtype=float).reshape(len(x), -1).mean(axis=1)
             inside.append((share, stays))
@@ -382,18 +382,6 @@ def domain_line(share: np.ndarray, stays: np.ndarray) -> str:
         return f"domain   {100 * float(np.mean(share)):.1f} % {what} (every run left the box)"
     every = "" if stays.all() else f" ({100 * float(np.mean(share)):.1f} % over every run)"
     return f"domain   {100 * float(np.mean(share[stays])):.1f} % {what}, on the runs that stay in the box{every}"
-
-
-def in_box(x: np.ndarray, box: np.ndarray, angles: Sequence[int] = (), *, scale: float = 1.0) -> np.ndarray:
-    """Whether each run's state stays in ``box`` (nx, 2) scaled by ``scale`` about its centre at every sample,
-    (M,); ``x`` (M, N, nx), its angle states compared wrapped to [-pi, pi)."""
-    from ..metrics import wrap_angle
-
-    x = np.array(x, dtype=float)
-    if angles:
-        x[..., list(angles)] = wrap_angle(x[..., list(angles)])
-    centre, half = box.mean(axis=1), 0.5 * scale * (box[:, 1] - box[:, 0])
-    return np.all(np.abs(x - centre) <= half, axis=(1, 2))
 
 
 def box_rmse(x: np.ndarray, xhat: np.ndarray, box: np.ndarray, angles: Sequence[int] = ()) -> np.ndarray:

@@ -40,7 +40,7 @@ from .systems import System
 
 __all__ = ["RolloutConfig", "rollouts", "RK_STEP", "FAMILIES", "DEFAULT_KINDS", "PD_RANGES", "ROLLOUT_REGIMES",
            "fit_families", "loop_signs", "drifting_states", "input_range", "declares_envelope", "resolved",
-           "ENVELOPE_ESCAPE", "LEGACY_ESCAPE", "ENVELOPE_FIT_AFTER", "LOG_INPUT_MARGIN"]
+           "ENVELOPE_ESCAPE", "LEGACY_ESCAPE", "ENVELOPE_FIT_AFTER", "LOG_INPUT_MARGIN", "inside_box"]
 
 #: Input families of the runs (:attr:`RolloutConfig.kinds`): the benchmark's four; ``multisine``, a
 #: random spectrum (2-6 tones with log-uniform frequencies over the sinusoid's range and Dirichlet
@@ -293,17 +293,37 @@ def resolved(system: System, config: RolloutConfig) -> RolloutConfig:
     return replace(config, escape_scale=escape, stabilise=stabilise, fit_after=fit_after)
 
 
-def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
-    """First escaped sample of each run (M,), ``N`` where none: outside the X0 box scaled by ``scale``
-    about its centre (angle states on the circle: never), or not finite."""
-    lo, hi = system.x0_box[:, 0], system.x0_box[:, 1]
-    centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * scale
-    dev = x - centre
-    if system.angle_states:
-        a = list(system.angle_states)
+def inside_box(x: np.ndarray, box: np.ndarray, angles: Sequence[int] = (), *, scale: float = 1.0) -> np.ndarray:
+    """Whether each state lies in ``box`` scaled by ``scale`` about its centre, shape ``x.shape[:-1]``.
+
+    Parameters
+    ----------
+    x : numpy.ndarray, shape (..., nx)
+    box : numpy.ndarray, shape (nx, 2)
+        ``[lo, hi]`` per state.
+    angles : sequence of int
+        States compared on the circle: their deviation from the centre wrapped to [-pi, pi).
+    scale : float
+        The box's half-widths times ``scale``.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        False where a state is not finite.
+    """
+    lo, hi = box[:, 0], box[:, 1]
+    dev = np.array(x, dtype=float) - 0.5 * (lo + hi)
+    if angles:
+        a = list(angles)
         dev[..., a] = np.angle(np.exp(1j * dev[..., a]))
     with np.errstate(invalid="ignore"):
-        bad = ~np.all(np.abs(dev) <= half, axis=-1)
+        return np.all(np.abs(dev) <= 0.5 * (hi - lo) * scale, axis=-1)
+
+
+def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
+    """First escaped sample of each run (M,), ``N`` where none: outside the X0 box scaled by ``scale``
+    about its centre (angle states compared on the circle), or not finite."""
+    bad = ~inside_box(x, system.x0_box, system.angle_states, scale=scale)
     return np.where(bad.any(axis=1), bad.argmax(axis=1), x.shape[1])
 
 
@@ -516,23 +536,13 @@ def _starts(envelope: Envelope, system: System) -> np.ndarray:
     transient from its prior) and in the X0 box (angle states on the circle); all samples where none is."""
     pairs = []
     for i, states in enumerate(envelope.states):
-        ok = _in_box(system, states)
+        ok = inside_box(states, system.x0_box, system.angle_states)
         ok[:int(np.ceil(envelope.settle / envelope.dt - 1e-9))] = False
         pairs.append(np.column_stack([np.full(int(ok.sum()), i), np.flatnonzero(ok)]))
     pairs = np.vstack(pairs)
     if len(pairs):
         return pairs
     return np.vstack([np.column_stack([np.full(len(s), i), np.arange(len(s))]) for i, s in enumerate(envelope.states)])
-
-
-def _in_box(system: System, x: np.ndarray) -> np.ndarray:
-    """Whether each state (M, nx) lies in the X0 box (angle states compared on the circle), (M,)."""
-    lo, hi = system.x0_box[:, 0], system.x0_box[:, 1]
-    dev = x - 0.5 * (lo + hi)
-    if system.angle_states:
-        a = list(system.angle_states)
-        dev[..., a] = np.angle(np.exp(1j * dev[..., a]))
-    return np.all(np.abs(dev) <= 0.5 * (hi - lo), axis=-1)
 
 
 def _like_run(envelope: Envelope, rng: np.random.Generator, system: System, t: np.ndarray,
