@@ -83,6 +83,29 @@ def _regression_problem():
     return data
 
 
+@pytest.mark.parametrize("kernel", [True, False])
+def test_fit_uses_the_fused_adam_on_the_cpu_only_where_torch_has_it(monkeypatch, kernel):
+    """torch 2.4 on has a fused Adam for the CPU (one kernel for all parameters); setup.cfg allows torch 2.2, where
+    ``fused=True`` on CPU tensors raises: there the per-tensor Adam runs, to the same fit."""
+    from kklcasadi.train import loop
+
+    made = []
+
+    class Spy(torch.optim.Adam):
+        def __init__(self, params, **kwargs):
+            made.append(kwargs.get("fused"))
+            super().__init__(params, **kwargs)
+
+    monkeypatch.setattr(loop, "FUSED_CPU_ADAM", kernel)
+    monkeypatch.setattr(torch.optim, "Adam", Spy)
+    data = _regression_problem()
+    w = torch.zeros(3, 1, dtype=torch.float64, requires_grad=True)
+    res = fit([w], lambda b, e: (((b["x"] @ w - b["y"]) ** 2).mean(), {}), data,
+              LoopConfig(epochs=6, batch_size=32, lr=0.1), name="reg", progress=False)
+    assert made == [True if kernel else None]
+    assert res.history["train"][-1] < res.history["train"][0] / 10
+
+
 def test_resume_continues_exactly(tmp_path):
     data = _regression_problem()
     cfg = LoopConfig(epochs=6, batch_size=32, lr=0.1)

@@ -25,6 +25,9 @@ from .config import LoopConfig
 
 __all__ = ["Dataset", "ArrayDataset", "FitResult", "fit", "torch_dtype"]
 
+#: Whether this torch has the fused Adam's CPU kernel (torch 2.4 on).
+FUSED_CPU_ADAM = tuple(int(part) for part in torch.__version__.split("+")[0].split(".")[:2]) >= (2, 4)
+
 Tensor = torch.Tensor
 LossFn = Callable[[Mapping[str, Tensor], int], tuple[Tensor, dict[str, float]]]
 
@@ -192,8 +195,10 @@ def fit(params: list[Tensor], loss_fn: LossFn, data: Dataset, config: LoopConfig
     perm = np.random.default_rng(seed).permutation(n)
     val_idx, train_idx = perm[:n_val], perm[n_val:]
     # torch's fused Adam on the CPU: one kernel for all parameters (the per-tensor loop was 8 % of the bank decoder's
-    # fit); not on CUDA, where its step counters would have to live on the device for the checkpoints
-    opt = torch.optim.Adam(params, lr=config.lr, fused=all(p.device.type == "cpu" for p in params) or None)
+    # fit); not on CUDA, where its step counters would have to live on the device for the checkpoints, nor before
+    # torch 2.4, which has no CPU kernel for it (setup.cfg allows 2.2)
+    fused = FUSED_CPU_ADAM and all(p.device.type == "cpu" for p in params)
+    opt = torch.optim.Adam(params, lr=config.lr, fused=fused or None)
     if config.schedule == "plateau":
         sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, factor=0.5, patience=5)
     else:
