@@ -271,3 +271,10 @@ def test_inside_box_against_hand_computations(x, scale, angles, expected):
     box = np.array([[0.0, 1.0], [1.0, 3.0]])
     got = inside_box(np.array(x), box, angles, scale=scale)
     assert got.tolist() == expected
+
+
+def test_inside_box_refuses_a_box_of_the_wrong_shape():
+    from kklcasadi.plant.runs import inside_box
+
+    with pytest.raises(ValueError, match=r"box: expected shape \(nx, 2\) = \(2, 2\).*received shape \(3, 2\)"):
+        inside_box(np.zeros((4, 2)), np.zeros((3, 2)))

@@ -310,9 +310,18 @@ def inside_box(x: np.ndarray, box: np.ndarray, angles: Sequence[int] = (), *, sc
     -------
     numpy.ndarray of bool
         False where a state is not finite.
+
+    Raises
+    ------
+    ValueError
+        ``box`` is not (nx, 2).
     """
+    x, box = np.array(x, dtype=float), np.asarray(box, dtype=float)
+    if box.shape != (x.shape[-1], 2):
+        raise error("box", f"shape (nx, 2) = ({x.shape[-1]}, 2), one [lo, hi] row per state of x",
+                    Text(f"shape {box.shape}"))
     lo, hi = box[:, 0], box[:, 1]
-    dev = np.array(x, dtype=float) - 0.5 * (lo + hi)
+    dev = x - 0.5 * (lo + hi)
     if angles:
         a = list(angles)
         dev[..., a] = np.angle(np.exp(1j * dev[..., a]))
