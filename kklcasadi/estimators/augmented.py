@@ -159,7 +159,8 @@ class AugmentedEKF(_Split, EKF):  # type: ignore[misc]
     disturbance_walk : float
     q_scale, r_scale : float
         Factors of the plant states' process-noise std and of the measurement std (as :class:`TunedEKF`).
-    substeps : int
+    substeps : int or "auto"
+        RK4 steps per sample (as :class:`kklcasadi.EKF`'s; "auto" on the augmented plant).
 
     Attributes
     ----------
@@ -174,7 +175,7 @@ class AugmentedEKF(_Split, EKF):  # type: ignore[misc]
     def __init__(self, system: System, dt: float, *, process_std: float | Sequence[float] = 0.1,
                  measurement_std: float = 0.1, param_walk: float = 0.01, input_disturbance: bool = False,
                  disturbance_box: Any = None, disturbance_walk: float = 0.01, q_scale: float = 1.0,
-                 r_scale: float = 1.0, substeps: int = 1) -> None:
+                 r_scale: float = 1.0, substeps: int | str = "auto") -> None:
         aug = augmented(system, input_disturbance=input_disturbance, disturbance_box=disturbance_box)
         self.plant, self.nx = system, system.nx
         self.param_walk = nonnegative_number(param_walk, "param_walk")
