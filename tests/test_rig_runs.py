@@ -205,6 +205,8 @@ def test_train_like_takes_the_rigs_envelope_into_the_runs_and_the_card(tmp_path,
     ratio = [(q / envelope["measurement_std"]) ** 2 for q in envelope["process_std"]]
     np.testing.assert_allclose(card["architecture"]["bank"]["copies"]["weights"], [ratio], rtol=1e-12)
     assert card["training"]["noise_copy"].startswith("one copy at the training noise's ratio")
+    assert card["training"]["config"]["copy_residual"] is True                  # the decoders correct that copy
+    assert card["architecture"]["decoder"]["skip"] is True
     # a flag wins over the estimate
     assert main(["train", "--plant", f"{_plant_file(tmp_path)}:make_plant", "--like", str(log), "--time-col", "t",
                  "--y-cols", "pos", "--u-cols", "volts", "--process-std", "0.7", "--epochs", "1", "--quiet",
