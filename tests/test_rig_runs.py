@@ -238,6 +238,11 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
     kept, why = with_noise_copy(pendulum, config)
     assert kept.copies == () and "angle states" in why
     assert with_noise_copy(_mass(), replace(config, noise_copy=False))[0].copies == ()
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)      # an angle output of no angle state: a copy, read, not corrected
+    wheel = kc.System("wheel", x, u, [x[1], -0.5 * x[1] + u], [x[0], x[1]], [[-3, 3], [-2, 2]], angle_outputs=(0,),
+                      u_box=[[-1, 1]])
+    read, what = with_noise_copy(wheel, config)
+    assert len(read.copies) == 1 and not read.copy_residual and "no residual" in what
     assert with_noise_copy(_mass(u_box=None), replace(config, noise_copy=True))[0].copies == ((0.0, 2500.0),)
     for bad in ({"copies": ((0.0, 0.0),)}, {"copies": (-1.0,)}, {"noise_copy": "yes"}):
         with pytest.raises(ValueError, match=next(iter(bad))):

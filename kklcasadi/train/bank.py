@@ -316,10 +316,12 @@ def with_noise_copy(system: System, config: BankConfig) -> tuple[BankConfig, str
             ModelCopies.design(system, [weights])
         except ValueError as exc:
             return replace(config, noise_copy=False), f"none: {exc}"
-    return (replace(config, copies=(*config.copies, weights), noise_copy=False, copy_residual=True,
+    residual = not (config.angles and system.angle_outputs)     # angle outputs: the features hold z - G y_a
+    return (replace(config, copies=(*config.copies, weights), noise_copy=False, copy_residual=residual,
                     decoder=replace(config.decoder, skip=True)),
-            f"one copy at the training noise's ratio, intensities {list(weights)}; the decoders fit the state's "
-            "residual over its estimate, folded into their linear skip path")
+            f"one copy at the training noise's ratio, intensities {list(weights)}; "
+            + ("the decoders fit the state's residual over its estimate, folded into their linear skip path"
+               if residual else "read on the decoders' linear skip path (angle outputs: no residual over it)"))
 
 
 def copy_base(system: System, bank: fb.FilterBank, copies: ModelCopies, angles: bd.Angles,
