@@ -299,8 +299,8 @@ def with_noise_copy(system: System, config: BankConfig) -> tuple[BankConfig, str
     """``config`` with its noise copy among ``copies`` where ``noise_copy`` asks for it (and ``noise_copy``
     False, the decoders' linear skip path, which passes the copy's estimate on: on the development part of
     the EMPS run the velocity RMSE 7.5e-4 -> 6.8e-4 m/s, and ``copy_residual``: the decoders correct the copy's
-    estimate), and what was done, for the card: the copy's intensities ``(process_std_i / measurement_std)^2`` per
-    state (:func:`process_stds`), or why there is none."""
+    estimate, where the plant reads no angle output), and what was done, for the card: the copy's intensities
+    ``(process_std_i / measurement_std)^2`` per state (:func:`process_stds`), or why there is none."""
     want = config.noise_copy
     if want is None:
         want = declares_envelope(system, config.rollouts.envelope) and not system.angle_states
