@@ -235,10 +235,13 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
     pendulum = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-3, 3], [-2, 2]], angle_states=(0,),
                          u_box=[[-1, 1]])
-    kept, why = with_noise_copy(pendulum, config)
-    assert kept.copies == () and "angle states" in why
-    asked, what = with_noise_copy(pendulum, replace(config, noise_copy=True))      # asked for: a copy, corrected
-    assert len(asked.copies) == 1 and asked.copy_residual and "residual over its estimate" in what
+    added, what = with_noise_copy(pendulum, config)                   # angle states: a copy, corrected
+    assert len(added.copies) == 1 and added.copy_residual and "residual over its estimate" in what
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)              # an arm's angle that y does not see: no copy, and why
+    arm = kc.System("arm", x, u, [x[2], x[2], -ca.sin(x[1]) + u], x[1], [[-3, 3], [-3, 3], [-2, 2]],
+                    angle_states=(0, 1), angle_outputs=(0,), u_box=[[-1, 1]])
+    kept, why = with_noise_copy(arm, config)
+    assert kept.copies == () and kept.noise_copy is False and "stabilising Kalman-Bucy gain" in why
     assert with_noise_copy(_mass(), replace(config, noise_copy=False))[0].copies == ()
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)      # an angle output of no angle state: a copy, corrected
     wheel = kc.System("wheel", x, u, [x[1], -0.5 * x[1] + u], [x[0], x[1]], [[-3, 3], [-2, 2]], angle_outputs=(0,),
