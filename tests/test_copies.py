@@ -112,15 +112,43 @@ def test_design_rejects_bad_settings(kwargs, match):
         ModelCopies.design(kc.systems.get("duffing"), **kwargs)
 
 
-def test_copies_need_a_detectable_plant_without_angles():
+def test_copies_need_a_detectable_plant():
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
     blind = kc.System("blind", x, u, [x[1], x[1] + u], x[0] * 0 + x[1] ** 3, [[-1, 1], [-1, 1]])
     with pytest.raises(ValueError, match="not detectable from y"):
         ModelCopies.design(blind, (1.0,))
-    angle = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-1, 1], [-1, 1]], angle_states=[0],
-                      angle_outputs=[0])
-    with pytest.raises(ValueError, match="system: expected a plant without angle states"):
-        ModelCopies.design(angle, (1.0,))
+
+
+def test_a_copys_angle_follows_its_measurement_turn_for_turn():
+    """A pendulum's copy stepped from its state and measurements one turn on lands one turn on (its field is
+    periodic in the angle), so the decoder's features ``z - G_a y_a`` (:func:`latent_gains`: 1 on the copy's
+    measured angle, the filters' DC gains, 0 elsewhere) do not see the turn."""
+    from kklcasadi.model.variants import bankdecoder as bd
+    from kklcasadi.model.variants import filterbank as fb
+
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
+    pend = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) - 0.3 * x[1] + u], x[0], [[-1.5, 1.5], [-1.5, 1.5]],
+                     angle_states=[0], angle_outputs=[0])
+    copies = ModelCopies.design(pend, (4.0, 400.0))
+    step = copies.step_function(0.05)
+    rng = np.random.default_rng(3)
+    turn = np.tile([2 * np.pi, 0.0], 2)
+    for _ in range(5):
+        z, y, y1, uu = rng.uniform(-1, 1, 4), rng.uniform(-1, 1, 1), rng.uniform(-1, 1, 1), rng.uniform(-1, 1, 1)
+        np.testing.assert_allclose(np.asarray(step(z + turn, y + 2 * np.pi, y1 + 2 * np.pi, uu)).ravel(),
+                                   np.asarray(step(z, y, y1, uu)).ravel() + turn, rtol=0, atol=1e-12)
+    bank = fb.FilterBank.design(1, 1, [0.5, 2.0], [1.0])
+    angles = bd.Angles.of(pend)
+    gains = bd.latent_gains(bank, bank.nz + copies.nz, pend.nx, angles)
+    np.testing.assert_array_equal(gains[bank.nz:, 0], [1.0, 0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(gains[:bank.nz], bd.dc_gains(bank))
+    zz = np.concatenate([rng.uniform(-1, 1, bank.nz), z])[None]
+    shifted = zz + 2 * np.pi * gains[:, 0]
+    np.testing.assert_allclose(bd.decoder_features(shifted, y[None] + 2 * np.pi, uu[None], angles=angles, gains=gains),
+                               bd.decoder_features(zz, y[None], uu[None], angles=angles, gains=gains), atol=1e-12)
+    for nz, nx in ((bank.nz + 3, 2), (bank.nz - 1, 2), (bank.nz + 2, None)):
+        with pytest.raises(ValueError, match="nz: expected the filters' 3 latents and whole model copies"):
+            bd.latent_gains(bank, nz, nx, angles)
 
 
 def test_model_copies_validate_their_arrays():
@@ -237,12 +265,6 @@ PLANTS = '''import casadi as ca
 import kklcasadi as kc
 
 
-def pendulum():
-    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
-    return kc.System("pend", x, u, [x[1], -ca.sin(x[0]) - 0.3 * x[1] + u], x[0], [[-1.5, 1.5], [-1.5, 1.5]],
-                     angle_states=[0], angle_outputs=[0])
-
-
 def blind():
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
     return kc.System("blind", x, u, [x[1], x[1] + u], x[1] ** 3, [[-1, 1], [-1, 1]])
@@ -250,7 +272,6 @@ def blind():
 
 
 @pytest.mark.parametrize("plant, message", [
-    ("pendulum", "error: --copies: expected a plant without angle states"),
     ("blind", "error: --copies: expected weights with a stabilising Kalman-Bucy gain, received 1, with no stabilising "
               "Kalman-Bucy gain: blind linearised at its box centre"),
 ])

@@ -5,7 +5,7 @@ from scipy.linalg import expm
 import kklcasadi as kc
 from kklcasadi.estimators.ekf import EKF
 from kklcasadi.plant import signals as sig
-from kklcasadi.plant.rk4 import RK4_STEP_LIMIT, rk4_step, stable_substeps
+from kklcasadi.plant.rk4 import RK4_STEP_LIMIT, rk4_step, stable_substeps, substeps_for
 
 
 def test_rk4_step_is_the_fourth_order_taylor_polynomial_on_linear_systems():
@@ -50,6 +50,16 @@ def test_stable_substeps_on_the_paper_plants_and_over_the_input_box():
     x, u = ca.SX.sym("x"), ca.SX.sym("u")
     gain = kc.System("gain", x, u, -u * x, x, [[-1, 1]], u_box=[[0.0, 300.0]])
     assert stable_substeps(gain, 0.05) in (7, 8)             # drawn inputs reach 280-300 of the box's 300
+
+
+def test_the_benchmarks_counts_for_the_paper_plants_and_the_stable_count_elsewhere():
+    from kklcasadi.estimators.pf import SUBSTEPS
+    from kklcasadi.evaluation.compare import MHE_SUBSTEPS
+
+    assert [substeps_for(kc.systems.get(n), 0.05, SUBSTEPS) for n in ("duffing", "vdp", "rossler", "fhn")] == \
+        [1, 1, 4, 4]                                           # the particle filter's, chosen on the benchmark
+    assert [substeps_for(kc.systems.get(n), 0.05, MHE_SUBSTEPS) for n in ("duffing", "fhn")] == [1, 4]
+    assert substeps_for(_stiff(100.0), 0.05, SUBSTEPS) == 3 == stable_substeps(_stiff(100.0), 0.05)
 
 
 def test_the_ekf_takes_the_stable_count_by_default_and_follows_a_stiff_plant():

@@ -8,13 +8,13 @@ between samples: the right-hand side receives the fraction ``s`` in [0, 1] of th
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
 
 from .signals import UNIT_LEVEL
 
-__all__ = ["rk4_step", "stable_substeps", "RK4_STEP_LIMIT"]
+__all__ = ["rk4_step", "stable_substeps", "substeps_for", "RK4_STEP_LIMIT"]
 
 #: The largest ``h |lambda|`` (RK4 step times the Jacobian's largest eigenvalue modulus) that
 #: :func:`stable_substeps` allows: inside classical RK4's stability limits on the negative real axis
@@ -95,3 +95,10 @@ def stable_substeps(system: Any, dt: float, *, samples: int = 256, seed: int = 0
     finite = np.all(np.isfinite(blocks), axis=(1, 2))
     rho = float(np.max(np.abs(np.linalg.eigvals(blocks[finite])), initial=0.0))
     return max(1, math.ceil(dt * rho / RK4_STEP_LIMIT))
+
+
+def substeps_for(system: Any, dt: float, chosen: Mapping[str, int]) -> int:
+    """``chosen[system.name]`` where the table has the plant (the counts a benchmark chose for the paper's
+    plants, e.g. :data:`kklcasadi.estimators.pf.SUBSTEPS`), else :func:`stable_substeps` (a plant of the user's:
+    at least stable over its box)."""
+    return int(chosen[system.name]) if system.name in chosen else stable_substeps(system, dt)

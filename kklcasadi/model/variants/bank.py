@@ -267,10 +267,10 @@ class Bank(Variant):
                                   "factor of the estimate's covariance (docs/model-format.md); an angle state's "
                                   "error lives on the circle, which it does not model.")
         spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where, sizes), angles, head)
-        if spec.n_copies and (spec.n_filters < 1 or angles):
+        if spec.n_copies and spec.n_filters < 1:
             raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x nx = "
-                              f"{spec.n_copies * spec.nx} latents after at least one filter, on a plant without "
-                              "angles", entry["copies"], f"The latent has nz = {spec.nz}.")
+                              f"{spec.n_copies * spec.nx} latents after at least one filter", entry["copies"],
+                              f"The latent has nz = {spec.nz}.")
         return spec
 
     def networks(self, spec: BankSpec, arrays: Mapping[str, Any], system: System, window: int) -> Networks:
@@ -291,7 +291,7 @@ class Bank(Variant):
         covariance = None
         if spec.covariance is not None:
             xs = ca.MX.sym("xhat", spec.nx)
-            features = feature_expression(bank, z, y, u, angles=spec.angles)
+            features = feature_expression(bank, z, y, u, angles=spec.angles, nx=spec.nx)
             P = covariance_expression(spec.covariance, arrays, features, xs, np.asarray(arrays[f"{DECODER}/out_std"]),
                                       np.asarray(arrays[ASINH_SCALE]))
             covariance = ca.Function("covariance", [z, w, xs], [P], ["z", "w", "xhat"], ["P"])

@@ -34,7 +34,7 @@ from ...validation import error
 from .copies import ModelCopies
 from .filterbank import FilterBank, as_trials, bank_from_arrays, check_copies, latent_run, latent_size, latent_step
 
-__all__ = ["Angles", "NO_ANGLES", "DecoderSpec", "dc_gains", "decoder_features", "decoder_targets",
+__all__ = ["Angles", "NO_ANGLES", "DecoderSpec", "dc_gains", "latent_gains", "decoder_features", "decoder_targets",
            "decoder_outputs", "decode", "decoder_function", "decoder_expression", "estimate", "observer_step",
            "ASINH_SCALE", "member_prefixes", "spread", "spread_expression", "feature_expression",
            "decoder_and_spread_expression"]
@@ -138,6 +138,30 @@ def dc_gains(bank: FilterBank) -> np.ndarray:
     return -np.linalg.solve(bank.A, bank.By)
 
 
+def latent_gains(bank: FilterBank, nz: int, nx: int | None, angles: Angles) -> np.ndarray:
+    """The gains ``G`` (nz, ny) of the decoder's features ``z - G_a y_a``: the filters' :func:`dc_gains`, then
+    on the model copies' rows (``nz - bank.nz``, blocks of ``nx``; ``nx`` None: none) 1 where the copy's state
+    is a measured angle (``angles.measured``) of that output, else 0: a copy's angle follows its measurement
+    turn for turn (the plant's field is periodic in it), so ``z - G_a y_a`` does not change when ``y_a``
+    moves by ``2 pi``.
+
+    Raises
+    ------
+    ValueError
+        ``nz - bank.nz`` is not a whole number of copies of ``nx`` states.
+    """
+    extra = nz - bank.nz
+    if extra < 0 or (nx is None and extra) or (nx is not None and (nx < 1 or extra % nx)):
+        raise error("nz", f"the filters' {bank.nz} latents and whole model copies of nx = {nx} states", nz)
+    gains = np.zeros((nz, bank.ny))
+    gains[:bank.nz] = dc_gains(bank)
+    width = 1 if nx is None else nx                    # nx None: no copy rows (extra is 0)
+    for k in range(extra // width):
+        for i, j in angles.measured:
+            gains[bank.nz + k * width + i, j] = 1.0
+    return gains
+
+
 def decoder_features(z: np.ndarray, y: np.ndarray, u: np.ndarray, *, angles: Angles = NO_ANGLES,
                      gains: np.ndarray | None = None) -> np.ndarray:
     """The decoder's input along the last axis: ``[z; y; u]``, or with angle outputs
@@ -150,7 +174,7 @@ def decoder_features(z: np.ndarray, y: np.ndarray, u: np.ndarray, *, angles: Ang
     u : numpy.ndarray, shape (..., nu)
     angles : Angles
     gains : numpy.ndarray, shape (nz, ny)
-        :func:`dc_gains` of the bank (needed with angle outputs).
+        :func:`latent_gains` of the latent (needed with angle outputs).
 
     Returns
     -------
@@ -281,11 +305,12 @@ def _spread_scale(arrays: Mapping[str, Any]) -> np.ndarray:
     return np.asarray(arrays[f"{DECODER}/out_std"], dtype=float)
 
 
-def _features(arrays: Mapping[str, Any], spec: MLPSpec, z: Any, y: np.ndarray, u: Any, angles: Angles) -> np.ndarray:
-    gains = dc_gains(bank_from_arrays(arrays)) if angles.outputs else None
-    f = decoder_features(np.asarray(z, dtype=float), y, np.asarray(u, dtype=float), angles=angles, gains=gains)
-    if f.shape[-1] != spec.n_in:
-        raise ValueError(f"features must have {spec.n_in} entries along the last axis, got shape {f.shape}")
+def _features(arrays: Mapping[str, Any], spec: DecoderSpec, z: Any, y: np.ndarray, u: Any) -> np.ndarray:
+    z = np.asarray(z, dtype=float)
+    gains = latent_gains(bank_from_arrays(arrays), z.shape[-1], spec.nx, spec.angles) if spec.angles.outputs else None
+    f = decoder_features(z, y, np.asarray(u, dtype=float), angles=spec.angles, gains=gains)
+    if f.shape[-1] != spec.mlp.n_in:
+        raise ValueError(f"features must have {spec.mlp.n_in} entries along the last axis, got shape {f.shape}")
     return f
 
 
@@ -313,7 +338,7 @@ def decode(spec: DecoderSpec, arrays: Mapping[str, Any], z: Any, y: Any, u: Any)
     """
     scale = spec.check(arrays)
     y = np.asarray(y, dtype=float)
-    f = _features(arrays, spec.mlp, z, y, u, spec.angles)
+    f = _features(arrays, spec, z, y, u)
     v = [mlp_numpy(spec.mlp, arrays, prefix, f) for prefix in member_prefixes(spec.members)]
     return decoder_outputs(sum(v[1:], v[0]) / len(v), y, scale, spec.angles)
 
@@ -331,7 +356,7 @@ def spread(spec: DecoderSpec, arrays: Mapping[str, Any], z: Any, y: Any, u: Any)
     if spec.members < 2:
         raise error("members", "at least 2 networks for a spread", spec.members)
     spec.check(arrays)
-    f = _features(arrays, spec.mlp, z, np.asarray(y, dtype=float), u, spec.angles)
+    f = _features(arrays, spec, z, np.asarray(y, dtype=float), u)
     v = np.stack([mlp_numpy(spec.mlp, arrays, prefix, f) for prefix in member_prefixes(spec.members)])
     d = (v - v.mean(axis=0)) / _spread_scale(arrays)
     return np.sqrt((d ** 2).sum(axis=-1).mean(axis=0))
@@ -365,22 +390,24 @@ def decoder_function(spec: DecoderSpec, arrays: Mapping[str, Any], name: str = "
     return ca.Function(name, [z, y, u], [out], ["z", "y", "u"], ["xhat"])
 
 
-def feature_expression(bank: FilterBank, z: ca.MX, y: ca.MX, u: ca.MX, *, angles: Angles = NO_ANGLES) -> ca.MX:
+def feature_expression(bank: FilterBank, z: ca.MX, y: ca.MX, u: ca.MX, *, angles: Angles = NO_ANGLES,
+                       nx: int | None = None) -> ca.MX:
     """:func:`decoder_features` at CasADi symbols: the decoder's input (nz + ny + len(angles.outputs) + nu, 1)
-    (``bank`` gives the gains of angle outputs)."""
+    (``bank`` and the plant's ``nx`` give the gains of angle outputs, :func:`latent_gains`)."""
     if not angles.outputs:
         return ca.vertcat(z, y, u)
     a = list(angles.outputs)
     other = [j for j in range(bank.ny) if j not in angles.outputs]
     ya = ca.vertcat(*[y[j] for j in a])
-    return ca.vertcat(z - ca.mtimes(ca.DM(dc_gains(bank)[:, a]), ya), *[y[j] for j in other], ca.sin(ya),
+    gains = latent_gains(bank, z.size1(), nx, angles)[:, a]
+    return ca.vertcat(z - ca.mtimes(ca.DM(gains), ya), *[y[j] for j in other], ca.sin(ya),
                       ca.cos(ya), u)
 
 
 def _member_expressions(spec: DecoderSpec, arrays: Mapping[str, Any], bank: FilterBank, z: ca.MX, y: ca.MX,
                         u: ca.MX, mlp_name: str) -> list:
     """Each member's network output ``v_j`` at the symbols."""
-    feats = feature_expression(bank, z, y, u, angles=spec.angles)
+    feats = feature_expression(bank, z, y, u, angles=spec.angles, nx=spec.nx)
     names = [mlp_name] + [f"{mlp_name}_{j}" for j in range(1, spec.members)]
     return [casadi_nets.mlp_function(spec.mlp, arrays, prefix, label)(feats)
             for prefix, label in zip(member_prefixes(spec.members), names)]

@@ -65,7 +65,9 @@ class ModelCopies:
     Parameters
     ----------
     system : System
-        The plant (its ``f`` and ``h``); without angle states.
+        The plant (its ``f`` and ``h``). A copy's angle state follows the unwrapped measurement (the plant's
+        field periodic in it) and is clipped as any state: a plant that turns more than ``bound`` from ``r``
+        (``BOUND_SCALE`` half-widths of its box) leaves the copy behind.
     gains : array_like, shape (m, nx, ny)
         ``L_i``.
     reference : array_like, shape (nx,)
@@ -84,9 +86,6 @@ class ModelCopies:
 
     def __post_init__(self) -> None:
         nx, ny = self.system.nx, self.system.ny
-        if self.system.angle_states:
-            raise error("system", "a plant without angle states (a copy's angle would leave its clip box as it "
-                        "turns)", self.system.name)
         gains = np.asarray(self.gains, dtype=float)
         if gains.ndim != 3 or gains.shape[1:] != (nx, ny) or gains.shape[0] < 1 or not np.all(np.isfinite(gains)):
             raise error("gains", f"finite gains of shape (m >= 1, nx = {nx}, ny = {ny})", gains.shape)
