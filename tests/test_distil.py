@@ -111,6 +111,30 @@ def test_the_student_is_fit_to_the_teachers_estimates_and_its_card_says_so(teach
     assert model.spec.domain.x_lo[0] == pytest.approx(truth.x[:, 0].min())
 
 
+def test_a_student_on_runs_wider_than_its_teachers_records_them(teacher_dir, tmp_path, monkeypatch):
+    seen = {}
+    fit_members = bank_training.fit_members
+
+    def spy(bank, data, config, angles, seed, *, progress):
+        seen["data"] = data
+        return fit_members(bank, data, config, angles, seed, progress=progress)
+
+    monkeypatch.setattr(bank_training, "fit_members", spy)
+    wide = replace(RUNS, input_scale=(1.0, 1.5))
+    out = train_observer("duffing", "bank", tmp_path / "student", seed=8, progress=False,
+                         config=_config(teacher=str(teacher_dir), rollouts=wide))
+    system = kc.systems.get("duffing")
+    _, _, plain = _data(system, _config(), seed=8)
+    _, _, own = _data(system, _config(copies=(1.0,), copy_substeps=2, rollouts=wide), seed=8)
+    assert np.abs(seen["data"].u).max() > np.abs(plain.u).max()            # the wider runs are the ones fit
+    np.testing.assert_allclose(seen["data"].x, _teacher_decode(teacher_dir, own.z, own.y, own.u), rtol=0, atol=1e-12)
+    card = load_model(out).card
+    assert card["training"]["config"]["rollouts"]["input_scale"] == [1.0, 1.5]
+    assert card["fit_families"]["constant"]["value"] == pytest.approx([-3.0, 3.0])
+    teacher_card = load_model(teacher_dir).card
+    assert teacher_card["fit_families"]["constant"]["value"] == pytest.approx([-2.0, 2.0])
+
+
 @pytest.mark.parametrize("teacher, message", [("duffing/autonomous", "a bank model directory"),
                                               ("vdp/bank", "a bank model of 'duffing' at dt = 0.05")])
 def test_a_teacher_must_be_a_bank_of_the_same_plant(teacher, message, tmp_path):
