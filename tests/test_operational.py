@@ -283,6 +283,7 @@ def test_an_input_scale_must_be_a_factor_or_a_range(scale) -> None:
     with pytest.raises(ValueError, match=r"input_scale: expected a factor > 0 or a range 0 < lo <= hi"):
         RolloutConfig(input_scale=scale)
     assert RolloutConfig(input_scale=[1, 2]).input_scale == (1.0, 2.0)        # a card's list
+    assert RolloutConfig(input_scale=(2,)).input_scale == 2.0 and RolloutConfig().input_scale == 1.0
 
 
 def test_a_range_of_box_scales_spreads_the_initial_states() -> None:

@@ -222,8 +222,8 @@ class RolloutConfig:
         gains = np.atleast_1d(np.asarray(self.input_scale, dtype=float))
         if gains.size not in (1, 2) or not np.all(np.isfinite(gains)) or not 0 < gains[0] <= gains[-1]:
             raise error("input_scale", "a factor > 0 or a range 0 < lo <= hi", self.input_scale)
-        if gains.size == 2:                             # a card's list back as the tuple it was
-            object.__setattr__(self, "input_scale", (float(gains[0]), float(gains[1])))
+        object.__setattr__(self, "input_scale",                 # a card's list back as the tuple it was
+                           float(gains[0]) if gains.size == 1 else (float(gains[0]), float(gains[1])))
 
 
 
@@ -397,9 +397,11 @@ def _ranges(kind: str, regime: str) -> Mapping[str, tuple[float, float]]:
 def input_factors(config: RolloutConfig, seed: int) -> np.ndarray:
     """Each run's factor on its input (n_traj,): :attr:`RolloutConfig.input_scale`, drawn log-uniformly from
     ``default_rng([seed, 8])`` where it is a range."""
-    if np.ndim(config.input_scale) == 0:
-        return np.full(config.n_traj, float(config.input_scale))
-    return np.exp(np.random.default_rng([seed, 8]).uniform(*np.log(config.input_scale), size=config.n_traj))
+    scale = config.input_scale
+    if not isinstance(scale, tuple):
+        return np.full(config.n_traj, float(scale))
+    lo, hi = np.log(scale[0]), np.log(scale[1])
+    return np.exp(np.random.default_rng([seed, 8]).uniform(lo, hi, size=config.n_traj))
 
 
 def _scaled_input(drawn: object, factor: float, t: np.ndarray, u_map: tuple | None) -> object:
