@@ -51,6 +51,19 @@ def _teacher_decode(teacher_dir, z, y, u):
     return bd.decode(spec.decoder_spec, spec.filter_arrays(model.arrays), z, y, u)
 
 
+def _spy_on_the_fit(monkeypatch) -> dict:
+    """What the decoders are fit on: ``seen["data"]`` once a training has run."""
+    seen = {}
+    fit_members = bank_training.fit_members
+
+    def spy(bank, data, config, angles, seed, *, progress):
+        seen["data"] = data
+        return fit_members(bank, data, config, angles, seed, progress=progress)
+
+    monkeypatch.setattr(bank_training, "fit_members", spy)
+    return seen
+
+
 def test_a_student_with_the_teachers_latent_takes_its_estimates_on_its_own_samples(teacher_dir):
     system = kc.systems.get("duffing")
     model = load_model(teacher_dir)
@@ -87,14 +100,7 @@ def test_a_student_without_copies_takes_the_estimates_of_the_teachers_own_latent
 
 
 def test_the_student_is_fit_to_the_teachers_estimates_and_its_card_says_so(teacher_dir, tmp_path, monkeypatch):
-    seen = {}
-    fit_members = bank_training.fit_members
-
-    def spy(bank, data, config, angles, seed, *, progress):
-        seen["data"] = data
-        return fit_members(bank, data, config, angles, seed, progress=progress)
-
-    monkeypatch.setattr(bank_training, "fit_members", spy)
+    seen = _spy_on_the_fit(monkeypatch)
     out = train_observer("duffing", "bank", tmp_path / "student", config=_config(teacher=str(teacher_dir)), seed=8,
                          progress=False)
     system = kc.systems.get("duffing")
@@ -112,14 +118,7 @@ def test_the_student_is_fit_to_the_teachers_estimates_and_its_card_says_so(teach
 
 
 def test_a_student_on_runs_wider_than_its_teachers_records_them(teacher_dir, tmp_path, monkeypatch):
-    seen = {}
-    fit_members = bank_training.fit_members
-
-    def spy(bank, data, config, angles, seed, *, progress):
-        seen["data"] = data
-        return fit_members(bank, data, config, angles, seed, progress=progress)
-
-    monkeypatch.setattr(bank_training, "fit_members", spy)
+    seen = _spy_on_the_fit(monkeypatch)
     wide = replace(RUNS, input_scale=(1.0, 1.5))
     out = train_observer("duffing", "bank", tmp_path / "student", seed=8, progress=False,
                          config=_config(teacher=str(teacher_dir), rollouts=wide))
