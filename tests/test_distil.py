@@ -56,9 +56,9 @@ def _spy_on_the_fit(monkeypatch) -> dict:
     seen = {}
     fit_members = bank_training.fit_members
 
-    def spy(bank, data, config, angles, seed, *, progress):
+    def spy(bank, data, config, angles, seed, **options):
         seen["data"] = data
-        return fit_members(bank, data, config, angles, seed, progress=progress)
+        return fit_members(bank, data, config, angles, seed, **options)
 
     monkeypatch.setattr(bank_training, "fit_members", spy)
     return seen
