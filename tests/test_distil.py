@@ -51,6 +51,19 @@ def _teacher_decode(teacher_dir, z, y, u):
     return bd.decode(spec.decoder_spec, spec.filter_arrays(model.arrays), z, y, u)
 
 
+def _spy_on_the_fit(monkeypatch) -> dict:
+    """What the decoders are fit on: ``seen["data"]`` once a training has run."""
+    seen = {}
+    fit_members = bank_training.fit_members
+
+    def spy(bank, data, config, angles, seed, **options):
+        seen["data"] = data
+        return fit_members(bank, data, config, angles, seed, **options)
+
+    monkeypatch.setattr(bank_training, "fit_members", spy)
+    return seen
+
+
 def test_a_student_with_the_teachers_latent_takes_its_estimates_on_its_own_samples(teacher_dir):
     system = kc.systems.get("duffing")
     model = load_model(teacher_dir)
@@ -87,14 +100,7 @@ def test_a_student_without_copies_takes_the_estimates_of_the_teachers_own_latent
 
 
 def test_the_student_is_fit_to_the_teachers_estimates_and_its_card_says_so(teacher_dir, tmp_path, monkeypatch):
-    seen = {}
-    fit_members = bank_training.fit_members
-
-    def spy(bank, data, config, angles, seed, **options):
-        seen["data"] = data
-        return fit_members(bank, data, config, angles, seed, **options)
-
-    monkeypatch.setattr(bank_training, "fit_members", spy)
+    seen = _spy_on_the_fit(monkeypatch)
     out = train_observer("duffing", "bank", tmp_path / "student", config=_config(teacher=str(teacher_dir)), seed=8,
                          progress=False)
     system = kc.systems.get("duffing")
@@ -109,6 +115,23 @@ def test_the_student_is_fit_to_the_teachers_estimates_and_its_card_says_so(teach
     assert "members" not in model.card["architecture"]["bank"] and "copies" not in model.card["architecture"]["bank"]
     # the domain is the true states' range, not the teacher's estimates'
     assert model.spec.domain.x_lo[0] == pytest.approx(truth.x[:, 0].min())
+
+
+def test_a_student_on_runs_wider_than_its_teachers_records_them(teacher_dir, tmp_path, monkeypatch):
+    seen = _spy_on_the_fit(monkeypatch)
+    wide = replace(RUNS, input_scale=(1.0, 1.5))
+    out = train_observer("duffing", "bank", tmp_path / "student", seed=8, progress=False,
+                         config=_config(teacher=str(teacher_dir), rollouts=wide))
+    system = kc.systems.get("duffing")
+    _, _, plain = _data(system, _config(), seed=8)
+    _, _, own = _data(system, _config(copies=(1.0,), copy_substeps=2, rollouts=wide), seed=8)
+    assert np.abs(seen["data"].u).max() > np.abs(plain.u).max()            # the wider runs are the ones fit
+    np.testing.assert_allclose(seen["data"].x, _teacher_decode(teacher_dir, own.z, own.y, own.u), rtol=0, atol=1e-12)
+    card = load_model(out).card
+    assert card["training"]["config"]["rollouts"]["input_scale"] == [1.0, 1.5]
+    assert card["fit_families"]["constant"]["value"] == pytest.approx([-3.0, 3.0])
+    teacher_card = load_model(teacher_dir).card
+    assert teacher_card["fit_families"]["constant"]["value"] == pytest.approx([-2.0, 2.0])
 
 
 @pytest.mark.parametrize("teacher, message", [("duffing/autonomous", "a bank model directory"),

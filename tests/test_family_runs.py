@@ -80,6 +80,13 @@ def test_the_training_flags(capsys, tmp_path):
                                       "--noise-model", "gauss", "student-t:3", "--out", str(tmp_path / "m")])
     config = training_config(kc.systems.get("duffing"), "bank", args)
     assert config.rollouts.n_traj == 40 and config.rollouts.noise_models == ("gauss", "student-t:3")
+    for given, scale in ((["1.5"], 1.5), (["1", "1.5"], (1.0, 1.5))):
+        args = build_parser().parse_args(["train", "--system", "vdp", "--teacher", "vdp/bank", "--input-scale", *given,
+                                          "--out", str(tmp_path / "s")])
+        assert training_config(kc.systems.get("vdp"), "bank", args).rollouts.input_scale == scale
+    assert main(["train", "--system", "vdp", "--input-scale", "2", "1", "--out", str(tmp_path / "s")]) == 2
+    assert "error: --input-scale: expected a factor > 0 or a range 0 < lo <= hi, received (2.0, 1.0)" in \
+        capsys.readouterr().err
     assert main(["train", "--system", "rossler", "--param-spread", "0.3", "--out", str(tmp_path / "r")]) == 2
     assert "error: --param-spread: expected None for 'rossler', which has no parameterised form" in \
         capsys.readouterr().err

@@ -246,6 +246,46 @@ def test_the_broad_families_and_the_wide_regime() -> None:
         RolloutConfig(regime="huge")
 
 
+@pytest.mark.parametrize("scale", [1.5, (0.8, 1.6)])
+def test_an_input_scale_scales_each_runs_input(scale) -> None:
+    """Open-loop runs take the same inputs times their factor, the laws a limit times it; the factors of a
+    range are log-uniform draws within it; the card's ranges stretch with it."""
+    from kklcasadi.plant.runs import FAMILIES, fit_families, input_factors
+
+    plant = kc.systems.get("vdp")
+    cfg = RolloutConfig(n_traj=14, T=4.0, kinds=FAMILIES, regime="wide", noise_range=(1.0, 1.0), substeps=2)
+    wide = replace(cfg, input_scale=scale)
+    factors = input_factors(wide, 3)
+    if np.ndim(scale):
+        assert np.all((factors >= 0.8) & (factors <= 1.6)) and np.unique(factors).size == 14
+        assert factors.min() < 1 < factors.max()
+    else:
+        np.testing.assert_array_equal(factors, np.full(14, 1.5))
+    plain, runs = rollouts(plant, cfg, 3), rollouts(plant, wide, 3)
+    kinds = np.array([FAMILIES[i % len(FAMILIES)] for i in range(14)])
+    loop = np.isin(kinds, ["feedback", "pd"])
+    for i in np.flatnonzero(~loop):
+        np.testing.assert_allclose(runs.u[i], factors[i] * plain.u[i], rtol=1e-12, atol=1e-15)
+    assert np.abs(plain.u[~loop]).max() > 1.0
+    amp = np.abs(runs.u).max(axis=(1, 2))
+    assert np.all(amp[loop] <= 2.0 * factors[loop] + 1e-12) and np.any(amp[loop] > 2.0)   # the laws' limit
+    np.testing.assert_array_equal(rollouts(plant, replace(cfg, input_scale=(1.0, 1.0)), 3).u, plain.u)
+    lo, hi = (0.8, 1.6) if np.ndim(scale) else (1.5, 1.5)
+    ranges, before = fit_families(wide), fit_families(cfg)
+    assert ranges["constant"]["value"] == pytest.approx((-2.0 * hi, 2.0 * hi))
+    assert ranges["square"]["amplitude"] == pytest.approx((0.1 * lo, 2.0 * hi))
+    assert ranges["feedback"]["limit"] == pytest.approx((2.0 * lo, 2.0 * hi))
+    assert ranges["sinusoid"]["omega"] == before["sinusoid"]["omega"] and ranges["pd"]["gain"] == before["pd"]["gain"]
+
+
+@pytest.mark.parametrize("scale", [0.0, -1.0, (2.0, 1.0), (1.0, 2.0, 3.0), float("nan")])
+def test_an_input_scale_must_be_a_factor_or_a_range(scale) -> None:
+    with pytest.raises(ValueError, match=r"input_scale: expected a factor > 0 or a range 0 < lo <= hi"):
+        RolloutConfig(input_scale=scale)
+    assert RolloutConfig(input_scale=[1, 2]).input_scale == (1.0, 2.0)        # a card's list
+    assert RolloutConfig(input_scale=(2,)).input_scale == 2.0 and RolloutConfig().input_scale == 1.0
+
+
 def test_a_range_of_box_scales_spreads_the_initial_states() -> None:
     plant = kc.systems.get("duffing")
     one = rollouts(plant, RolloutConfig(n_traj=40, T=0.1, kinds=("zero",)), 3, measurement_std=0.0, process_std=0.0)

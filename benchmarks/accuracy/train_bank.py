@@ -65,6 +65,8 @@ def main() -> None:
     p.add_argument("--process-std", help="one std or one per state")
     p.add_argument("--box-scale", help="a factor or lo,hi")
     p.add_argument("--box-share", type=float, help="share of the runs started in the --box-scale range")
+    p.add_argument("--input-scale", help="a factor or lo,hi on the runs' inputs (RolloutConfig.input_scale: a "
+                   "student's runs wider than its --teacher's)")
     p.add_argument("--sample-period", type=float)
     p.add_argument("--dt", type=float, default=0.05)
     p.add_argument("--seed", type=int, default=11)
@@ -90,9 +92,10 @@ def main() -> None:
         runs["kinds"] = FAMILIES if args.kinds == "all" else tuple(args.kinds.split(","))
     if args.noise_range:
         runs["noise_range"] = floats(args.noise_range)
-    if args.box_scale:
-        scale = floats(args.box_scale)
-        runs["box_scale"] = scale[0] if len(scale) == 1 else scale
+    for name in ("box_scale", "input_scale"):
+        if getattr(args, name):
+            scale = floats(getattr(args, name))
+            runs[name] = scale[0] if len(scale) == 1 else scale
     for name in ("regime", "n_traj", "T", "sample_period", "box_share"):
         if getattr(args, name) is not None:
             runs[name] = getattr(args, name)

@@ -65,6 +65,8 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--copies": ("copies", lambda a: None if a.copies is None else tuple(a.copies)),
                  "--skip-path": ("skip", lambda a: True if a.skip_path else None),
                  "--teacher": ("teacher", lambda a: a.teacher),
+                 "--input-scale": ("input_scale", lambda a: None if a.input_scale is None else
+                                   a.input_scale[0] if len(a.input_scale) == 1 else tuple(a.input_scale)),
                  "--loss": ("loss", lambda a: a.loss),
                  "--smape-weight": ("smape_weight", lambda a: a.smape_weight),
                  "--on-inject": ("model_based_injection", lambda a: True if a.on_inject else None)}
@@ -125,6 +127,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="bank: fit the decoders to the estimates of this bank model (its ensemble's mean, through its "
                    "own latent) on the same runs instead of the true states: distillation into a smaller decoder "
                    "(docs/design.md, 'A compact observer')")
+    t.add_argument("--input-scale", nargs="+", type=positive_float, metavar="F",
+                   help="bank: scale each training run's input about the input range's centre by F, or by a factor "
+                   "drawn log-uniformly from F_LO F_HI per run (the open-loop inputs, the feedback laws' limit; "
+                   "default 1): with --teacher, a student fit on runs wider than its teacher's (docs/design.md, "
+                   "'A compact observer')")
     t.add_argument("--loss", choices=("mse", "smape", "mse+smape"),
                    help="bank: the decoders' loss: mse (the default) of the normalised states, smape (the "
                    "protocol's metric) or mse+smape (their sum, --smape-weight on the SMAPE term). mse+smape with "

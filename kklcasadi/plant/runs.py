@@ -39,8 +39,8 @@ from .simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
 from .systems import System
 
 __all__ = ["RolloutConfig", "rollouts", "RK_STEP", "FAMILIES", "DEFAULT_KINDS", "PD_RANGES", "ROLLOUT_REGIMES",
-           "fit_families", "loop_signs", "drifting_states", "input_range", "declares_envelope", "resolved",
-           "ENVELOPE_ESCAPE", "LEGACY_ESCAPE", "ENVELOPE_FIT_AFTER", "LOG_INPUT_MARGIN", "inside_box"]
+           "fit_families", "input_factors", "loop_signs", "drifting_states", "input_range", "declares_envelope",
+           "resolved", "ENVELOPE_ESCAPE", "LEGACY_ESCAPE", "ENVELOPE_FIT_AFTER", "LOG_INPUT_MARGIN", "inside_box"]
 
 #: Input families of the runs (:attr:`RolloutConfig.kinds`): the benchmark's four; ``multisine``, a
 #: random spectrum (2-6 tones with log-uniform frequencies over the sinusoid's range and Dirichlet
@@ -138,6 +138,13 @@ class RolloutConfig:
         width (an angle turns freely).
     like_share : float
         With an envelope: the share of the runs that are ``like`` runs.
+    input_scale : float or (float, float)
+        A factor on every family's input (not on ``like`` runs), or a range each run's factor is drawn from
+        log-uniformly (``default_rng([seed, 8])``; the runs at 1 are those without it): the open-loop families'
+        inputs and the ``feedback`` and ``pd`` laws' limit scaled about the input range's centre. Beyond 1 the
+        runs reach larger inputs than the regime's ranges (the card's ``fit_families`` say how far): meant for
+        a distilled student (``BankConfig.teacher``), which only copies its teacher and may be fit on runs
+        wider than the teacher's (docs/design.md, "A compact observer").
     fit_after : float or None
         The decoder's samples start this long after each run's start (in units of ``1 / time_scale``): the
         latent's first moments from ``z = 0`` (a model copy far from the state, a filter not yet settled) are
@@ -170,6 +177,7 @@ class RolloutConfig:
     envelope: Optional[Envelope] = None
     like_share: float = 0.5
     fit_after: Optional[float] = 0.0
+    input_scale: float | tuple[float, float] = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.n_traj, int) or self.n_traj < 1:
@@ -211,6 +219,11 @@ class RolloutConfig:
             raise error("fit_after", f"a time >= 0 and below T = {self.T!r}, or None", self.fit_after)
         if not (isinstance(self.like_share, (int, float)) and 0 <= self.like_share <= 1):
             raise error("like_share", "a share in [0, 1]", self.like_share)
+        gains = np.atleast_1d(np.asarray(self.input_scale, dtype=float))
+        if gains.size not in (1, 2) or not np.all(np.isfinite(gains)) or not 0 < gains[0] <= gains[-1]:
+            raise error("input_scale", "a factor > 0 or a range 0 < lo <= hi", self.input_scale)
+        object.__setattr__(self, "input_scale",                 # a card's list back as the tuple it was
+                           float(gains[0]) if gains.size == 1 else (float(gains[0]), float(gains[1])))
 
 
 
@@ -381,6 +394,28 @@ def _ranges(kind: str, regime: str) -> Mapping[str, tuple[float, float]]:
     return ranges
 
 
+def input_factors(config: RolloutConfig, seed: int) -> np.ndarray:
+    """Each run's factor on its input (n_traj,): :attr:`RolloutConfig.input_scale`, drawn log-uniformly from
+    ``default_rng([seed, 8])`` where it is a range."""
+    scale = config.input_scale
+    if not isinstance(scale, tuple):
+        return np.full(config.n_traj, float(scale))
+    lo, hi = np.log(scale[0]), np.log(scale[1])
+    return np.exp(np.random.default_rng([seed, 8]).uniform(lo, hi, size=config.n_traj))
+
+
+def _scaled_input(drawn: object, factor: float, t: np.ndarray, u_map: tuple | None) -> object:
+    """A run's input (a signal, samples (N, nu) or a :class:`_Feedback` law) with its input scaled by ``factor``
+    about the input range's centre (the open-loop samples; a law's limit)."""
+    if factor == 1.0:
+        return drawn
+    if isinstance(drawn, _Feedback):
+        return replace(drawn, limit=drawn.limit * factor)
+    samples = np.asarray(drawn(t) if callable(drawn) else drawn, dtype=float)
+    centre = 0.0 if u_map is None else u_map[0]
+    return centre + factor * (samples - centre)
+
+
 def fit_families(config: RolloutConfig, rate: float = 1.0,
                  system: Optional[System] = None) -> dict[str, dict[str, tuple[float, float]]]:
     """The input families of ``config``'s runs with the range of each parameter, as a card's
@@ -391,15 +426,21 @@ def fit_families(config: RolloutConfig, rate: float = 1.0,
     proportional law, not the PD law of the held-out family of that name) its gain, hold and limit;
     ``pd`` (:data:`PD_RANGES`) also its derivative time and lag; ``like`` (with an envelope) the factors
     its log segments are resampled and rescaled by. With ``system``, values, amplitudes and limits are
-    in the plant's input units (:func:`input_range`; over all inputs where they differ).
+    in the plant's input units (:func:`input_range`; over all inputs where they differ), and stretched by
+    :attr:`~RolloutConfig.input_scale` (a range: its lowest factor on the lower bound and its highest on the
+    upper one).
     """
     out: dict[str, dict[str, tuple[float, float]]] = {}
     sine = _ranges("sinusoid", config.regime)
     limit = float(_ranges("constant", config.regime)["value"][1])
     u_box = None if system is None else input_range(system, config.envelope)[0]
+    low, high = (float(np.min(config.input_scale)), float(np.max(config.input_scale)))
 
     def units(name: str, lo: float, hi: float) -> tuple[float, float]:
-        if u_box is None or name not in ("value", "amplitude", "limit"):
+        if name not in ("value", "amplitude", "limit"):
+            return (lo, hi)
+        lo, hi = lo * (low if lo > 0 else high), hi * (high if hi > 0 else low)
+        if u_box is None:
             return (lo, hi)
         offset = u_box.mean(axis=1) if name == "value" else 0.0
         scale = 0.5 * (u_box[:, 1] - u_box[:, 0]) / limit
@@ -640,6 +681,7 @@ def _inputs(system: System, config: RolloutConfig, seed: int, t: np.ndarray, rat
     if config.envelope is not None and config.like_share > 0:
         like[extra.permutation(config.n_traj)[:int(round(config.like_share * config.n_traj))]] = True
     kinds = [config.kinds[j % len(config.kinds)] for j in range(int((~like).sum()))][::-1]
+    factors = input_factors(config, seed)
     x0 = x0.copy()
     inputs, names = [], []
     for i in range(config.n_traj):
@@ -657,7 +699,8 @@ def _inputs(system: System, config: RolloutConfig, seed: int, t: np.ndarray, rat
             continue
         kind = kinds.pop()
         names.append(kind)
-        drawn = _draw_input(kind, rng, config.regime, system, t, y_range, rate, u_map)
+        drawn = _scaled_input(_draw_input(kind, rng, config.regime, system, t, y_range, rate, u_map), factors[i], t,
+                              u_map)
         if config.stabilise and kind == "feedback":            # negative feedback only: the plant drifts
             drawn = replace(drawn, gain=np.abs(drawn.gain) * loop_signs(system))
         if config.stabilise and not isinstance(drawn, _Feedback):
