@@ -162,6 +162,14 @@ class KKLObserver:
         ``step_covariance(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next, P_next)``: :attr:`step`
         with the covariance of ``xhat_next`` (its first three outputs are :attr:`step`'s, bit for bit);
         None without a covariance head. The C function ``name_step`` of a model with a head.
+        Where the card has ``architecture.inflation`` it carries the inflation's state ``m`` (its sixth input
+        and fifth output, 1 at the start: :attr:`inflation`): ``step_covariance(z, w, y, y_next, u_next, m) ->
+        (z_next, w_next, xhat_next, P_next, m_next)``, ``P_next`` inflated.
+    inflation : casadi.Function or None
+        ``inflation(m, y, xhat, P) -> (m_next, P_inflated)``: the covariance head's inflation by the measurement
+        residual (:mod:`kklcasadi.model.variants.inflation`; the card's ``architecture.inflation``); None
+        without one. The covariance at the start (:attr:`covariance` of the first estimate) is not inflated:
+        ``m_0 = 1``.
     """
 
     def __init__(self, model: Model, system: System, *, discretization: Optional[str] = None,
@@ -207,6 +215,7 @@ class KKLObserver:
         self.rhs = ca.Function("rhs", [z, y, u, w], [self._field(z, y, u, self._context_of(w))],
                                ["z", "y", "u", "w"], ["zdot"])
         self.covariance: Optional[ca.Function] = nets.covariance
+        self.inflation: Optional[ca.Function] = nets.inflation
         self.step, self.step_covariance = self._build_step()
         self.monitor = None if spec.monitor is None else FeatureMonitor.from_arrays(spec.monitor, model.arrays)
         features = self.nz + self.memory_shape[0] * self.memory_shape[1]
@@ -258,9 +267,26 @@ class KKLObserver:
         step = ca.Function("step", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next], *names)
         if self.covariance is None:
             return step, None
-        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next],
-                                 [z_next, w_next, xhat_next, self.covariance(z_next, w_next, xhat_next)],
-                                 names[0], names[1] + ["P_next"])
+        P_next = self.covariance(z_next, w_next, xhat_next)
+        if self.inflation is None:
+            return step, ca.Function("step_covariance", [z, w, y, y_next, u_next],
+                                     [z_next, w_next, xhat_next, P_next], names[0], names[1] + ["P_next"])
+        m = ca.MX.sym("m")
+        m_next, P_next = self.inflation(m, y_next, xhat_next, P_next)
+        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next, m],
+                                 [z_next, w_next, xhat_next, P_next, m_next], names[0] + ["m"],
+                                 names[1] + ["P_next", "m_next"])
+
+    def fold_covariance(self, name: str, n: int) -> ca.Function:
+        """:attr:`step_covariance` folded over ``n`` steps (``mapaccum``): ``(z (nz,1), w, y (ny,n), y_next (ny,n),
+        u_next (nu,n)[, m (1,1)]) -> (z (nz,n), w, xhat (nx,n), P (nx,nx n)[, m (1,n)])``, ``z``, ``w`` (and the
+        inflation's ``m``, where the card has one) carried from step to step."""
+        if self.step_covariance is None:
+            raise ValueError("observer: expected a model with a covariance head (architecture.covariance), "
+                             "received one without.")
+        if self.inflation is None:
+            return self.step_covariance.mapaccum(name, n, [0, 1], [0, 1])
+        return self.step_covariance.mapaccum(name, n, [0, 1, 5], [0, 1, 4])
 
     def _build_domain_check(self) -> tuple[Optional[ca.Function], Optional[ca.Function]]:
         """:attr:`domain_check`, and where it tests the ensemble's spread the same check of a spread given
@@ -478,15 +504,16 @@ class KKLObserver:
                 spread[:, 0] = np.asarray(self.spread.map(m)(z_start, w0_cols)).ravel()
                 spread[:, 1:] = spread_steps
         elif n > 1:
-            step = self.step if cov is None else self.step_covariance
-            trajectory = step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
+            trajectory = (self.step.mapaccum("trajectory", n - 1, [0, 1], [0, 1]) if cov is None
+                          else self.fold_covariance("trajectory", n - 1))
             if m > 1:
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
+            start = [np.ones((1, m))] if cov is not None and self.inflation is not None else []
             z_out, w_out, xhat_out, *P_out = trajectory(
                 z_start, w0_cols,
                 ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
-                us[:, 1:].reshape(columns, nu).T)
+                us[:, 1:].reshape(columns, nu).T, *start)
             if cov is not None:               # (nx, nx * columns): block j is the covariance of column j
                 cov[:, 1:] = _blocks(P_out[0], nx).reshape(m, n - 1, nx, nx)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)
