@@ -19,6 +19,7 @@ import casadi as ca
 import numpy as np
 
 from ..compiler import Compiler, c_name
+from ..model.variants.inflation import fold
 from ..validation import positive_int
 from .codegen.kernels import axpy_matvec
 
@@ -69,8 +70,7 @@ class CompiledTrajectory:
             z, w = ca.MX.sym("z", obs.nz), ca.MX.sym("w", *obs.memory_shape)
             y, u = ca.MX.sym("y", obs.ny, size + 1), ca.MX.sym("u", obs.nu, size + 1)
             carried = [ca.MX.sym("m")] if self.inflation else []
-            accumulated = ([0, 1, 5], [0, 1, 4]) if self.inflation else ([0, 1], [0, 1])
-            out = step.mapaccum("chunk", size, *accumulated)(z, w, y[:, :size], y[:, 1:], u[:, 1:], *carried)
+            out = fold(step, "chunk", size)(z, w, y[:, :size], y[:, 1:], u[:, 1:], *carried)
             outputs = list(out)
             names = ["z", "w", "xhat"] + (["P"] if self.covariance else []) + (["m"] if self.inflation else [])
             if self.spread and obs.decoded is None:

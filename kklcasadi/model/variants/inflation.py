@@ -37,7 +37,7 @@ from ...nets.specs import field_error
 from ...plant.systems import System
 from ...validation import is_number
 
-__all__ = ["INFLATION", "Inflation", "residual_statistic", "inflation_numpy", "inflation_function"]
+__all__ = ["INFLATION", "Inflation", "residual_statistic", "inflation_numpy", "inflation_function", "fold"]
 
 #: The card's entry (``architecture.inflation``).
 INFLATION = "inflation"
@@ -151,3 +151,12 @@ def inflation_function(inflation: Inflation, system: System, dt: float) -> ca.Fu
     m_next = (1 - a) * m + (a / inflation.c) * r
     return ca.Function("inflation", [m, y, x, P], [m_next, ca.fmax(1.0, m_next) * P],
                        ["m", "y", "xhat", "P"], ["m_next", "P_inflated"])
+
+
+def fold(step: ca.Function, name: str, n: int) -> ca.Function:
+    """An observer's ``step`` or ``step_covariance`` folded over ``n`` steps (``mapaccum``): ``z`` and ``w`` (its
+    first two inputs and outputs) carried from step to step, and the inflation's state ``m`` (a sixth input and
+    fifth output, where the step has them: :attr:`kklcasadi.KKLObserver.step_covariance`)."""
+    if step.n_in() == 6:
+        return step.mapaccum(name, n, [0, 1, 5], [0, 1, 4])
+    return step.mapaccum(name, n, [0, 1], [0, 1])
