@@ -261,13 +261,13 @@ class KKLObserver:
         step = ca.Function("step", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next], *names)
         if self.covariance is None:
             return step, None
-        P_next, m = self.covariance(z_next, w_next, xhat_next), ca.MX.sym("m")
+        P_next, state = self.covariance(z_next, w_next, xhat_next), ca.MX.sym("m")
         if self.inflation is None:
             return step, ca.Function("step_covariance", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next, P_next],
                                      names[0], names[1] + ["P_next"])
-        m_next, P_next = self.inflation(m, y_next, xhat_next, P_next)       # the inflation's state m, carried
-        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next, m], [z_next, w_next, xhat_next, P_next,
-                                 m_next], names[0] + ["m"], names[1] + ["P_next", "m_next"])
+        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next)   # the inflation's state m, carried
+        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next, state], [z_next, w_next, xhat_next,
+                                 P_next, m_next], names[0] + ["m"], names[1] + ["P_next", "m_next"])
 
     def _build_domain_check(self) -> tuple[Optional[ca.Function], Optional[ca.Function]]:
         """:attr:`domain_check`, and where it tests the ensemble's spread the same check of a spread given
@@ -459,9 +459,8 @@ class KKLObserver:
         xhat[:, 0] = np.asarray(self.decode.map(m)(z_start, w0_cols)).T
         z[:, 0] = z_start.T
         nx = self.nx
-        cov = None
-        if self.covariance is not None:
-            cov = np.empty((m, n, nx, nx))
+        cov = None if self.covariance is None else np.empty((m, n, nx, nx))
+        if self.covariance is not None and cov is not None:
             cov[:, 0] = _blocks(self.covariance.map(m)(z_start, w0_cols, xhat[:, 0].T), nx).reshape(m, nx, nx)
         rows, cols = self.memory_shape
         memory = np.empty((m, n, rows, cols)) if self.monitor is not None else None
@@ -483,7 +482,8 @@ class KKLObserver:
                 spread[:, 0] = np.asarray(self.spread.map(m)(z_start, w0_cols)).ravel()
                 spread[:, 1:] = spread_steps
         elif n > 1:
-            trajectory = fold(self.step if cov is None else self.step_covariance, "trajectory", n - 1)
+            covariance_step = self.step_covariance if cov is not None else None
+            trajectory = fold(self.step if covariance_step is None else covariance_step, "trajectory", n - 1)
             if m > 1:
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)

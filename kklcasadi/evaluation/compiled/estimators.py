@@ -348,7 +348,7 @@ class CompiledRecord(CompiledEstimator):
         y, u, z0 = ca.MX.sym("y", obs.ny, n), ca.MX.sym("u", obs.nu, n), ca.MX.sym("z0", obs.nz)
         w0 = obs.memory_init(y[:, 0], u[:, 0])
         x0 = obs.decode(z0, w0)
-        step = obs.step if not self.covariance else obs.step_covariance
+        step = obs.step_covariance if obs.step_covariance is not None else obs.step
         start = [ca.DM.ones(1)] if step.n_in() == 6 else []             # the covariance inflation's m_0 = 1
         out = fold(step, "trajectory", n - 1)(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:], *start)
         rows = [ca.horzcat(x0, out[2]), ca.horzcat(z0, out[0])]
