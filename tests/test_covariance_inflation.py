@@ -231,3 +231,31 @@ def test_on_a_linear_gaussian_plant_it_keeps_the_exact_covariance_and_restores_i
             assert np.all(alone < 0.75) and np.all(np.abs(coverage - 0.9545) <= 0.02), (coverage, alone)
         else:                                                # measurement noise alone: conservative
             assert np.all(alone < 0.9) and np.all(coverage >= 0.9545), (coverage, alone)
+
+
+# ----------------------------------------------------------------------------- the shipped banks
+
+@pytest.mark.parametrize("system", ["duffing", "vdp", "fhn", "rossler"])
+def test_the_shipped_inflation_is_near_1_in_distribution_and_detects_doubled_noise(system):
+    """Each shipped bank's inflation (chosen on validation seed 12) on 8 protocol runs of another validation seed
+    (13; square waves, 20 s, never the scored 2026): at the protocol's noise the mean factor is at most 1.12
+    (``c`` is the residual statistic's mean there, so ``max(1, m)`` averages a little above 1; measured on seed
+    12: 1.04-1.09), at twice the noise (process and measurement) at least 3 (the errors' variance is about 4x)."""
+    from kklcasadi.evaluation.protocol import Protocol
+    from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, decoder_features
+    from kklcasadi.model.variants.covariance import covariance_numpy
+
+    obs = load_observer(f"{system}/bank")
+    assert obs.inflation is not None
+    model = obs.model
+    head = MLPSpec.from_card(model.card["architecture"][COVARIANCE], "architecture", COVARIANCE)
+    for noise, low, high in ((0.1, 1.0, 1.12), (0.2, 3.0, 6.0)):
+        batch = Protocol(n_trials=8, T=20.0, seed=13, method="rk", process_std=noise,
+                         measurement_std=noise).trials(obs.system, "square")
+        y, u = batch.y[batch.ok], batch.u[batch.ok]
+        est = obs.simulate(batch.t, y, u, vm=True)
+        P = covariance_numpy(head, model.arrays, decoder_features(est.z, y, u), est.xhat,
+                             model.arrays["decoder/out_std"], model.arrays[ASINH_SCALE])
+        lam = est.cov[..., 0, 0] / P[..., 0, 0]
+        np.testing.assert_allclose(est.cov, lam[..., None, None] * P, rtol=1e-9, atol=1e-12 * np.abs(est.cov).max())
+        assert low <= lam.mean() <= high, (system, noise, lam.mean())
