@@ -259,3 +259,18 @@ def test_the_shipped_inflation_is_near_1_in_distribution_and_detects_doubled_noi
         lam = est.cov[..., 0, 0] / P[..., 0, 0]
         np.testing.assert_allclose(est.cov, lam[..., None, None] * P, rtol=1e-9, atol=1e-12 * np.abs(est.cov).max())
         assert low <= lam.mean() <= high, (system, noise, lam.mean())
+
+
+@needs_gcc
+def test_the_step_benchmark_feeds_the_inflations_state(pair, capsys):
+    """``kklcasadi bench observer`` on a card with the inflation: the C step (given m = 1, and in its timed loop
+    m fed back) is checked against the CasADi VM like every other."""
+    import re
+
+    from kklcasadi.evaluation.bench.observer_step import bench_observer_step
+    from kklcasadi.observer.codegen import VECTOR_MATH_TOLERANCE
+
+    runs_ = bench_observer_step(pair[1].model.path, n_calls=2, repeat=1, callgrind=False)[1:]
+    assert any(t.label.startswith("C default") for t in runs_)
+    checks = dict(re.findall(r"^(.+?) +max \|difference\| from the CasADi VM: (\S+)$", capsys.readouterr().out, re.M))
+    assert float(checks["C default (ca.external)"]) <= VECTOR_MATH_TOLERANCE
