@@ -175,7 +175,7 @@ def targets(table: dict) -> str:
     for case, label in LABELS.items():
         ratio, q = table[label]["scored"]["q_dot"] / ekf, table[label]["scored"]["q"]
         met = ratio <= VELOCITY_TARGET and q <= POSITION_TARGET
-        cells.append(f"{CASE_NAMES[case]}: {'met' if met else 'missed'} ({ratio:.2f}x, {1e3 * q:.2f} mm)")
+        cells.append(f"{CASE_NAMES[case]}: {'met' if met else 'missed'} ({ratio:.2f}x, {1e3 * q:.2g} mm)")
     return (f"The targets (issue 45), velocity RMSE within {VELOCITY_TARGET:g}x of the EKF's and the position within "
             f"{1e3 * POSITION_TARGET:g} mm, on the scored part: " + "; ".join(cells) + ".")
 

@@ -90,9 +90,9 @@ def test_the_student_is_fit_to_the_teachers_estimates_and_its_card_says_so(teach
     seen = {}
     fit_members = bank_training.fit_members
 
-    def spy(bank, data, config, angles, seed, *, progress):
+    def spy(bank, data, config, angles, seed, **options):
         seen["data"] = data
-        return fit_members(bank, data, config, angles, seed, progress=progress)
+        return fit_members(bank, data, config, angles, seed, **options)
 
     monkeypatch.setattr(bank_training, "fit_members", spy)
     out = train_observer("duffing", "bank", tmp_path / "student", config=_config(teacher=str(teacher_dir)), seed=8,

@@ -5,7 +5,7 @@ from scipy.linalg import expm
 import kklcasadi as kc
 from kklcasadi.estimators.ekf import EKF
 from kklcasadi.plant import signals as sig
-from kklcasadi.plant.rk4 import rk4_step
+from kklcasadi.plant.rk4 import RK4_STEP_LIMIT, rk4_step, stable_substeps, substeps_for
 
 
 def test_rk4_step_is_the_fourth_order_taylor_polynomial_on_linear_systems():
@@ -17,6 +17,66 @@ def test_rk4_step_is_the_fourth_order_taylor_polynomial_on_linear_systems():
     np.testing.assert_allclose(rk4_step(lambda _s, x: F @ x, x0, h), taylor @ x0, rtol=1e-14)
     errs = [np.abs(rk4_step(lambda _s, x: F @ x, x0, 1.0, n) - expm(F) @ x0).max() for n in (4, 8, 16)]
     assert all(3.8 < np.log2(a / b) < 4.2 for a, b in zip(errs, errs[1:]))
+
+
+def _stiff(lam, u_box=None):
+    """``xdot = -lam x + u`` (one state, measured): its Jacobian's eigenvalue is ``-lam`` everywhere."""
+    import casadi as ca
+
+    x, u = ca.SX.sym("x"), ca.SX.sym("u")
+    return kc.System("stiff", x, u, -lam * x + u, x, [[-1, 1]], u_box=u_box)
+
+
+@pytest.mark.parametrize("lam,dt,expected", [(1.0, 0.05, 1), (40.0, 0.05, 1), (40.0, 0.06, 2), (100.0, 0.05, 3),
+                                             (100.0, 0.2, 10)])
+def test_stable_substeps_is_the_least_count_inside_the_rk4_limit(lam, dt, expected):
+    n = stable_substeps(_stiff(lam), dt)
+    assert n == expected
+    assert dt / n * lam <= RK4_STEP_LIMIT < dt / max(n - 1, 1e-9) * lam or n == 1
+    # the RK4 amplification factor R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24 of one interval: |R|^n < 1 with the
+    # count (the decay is kept), and > 1 with a single step where h |lambda| is past the real-axis limit 2.785
+    z = -lam * dt / n
+    assert abs(1 + z + z ** 2 / 2 + z ** 3 / 6 + z ** 4 / 24) < 1
+    z1 = -lam * dt
+    if z1 < -2.79:
+        assert abs(1 + z1 + z1 ** 2 / 2 + z1 ** 3 / 6 + z1 ** 4 / 24) > 1
+
+
+def test_stable_substeps_on_the_paper_plants_and_over_the_input_box():
+    assert [stable_substeps(kc.systems.get(n), 0.05) for n in ("duffing", "vdp", "rossler", "fhn")] == [1, 1, 1, 5]
+    import casadi as ca
+
+    # the input enters the Jacobian: xdot = -u x with u in [0, 300] needs 8 steps at dt = 0.05 (300 * 0.05 / 2 = 7.5)
+    x, u = ca.SX.sym("x"), ca.SX.sym("u")
+    gain = kc.System("gain", x, u, -u * x, x, [[-1, 1]], u_box=[[0.0, 300.0]])
+    assert stable_substeps(gain, 0.05) in (7, 8)             # drawn inputs reach 280-300 of the box's 300
+
+
+def test_the_benchmarks_counts_for_the_paper_plants_and_the_stable_count_elsewhere():
+    from kklcasadi.estimators.pf import SUBSTEPS
+    from kklcasadi.evaluation.compare import MHE_SUBSTEPS
+
+    assert [substeps_for(kc.systems.get(n), 0.05, SUBSTEPS) for n in ("duffing", "vdp", "rossler", "fhn")] == \
+        [1, 1, 4, 4]                                           # the particle filter's, chosen on the benchmark
+    assert [substeps_for(kc.systems.get(n), 0.05, MHE_SUBSTEPS) for n in ("duffing", "fhn")] == [1, 4]
+    assert substeps_for(_stiff(100.0), 0.05, SUBSTEPS) == 3 == stable_substeps(_stiff(100.0), 0.05)
+
+
+def test_the_ekf_takes_the_stable_count_by_default_and_follows_a_stiff_plant():
+    plant = _stiff(100.0, u_box=[[-1.0, 1.0]])
+    auto, one = EKF(plant, 0.05, R=1e-4), EKF(plant, 0.05, R=1e-4, substeps=1)
+    assert (auto.substeps, one.substeps, EKF(plant, 0.05, substeps=4).substeps) == (3, 1, 4)
+    # the truth settles at u / lam; the one-step filter's prediction amplifies (R(-5) = 13.7 per sample) and its
+    # estimate is pulled by every measurement, the stable one's prediction decays as the plant does
+    t = np.arange(200) * 0.05
+    y = np.full((200, 1), 0.01) + np.random.default_rng(0).normal(0, 0.01, (200, 1))
+    u = np.ones((200, 1))
+    err = [np.abs(f.simulate(t, y, u).xhat[50:, 0] - 0.01).max() for f in (auto, one)]
+    assert err[0] < 0.02 < err[1]
+    with pytest.raises(ValueError, match=r'^substeps: expected a positive int or "auto", received \'often\''):
+        EKF(plant, 0.05, substeps="often")
+    with pytest.raises(ValueError, match=r"^substeps: expected a positive int"):
+        EKF(plant, 0.05, substeps=0)
 
 
 def kalman_reference(F, G, H, Q, R, x0, P0, dt, y, u):

@@ -86,5 +86,5 @@ def test_the_readme_states_the_records_figures():
     for case, label in example["LABELS"].items():
         cell = table[label]["scored"]
         assert (f"{cell['q_dot'] / ekf:.2f}x the EKF's velocity RMSE {example['CASE_NAMES'][case]} (position "
-                f"{1e3 * cell['q']:.1f} mm)") in text, case
+                f"{1e3 * cell['q']:.2g} mm)") in text, case
     assert "[docs/results/emps.md](docs/results/emps.md)" in text and "chose nothing" in text

@@ -108,10 +108,32 @@ def test_the_robustness_baselines_return_the_one_estimate_and_step_bitwise(recor
         assert isinstance(run, Estimate) and run.xhat.shape == (tr.t.size, n_states[name]), name
         assert run.var is not None and run.var.shape == run.xhat.shape and run.z is None, name
         est = flt.estimator()
-        assert isinstance(est, StepEstimator) and isinstance(est, PFEstimator if name == "parameter_pf"
+        inner = est.inner if name != "tuned" else est
+        assert isinstance(est, StepEstimator) and isinstance(inner, PFEstimator if name == "parameter_pf"
                                                              else EKFEstimator), name
-        np.testing.assert_array_equal(_steps(est, tr), run.xhat, err_msg=name)
-        np.testing.assert_array_equal(est.stats["var"], run.var[-1], err_msg=name)
+        if name == "tuned":
+            np.testing.assert_array_equal(_steps(est, tr), run.xhat, err_msg=name)
+            np.testing.assert_array_equal(est.stats["var"], run.var[-1], err_msg=name)
+            continue
+        # the augmented filters' step estimators give the plant's states (what a control loop takes), the
+        # parameters and the disturbance beside them: bitwise the parts of their simulate
+        x, p, d = flt.split(run.xhat)
+        assert est.augmented is None and est.params is None and est.k == 0
+        np.testing.assert_array_equal(_steps(est, tr), x, err_msg=name)
+        np.testing.assert_array_equal(est.augmented, run.xhat[-1], err_msg=name)
+        np.testing.assert_array_equal(est.params, p[-1], err_msg=name)
+        np.testing.assert_array_equal(est.disturbance, d[-1], err_msg=name)
+        np.testing.assert_array_equal(est.stats["var"], run.var[-1, :2], err_msg=name)
+        np.testing.assert_array_equal(est.stats["var_augmented"], run.var[-1], err_msg=name)
+        assert est.k == tr.t.size
+        if name == "augmented":
+            P = est.inner.cov
+            assert P.shape == (5, 5) and np.array_equal(est.cov, P[:2, :2])
+        else:
+            assert not hasattr(est, "cov")                      # the particle filter reports no covariance
+        est.reset()
+        assert est.augmented is None and est.k == 0
+        np.testing.assert_array_equal(_steps(est, tr), x, err_msg=name)       # reset: the same estimates again
     pf_run = filters["parameter_pf"].simulate(tr.t, tr.y, tr.u)
     assert isinstance(pf_run.stats, PFStats) and np.mean(pf_run.stats.ess < 0.9 * 200) > 0.05   # resampled
     x, _, _ = filters["augmented"].split(filters["augmented"].simulate(tr.t, tr.y, tr.u).xhat)
@@ -151,7 +173,11 @@ def test_the_nmpc_loop_takes_any_estimator(observer):
     used = ekf.estimator()
     used.make_step([1.0], [0.0])
     np.testing.assert_array_equal(loop(used).xhat, reference.xhat)           # the loop resets it first
-    for estimator in (observer, ParticleFilter(plant, DT, n_particles=100), kc.MHE(plant, DT, 3), TrueState()):
+    family = kc.systems.get("duffing", param_spread=0.3)
+    augmented_filters = (AugmentedEKF(family, DT, input_disturbance=True),
+                         ParameterPF(family, DT, n_particles=100, seed=2))
+    for estimator in (observer, ParticleFilter(plant, DT, n_particles=100), kc.MHE(plant, DT, 3), TrueState(),
+                      *augmented_filters):
         run = loop(estimator)
         assert run.xhat.shape == (10, 2) and np.all(np.isfinite(run.xhat)) and np.all(np.isfinite(run.u))
         assert run.estimation_rmse < 0.5

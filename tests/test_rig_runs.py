@@ -205,6 +205,8 @@ def test_train_like_takes_the_rigs_envelope_into_the_runs_and_the_card(tmp_path,
     ratio = [(q / envelope["measurement_std"]) ** 2 for q in envelope["process_std"]]
     np.testing.assert_allclose(card["architecture"]["bank"]["copies"]["weights"], [ratio], rtol=1e-12)
     assert card["training"]["noise_copy"].startswith("one copy at the training noise's ratio")
+    assert card["training"]["config"]["copy_residual"] is True                  # the decoders correct that copy
+    assert card["architecture"]["decoder"]["skip"] is True
     # a flag wins over the estimate
     assert main(["train", "--plant", f"{_plant_file(tmp_path)}:make_plant", "--like", str(log), "--time-col", "t",
                  "--y-cols", "pos", "--u-cols", "volts", "--process-std", "0.7", "--epochs", "1", "--quiet",
@@ -228,6 +230,7 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
     added, text = with_noise_copy(_mass(), config)
     assert added.copies == ((0.0, 2500.0),) and added.noise_copy is False and "intensities [0.0, 2500.0]" in text
     assert added.decoder.skip and not config.decoder.skip
+    assert added.copy_residual and not config.copy_residual and "residual over its estimate" in text
     assert with_noise_copy(_mass(u_box=None), config)[0].copies == ()                 # declares nothing
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)
     pendulum = kc.System("pend", x, u, [x[1], -ca.sin(x[0]) + u], x[0], [[-3, 3], [-2, 2]], angle_states=(0,),
@@ -235,6 +238,11 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
     kept, why = with_noise_copy(pendulum, config)
     assert kept.copies == () and "angle states" in why
     assert with_noise_copy(_mass(), replace(config, noise_copy=False))[0].copies == ()
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)      # an angle output of no angle state: a copy, read, not corrected
+    wheel = kc.System("wheel", x, u, [x[1], -0.5 * x[1] + u], [x[0], x[1]], [[-3, 3], [-2, 2]], angle_outputs=(0,),
+                      u_box=[[-1, 1]])
+    read, what = with_noise_copy(wheel, config)
+    assert len(read.copies) == 1 and not read.copy_residual and "no residual" in what
     assert with_noise_copy(_mass(u_box=None), replace(config, noise_copy=True))[0].copies == ((0.0, 2500.0),)
     for bad in ({"copies": ((0.0, 0.0),)}, {"copies": (-1.0,)}, {"noise_copy": "yes"}):
         with pytest.raises(ValueError, match=next(iter(bad))):
@@ -278,3 +286,69 @@ def test_inside_box_refuses_a_box_of_the_wrong_shape():
 
     with pytest.raises(ValueError, match=r"box: expected shape \(nx, 2\) = \(2, 2\).*received shape \(3, 2\)"):
         inside_box(np.zeros((4, 2)), np.zeros((3, 2)))
+
+
+def _copy_data(measurement_std=0.0):
+    """Operational samples of the mass through a small bank and one model copy (its latents last in ``z``)."""
+    from kklcasadi.model.variants.copies import ModelCopies
+
+    plant, bank = _mass(), _bank()
+    copies = ModelCopies.design(plant, [(0.0, 100.0)])
+    cfg = RolloutConfig(n_traj=12, T=8.0, kinds=("sinusoid", "square"), chunk=12, stabilise=True)
+    data = operational_data(plant, bank, cfg, 0, dt=0.05, measurement_std=measurement_std, process_std=0.0,
+                            copies=copies)
+    return plant, bank, copies, data
+
+
+def test_a_decoder_fitted_over_a_base_evaluates_the_base_plus_its_correction():
+    """A base that holds a state exactly (the measured position, without noise) gives it back to rounding, through the
+    folded skip path of the arrays (numpy and torch alike), where the network alone misses it by its fitting error;
+    the other state is normalised as before; bad bases are refused."""
+    torch = pytest.importorskip("torch")
+    from kklcasadi.model.variants import bankdecoder as bd
+    from kklcasadi.train.config import LoopConfig
+    from kklcasadi.train.decoder import DecoderConfig, fit_bank_decoder, torch_decoder
+
+    plant, bank, _, data = _copy_data()
+    np.testing.assert_array_equal(data.x[:, 0], data.y[:, 0])                       # y = q, no noise
+    n_features = data.z.shape[1] + 2
+    base = np.zeros((2, n_features))
+    base[0, data.z.shape[1]] = 1.0                                                    # x_0 over the feature y
+    config = DecoderConfig(hidden=(16,), skip=True, dtype="float64",
+                           loop=LoopConfig(epochs=3, batch_size=64, lr=1e-3, val_fraction=0.1))
+    over = fit_bank_decoder(bank, data, config, base=base)
+    plain = fit_bank_decoder(bank, data, config)
+    assert over.spec == plain.spec and set(over.arrays) == set(plain.arrays)          # the same model format
+    xhat = bd.decode(over.spec, over.arrays, data.z, data.y, data.u)
+    np.testing.assert_allclose(xhat[:, 0], data.x[:, 0], rtol=0, atol=1e-9)
+    assert np.sqrt(np.mean((bd.decode(plain.spec, plain.arrays, data.z, data.y, data.u)[:, 0] - data.x[:, 0]) ** 2)
+                   ) > 1e-4
+    again = torch_decoder(over.spec, over.arrays)(*(torch.as_tensor(a) for a in (data.z, data.y, data.u)))
+    np.testing.assert_allclose(again.detach().numpy(), xhat, rtol=0, atol=1e-12)
+    # the state without a base is normalised as before; the one over it by its residual's spread (0 here)
+    assert over.arrays["decoder/out_std"][1] == plain.arrays["decoder/out_std"][1]
+    np.testing.assert_allclose(over.arrays["decoder/out_std"][1], data.x[:, 1].std(), rtol=1e-10)
+    assert over.arrays["decoder/out_std"][0] < 1e-11 < plain.arrays["decoder/out_std"][0]
+    with pytest.raises(ValueError, match=r"base: expected a finite matrix of shape \(outputs, features\)"):
+        fit_bank_decoder(bank, data, config, base=base[:, :-1])
+    with pytest.raises(ValueError, match="base: expected None for a decoder without the linear skip path"):
+        fit_bank_decoder(bank, data, replace(config, skip=False), base=base)
+
+
+def test_copy_base_picks_the_last_copys_latents():
+    pytest.importorskip("torch")
+    from kklcasadi.model.variants import bankdecoder as bd
+    from kklcasadi.train.bank import BankConfig, copy_base
+
+    plant, bank, copies, data = _copy_data(measurement_std=0.01)
+    base = copy_base(plant, bank, copies, bd.NO_ANGLES, np.zeros(2))
+    features = bd.decoder_features(data.z, data.y, data.u)
+    np.testing.assert_array_equal(features @ base.T, data.z[:, -2:])                 # z_i = xhat_i - r_i
+    late = data.t >= 3.0                                                             # after the copy's transient
+    error = data.z[late, -2:] + copies.reference - data.x[late]
+    assert np.all(np.sqrt(np.mean(error ** 2, axis=0)) < 0.1 * data.x.std(axis=0))
+    np.testing.assert_array_equal(copy_base(plant, bank, copies, bd.NO_ANGLES, np.array([0.0, 2.0]))[1], 0.0)
+    with pytest.raises(ValueError, match="copy_residual: expected False for a plant with angle outputs"):
+        copy_base(plant, bank, copies, bd.Angles(outputs=(0,)), np.zeros(2))
+    with pytest.raises(ValueError, match="copy_residual: expected False for a decoder without model copies"):
+        replace(BankConfig(), copy_residual=True)

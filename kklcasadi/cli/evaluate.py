@@ -56,8 +56,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--ekf", action="store_true", help="add the EKF baseline")
     e.add_argument("--pf", type=positive_int, metavar="N",
                    help="add the bootstrap particle filter with N particles (row 'PF N=...'; the protocol's noise "
-                   "levels, 4 RK4 steps per sample on fhn and rossler). Noisy cells only: the noise-free cells are "
-                   "skipped (its likelihood needs measurement noise)")
+                   "levels, 4 RK4 steps per sample on fhn and rossler, on a plant of yours the fewest that are "
+                   "stable over its box). Noisy cells only: the noise-free cells are skipped (its likelihood needs "
+                   "measurement noise)")
     add_roughening(e)
     e.add_argument("--mhe", nargs="+", type=positive_int, metavar="N",
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
@@ -90,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.report import markdown_table, save_scores, score, smape_boxplot
     from ..evaluation.trialcache import TrialCache, cache_root
     from ..observer.codegen import axpy_matvec, fast_kernels
+    from ..plant.rk4 import substeps_for
 
     wall, cpu, load_start = time.perf_counter(), time.process_time(), os.getloadavg()
     if args.labels is not None and len(args.labels) != len(args.models):
@@ -151,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         pf = pf_estimator(plant, protocol.dt, compiler=compiler, n_threads=args.threads, profile=profile,
                           n_particles=args.pf, process_std=protocol.process_std,
-                          measurement_std=protocol.measurement_std, substeps=SUBSTEPS.get(plant.name, 1),
+                          measurement_std=protocol.measurement_std, substeps=substeps_for(plant, protocol.dt, SUBSTEPS),
                           roughening=args.pf_roughening, seed=protocol.seed)
         scores.append(score(f"PF N={args.pf}", pf, plant, protocol, noise=(True,), kinds=kinds, trials=trials,
                             progress=True, profile=profile))
@@ -227,13 +229,14 @@ def _mhe_scores(horizon: int, plant: System, protocol: Any, noise: tuple, kinds:
     from ..estimators.mhe import MHE
     from ..evaluation.compare import MHE_SUBSTEPS
     from ..evaluation.report import MethodScores, score
+    from ..plant.rk4 import substeps_for
 
     label, results = f"MHE N={horizon}", {}
     t0 = time.perf_counter()
     for noisy in noise:
         prot = protocol if noisy else protocol.noise_free()
         mhe = MHE(plant, protocol.dt, horizon, process_std=prot.process_std, measurement_std=prot.measurement_std,
-                  substeps=MHE_SUBSTEPS.get(plant.name, 1))
+                  substeps=substeps_for(plant, protocol.dt, MHE_SUBSTEPS))
         results.update(score(label, mhe, plant, protocol, noise=(noisy,), kinds=kinds, trials=trials,
                              progress=True).results)
     print(f"{label}: evaluated in {time.perf_counter() - t0:.1f} s", file=sys.stderr)

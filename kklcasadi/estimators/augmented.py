@@ -12,23 +12,25 @@ moves them by Liu and West's kernel shrinkage (``p <- a p + (1 - a) mean(p) + h 
 part again), where the states' roughening (a jitter proportional to the cloud's range) would
 widen a parameter cloud that one sample barely constrains at every resampling.
 
-The estimate of either is the augmented state; :meth:`AugmentedEKF.__call__` (the protocol's
-estimator) returns the plant's states, :meth:`split` separates the parts.
+The estimate of either (``simulate``) is the augmented state; :meth:`AugmentedEKF.__call__` (the
+protocol's estimator) and the step estimator of ``estimator()`` (:class:`PlantStates`, what a control
+loop such as :func:`kklcasadi.estimators.nmpc.closed_loop` takes) return the plant's states, and
+:meth:`split` separates the parts.
 """
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
 from ..plant.augment import augmented
 from ..plant.systems import System
-from ..validation import error, nonnegative_number, positive_number, state_stds
+from ..validation import Text, error, nonnegative_number, positive_number, state_stds
 from .ekf import EKF, noise_covariances
 from .pf import ParticleFilter
 
-__all__ = ["AugmentedEKF", "ParameterPF", "PARAM_WALKS", "SHRINKAGE"]
+__all__ = ["AugmentedEKF", "ParameterPF", "PlantStates", "PARAM_WALKS", "SHRINKAGE"]
 
 #: The grid of the random walk's rate (a fraction of the box width per square-root second) that
 #: :meth:`AugmentedEKF.fit` searches with the noise scales.
@@ -53,8 +55,91 @@ class _Split:
         """The protocol's estimator: ``(t (N,), y (M, N, ny), u (M, N, nu)) -> xhat (M, N, nx)``, the plant's states."""
         return self.split(self.simulate(t, y, u).xhat)[0]   # type: ignore[attr-defined]
 
+    def estimator(self) -> PlantStates:
+        """The filter one sample at a time: ``xhat = est.make_step(y, u)`` gives the plant's states (nx,); the
+        parameters and the disturbance of the same step are ``est.params`` and ``est.disturbance``
+        (a :class:`PlantStates` around the augmented filter's own step estimator)."""
+        return PlantStates(super().estimator(), self)   # type: ignore[misc]
 
-class AugmentedEKF(_Split, EKF):
+
+class PlantStates:
+    """The step estimator of an augmented filter, as the plant's states (a
+    :class:`kklcasadi.estimate.StepEstimator`).
+
+    ``make_step(y_k, u_k)`` returns the first ``nx`` components of the augmented filter's step (bitwise
+    the plant's part of its ``simulate``), so that a loop written for the plant's estimators (the NMPC
+    loop, the closed-loop example) takes it as it takes the EKF's.
+
+    Parameters
+    ----------
+    inner : StepEstimator
+        The augmented filter's own step estimator (``EKF.estimator()`` or ``ParticleFilter.estimator()``
+        of the augmented plant).
+    filt : AugmentedEKF or ParameterPF
+        The filter (its :meth:`split`).
+
+    Attributes
+    ----------
+    inner : StepEstimator
+    augmented : ndarray (nx + n_params + nd,) or None
+        The last augmented estimate, None before the first step.
+    """
+
+    def __init__(self, inner: Any, filt: _Split) -> None:
+        if not callable(getattr(inner, "make_step", None)):
+            raise error("inner", "a step estimator with make_step(y, u)", Text(type(inner).__name__), kind=TypeError)
+        self.inner, self._split = inner, filt.split
+        self.nx = filt.nx
+        self.augmented: Optional[np.ndarray] = None
+
+    @property
+    def k(self) -> int:
+        """Samples taken since the start or the last :meth:`reset`."""
+        return int(self.inner.k)
+
+    def reset(self) -> None:
+        """Forget the past: the next :meth:`make_step` starts again from the prior."""
+        self.inner.reset()
+        self.augmented = None
+
+    def make_step(self, y: object, u: object) -> np.ndarray:
+        """Feed ``y_k`` and ``u_k`` (the input held from ``t_k``); return the plant's states ``xhat_k`` (nx,)."""
+        self.augmented = np.asarray(self.inner.make_step(y, u), dtype=float)
+        return self._split(self.augmented)[0].copy()
+
+    def _part(self, i: int) -> Optional[np.ndarray]:
+        return None if self.augmented is None else self._split(self.augmented)[i].copy()
+
+    @property
+    def params(self) -> Optional[np.ndarray]:
+        """The parameters' estimate (n_params,) of the last step, None before the first."""
+        return self._part(1)
+
+    @property
+    def disturbance(self) -> Optional[np.ndarray]:
+        """The input disturbance's estimate (nu,) of the last step (empty without one), None before the first."""
+        return self._part(2)
+
+    @property
+    def cov(self) -> Optional[np.ndarray]:
+        """The plant states' block (nx, nx) of the augmented filter's covariance (the EKF's ``P``), None before
+        the first step; absent (AttributeError) where the inner estimator reports none (the particle filter)."""
+        cov = self.inner.cov
+        return None if cov is None else np.asarray(cov)[:self.nx, :self.nx].copy()
+
+    @property
+    def stats(self) -> dict:
+        """The inner estimator's stats with ``var`` cut to the plant's states and ``var_augmented`` beside it."""
+        stats = dict(self.inner.stats)
+        var = stats.get("var")
+        stats["var_augmented"] = var
+        stats["var"] = None if var is None else np.asarray(var)[:self.nx].copy()
+        return stats
+
+
+# estimator() gives the plant-state step estimator (PlantStates), not the inner filter's own: a deliberate
+# override in both filters (the type: ignore[misc] on their class lines)
+class AugmentedEKF(_Split, EKF):  # type: ignore[misc]
     """EKF of the plant with its parameters (and an input disturbance) as random-walk states.
 
     Parameters
@@ -74,7 +159,8 @@ class AugmentedEKF(_Split, EKF):
     disturbance_walk : float
     q_scale, r_scale : float
         Factors of the plant states' process-noise std and of the measurement std (as :class:`TunedEKF`).
-    substeps : int
+    substeps : int or "auto"
+        RK4 steps per sample (as :class:`kklcasadi.EKF`'s; "auto" on the augmented plant).
 
     Attributes
     ----------
@@ -89,7 +175,7 @@ class AugmentedEKF(_Split, EKF):
     def __init__(self, system: System, dt: float, *, process_std: float | Sequence[float] = 0.1,
                  measurement_std: float = 0.1, param_walk: float = 0.01, input_disturbance: bool = False,
                  disturbance_box: Any = None, disturbance_walk: float = 0.01, q_scale: float = 1.0,
-                 r_scale: float = 1.0, substeps: int = 1) -> None:
+                 r_scale: float = 1.0, substeps: int | str = "auto") -> None:
         aug = augmented(system, input_disturbance=input_disturbance, disturbance_box=disturbance_box)
         self.plant, self.nx = system, system.nx
         self.param_walk = nonnegative_number(param_walk, "param_walk")
@@ -138,7 +224,7 @@ class AugmentedEKF(_Split, EKF):
         return best
 
 
-class ParameterPF(_Split, ParticleFilter):
+class ParameterPF(_Split, ParticleFilter):  # type: ignore[misc]
     """The bootstrap particle filter over states and parameters, the parameter box as the prior.
 
     Parameters

@@ -18,9 +18,9 @@ import numpy as np
 
 from ..estimate import Estimate, check_sample
 from ..observer.codegen import DEFAULT_FLAGS, c_targets, casadi_source, check_c_name, check_flags, renamed
-from ..plant.rk4 import rk4_step
+from ..plant.rk4 import rk4_step, stable_substeps
 from ..plant.systems import System
-from ..validation import Text, covariance, error, nonnegative_number, one_of, positive_number, state_stds
+from ..validation import Text, covariance, error, nonnegative_number, one_of, positive_int, positive_number, state_stds
 from ..writes import write_dir
 
 __all__ = ["EKF", "EKFEstimator", "EKFEstimate", "NOISE_FLOOR", "EKF_FORMS", "noise_covariances"]
@@ -61,15 +61,23 @@ class EKF:
         Initial estimate; default the X0 box centre.
     P0 : array_like, shape (nx, nx), optional
         Initial covariance; default the variance of the uniform distribution on the box.
-    substeps : int
-        RK4 steps per sample interval.
+    substeps : int or "auto"
+        RK4 steps per sample interval; ``"auto"`` (default): the fewest that keep RK4 stable over the
+        plant's box (:func:`kklcasadi.plant.rk4.stable_substeps`: 1 on Duffing, Van der Pol and
+        Roessler at dt = 0.05, 5 on FitzHugh-Nagumo, whose fast mode one RK4 step amplifies near the
+        box's edges). The number taken is :attr:`substeps`.
     params : array_like, shape (n_params,), optional
         The parameter values of the filter's model, for a plant with parameters; default the
         nominal ones (:meth:`kklcasadi.System.at`).
+
+    Attributes
+    ----------
+    substeps : int
+        The RK4 steps per interval the filter runs.
     """
 
     def __init__(self, system: System, dt: float, *, Q: object = None, R: object = None, x0: object = None,
-                 P0: object = None, substeps: int = 1, params: object = None) -> None:
+                 P0: object = None, substeps: int | str = "auto", params: object = None) -> None:
         if not isinstance(system, System):
             raise error("system", "a kklcasadi.System", Text(type(system).__name__), kind=TypeError)
         if params is not None:
@@ -83,10 +91,15 @@ class EKF:
         self.R = covariance(0.01 * np.eye(ny) if R is None else R, ny, "R")
         self.x0 = system.x0_box.mean(axis=1) if x0 is None else system.check_state(x0, "x0")
         self.P0 = covariance(np.diag(width ** 2 / 12.0) if P0 is None else P0, nx, "P0")
+        if isinstance(substeps, str):
+            if substeps != "auto":
+                raise error("substeps", 'a positive int or "auto"', substeps)
+            substeps = stable_substeps(system, dt)
+        self.substeps = positive_int(substeps, "substeps")
 
         x = ca.SX.sym("x", nx)
         u = ca.SX.sym("u", system.nu)
-        x_next = rk4_step(lambda _s, xx: system.f(xx, u), x, self.dt, substeps)
+        x_next = rk4_step(lambda _s, xx: system.f(xx, u), x, self.dt, self.substeps)
         P = ca.SX.sym("P", nx, nx)
         y = ca.SX.sym("y", ny)
         # measurement update with y at the current estimate
@@ -145,7 +158,7 @@ class EKF:
 
     @classmethod
     def for_noise(cls, system: System, dt: float, *, process_std: float | Sequence[float],
-                  measurement_std: float, **options: object) -> EKF:
+                  measurement_std: float, **options: Any) -> EKF:
         """The EKF tuned for the simulator's noise model (``kklcasadi.simulate``).
 
         ``Q = diag(process_std dt)^2`` (noise of std ``process_std`` on every ``xdot``, or one std

@@ -140,7 +140,8 @@ class ProcessNoise:
                 "method": "maximum likelihood of the EKF's innovations, R fixed, Q = diag(q dt)^2 (L-BFGS-B in log q)"}
 
 
-def _likelihood(system: System, dt: float, r: np.ndarray, states: tuple, substeps: int) -> tuple[ca.Function, EKF]:
+def _likelihood(system: System, dt: float, r: np.ndarray, states: tuple,
+                substeps: int | str) -> tuple[ca.Function, EKF]:
     """``(s, uyw, log_q) -> s_next``: one EKF step whose state ``s = [x; vec(P); nll]`` carries the weighted
     sum of the innovations' negative log-likelihood (``uyw = [u_k; y_k+1; weight]``), and the EKF (no
     process noise) it is built on."""
@@ -164,7 +165,7 @@ def _likelihood(system: System, dt: float, r: np.ndarray, states: tuple, substep
 
 
 def process_noise(system: System, logs: Sequence[Any], *, dt: float, measurement_std: Any,
-                  states: Optional[Sequence[int]] = None, settle: float = 1.0, substeps: int = 1,
+                  states: Optional[Sequence[int]] = None, settle: float = 1.0, substeps: int | str = "auto",
                   bounds: tuple[float, float] = (1e-8, 1e4), shared: bool = False) -> ProcessNoise:
     """The process-noise std per state that maximises the likelihood of the logs' EKF innovations.
 
@@ -181,8 +182,8 @@ def process_noise(system: System, logs: Sequence[Any], *, dt: float, measurement
         The states whose std is estimated; default :func:`forced_states` (the others get 0).
     settle : float
         Seconds at the start of each log whose innovations are left out (the prior's transient).
-    substeps : int
-        RK4 steps per sample of the EKF's prediction.
+    substeps : int or "auto"
+        RK4 steps per sample of the EKF's prediction (as :class:`kklcasadi.EKF`'s).
     bounds : (float, float)
         The search's bounds on ``q_i`` in units of state ``i``'s scale (the half-width of its X0 box row
         times the plant's time scale, :func:`kklcasadi.plant.design.time_scales`).
@@ -213,7 +214,7 @@ def process_noise(system: System, logs: Sequence[Any], *, dt: float, measurement
     if isinstance(logs, (str, bytes)) or not isinstance(logs, Sequence) or not logs:
         raise error("logs", "a non-empty sequence of logs on the model's grid", Text(type(logs).__name__),
                     kind=TypeError)
-    step, ekf = _likelihood(system, dt, r, states, positive_int(substeps, "substeps"))
+    step, ekf = _likelihood(system, dt, r, states, substeps)
     runs, scored = [], 0
     for n, log in enumerate(logs):
         t, y = np.asarray(log.t, dtype=float), np.asarray(log.y, dtype=float)

@@ -59,9 +59,9 @@ __all__ = ["ParticleFilter", "PFEstimator", "PFStats", "PFEstimate", "RESAMPLING
 
 #: Resampling schemes accepted by ``resample``.
 RESAMPLING = ("systematic", "stratified", "multinomial")
-#: RK4 steps per sample interval that the benchmark's filter uses per system (one elsewhere): one
-#: step diverges on the stiff corners of FitzHugh-Nagumo's box, and its truncation error is
-#: measurable on Roessler.
+#: RK4 steps per sample interval that the benchmark's filter uses on the paper's plants (the others get
+#: the stable count, :func:`kklcasadi.plant.rk4.substeps_for`): one step diverges on the stiff corners of
+#: FitzHugh-Nagumo's box, and its truncation error is measurable on Roessler.
 SUBSTEPS = {"fhn": 4, "rossler": 4}
 #: The roughening of the benchmarks' filter (``kklcasadi evaluate --pf``, ``kklcasadi generalise --pf``).
 #: Without it 1000 particles fall behind the EKF at low noise (noise 0.05: Roessler 1.8-2.3x, Van der

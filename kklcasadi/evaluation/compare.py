@@ -24,12 +24,14 @@ from ..estimators.kkl_mhe import kkl_error_profile
 from ..estimators.mhe import MHE, MHEStats
 from ..observer.kkl import KKLObserver
 from ..plant import signals as sig
+from ..plant.rk4 import substeps_for
 from .protocol import CellResult, Protocol
 from .report import MethodScores
 
 __all__ = ["SystemComparison", "compare_system", "MHE_SUBSTEPS"]
 
-#: RK4 steps per sample interval in the MHE model: FitzHugh-Nagumo is stiff at the box edge.
+#: RK4 steps per sample interval in the MHE model on the paper's plants (the others get the stable count,
+#: :func:`kklcasadi.plant.rk4.substeps_for`): FitzHugh-Nagumo is stiff at the box edge.
 MHE_SUBSTEPS = {"fhn": 4}
 
 
@@ -126,7 +128,7 @@ def compare_system(observer: KKLObserver, protocol: Protocol, *, horizons: Seque
     if abs(protocol.dt - dt) > 1e-12:
         raise ValueError(f"protocol: its dt = {protocol.dt} differs from the observer's dt = {dt}.")
     say = log or (lambda _line: None)
-    substeps = MHE_SUBSTEPS.get(plant.name, 1)
+    substeps = substeps_for(plant, dt, MHE_SUBSTEPS)
     ekf = EKF(plant, dt) if ekf is None else ekf
     kkl_label = f"KKL ({observer.method})"
     results: dict[str, dict] = {}

@@ -29,6 +29,7 @@ from ..estimators.ekf import EKF
 from ..estimators.pf import ROUGHENING, SUBSTEPS, ParticleFilter
 from ..observer.kkl import KKLObserver
 from ..plant import signals as sig
+from ..plant.rk4 import substeps_for
 from ..plant.simulate import TrajectoryBatch, simulate_batch
 from ..plant.systems import System
 from ..validation import Text, error, nonnegative_number, one_of, positive_int, positive_number
@@ -515,7 +516,7 @@ def run(observers: Sequence[tuple[str, KKLObserver]], case_list: Sequence[Case],
         ekf_scores.append(metrics.smape(x, ekf_estimator(ekf, compiler=compiler, n_threads=n_threads)(batch.t, y, u)))
         if pf_scores is not None:
             pf = ParticleFilter(plant, settings.dt, n_particles=pf_particles, process_std=case.noise,
-                                measurement_std=case.noise, substeps=SUBSTEPS.get(plant.name, 1),
+                                measurement_std=case.noise, substeps=substeps_for(plant, settings.dt, SUBSTEPS),
                                 roughening=pf_roughening, seed=settings.seed)
             pf_scores.append(metrics.smape(x, pf(batch.t, y, u)))
     models = [ModelResult(label, fit_families(obs), obs.model.spec.measurement_std, *results[label])

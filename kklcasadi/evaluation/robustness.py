@@ -36,6 +36,7 @@ from ..observer.kkl import KKLObserver
 from ..plant import signals as sig
 from ..plant.augment import perturbed
 from ..plant.noise import noise_model
+from ..plant.rk4 import substeps_for
 from ..plant.simulate import TrajectoryBatch, simulate_batch
 from ..plant.systems import System
 from ..validation import Text, error, nonnegative_number, one_of, positive_int, positive_number
@@ -487,7 +488,8 @@ def run(observers: Sequence[tuple[str, KKLObserver]], family: System, case_list:
             how = {"jit": False} if compiler is None else {"compile": compiler.compile}
             pf = ParameterPF(family, settings.dt, n_particles=pf_particles, process_std=settings.noise,
                              measurement_std=settings.noise, noise_model=case.noise_model,
-                             substeps=SUBSTEPS.get(family.name, 1), roughening=pf_roughening, seed=settings.seed,
+                             substeps=substeps_for(family, settings.dt, SUBSTEPS), roughening=pf_roughening,
+                             seed=settings.seed,
                              n_threads=n_threads, **how)
             k = len(x) if pf_trials is None else min(pf_trials, len(x))
             score("pf", pf.simulate(t, y[:k], u[:k]), lambda a: pf.split(a)[0])

@@ -20,7 +20,7 @@ from ..model.variants import bankdecoder as bd
 from ..model.variants import filterbank as fb
 from ..nets.specs import DECODER
 from ..plant.runs import RolloutConfig
-from ..validation import error, positive_number
+from ..validation import Text, error, positive_number
 from .config import LoopConfig
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
@@ -190,7 +190,8 @@ class BankFit:
 
 
 def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: DecoderConfig, *,
-                     angles: bd.Angles = bd.NO_ANGLES, seed: int = 0, progress: bool = False) -> BankFit:
+                     angles: bd.Angles = bd.NO_ANGLES, seed: int = 0, progress: bool = False,
+                     base: np.ndarray | None = None) -> BankFit:
     """Fit the decoder ``[z_k; y_k; u_k] -> x_k`` on operational samples of the bank observer.
 
     Parameters
@@ -205,6 +206,11 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
         Seeds torch, the split and the shuffles.
     progress : bool
         Show a progress bar.
+    base : numpy.ndarray, shape (n_out, n_features), optional
+        A linear map of the decoder's features the network's output is a correction of: the network is fitted
+        to the residual ``v - base f`` of its targets (normalised by the residual's own mean and std), and
+        ``base`` is folded into its linear skip path (``config.skip`` must be set), so the arrays evaluate
+        ``base f`` plus the fitted correction (:func:`kklcasadi.train.bank.copy_base`: a model copy's estimate).
 
     Returns
     -------
@@ -218,6 +224,15 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     feats = bd.decoder_features(data.z, data.y, data.u, angles=angles, gains=bd.dc_gains(bank))
     v = bd.decoder_targets(data.x, data.y, scale, angles)
     sizes = (feats.shape[1], *config.hidden, v.shape[1])
+    if base is not None:
+        base = np.asarray(base, dtype=float)
+        if base.shape != (v.shape[1], feats.shape[1]) or not np.all(np.isfinite(base)):
+            raise error("base", f"a finite matrix of shape (outputs, features) = {(v.shape[1], feats.shape[1])}",
+                        Text(f"shape {base.shape}"))
+        if not config.skip:
+            raise error("base", "None for a decoder without the linear skip path it is folded into (skip False)",
+                        Text("a matrix"), "set DecoderConfig(skip=True)")
+    offset = np.zeros_like(v) if base is None else feats @ base.T           # what the network corrects
     dtype = torch_dtype(config.dtype)
     torch.manual_seed(seed)
     mlp = MLP(sizes, config.activation, skip=config.skip).to(torch.float64)
@@ -225,11 +240,12 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
         f_mean, white = whitening(feats)
     else:
         f_mean, white = feats.mean(axis=0), np.diag(1.0 / (feats.std(axis=0) + 1e-12))
-    mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), v.mean(axis=0), v.std(axis=0) + 1e-12)
+    residual = v - offset
+    mlp.set_normalisation(np.zeros(sizes[0]), np.ones(sizes[0]), residual.mean(axis=0), residual.std(axis=0) + 1e-12)
     mlp = mlp.to(dtype)
     uses_smape = config.loss in ("smape", "mse+smape")         # only the SMAPE term reads x and y: not gathered else
-    data_set = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": v,
-                             **({"x": data.x, "y": data.y} if uses_smape else {})}, dtype=dtype)
+    data_set = ArrayDataset({"f": (feats - f_mean) @ white.T, "v": residual,
+                             **({"x": data.x, "y": data.y, "b": offset} if uses_smape else {})}, dtype=dtype)
     out_std = torch.as_tensor(mlp.out_std.detach().clone())
 
     def loss_fn(batch: Mapping[str, Tensor], epoch: int) -> tuple[Tensor, dict[str, float]]:
@@ -241,7 +257,7 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
             parts["mse"] = mse.item()
             total = total + mse
         if uses_smape:
-            xhat = _torch_outputs(pred, batch["y"], scale, angles)
+            xhat = _torch_outputs(pred + batch["b"], batch["y"], scale, angles)
             xt = batch["x"]
             sm = (2.0 * (xt - xhat).abs() / (xt.abs() + xhat.abs() + config.smape_eps)).mean()
             parts["smape"] = sm.item()
@@ -251,6 +267,9 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     result = fit(list(mlp.parameters()), loss_fn, data_set, config.loop, name="bank decoder", seed=seed,
                  progress=progress)
     arrays = fold_whitening(mlp.to(torch.float64).to_arrays(DECODER), f_mean, white)
+    if base is not None:         # (layers + Wskip (f - m)) s + o + B f = (layers + (Wskip + B / s) (f - m)) s + o + B m
+        arrays[f"{DECODER}/Wskip"] = arrays[f"{DECODER}/Wskip"] + base / arrays[f"{DECODER}/out_std"][:, None]
+        arrays[f"{DECODER}/out_mean"] = arrays[f"{DECODER}/out_mean"] + base @ f_mean
     arrays[bd.ASINH_SCALE] = scale.copy()
     arrays.update(fb.bank_arrays(bank))
     pct = np.percentile(data.x, [0.1, 50.0, 99.9], axis=0)
