@@ -2,6 +2,7 @@
 
     OMP_NUM_THREADS=2 python benchmarks/covariance_heads.py MODEL --out DIR [--fit-seed 11] [--val-seed 12]
         [--fit-trials 50] [--val-trials 25] [--every 4] [--dense-until 0] [--epochs 20] [--hidden 16] [--seed 0]
+        [--noisy-levels 0.2] [--time-constants 1 2.5 5] [--inflation-only]
 
 The head (:mod:`kklcasadi.model.variants.covariance`) is fit by the Gaussian likelihood of the observer's own
 errors (:func:`kklcasadi.train.covariance.fit_covariance`) on noisy runs of the protocol's four input regimes
@@ -13,6 +14,13 @@ is the protocol's scored seed (2026). DIR gets the model with the head (``archit
 ``covariance/*``, and ``training.covariance``: seeds, samples, the fit, the calibration factors and the validation
 runs' consistency), its history copied; the script checks that the estimates of DIR equal the model's bit for bit
 on the validation runs, and stops otherwise.
+
+Then the head's inflation by the measurement residual (:mod:`kklcasadi.model.variants.inflation`,
+``architecture.inflation``): ``R`` the protocol's measurement noise variance, ``c`` and the time constant chosen by
+:func:`kklcasadi.train.covariance.calibrate_inflation` on the calibration runs and on runs of the same recipe and
+seed at the process and measurement noise std ``--noisy-levels`` (validation runs only; the choice and every
+candidate's scores go to ``training.covariance.inflation``). ``--inflation-only`` keeps MODEL's head as it is (no
+fit, no calibration) and sets only its inflation.
 """
 
 from __future__ import annotations
@@ -34,28 +42,65 @@ from kklcasadi.model.files import load_model, save_model
 from kklcasadi.model.shipped import resolve
 from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, decoder_features
 from kklcasadi.model.variants.covariance import COVARIANCE, SCALE, covariance_numpy
+from kklcasadi.model.variants.inflation import INFLATION
 from kklcasadi.nets.specs import MLPSpec
 from kklcasadi.observer.kkl import load_observer
 from kklcasadi.plant import signals as sig
-from kklcasadi.train.covariance import CovarianceConfig, calibrate, fit_covariance, output_errors
+from kklcasadi.train.covariance import (
+    CovarianceConfig,
+    ValidationRuns,
+    calibrate,
+    calibrate_inflation,
+    fit_covariance,
+    output_errors,
+)
 
 
-def runs(obs, seed: int, trials: int, method: str = "rk"):
+def runs(obs, seed: int, trials: int, method: str = "rk", noise: float | None = None, measured: bool = False):
     """The observer (compiled, bitwise ``obs.simulate``) on ``trials`` noisy protocol runs per input regime from
-    ``seed``: (t, x, xhat, features), trials of every regime stacked."""
-    protocol = Protocol(n_trials=trials, seed=seed, method=method)
+    ``seed`` (at the protocol's noise, or at process and measurement noise std ``noise``): (t, x, xhat, features),
+    trials of every regime stacked, and with ``measured`` the measurements last."""
+    stds = {} if noise is None else {"process_std": noise, "measurement_std": noise}
+    protocol = Protocol(n_trials=trials, seed=seed, method=method, **stds)
     record = CompiledRecord(obs)
-    xs, xhats, feats = [], [], []
+    xs, ys, xhats, feats = [], [], [], []
     for kind in sig.BENCHMARK_KINDS:
         batch = protocol.trials(obs.system, kind)
         ok = batch.ok
         xhat, z, _ = record.record(batch.t, batch.y[ok], batch.u[ok])
         xs.append(batch.x[ok])
+        ys.append(batch.y[ok])
         xhats.append(xhat)
         feats.append(decoder_features(z, batch.y[ok], batch.u[ok]))
         t = batch.t
-        print(f"runs     seed {seed}, {kind}: {int(ok.sum())} trials", flush=True)
-    return t, np.concatenate(xs), np.concatenate(xhats), np.concatenate(feats)
+        print(f"runs     seed {seed}, {kind}, noise {protocol.measurement_std}: {int(ok.sum())} trials", flush=True)
+    out = (t, np.concatenate(xs), np.concatenate(xhats), np.concatenate(feats))
+    return (*out, np.concatenate(ys)) if measured else out
+
+
+def inflation(obs, head: MLPSpec, arrays, args) -> tuple[dict, dict]:
+    """The head's inflation (``architecture.inflation``) and its record, chosen on validation runs (``--val-seed``)
+    at the protocol's noise and at ``--noisy-levels``."""
+    out_std, asinh = arrays["decoder/out_std"], arrays[ASINH_SCALE]
+
+    def validation(noise):
+        t, x, xhat, f, y = runs(obs, args.val_seed, args.val_trials, noise=noise, measured=True)
+        return ValidationRuns(t, x, y, xhat, covariance_numpy(head, arrays, f, xhat, out_std, asinh))
+
+    R = [Protocol.measurement_std ** 2] * obs.ny
+    chosen, table = calibrate_inflation(obs.system, obs.dt, R, validation(None),
+                                        [validation(level) for level in args.noisy_levels], args.time_constants)
+    for row in table:
+        print(f"inflation time constant {row['time_constant']:g} s: worst 2-sigma coverage off by "
+              f"{100 * row['worst']:.2f} points; " + "; ".join(
+                  f"mean {s['mean_inflation']:.3f}, coverage {[round(100 * v, 1) for v in s['coverage_2sigma']]}"
+                  for s in row["sets"]), flush=True)
+    print(f"inflation {chosen.to_card()}", flush=True)
+    record = {"how": "c: the residual statistic's mean on the validation runs at the protocol's noise; the time "
+                     "constant: the candidate whose worst 2-sigma coverage (states, noise levels) is nearest 95.45 %",
+              "validation_seed": args.val_seed, "validation_trials_per_regime": args.val_trials,
+              "noise_levels": [Protocol.measurement_std, *args.noisy_levels], "candidates": table}
+    return chosen.to_card(), record
 
 
 def main() -> None:
@@ -72,6 +117,13 @@ def main() -> None:
     p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--hidden", type=int, nargs="+", default=[16])
     p.add_argument("--seed", type=int, default=0, help="the head's initialisation and batches")
+    p.add_argument("--noisy-levels", type=float, nargs="+", default=[0.2], metavar="STD",
+                   help="noise std of the validation runs the inflation's time constant is chosen on, besides the "
+                        "protocol's (default 0.2)")
+    p.add_argument("--time-constants", type=float, nargs="+", default=[1.0, 2.5, 5.0], metavar="S",
+                   help="the inflation's candidate time constants in seconds (default 1 2.5 5)")
+    p.add_argument("--inflation-only", action="store_true",
+                   help="keep MODEL's covariance head; set only its inflation")
     args = p.parse_args()
     if args.fit_seed in (Protocol.seed, args.val_seed) or args.val_seed == Protocol.seed:
         p.error(f"--fit-seed, --val-seed: expected two seeds other than each other and the scored seed "
@@ -83,6 +135,18 @@ def main() -> None:
     obs = load_observer(source)
     out_std, asinh = model.arrays["decoder/out_std"], model.arrays[ASINH_SCALE]
     start = time.perf_counter()
+    if args.inflation_only:
+        if COVARIANCE not in model.card["architecture"]:
+            p.error("--inflation-only: expected a model with a covariance head (architecture.covariance)")
+        head = MLPSpec.from_card(model.card["architecture"][COVARIANCE], "architecture", COVARIANCE)
+        entry, record = inflation(obs, head, model.arrays, args)
+        card = copy.deepcopy(model.card)
+        card["architecture"][INFLATION] = entry
+        stamp = provenance.stamp(seeds={"validation": args.val_seed})
+        card["training"]["covariance"]["inflation"] = {"command": stamp.command, "commit": stamp.commit, **record,
+                                                       "wall_time_s": round(time.perf_counter() - start, 1)}
+        write(args.out, source, obs, model.arrays, card, args.val_seed, start)
+        return
 
     t, x, xhat, f = runs(obs, args.fit_seed, args.fit_trials)
     k = (np.arange(t.size) % args.every == 0) | (t < args.dense_until)
@@ -102,8 +166,10 @@ def main() -> None:
     print(f"validation runs (seed {args.val_seed}, calibrated there): {score}", flush=True)
 
     arrays = {**model.arrays, **fitted.arrays, SCALE: scale}
+    entry, record = inflation(obs, head, arrays, args)
     card = copy.deepcopy(model.card)
     card["architecture"][COVARIANCE] = fitted.arch
+    card["architecture"][INFLATION] = entry
     stamp = provenance.stamp(seeds={"fit": args.fit_seed, "validation": args.val_seed, "head": args.seed})
     card["training"]["covariance"] = {
         "how": "Gaussian negative log-likelihood of the observer's errors on noisy protocol runs (docs/protocol.md "
@@ -113,15 +179,21 @@ def main() -> None:
         "head_seed": args.seed,
         "config": {"hidden": list(config.hidden), "activation": config.activation, "epochs": args.epochs},
         "fit": fitted.fit.summary(), "validation_seed": args.val_seed, "validation_trials_per_regime":
-        args.val_trials, "scale": scale.tolist(), "validation": score,
+        args.val_trials, "scale": scale.tolist(), "validation": score, "inflation": record,
         "wall_time_s": round(time.perf_counter() - start, 1)}
-    out = save_model(args.out, arrays, card)
+    write(args.out, source, obs, arrays, card, args.val_seed, start)
+
+
+def write(out: Path, source, obs, arrays, card, seed: int, start: float) -> None:
+    """Save the model with the head at ``out`` (MODEL's history copied), and check that its estimates are MODEL's
+    bit for bit on validation runs (stop otherwise)."""
+    out = save_model(out, arrays, card)
     history = Path(source) / "history.json"
     if history.exists():
         shutil.copyfile(history, out / "history.json")
 
     headed = load_observer(out)
-    check = Protocol(n_trials=4, seed=args.val_seed, method="rk").trials(obs.system, "square")
+    check = Protocol(n_trials=4, seed=seed, method="rk").trials(obs.system, "square")
     a = obs.simulate(check.t, check.y[check.ok], check.u[check.ok])
     b = headed.simulate(check.t, check.y[check.ok], check.u[check.ok])
     if not (np.array_equal(a.xhat, b.xhat) and np.array_equal(a.z, b.z)):

@@ -278,13 +278,21 @@ def _tightening() -> str:
 
 def consistency() -> str:
     """The covariance heads of the shipped banks beside the EKF's own, on the protocol's noisy cells."""
-    lines, verdicts, fits = [], [], []
+    lines, verdicts, fits, inflations = [], [], [], []
     for system in ("duffing", "vdp", "rossler", "fhn"):
         card = json.loads((ROOT / "models" / system / "bank" / "card.json").read_text())
         record = card["training"].get("covariance")
         if record is None:
             fits.append(f"| {system} | no head | | | | |")
             continue
+        inflation = card["architecture"].get("inflation")
+        if inflation is not None:
+            chosen = next(c for c in record["inflation"]["candidates"]
+                          if c["time_constant"] == inflation["time_constant"])
+            inflations.append(
+                f"| {system} | {inflation['c']:.3f} | {inflation['time_constant']:g} | "
+                + " | ".join(f"{s['mean_inflation']:.2f}, {' / '.join(f'{100 * c:.1f}' for c in s['coverage_2sigma'])}"
+                             for s in chosen["sets"]) + " |")
         v = record["validation"]
         dense = record.get("fit_dense_until", 0.0)
         fits.append(f"| {system} | {record['fit_trials_per_regime']} x 4 (seed {record['fit_seed']}), "
@@ -334,6 +342,12 @@ def consistency() -> str:
               "calibrated on, the calibration factors, and the consistency on the calibration runs themselves "
               "(validation data, not scored):\n\n| system | fit runs per regime | calibration runs per regime | "
               "factors | mean NEES (band) | 2-sigma coverage % |\n|---|---|---|---|---|---|\n" + "\n".join(fits)
+            + "\n\nEach head's covariance is inflated by `max(1, m)`, `m` the exponential average of its "
+              "measurement residual's statistic over `c` (`architecture.inflation`, docs/model-format.md; "
+              "chosen on the calibration runs at the protocol's noise 0.1 and at 0.2, "
+              "`training.covariance.inflation`; validation data, not "
+              "scored):\n\n| system | c | time constant (s) | noise 0.1: mean factor, 2-sigma coverage % | noise 0.2: "
+              "mean factor, 2-sigma coverage % |\n|---|---|---|---|---|\n" + "\n".join(inflations)
             + "\n\nOn the scored trials:\n\n" + "\n".join(verdicts) + "\n\n" + head + "\n"
             + "\n".join(lines) + "\n\nFrom " + (", ".join(sources) or "no run") + ".\n"
             + "\n## Off distribution\n\nThe target: 2-sigma coverage at least "

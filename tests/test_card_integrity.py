@@ -370,8 +370,9 @@ def _weights(commit, where):
         return {name: data[name] for name in data.files}
 
 
-#: What benchmarks/covariance_heads.py writes into a shipped bank's card (its head and how it was fit).
-HEAD_FIELDS = (("architecture", "covariance"), ("training", "covariance"))
+#: What benchmarks/covariance_heads.py writes into a shipped bank's card (its head, its inflation and how they were
+#: fit).
+HEAD_FIELDS = (("architecture", "covariance"), ("architecture", "inflation"), ("training", "covariance"))
 
 
 def _without_head(card):

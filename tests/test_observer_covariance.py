@@ -119,7 +119,7 @@ def test_a_head_with_wrong_sizes_is_refused(model_dir_factory):
         load_model(path)
     card["architecture"]["covariances"] = card["architecture"].pop(COVARIANCE)
     write_signed_card(path, card)
-    with pytest.raises(ValueError, match=r"'architecture'.*optionally \['covariance'\]"):
+    with pytest.raises(ValueError, match=r"'architecture'.*optionally \['covariance', 'inflation'\]"):
         load_model(path)
 
 

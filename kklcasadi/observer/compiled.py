@@ -19,6 +19,7 @@ import casadi as ca
 import numpy as np
 
 from ..compiler import Compiler, c_name
+from ..model.variants.inflation import fold
 from ..validation import positive_int
 from .codegen.kernels import axpy_matvec
 
@@ -53,28 +54,32 @@ class CompiledTrajectory:
             raise TypeError(f"compiler: expected a kklcasadi.compiler.Compiler, received {type(compiler).__name__}.")
         self.observer, self.compiler, self.chunk = observer, compiler, positive_int(chunk, "chunk")
         self.covariance = observer.step_covariance is not None
+        self.inflation = self.covariance and observer.inflation is not None     # the step carries m
         monitor = observer.monitor
         self.spread = monitor is not None and monitor.spec.spread is not None       # the domain check's spread test
         self._functions: dict[int, ca.Function] = {}
 
     def function(self, size: int) -> ca.Function:
-        """``(z (nz, 1), w, y (ny, size + 1), u (nu, size + 1)) -> (z (nz, size), w (rows, cols size),
-        xhat (nx, size)[, P (nx, nx size)][, spread (1, size)])``: the steps ``k -> k + 1`` for ``k < size``
-        (with the covariance head, and the decoder ensemble's spread where the domain monitor tests it),
-        compiled (cached on disk and here)."""
+        """``(z (nz, 1), w, y (ny, size + 1), u (nu, size + 1)[, m (1, 1)]) -> (z (nz, size), w (rows, cols size),
+        xhat (nx, size)[, P (nx, nx size)][, m (1, size)][, spread (1, size)])``: the steps ``k -> k + 1`` for
+        ``k < size`` (with the covariance head and its inflation's state ``m``, and the decoder ensemble's spread
+        where the domain monitor tests it), compiled (cached on disk and here)."""
         if size not in self._functions:
             obs = self.observer
             step = self._step()
             z, w = ca.MX.sym("z", obs.nz), ca.MX.sym("w", *obs.memory_shape)
             y, u = ca.MX.sym("y", obs.ny, size + 1), ca.MX.sym("u", obs.nu, size + 1)
-            out = step.mapaccum("chunk", size, [0, 1], [0, 1])(z, w, y[:, :size], y[:, 1:], u[:, 1:])
-            outputs, names = list(out), ["z", "w", "xhat"] + (["P"] if self.covariance else [])
+            carried = [ca.MX.sym("m")] if self.inflation else []
+            out = fold(step, "chunk", size)(z, w, y[:, :size], y[:, 1:], u[:, 1:], *carried)
+            outputs = list(out)
+            names = ["z", "w", "xhat"] + (["P"] if self.covariance else []) + (["m"] if self.inflation else [])
             if self.spread and obs.decoded is None:
                 outputs.append(obs.spread.map(size)(out[0], out[1]))
             if self.spread:
                 names.append("spread")
             name = f"{c_name(obs.system.name)}_{c_name(obs.method)}_simulate{size}"
-            f = ca.Function(name, [z, w, y, u], outputs, ["z0", "w0", "y", "u"], names)
+            f = ca.Function(name, [z, w, y, u, *carried], outputs, ["z0", "w0", "y", "u"] + (["m0"] if carried else []),
+                            names)
             self._functions[size] = self.compiler.compile(f)
         return self._functions[size]
 
@@ -130,6 +135,7 @@ class CompiledTrajectory:
         P = np.empty((m, n - 1, obs.nx, obs.nx)) if self.covariance else None
         spread = np.empty((m, n - 1)) if self.spread else None
         z_k, w_k = z0, w0
+        carried = [np.ones((1, m))] if self.inflation else []          # the inflation's state, 1 at the start
         for k in range(0, n - 1, size):
             steps = min(size, n - 1 - k)                               # steps k -> k + 1 .. k + steps
             parts = []
@@ -138,7 +144,7 @@ class CompiledTrajectory:
                 if steps < size:                                       # pad: repeat the last sample
                     part = np.concatenate([part, np.repeat(part[:, -1:], size - steps, axis=1)], axis=1)
                 parts.append(part.transpose(2, 0, 1).reshape(values.shape[2], m * (size + 1)))
-            out = [np.asarray(a) for a in f.call([z_k, w_k, *parts])]
+            out = [np.asarray(a) for a in f.call([z_k, w_k, *parts, *carried])]
             z[:, k:k + steps] = out[0].reshape(obs.nz, m, size).transpose(1, 2, 0)[:, :steps]
             w[:, k:k + steps] = out[1].reshape(rows, m, size, cols).transpose(1, 2, 0, 3)[:, :steps]
             xhat[:, k:k + steps] = out[2].reshape(obs.nx, m, size).transpose(1, 2, 0)[:, :steps]
@@ -146,6 +152,8 @@ class CompiledTrajectory:
                 P[:, k:k + steps] = out[3].reshape(obs.nx, m, size, obs.nx).transpose(1, 2, 0, 3)[:, :steps]
             if spread is not None:
                 spread[:, k:k + steps] = out[-1].reshape(m, size)[:, :steps]
+            if carried:
+                carried = [out[4].reshape(m, size)[:, steps - 1][None, :]]
             z_k = z[:, k + steps - 1].T
             w_k = w[:, k + steps - 1].transpose(1, 0, 2).reshape(rows, m * cols)
         return z, w, xhat, P, spread

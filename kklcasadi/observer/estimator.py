@@ -66,6 +66,7 @@ class Estimator:
         self._in_domain: Optional[bool] = None
         self._out_of_domain = 0
         self._cov: Optional[np.ndarray] = None
+        self._m = 1.0                                   # the covariance inflation's state (where the card has one)
         self._fed: Optional[tuple[np.ndarray, np.ndarray]] = None
         self._status = 0
         self._held = 0
@@ -110,13 +111,15 @@ class Estimator:
             else:
                 status = HELD
                 y, u = self._fed if self._fed is not None else (guard.y_fill, guard.u_fill)
-        if self._z is None:
+        started = self._z is None
+        if started:
             z, w, xhat = self._start(y, u)
         else:
             z_next, w, xhat = obs.step(self._z, self._w, self._y, y, u)
             z, w, xhat = np.asarray(z_next).ravel(), np.asarray(w), np.asarray(xhat).ravel()
             if guard is not None and not guard.keeps(z[None], xhat[None])[0]:
                 status |= RESTARTED
+                started = True
                 z, w, xhat = self._start(y, u)
         self._z, self._w, self._y = z, w, y
         self.k += 1
@@ -127,6 +130,12 @@ class Estimator:
         self._in_domain = None if inside is None else bool(inside)
         if obs.covariance is not None:
             self._cov = np.asarray(obs.covariance(z, w, xhat))
+            if obs.inflation is not None:       # the residual's inflation: m = 1 at a run's start, as simulate
+                if started:
+                    self._m = 1.0
+                else:
+                    m_next, P = obs.inflation(self._m, y, xhat, self._cov)
+                    self._m, self._cov = float(m_next), np.asarray(P)
         self._out_of_domain += inside is not None and not inside
         return xhat
 

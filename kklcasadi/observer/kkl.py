@@ -52,6 +52,7 @@ from ..model.files import CARD_FILE, Model, derive_model, load_model
 from ..model.monitor import FeatureMonitor
 from ..model.shipped import resolve
 from ..model.variants import MODEL_BASED_INJECTION
+from ..model.variants.inflation import fold
 from ..nets.hold import foh_matrices
 from ..plant import systems
 from ..plant.rk4 import rk4_step
@@ -131,10 +132,9 @@ class KKLObserver:
     decode : casadi.Function
         ``decode(z (nz,1), w (window,nu)) -> xhat (nx,1)``.
     step : casadi.Function
-        ``step(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)``: one sample interval,
-        ``y`` interpolated linearly from ``y`` to ``y_next``, ``u`` held at ``w[-1]``;
-        ``w_next`` is ``w`` shifted by one with ``u_next`` appended and
-        ``xhat_next = decode(z_next, w_next)``.
+        ``step(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)``: one sample interval, ``y``
+        interpolated linearly from ``y`` to ``y_next``, ``u`` held at ``w[-1]``; ``w_next`` is ``w`` shifted by
+        one with ``u_next`` appended and ``xhat_next = decode(z_next, w_next)``.
     model_injection : casadi.Function or None
         ``model_injection(z, u) -> dz``, the model-based term, when present.
     monitor : kklcasadi.model.monitor.FeatureMonitor or None
@@ -154,14 +154,16 @@ class KKLObserver:
         ``(z, w, xhat, spread) -> in_domain``: :attr:`domain_check` with the spread given (from :attr:`decoded`);
         None where the check tests no spread.
     covariance : casadi.Function or None
-        ``covariance(z, w, xhat) -> P (nx, nx)``: the covariance of the error of the estimate ``xhat``
-        at ``(z, w)``, from the card's covariance head (a ``bank`` with ``architecture.covariance``;
-        :mod:`kklcasadi.model.variants.covariance`); None without one. The C function
-        ``name_covariance``.
+        ``covariance(z, w, xhat) -> P (nx, nx)``: the covariance of the error of the estimate ``xhat`` at
+        ``(z, w)``, from the card's covariance head (a ``bank`` with ``architecture.covariance``;
+        :mod:`kklcasadi.model.variants.covariance`); None without one. The C function ``name_covariance``.
     step_covariance : casadi.Function or None
         ``step_covariance(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next, P_next)``: :attr:`step`
         with the covariance of ``xhat_next`` (its first three outputs are :attr:`step`'s, bit for bit);
         None without a covariance head. The C function ``name_step`` of a model with a head.
+        With ``architecture.inflation`` (:attr:`inflation`, ``(m, y, xhat, P) -> (m_next, P_inflated)``, else None;
+        :mod:`kklcasadi.model.variants.inflation`) it carries ``m`` (a sixth input, 1 at the start, and a fifth
+        output ``m_next``) and inflates ``P_next``; the first estimate's covariance is not inflated.
     """
 
     def __init__(self, model: Model, system: System, *, discretization: Optional[str] = None,
@@ -207,6 +209,7 @@ class KKLObserver:
         self.rhs = ca.Function("rhs", [z, y, u, w], [self._field(z, y, u, self._context_of(w))],
                                ["z", "y", "u", "w"], ["zdot"])
         self.covariance: Optional[ca.Function] = nets.covariance
+        self.inflation: Optional[ca.Function] = nets.inflation
         self.step, self.step_covariance = self._build_step()
         self.monitor = None if spec.monitor is None else FeatureMonitor.from_arrays(spec.monitor, model.arrays)
         features = self.nz + self.memory_shape[0] * self.memory_shape[1]
@@ -258,9 +261,13 @@ class KKLObserver:
         step = ca.Function("step", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next], *names)
         if self.covariance is None:
             return step, None
-        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next],
-                                 [z_next, w_next, xhat_next, self.covariance(z_next, w_next, xhat_next)],
-                                 names[0], names[1] + ["P_next"])
+        P_next, state = self.covariance(z_next, w_next, xhat_next), ca.MX.sym("m")
+        if self.inflation is None:
+            return step, ca.Function("step_covariance", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next, P_next],
+                                     names[0], names[1] + ["P_next"])
+        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next)   # the inflation's state m, carried
+        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next, state], [z_next, w_next, xhat_next,
+                                 P_next, m_next], names[0] + ["m"], names[1] + ["P_next", "m_next"])
 
     def _build_domain_check(self) -> tuple[Optional[ca.Function], Optional[ca.Function]]:
         """:attr:`domain_check`, and where it tests the ensemble's spread the same check of a spread given
@@ -376,12 +383,10 @@ class KKLObserver:
         Returns
         -------
         casadi.Function
-            The integrator: ``x0`` is ``z_k`` (nz, 1), ``p`` (2 ny + nu + window nu, 1), ``xf``
-            is ``z_k+1``.
+            The integrator: ``x0`` is ``z_k`` (nz, 1), ``p`` (2 ny + nu + window nu, 1), ``xf`` is ``z_k+1``.
         """
         if solver not in INTEGRATOR_SOLVERS:
-            raise ValueError(f"solver: expected one of {list(INTEGRATOR_SOLVERS)}, received "
-                             f"{solver!r}.")
+            raise ValueError(f"solver: expected one of {list(INTEGRATOR_SOLVERS)}, received {solver!r}.")
         z, t = ca.MX.sym("z", self.nz), ca.MX.sym("t")
         rows, cols = self.memory_shape
         p = ca.MX.sym("p", 2 * self.ny + self.nu + rows * cols)
@@ -454,9 +459,8 @@ class KKLObserver:
         xhat[:, 0] = np.asarray(self.decode.map(m)(z_start, w0_cols)).T
         z[:, 0] = z_start.T
         nx = self.nx
-        cov = None
-        if self.covariance is not None:
-            cov = np.empty((m, n, nx, nx))
+        cov = None if self.covariance is None else np.empty((m, n, nx, nx))
+        if self.covariance is not None and cov is not None:
             cov[:, 0] = _blocks(self.covariance.map(m)(z_start, w0_cols, xhat[:, 0].T), nx).reshape(m, nx, nx)
         rows, cols = self.memory_shape
         memory = np.empty((m, n, rows, cols)) if self.monitor is not None else None
@@ -478,15 +482,14 @@ class KKLObserver:
                 spread[:, 0] = np.asarray(self.spread.map(m)(z_start, w0_cols)).ravel()
                 spread[:, 1:] = spread_steps
         elif n > 1:
-            step = self.step if cov is None else self.step_covariance
-            trajectory = step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])
+            covariance_step = self.step_covariance if cov is not None else None
+            trajectory = fold(self.step if covariance_step is None else covariance_step, "trajectory", n - 1)
             if m > 1:
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
-            z_out, w_out, xhat_out, *P_out = trajectory(
-                z_start, w0_cols,
-                ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
-                us[:, 1:].reshape(columns, nu).T)
+            z_out, w_out, xhat_out, *P_out = trajectory(                        # (and m_0 = 1 where it is carried)
+                z_start, w0_cols, ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
+                us[:, 1:].reshape(columns, nu).T, *[np.ones((1, m))][:trajectory.n_in() - 5])
             if cov is not None:               # (nx, nx * columns): block j is the covariance of column j
                 cov[:, 1:] = _blocks(P_out[0], nx).reshape(m, n - 1, nx, nx)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)

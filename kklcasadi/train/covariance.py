@@ -7,25 +7,33 @@
 * :func:`calibrate` -- one factor per state, on validation runs the head was not fit on, so that each
   state's normalised error has unit variance there (the head fit on the decoder's own fitting runs sees
   errors a little smaller than on new ones).
+* :func:`calibrate_inflation` -- the constants of the head's inflation by the measurement residual
+  (:mod:`kklcasadi.model.variants.inflation`): ``c`` the residual statistic's mean on in-distribution
+  validation runs, and the time constant, among candidates, that keeps the 2-sigma coverage nearest its Gaussian
+  value on those runs and on validation runs at a higher noise level.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 import torch
 
+from .. import consistency as cs
 from ..model.variants.covariance import COVARIANCE, SCALE, covariance_numpy, n_entries
+from ..model.variants.inflation import Inflation, inflation_numpy, residual_statistic
 from ..nets.specs import MLPSpec
+from ..plant.systems import System
 from ..validation import Text, error
 from .config import LoopConfig
 from .decoder import fold_whitening, whitening
 from .loop import ArrayDataset, FitResult, fit, torch_dtype
 from .nets import MLP
 
-__all__ = ["CovarianceConfig", "CovarianceFit", "fit_covariance", "calibrate", "gaussian_nll", "output_errors"]
+__all__ = ["CovarianceConfig", "CovarianceFit", "fit_covariance", "calibrate", "gaussian_nll", "output_errors",
+           "ValidationRuns", "calibrate_inflation"]
 
 Tensor = torch.Tensor
 
@@ -178,3 +186,70 @@ def calibrate(arrays: Mapping[str, np.ndarray], arch: Mapping[str, object], feat
         raise error("errors", "finite errors and variances at every validation sample",
                     Text(f"{int(np.sum(~np.isfinite(ratio)))} non-finite"))
     return np.sqrt(ratio.mean(axis=0))
+
+
+@dataclass(frozen=True, eq=False)
+class ValidationRuns:
+    """Runs of an observer with a covariance head: times ``t`` (N,), true states ``x`` (M, N, nx), measurements ``y``
+    (M, N, ny), estimates ``xhat`` (M, N, nx) and the head's covariances ``P`` (M, N, nx, nx), not inflated."""
+
+    t: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    xhat: np.ndarray
+    P: np.ndarray
+
+
+def calibrate_inflation(system: System, dt: float, R: Sequence[float], nominal: ValidationRuns,
+                        noisy: Sequence[ValidationRuns], time_constants: Sequence[float] = (1.0, 2.5, 5.0)
+                        ) -> tuple[Inflation, list[dict]]:
+    """The constants of the covariance head's inflation (:mod:`kklcasadi.model.variants.inflation`), on
+    validation runs.
+
+    ``c`` is the mean of the residual statistic ``r`` over the samples of ``nominal`` (runs at the head's own noise
+    level, in distribution), so that the inflation's state averages 1 there. The time constant is the candidate
+    whose worst 2-sigma coverage, over the states and over ``nominal`` and each of ``noisy`` (runs at other noise
+    levels), is nearest :data:`kklcasadi.consistency.GAUSSIAN_COVERAGE` (ties: the first candidate).
+
+    Parameters
+    ----------
+    system : System
+    dt : float
+        The sample period.
+    R : sequence of float
+        The measurement noise variance per output of the head's fitting runs.
+    nominal : ValidationRuns
+    noisy : sequence of ValidationRuns
+    time_constants : sequence of float
+        The candidates, in seconds.
+
+    Returns
+    -------
+    Inflation
+    list of dict
+        Per candidate: ``time_constant``, ``worst`` (its worst distance, in coverage) and, per run set (``nominal``,
+        then ``noisy[0]``, ...), the mean inflation and the 2-sigma coverage per state.
+    """
+    R = [float(v) for v in R]
+    flat = nominal.xhat.reshape(-1, system.nx).T                                  # (nx, samples)
+    hx = np.asarray(system.h.map(flat.shape[1])(flat)).T
+    H = np.asarray(system.h_jac.map(flat.shape[1])(flat)).reshape(system.ny, -1, system.nx).transpose(1, 0, 2)
+    r = residual_statistic(nominal.y.reshape(-1, system.ny), hx, H, nominal.P.reshape(-1, system.nx, system.nx), R)
+    c = float(np.mean(r))
+    target = cs.GAUSSIAN_COVERAGE[cs.SIGMA_LEVELS.index(2.0)]
+    table = []
+    for tau in time_constants:
+        inflation = Inflation(tuple(R), c, float(tau))
+        row: dict = {"time_constant": float(tau), "sets": []}
+        worst = 0.0
+        for runs in (nominal, *noisy):
+            lam = inflation_numpy(inflation, system, dt, runs.y, runs.xhat, runs.P)
+            score = cs.consistency(runs.x, runs.xhat, lam[..., None, None] * runs.P, t=runs.t)
+            cover = list(score.coverage[cs.SIGMA_LEVELS.index(2.0)])
+            worst = max(worst, max(abs(v - target) for v in cover))
+            row["sets"].append({"mean_inflation": float(np.mean(lam)), "coverage_2sigma": cover,
+                                "nees": score.nees})
+        row["worst"] = worst
+        table.append(row)
+    best = min(table, key=lambda row: row["worst"])
+    return Inflation(tuple(R), c, best["time_constant"]), table

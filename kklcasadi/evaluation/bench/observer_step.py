@@ -109,13 +109,17 @@ __FEEDBACK__
 }
 """
 #: The observer step's buffers: ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat)`` (and the covariance ``P``
-#: where the model has a covariance head), the latent and the window fed back.
+#: where the model has a covariance head, and its inflation's state ``m`` where it has one), the latent and the window
+#: (and ``m``) fed back.
 _OBSERVER_DECLS = ("static casadi_real z[__MACRO___NZ], z_next[__MACRO___NZ];",
                    "static casadi_real win[__MACRO___NW], win_next[__MACRO___NW];",
                    "static casadi_real y[__MACRO___NY], y_next[__MACRO___NY], u_next[__MACRO___NU],",
                    "                   xhat[__MACRO___NX];",
                    "#ifdef __MACRO___HAS_COVARIANCE",
                    "static casadi_real P[__MACRO___NX * __MACRO___NX];    /* the step's covariance output */",
+                   "#endif",
+                   "#ifdef __MACRO___HAS_INFLATION",
+                   "static casadi_real m = 1, m_next;                   /* the covariance inflation's state */",
                    "#endif")
 _OBSERVER_INIT = ("  for (i = 0; i < __MACRO___NW; i++) win[i] = 0.3 * ((i % 7) - 3) / 3.0;",
                   "  for (i = 0; i < __MACRO___NY; i++) { y[i] = 0.2; y_next[i] = 0.25; }",
@@ -124,8 +128,14 @@ _OBSERVER_INIT = ("  for (i = 0; i < __MACRO___NW; i++) win[i] = 0.3 * ((i % 7) 
                   "  res[0] = z_next; res[1] = win_next; res[2] = xhat;",
                   "#ifdef __MACRO___HAS_COVARIANCE",
                   "  res[3] = P;",
+                  "#endif",
+                  "#ifdef __MACRO___HAS_INFLATION",
+                  "  arg[5] = &m; res[4] = &m_next;",
                   "#endif")
-_OBSERVER_FEEDBACK = ("      memcpy(z, z_next, sizeof z);", "      memcpy(win, win_next, sizeof win);")
+_OBSERVER_FEEDBACK = ("      memcpy(z, z_next, sizeof z);", "      memcpy(win, win_next, sizeof win);",
+                      "#ifdef __MACRO___HAS_INFLATION",
+                      "      m = m_next;",
+                      "#endif")
 
 
 def loop_source(name: str, decls: Sequence[str] = _OBSERVER_DECLS, init: Sequence[str] = _OBSERVER_INIT,
@@ -381,6 +391,10 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
             (obs.nz, obs.memory_shape, obs.ny, obs.ny, obs.nu)]   # z, w, y, y_next, u_next
     dm_args = [ca.DM(a) for a in args]
     reference = [np.array(v) for v in obs.step.call(dm_args)]
+    if obs.step_covariance is not None and obs.step_covariance.n_in() == 6:   # the C step's inflation state, m = 1
+        c_args = [*dm_args, ca.DM(1.0)]
+    else:
+        c_args = dm_args
     checks: dict[str, float] = {}
     timings: list[Timing] = []
     runs: list[Timing] = []
@@ -397,12 +411,12 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
         if gcc is None:
             print("gcc not found: skipping the compiled C timings")
         else:
-            c_runs, external = _bench_c(obs, Path(tmp), gcc, valgrind, flags, dm_args,
+            c_runs, external = _bench_c(obs, Path(tmp), gcc, valgrind, flags, c_args,
                                         reference, n_calls, repeat, timings, checks, counts,
                                         limits)
             runs += c_runs
             cases.append(_Case("C default via ca.external (Function.call)",
-                               lambda: external.call(dm_args)))
+                               lambda: external.call(c_args)))
         cases.append(_Case("CasADi VM (Function.call)", lambda: obs.step.call(dm_args)))
         torch_cases, restore_threads = _torch_cases(obs, args, reference, torch_compile, checks)
         try:

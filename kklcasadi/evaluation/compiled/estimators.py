@@ -20,6 +20,7 @@ import casadi as ca
 import numpy as np
 
 from ...compiler import Compiler, c_name, children_cpu
+from ...model.variants.inflation import fold
 from ..protocol import Profile, phase
 from .shortcuts import reuse_decoded, skip_at_zero_input, split_step
 
@@ -347,8 +348,9 @@ class CompiledRecord(CompiledEstimator):
         y, u, z0 = ca.MX.sym("y", obs.ny, n), ca.MX.sym("u", obs.nu, n), ca.MX.sym("z0", obs.nz)
         w0 = obs.memory_init(y[:, 0], u[:, 0])
         x0 = obs.decode(z0, w0)
-        step = obs.step if not self.covariance else obs.step_covariance
-        out = step.mapaccum("trajectory", n - 1, [0, 1], [0, 1])(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:])
+        step = obs.step_covariance if obs.step_covariance is not None else obs.step
+        start = [ca.DM.ones(1)] if step.n_in() == 6 else []             # the covariance inflation's m_0 = 1
+        out = fold(step, "trajectory", n - 1)(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:], *start)
         rows = [ca.horzcat(x0, out[2]), ca.horzcat(z0, out[0])]
         if self.covariance:
             rows.append(ca.horzcat(ca.vec(obs.covariance(z0, w0, x0)), ca.reshape(out[3], nx * nx, n - 1)))

@@ -58,6 +58,7 @@ from .copies import ModelCopies
 from .covariance import COVARIANCE, covariance_expression, n_entries
 from .covariance import array_shapes as covariance_shapes
 from .filterbank import FilterBank, latent_step
+from .inflation import INFLATION, Inflation, inflation_function
 
 __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
@@ -79,6 +80,7 @@ class BankSpec:
     params: dict
     angles: Angles = Angles()
     covariance: Optional[MLPSpec] = None
+    inflation: Optional[Inflation] = None
 
     @property
     def nz(self) -> int:
@@ -143,6 +145,8 @@ class BankSpec:
         card = {DECODER: self.decoder.to_card(), "bank": bank}
         if self.covariance is not None:
             card[COVARIANCE] = self.covariance.to_card()
+        if self.inflation is not None:
+            card[INFLATION] = self.inflation.to_card()
         return card
 
     def array_shapes(self) -> dict[str, tuple[int, ...]]:
@@ -236,7 +240,7 @@ class Bank(Variant):
     name = "bank"
     summary = "ours: linear filter bank of y and u, decoder fitted on noisy closed-loop runs (for noise)"
     entries = (DECODER, "bank")
-    optional_entries = (COVARIANCE,)
+    optional_entries = (COVARIANCE, INFLATION)
     linear = True
     needs_base = False
     certified = False
@@ -266,7 +270,15 @@ class Bank(Variant):
                                   list(head.sizes), "The covariance head reads the decoder's features and gives the "
                                   "factor of the estimate's covariance (docs/model-format.md); an angle state's "
                                   "error lives on the circle, which it does not model.")
-        spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where, sizes), angles, head)
+        inflation = None
+        if INFLATION in card["architecture"]:
+            if head is None:
+                raise field_error(where, f"architecture.{INFLATION}", f"an entry beside architecture.{COVARIANCE} "
+                                  "(it inflates the covariance head's output)", card["architecture"][INFLATION],
+                                  f"Remove architecture.{INFLATION} or add the head (docs/model-format.md).")
+            inflation = Inflation.from_card(card["architecture"][INFLATION], where, sizes.ny)
+        spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where, sizes), angles, head,
+                        inflation)
         if spec.n_copies and spec.n_filters < 1:
             raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x nx = "
                               f"{spec.n_copies * spec.nx} latents after at least one filter", entry["copies"],
@@ -295,6 +307,7 @@ class Bank(Variant):
             P = covariance_expression(spec.covariance, arrays, features, xs, np.asarray(arrays[f"{DECODER}/out_std"]),
                                       np.asarray(arrays[ASINH_SCALE]))
             covariance = ca.Function("covariance", [z, w, xs], [P], ["z", "w", "xhat"], ["P"])
+        inflation = None if spec.inflation is None else inflation_function(spec.inflation, system, spec.dt)
         bu, c = ca.DM(bank.Bu), ca.DM(bank.c)
 
         def input_term(zz: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
@@ -303,4 +316,4 @@ class Bank(Variant):
 
         return Networks(None, decoder, None, input_term, memory=memory,
                         exact_step=latent_step(bank, spec.dt, copies=copies), spread=spread, covariance=covariance,
-                        decoded=decoded)
+                        decoded=decoded, inflation=inflation)

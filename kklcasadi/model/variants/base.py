@@ -147,6 +147,9 @@ class Networks:
     decoded : casadi.Function or None
         ``decoded(z, w) -> (xhat, s)``: ``decoder`` and ``spread`` from one evaluation of the ensemble's members
         (the same values); None without a spread.
+    inflation : casadi.Function or None
+        ``inflation(m, y, xhat, P) -> (m_next, P_inflated)``: the covariance head's inflation by the measurement
+        residual (:mod:`kklcasadi.model.variants.inflation`); None for a model without one.
     """
 
     encoder: Optional[ca.Function]
@@ -159,6 +162,7 @@ class Networks:
     spread: Optional[ca.Function] = None
     covariance: Optional[ca.Function] = None
     decoded: Optional[ca.Function] = None
+    inflation: Optional[ca.Function] = None
 
 
 class Variant:
