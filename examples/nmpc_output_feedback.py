@@ -24,6 +24,7 @@ hypercube over 80 % of the X0 box with ``x2`` rescaled to 80 % of its bound, so 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 from pathlib import Path
 from typing import Callable
@@ -37,6 +38,7 @@ import numpy as np  # noqa: E402
 import kklcasadi as kc  # noqa: E402
 from kklcasadi import provenance  # noqa: E402
 from kklcasadi.estimators.nmpc import NMPC, ClosedLoop, EKFEstimator, TrueState, closed_loop, steady_state  # noqa: E402
+from kklcasadi.writes import write_dir  # noqa: E402
 
 #: Per system: set point magnitude r for x1 and the bound on |x2|.
 SCENARIOS = {"duffing": {"r": 0.8, "x2_max": 1.0}, "vdp": {"r": 1.0, "x2_max": 1.5}}
@@ -120,8 +122,8 @@ def table(rows: list[dict], *, settle: float) -> str:
     return "\n".join(lines)
 
 
-def plot(runs: dict[str, dict[str, ClosedLoop]], out: Path, stamp: provenance.Stamp) -> Path:
-    """One row per system: x1 and its reference, x2 and its bound, u; one line per feed."""
+def plot(runs: dict[str, dict[str, ClosedLoop]], stamp: provenance.Stamp) -> bytes:
+    """One row per system: x1 and its reference, x2 and its bound, u; one line per feed (a stamped PNG)."""
     fig, axes = plt.subplots(len(runs), 3, figsize=(14, 3.2 * len(runs)), squeeze=False)
     for row, (name, by_feed) in enumerate(runs.items()):
         bound = SCENARIOS[name]["x2_max"]
@@ -141,10 +143,10 @@ def plot(runs: dict[str, dict[str, ClosedLoop]], out: Path, stamp: provenance.St
         ax.set_xlabel("t (s)")
     fig.suptitle("Output-feedback NMPC, noise on (docs/protocol.md): true state vs EKF vs KKL observer")
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110, metadata=provenance.png_metadata(stamp))
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=110, metadata=provenance.png_metadata(stamp))
     plt.close(fig)
-    return out
+    return png.getvalue()
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -172,13 +174,14 @@ def main(argv: list[str] | None = None) -> dict:
                                              seed=args.seed, settle=args.settle, tighten=args.tighten)
         rows += system_rows
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     text = table(rows, settle=args.settle)
     stamp = provenance.stamp(seeds={"initial_states_and_noise": args.seed})    # names this command in every file
-    (out / "nmpc_table.md").write_text(provenance.markdown(text + "\n", stamp))
-    (out / "nmpc.json").write_text(json.dumps(provenance.json_record({"settings": vars(args), "rows": rows}, stamp),
-                                              indent=1) + "\n")
-    png = plot(runs, out / "nmpc.png", stamp)
+    files = {"nmpc_table.md": provenance.markdown(text + "\n", stamp),
+             "nmpc.json": json.dumps(provenance.json_record({"settings": vars(args), "rows": rows}, stamp),
+                                     indent=1) + "\n",
+             "nmpc.png": plot(runs, stamp)}
+    write_dir(out, files, overwrite=True, argument="--out")      # the three files as one step, or none of them
+    png = out / "nmpc.png"
     print(text)
     print(f"wrote {out / 'nmpc_table.md'}, {out / 'nmpc.json'}, {png}")
     return {"rows": rows, "runs": runs, "png": png}
