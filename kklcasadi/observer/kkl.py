@@ -482,14 +482,15 @@ class KKLObserver:
                 spread[:, 0] = np.asarray(self.spread.map(m)(z_start, w0_cols)).ravel()
                 spread[:, 1:] = spread_steps
         elif n > 1:
-            covariance_step = self.step_covariance if cov is not None else None
-            trajectory = fold(self.step if covariance_step is None else covariance_step, "trajectory", n - 1)
+            step = self.step if cov is None or self.step_covariance is None else self.step_covariance
+            carried = [np.ones((1, m))] if step is self.step_covariance and self.inflation is not None else []
+            trajectory = fold(step, "trajectory", n - 1)
             if m > 1:
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
             z_out, w_out, xhat_out, *P_out = trajectory(                        # (and m_0 = 1 where it is carried)
                 z_start, w0_cols, ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
-                us[:, 1:].reshape(columns, nu).T, *[np.ones((1, m))][:trajectory.n_in() - 5])
+                us[:, 1:].reshape(columns, nu).T, *carried)
             if cov is not None:               # (nx, nx * columns): block j is the covariance of column j
                 cov[:, 1:] = _blocks(P_out[0], nx).reshape(m, n - 1, nx, nx)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)
