@@ -60,6 +60,10 @@ def test_the_benchmarks_counts_for_the_paper_plants_and_the_stable_count_elsewhe
         [1, 1, 4, 4]                                           # the particle filter's, chosen on the benchmark
     assert [substeps_for(kc.systems.get(n), 0.05, MHE_SUBSTEPS) for n in ("duffing", "fhn")] == [1, 4]
     assert substeps_for(_stiff(100.0), 0.05, SUBSTEPS) == 3 == stable_substeps(_stiff(100.0), 0.05)
+    with pytest.raises(ValueError, match=r"^dt: expected"):
+        stable_substeps(_stiff(1.0), 0.0)
+    with pytest.raises(ValueError, match=r"^samples: expected a positive int"):
+        stable_substeps(_stiff(1.0), 0.05, samples=0)
 
 
 def test_the_ekf_takes_the_stable_count_by_default_and_follows_a_stiff_plant():

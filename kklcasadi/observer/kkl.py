@@ -483,8 +483,7 @@ class KKLObserver:
                 spread[:, 1:] = spread_steps
         elif n > 1:
             step = self.step if cov is None or self.step_covariance is None else self.step_covariance
-            carried = [np.ones((1, m))] if step is self.step_covariance and self.inflation is not None else []
-            trajectory = fold(step, "trajectory", n - 1)
+            trajectory, carried = fold(step, "trajectory", n - 1), [np.ones((1, m))] * (step.n_in() - 5)  # m_0 = 1
             if m > 1:
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)

@@ -12,6 +12,7 @@ from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
 
+from ..validation import positive_int, positive_number
 from .signals import UNIT_LEVEL
 
 __all__ = ["rk4_step", "stable_substeps", "substeps_for", "RK4_STEP_LIMIT"]
@@ -81,6 +82,7 @@ def stable_substeps(system: Any, dt: float, *, samples: int = 256, seed: int = 0
     -------
     int
     """
+    dt, samples = positive_number(dt, "dt"), positive_int(samples, "samples")
     box = np.asarray(system.x0_box, dtype=float)
     nx, nu = box.shape[0], int(system.nu)
     rng = np.random.default_rng(seed)
