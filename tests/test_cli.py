@@ -3,6 +3,7 @@
 import shutil
 import subprocess
 import sys
+import warnings
 
 import casadi as ca
 import numpy as np
@@ -697,3 +698,24 @@ def test_the_closing_summary_counts_the_runs_on_which_the_ekf_diverged(model_dir
     entry = _summary_entry("zero", obs, batch, obs.simulate(batch.t, batch.y, batch.u).xhat,
                            first_run_lost(ekf, batch.t, batch.y, batch.u).xhat)
     assert ", the EKF diverged on 1 of 3: ratio on the rest)" in entry and entry in text
+
+
+def test_the_recipe_line_scores_runs_shorter_than_the_settling_time_on_their_second_half(model_dir_factory):
+    """A fast plant's training runs last less than the summary's 5 s (the card's ``time_scale`` shortens them): the
+    recipe line scores their second half and says so, where it printed ``nan %`` (an empty mean) before."""
+    import json
+    from pathlib import Path
+
+    import kklcasadi as kc
+    from kklcasadi.cli.train import recipe_lines
+
+    shipped = json.loads((Path(__file__).resolve().parents[1] / "models/duffing/bank/card.json").read_text())
+    record = shipped["training"]["config"]["rollouts"]
+    path = model_dir_factory("autonomous", card_extra={"training": {"config": {"rollouts": record},
+                                                                    "time_scale": 40.0}})
+    obs = kc.load_observer(path)
+    ekf = kc.EKF.for_noise(obs.system, obs.dt, process_std=0.1, measurement_std=0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)                 # no mean of an empty slice
+        (line,) = recipe_lines(obs, obs.system.x0_box, ekf, 0.1, 0.1)
+    assert "RMSE after" in line and "nan" not in line, line
