@@ -37,7 +37,7 @@ from typing import Iterator, Mapping, Union
 
 from .validation import error
 
-__all__ = ["write_file", "write_dir", "staged", "locked", "claim", "Data"]
+__all__ = ["write_file", "write_dir", "staged", "locked", "claim", "refuse_existing", "Data"]
 
 Data = Union[bytes, str]
 
@@ -116,6 +116,27 @@ def claim(directory: Path, argument: str) -> Iterator[Path]:
         yield directory
     finally:
         os.close(fd)
+
+
+def refuse_existing(targets: Mapping[Union[str, os.PathLike], str]) -> None:
+    """Refuse, before any work, a run that would write where something already is: a command without
+    ``--overwrite`` checks its outputs first (and writes them exclusively at the end), so a long run is not lost
+    on a path it may not write.
+
+    Parameters
+    ----------
+    targets : Mapping[path-like, str]
+        Each output path and the argument (the CLI flag) that names it, in the order checked.
+
+    Raises
+    ------
+    FileExistsError
+        A target exists (a file, a directory or a link); the one line names its argument.
+    """
+    for path, argument in targets.items():
+        if os.path.lexists(path):
+            raise FileExistsError(f"{argument}: {path} exists and this command does not overwrite; move it away, "
+                                  f"or choose another {argument}.")
 
 
 def write_file(path: Union[str, os.PathLike], data: Data, *, overwrite: bool = False,

@@ -178,7 +178,7 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
     assert "| duffing (1 trials) | MHE N=3 |" in table
 
 
-def test_mhe_example_runs_reduced(model_dir_factory, tmp_path):
+def test_mhe_example_runs_reduced(model_dir_factory, tmp_path, monkeypatch):
     import importlib.util
     from pathlib import Path
 
@@ -194,6 +194,16 @@ def test_mhe_example_runs_reduced(model_dir_factory, tmp_path):
     assert list(results) == ["KKL (autonomous)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
     assert all(xhat.shape == (10, 2) and np.all(np.isfinite(xhat)) for xhat in results.values())
     assert png.stat().st_size > 0
+    first = png.read_bytes()
+    with pytest.raises(FileExistsError, match="^--out: .*mhe.png exists and this command does not overwrite"):
+        example.main(["--model", str(model), "--out", str(png)])            # refused before any work
+    assert png.read_bytes() == first
+    # a plot that fails leaves nothing at --out and nothing beside it
+    monkeypatch.setattr(example.plt.Figure, "savefig", lambda *a, **k: (_ for _ in ()).throw(OSError("disk")))
+    with pytest.raises(OSError, match="disk"):
+        example.main(["--model", str(model), "--T", "0.5", "--horizon", "3", "--primed-horizon", "2",
+                      "--calibration-trials", "1", "--out", str(tmp_path / "again.png")])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mhe.png"]
 
 
 def test_the_primed_mhe_takes_the_observers_covariance_as_its_arrival_cost(model_dir_factory):
