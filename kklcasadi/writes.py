@@ -37,7 +37,7 @@ from typing import Iterator, Mapping, Union
 
 from .validation import error
 
-__all__ = ["write_file", "write_dir", "staged", "locked", "claim", "refuse_existing", "Data"]
+__all__ = ["write_file", "write_dir", "write_files", "staged", "locked", "claim", "refuse_existing", "Data"]
 
 Data = Union[bytes, str]
 
@@ -260,6 +260,38 @@ def write_dir(directory: Union[str, os.PathLike], files: Mapping[str, Data], *, 
             shutil.rmtree(staging)
     _fsync_dir(target.parent)
     return target
+
+
+def write_files(files: Mapping[Union[str, os.PathLike], Data], *, argument: str = "files") -> list[Path]:
+    """Write the files of one result that lie in several directories (a record and its plot beside it, the page
+    in ``docs/``) exclusively: one :func:`write_dir` per directory, in the order the directories first appear.
+
+    Every file's content is given, so nothing is computed between the writes; a writer killed between two
+    directories leaves the first directory's files whole and the second's absent.
+
+    Parameters
+    ----------
+    files : Mapping[path-like, bytes or str]
+        Each file's path and content.
+    argument : str
+        Named in the errors.
+
+    Returns
+    -------
+    list of Path
+        The paths written, in the order given.
+
+    Raises
+    ------
+    FileExistsError
+        One of them exists (nothing of its directory is written; the directories before it are).
+    """
+    groups: dict[Path, dict[str, Data]] = {}
+    for path, data in files.items():
+        groups.setdefault(Path(path).resolve().parent, {})[Path(path).name] = data
+    for directory, group in groups.items():
+        write_dir(directory, group, argument=argument)
+    return [Path(path) for path in files]
 
 
 @contextmanager

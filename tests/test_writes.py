@@ -41,6 +41,19 @@ def test_refuse_existing_names_the_argument_of_the_first_output_that_exists(tmp_
     assert (tmp_path / "page.md").read_text() == "old" and not (tmp_path / "sub").exists()
 
 
+def test_write_files_writes_one_directory_at_a_time_and_never_over_a_file(tmp_path):
+    files = {tmp_path / "results" / "r.json": "{}\n", tmp_path / "docs" / "r.md": "# r\n",
+             tmp_path / "results" / "r.png": b"\x89PNG"}
+    assert writes.write_files(files, argument="--results") == list(files)
+    assert [path.read_bytes() for path in files] == [b"{}\n", b"# r\n", b"\x89PNG"]
+    (tmp_path / "docs" / "r.md").write_text("kept")
+    again = {tmp_path / "results" / "s.json": "{}\n", tmp_path / "docs" / "r.md": "new"}
+    with pytest.raises(FileExistsError, match="^--page: .*r.md exists"):
+        writes.write_files(again, argument="--page")
+    assert (tmp_path / "docs" / "r.md").read_text() == "kept" and (tmp_path / "results" / "s.json").exists()
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["docs", "r.json", "r.md", "r.png", "results", "s.json"]
+
+
 def test_write_dir_publishes_a_new_directory_with_one_rename(tmp_path, monkeypatch):
     renames = []
     real = os.rename
