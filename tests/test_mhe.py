@@ -147,7 +147,7 @@ def test_bad_data_is_named():
         mhe.simulate(t, y, np.zeros((5, 1)))
 
 
-def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
+def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path, capsys):
     """``kklcasadi compare`` reduced: one trial, half a second, one regime, noise off."""
     import json
     import shutil
@@ -176,6 +176,16 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
     table = provenance.strip_markdown((out / "table.md").read_text())
     assert table.strip() == markdown_table(comparison.scores, ("zero",), timing=True)
     assert "| duffing (1 trials) | MHE N=3 |" in table
+    # a saved comparison the table would gather that cannot be read: refused in one line before any run
+    kept = (out / "duffing.json").read_bytes()
+    capsys.readouterr()
+    for text, what in (("{", "JSONDecodeError"), ("{}", "KeyError: 'cells'")):
+        (out / "vdp.json").write_text(text)
+        assert main(["compare", "--systems", "duffing", "--models-root", str(root), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: --out: expected {out / 'vdp.json'} to be a comparison kklcasadi compare "
+                              f"wrote, received a file it cannot read ({what}") and err.count("\n") == 1
+        assert (out / "duffing.json").read_bytes() == kept
 
 
 def test_mhe_example_runs_reduced(model_dir_factory, tmp_path, monkeypatch):

@@ -76,6 +76,18 @@ def test_checkpoints_without_a_record_are_not_resumed(tmp_path, monkeypatch):
         train_observer("duffing", "autonomous", out, config=tiny(), progress=False, resume=True)
 
 
+@pytest.mark.parametrize("text, received", [("{", "a parse error"), ("[1]", "a JSON list"),
+                                            ('{"seed": NaN}', r"a parse error \(non-standard JSON constant NaN\)")])
+def test_an_unreadable_run_record_is_one_line(tmp_path, monkeypatch, text, received):
+    out = tmp_path / "m"
+    _interrupted(out, monkeypatch=monkeypatch)
+    (out / ".train" / "run.json").write_text(text)
+    with pytest.raises(ValueError, match=f"^{out / '.train' / 'run.json'}: expected .*received {received}.*"
+                                         r"Train again without --resume\.$"):
+        train_observer("duffing", "autonomous", out, config=tiny(), progress=False, resume=True)
+    assert sorted(p.name for p in (out / ".train").iterdir()) == ["decoder.ckpt.npz", "encoder.ckpt.npz", "run.json"]
+
+
 def test_resume_never_replaces_a_finished_model(tmp_path):
     out = tmp_path / "D"
     shutil.copytree(ROOT / "models" / "duffing" / "autonomous", out)       # a finished Duffing model

@@ -74,9 +74,19 @@ def _saved(out: Path, fresh: dict[str, str]) -> list:
     from ..evaluation.compare import SystemComparison
 
     names = [*SYSTEMS, *(n for n in systems.names() if n not in SYSTEMS)]
-    return [SystemComparison.from_json(json.loads(fresh[name] if name in fresh else
-                                                  (out / f"{name}.json").read_text()))
-            for name in names if name in fresh or (out / f"{name}.json").exists()]
+    saved = []
+    for name in names:
+        if name in fresh:
+            saved.append(SystemComparison.from_json(json.loads(fresh[name])))
+        elif (out / f"{name}.json").exists():
+            path = out / f"{name}.json"
+            try:
+                saved.append(SystemComparison.from_json(json.loads(path.read_text())))
+            except (ValueError, KeyError, TypeError) as exc:       # said in one line, naming the flag
+                raise CommandError(f"--out: expected {path} to be a comparison kklcasadi compare wrote, received a "
+                                   f"file it cannot read ({type(exc).__name__}: {exc}); move it away or choose "
+                                   "another --out") from None
+    return saved
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
 
     out = out_path(args.out, "--out", directory=True)
     out.mkdir(parents=True, exist_ok=True)
+    _saved(out, {})                          # the comparisons the table gathers, read before any run
     kinds = tuple(args.kinds)
     levels = {name: getattr(args, name) for name in ("process_std", "measurement_std")
               if getattr(args, name) is not None}
