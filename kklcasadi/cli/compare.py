@@ -98,6 +98,8 @@ def run(args: argparse.Namespace) -> int:
     from ..provenance import json_record, markdown
 
     out = out_path(args.out, "--out", directory=True)
+    if out is None:                          # the flag has a default: only a Namespace built by hand lacks it
+        raise CommandError("--out: expected a folder for the comparisons and their table, received none")
     out.mkdir(parents=True, exist_ok=True)
     _saved(out, {})                          # the comparisons the table gathers, read before any run
     kinds = tuple(args.kinds)
