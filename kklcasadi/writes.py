@@ -37,7 +37,8 @@ from typing import Iterator, Mapping, Union
 
 from .validation import error
 
-__all__ = ["write_file", "write_dir", "write_files", "staged", "locked", "claim", "refuse_existing", "Data"]
+__all__ = ["write_file", "write_dir", "write_files", "staged", "locked", "claim", "refuse_existing", "place",
+           "Data"]
 
 Data = Union[bytes, str]
 
@@ -166,7 +167,20 @@ def write_file(path: Union[str, os.PathLike], data: Data, *, overwrite: bool = F
     if path.is_dir():
         raise error(argument, "a file path", str(path), "It is a directory; name a file inside it.")
     path.parent.mkdir(parents=True, exist_ok=True)
-    temp = _temp_file(path.parent, path.name, data)
+    place(_temp_file(path.parent, path.name, data), path, overwrite=overwrite, argument=argument)
+    return path
+
+
+def place(temp: Path, path: Path, *, overwrite: bool = False, argument: str = "path") -> None:
+    """Put a finished temporary file (written and synced in the folder of ``path``) at ``path`` in one step:
+    linked (an exclusive create) or, with ``overwrite``, renamed over it; the temporary file is gone afterwards
+    whatever happens, and the folder is synced.
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` exists and ``overwrite`` is False (``path`` is left as it was).
+    """
     try:
         if overwrite:
             os.replace(temp, path)
@@ -180,7 +194,6 @@ def write_file(path: Union[str, os.PathLike], data: Data, *, overwrite: bool = F
         if temp.exists():
             temp.unlink()
     _fsync_dir(path.parent)
-    return path
 
 
 def _exchange(a: Path, b: Path) -> bool:
