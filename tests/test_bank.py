@@ -514,3 +514,30 @@ def test_monitor_quantiles_writes_its_table_and_record_as_one_and_never_over_the
     assert "| 0.97 |" in capsys.readouterr().out                        # failed after the table was made
     assert sorted(p.name for p in folder.iterdir()) == names and [(folder / n).read_bytes() for n in names] == first
     assert [p for p in tmp_path.rglob(".*")] == []
+
+
+def test_growing_an_ensemble_writes_a_new_model_and_never_over_one(ensemble_dir, tmp_path, monkeypatch, capsys):
+    """benchmarks/ensemble_members.py end to end on the small ensemble: a third member fitted and cached (its
+    summary, then its arrays), the model written to --out with its monitor; a second run to the same --out is
+    refused before any fit, in one line naming --out, and the model it read is left alone."""
+    import runpy
+
+    script = ROOT / "benchmarks" / "ensemble_members.py"
+    monkeypatch.syspath_prepend(str(script.parent))
+    source = {p.name: p.read_bytes() for p in ensemble_dir.iterdir() if p.is_file()}
+
+    def grow(out):
+        monkeypatch.setattr(sys, "argv", [str(script), str(ensemble_dir), "--members", "3", "--out", str(out),
+                                          "--cache", str(tmp_path / "cache")])
+        runpy.run_path(str(script), run_name="__main__")
+
+    grow(tmp_path / "grown")
+    grown = load_model(tmp_path / "grown")
+    assert grown.spec.architecture.members == 3 and "decoder_2/W0" in grown.arrays
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == ["duffing_m7.json", "duffing_m7.npz"]
+    capsys.readouterr()
+    for out in (tmp_path / "grown", ensemble_dir):
+        with pytest.raises(FileExistsError, match=f"^--out: {out}/.* exists and this command does not overwrite"):
+            grow(out)
+    assert capsys.readouterr().out == ""
+    assert {p.name: p.read_bytes() for p in ensemble_dir.iterdir() if p.is_file()} == source

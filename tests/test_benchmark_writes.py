@@ -1,7 +1,7 @@
 """The benchmark scripts never write over a file and never leave a half-written result: each refuses, before any
 work, a run whose output exists (one line naming the flag that names it), and renders its files before writing
 them together (kklcasadi.writes). The scripts with a reduced run of their own are tested beside it
-(tests/test_bank.py: monitor_quantiles.py; test_codegen.py: float32_c.py; test_generalisation.py:
+(tests/test_bank.py: monitor_quantiles.py, ensemble_members.py; test_codegen.py: float32_c.py; test_generalisation.py:
 compare_generalisation.py; test_results.py: pages.py)."""
 
 import os
@@ -31,13 +31,17 @@ REFUSALS = [
     ("accuracy/decoder_pairs.py", ["duffing", "--out", "TMP/pairs"], "pairs.md", "--out"),
     ("accuracy/qube.py", ["--tag", "not_stored", "--out", "TMP"], "not_stored_both", "--out"),
     ("accuracy/probe.py", ["duffing", "--tag", "t", "--save", "TMP"], "duffing_t.npz", "--save"),
+    ("covariance_heads.py", ["duffing/bank", "--out", "TMP"], "card.json", "--out"),
+    ("bitwise_estimates.py", ["record", "TMP/before.npz"], "before.npz", "OUT.npz"),
 ]
+#: The scripts that import torch (the decoder fits).
+NEEDS_TORCH = ("accuracy/decoder_pairs.py", "accuracy/qube.py", "accuracy/probe.py", "covariance_heads.py")
 
 
 @pytest.mark.parametrize("script, args, taken, flag", REFUSALS, ids=[r[0] for r in REFUSALS])
 def test_a_benchmark_refuses_its_existing_output_before_any_work(tmp_path, monkeypatch, capsys, script, args, taken,
                                                                  flag):
-    if script.startswith("accuracy/"):
+    if script in NEEDS_TORCH:
         pytest.importorskip("torch")
     monkeypatch.chdir(tmp_path)                                          # probe.py writes under ./results/levers
     (tmp_path / taken).write_text("kept")
