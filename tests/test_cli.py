@@ -181,6 +181,14 @@ def test_evaluate_prints_the_protocol_scores_and_writes_plots(model_dir_factory,
             assert record["smape_mean"] == pytest.approx(np.mean(expected), rel=1e-10)
             assert float(rows[f"duffing {obs.method}"][column]) == round(record["smape_mean"], 1)
     assert float(rows["duffing EKF"][0]) == round(scores[("EKF", "zero")]["smape_mean"], 1)
+    # the report is never written over: a second run to the same --out is refused in one line before any run
+    before = {name: (out / name).read_bytes() for name in written}
+    assert main(args) == 2
+    captured = capsys.readouterr()
+    assert captured.err.endswith(f"error: --out: {out / 'duffing_scores.json'} exists and this command does not "
+                                 "overwrite; move it away, or choose another --out.\n")
+    assert "evaluated in" not in captured.err and captured.out == ""
+    assert {name: (out / name).read_bytes() for name in written} == before
 
 
 def test_evaluate_scores_the_mhe_beside_the_models(model_dir_factory, tmp_path, capsys):

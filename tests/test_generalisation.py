@@ -169,6 +169,12 @@ def test_the_command(monitored_bank, tmp_path, capsys):
     for name in ("duffing_generalisation.md", "duffing_generalisation.json"):
         stamp = provenance.read(out / name)
         assert stamp.command.startswith("kklcasadi generalise ") and stamp.seeds == {"trials": 2026}
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert main(["generalise", str(path), "--families", "zero", "--noise-levels", "0.1", "--trials", "2",
+                 "--out", str(out)]) == 2                             # never over the report: refused before any run
+    assert capsys.readouterr().err == (f"error: --out: {out / 'duffing_generalisation.md'} exists and this command "
+                                       "does not overwrite; move it away, or choose another --out.\n")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert main(["generalise", str(path), "--families", "chirp", "--regimes", "id"]) == 2
     assert "error: --families, --regimes: no case" in capsys.readouterr().err
 

@@ -176,9 +176,13 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path, caps
     table = provenance.strip_markdown((out / "table.md").read_text())
     assert table.strip() == markdown_table(comparison.scores, ("zero",), timing=True)
     assert "| duffing (1 trials) | MHE N=3 |" in table
-    # a saved comparison the table would gather that cannot be read: refused in one line before any run
+    # a system's comparison is never written over: refused in one line before any run
     kept = (out / "duffing.json").read_bytes()
     capsys.readouterr()
+    assert main(["compare", "--systems", "duffing", "--models-root", str(root), "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"error: --out: {out / 'duffing.json'} exists and this command does not "
+                                       "overwrite; move it away, or choose another --out.\n")
+    # a saved comparison the table would gather that cannot be read: refused in one line before any run
     for text, what in (("{", "JSONDecodeError"), ("{}", "KeyError: 'cells'")):
         (out / "vdp.json").write_text(text)
         assert main(["compare", "--systems", "duffing", "--models-root", str(root), "--out", str(out)]) == 2

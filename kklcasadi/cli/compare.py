@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..plant import systems
-from ..writes import write_dir
+from ..writes import refuse_existing, write_dir
 from .flags import (
     NOISE,
     CommandError,
@@ -102,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         raise CommandError("--out: expected a folder for the comparisons and their table, received none")
     out.mkdir(parents=True, exist_ok=True)
     _saved(out, {})                          # the comparisons the table gathers, read before any run
+    refuse_existing({out / f"{name}.json": "--out" for name in args.systems})     # a comparison is never written over
     kinds = tuple(args.kinds)
     levels = {name: getattr(args, name) for name in ("process_std", "measurement_std")
               if getattr(args, name) is not None}
@@ -122,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         every = [s for saved in _saved(out, {name: record}) for s in saved.scores]
         # the table gathers every system's saved comparison: its stamp is this command's, the rows name their files;
         # the system's record and the table are written as one
-        write_dir(out, {f"{name}.json": record,
+        write_dir(out, {f"{name}.json": record,                  # the table is rebuilt from every saved one
                         "table.md": markdown(markdown_table(every, kinds, timing=True) + "\n", stamp)},
                   overwrite=True, argument="--out")
         print(markdown_table(comparison.scores, kinds, timing=True))
