@@ -88,6 +88,27 @@ def test_an_unreadable_run_record_is_one_line(tmp_path, monkeypatch, text, recei
     assert sorted(p.name for p in (out / ".train").iterdir()) == ["decoder.ckpt.npz", "encoder.ckpt.npz", "run.json"]
 
 
+@pytest.mark.parametrize("damage, received", [("garbage", "a file numpy cannot read"),
+                                             ("truncated", "a file numpy cannot read"),
+                                             ("without lr", "none named 'lr'")])
+def test_an_unreadable_checkpoint_is_one_line(tmp_path, monkeypatch, damage, received):
+    out = tmp_path / "m"
+    _interrupted(out, monkeypatch=monkeypatch)
+    path = out / ".train" / "encoder.ckpt.npz"
+    if damage == "garbage":
+        path.write_bytes(b"not an archive")
+    elif damage == "truncated":
+        path.write_bytes(path.read_bytes()[:200])
+    else:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in data.files if k != "lr"}
+        np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=f"^checkpoint {path}: expected .*received {received}.*Delete it to start "
+                                         r"afresh\.$") as caught:
+        train_observer("duffing", "autonomous", out, config=tiny(), progress=False, resume=True)
+    assert "\n" not in str(caught.value)
+
+
 def test_resume_never_replaces_a_finished_model(tmp_path):
     out = tmp_path / "D"
     shutil.copytree(ROOT / "models" / "duffing" / "autonomous", out)       # a finished Duffing model
