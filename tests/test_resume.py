@@ -76,11 +76,19 @@ def test_checkpoints_without_a_record_are_not_resumed(tmp_path, monkeypatch):
         train_observer("duffing", "autonomous", out, config=tiny(), progress=False, resume=True)
 
 
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory):
+    """A training stopped before its model was written (its checkpoints and their record in .train), made once."""
+    out = tmp_path_factory.mktemp("interrupted") / "m"
+    with pytest.MonkeyPatch.context() as patch:
+        _interrupted(out, monkeypatch=patch)
+    return out
+
+
 @pytest.mark.parametrize("text, received", [("{", "a parse error"), ("[1]", "a JSON list"),
                                             ('{"seed": NaN}', r"a parse error \(non-standard JSON constant NaN\)")])
-def test_an_unreadable_run_record_is_one_line(tmp_path, monkeypatch, text, received):
-    out = tmp_path / "m"
-    _interrupted(out, monkeypatch=monkeypatch)
+def test_an_unreadable_run_record_is_one_line(interrupted, tmp_path, text, received):
+    out = shutil.copytree(interrupted, tmp_path / "m")
     (out / ".train" / "run.json").write_text(text)
     with pytest.raises(ValueError, match=f"^{out / '.train' / 'run.json'}: expected .*received {received}.*"
                                          r"Train again without --resume\.$"):
@@ -91,9 +99,8 @@ def test_an_unreadable_run_record_is_one_line(tmp_path, monkeypatch, text, recei
 @pytest.mark.parametrize("damage, received", [("garbage", "a file numpy cannot read"),
                                              ("truncated", "a file numpy cannot read"),
                                              ("without lr", "none named 'lr'")])
-def test_an_unreadable_checkpoint_is_one_line(tmp_path, monkeypatch, damage, received):
-    out = tmp_path / "m"
-    _interrupted(out, monkeypatch=monkeypatch)
+def test_an_unreadable_checkpoint_is_one_line(interrupted, tmp_path, damage, received):
+    out = shutil.copytree(interrupted, tmp_path / "m")
     path = out / ".train" / "encoder.ckpt.npz"
     if damage == "garbage":
         path.write_bytes(b"not an archive")
