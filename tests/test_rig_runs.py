@@ -237,10 +237,14 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
                          u_box=[[-1, 1]])
     added, what = with_noise_copy(pendulum, config)                   # angle states: a copy, corrected
     assert len(added.copies) == 1 and added.copy_residual and "residual over its estimate" in what
-    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)              # an arm's angle that y does not see: no copy, and why
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)     # an arm's angle that nothing reads: a copy over the other states
     arm = kc.System("arm", x, u, [x[2], x[2], -ca.sin(x[1]) + u], x[1], [[-3, 3], [-3, 3], [-2, 2]],
                     angle_states=(0, 1), angle_outputs=(0,), u_box=[[-1, 1]])
-    kept, why = with_noise_copy(arm, config)
+    added, what = with_noise_copy(arm, config)
+    assert len(added.copies) == 1 and added.copy_residual and "over the states its equations read [1, 2]" in what
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)       # not detectable even over the read states: no copy, and why
+    blind = kc.System("blind", x, u, [x[1], x[1] + u], x[1] ** 3, [[-1, 1], [-1, 1]], u_box=[[-1, 1]])
+    kept, why = with_noise_copy(blind, config)
     assert kept.copies == () and kept.noise_copy is False and "stabilising Kalman-Bucy gain" in why
     assert with_noise_copy(_mass(), replace(config, noise_copy=False))[0].copies == ()
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)      # an angle output of no angle state: a copy, corrected
