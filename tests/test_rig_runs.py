@@ -367,6 +367,11 @@ def test_copy_base_picks_the_last_copys_latents():
      [[6.0 - 2 * np.pi, 0.5], [-6.0 + 2 * np.pi, 1.5], [-0.1, 2.5]]),
     # about pi: pi - 0.1 and pi + 0.1 (not -pi + 0.1), the second column as it is
     ([[np.pi - 0.1, 0.0], [-np.pi + 0.1, 7.0]], [[0.0, 0.0], [0.0, 0.0]], [[np.pi - 0.1, 0.0], [np.pi + 0.1, 7.0]]),
+    # a copy's deviation near pi (its reference angle -pi), the targets near 0: the residual's circular mean is
+    # pi - 0.02, its branch pi + 0.01, pi - 0.05, which would write every estimate a turn above its measurement
+    # (offset + residual near 2 pi); moved by a turn: -pi + 0.01, -pi - 0.05
+    ([[0.02, 1.0], [-0.02, 1.0]], [[np.pi + 0.01, 0.0], [np.pi + 0.03, 0.0]],
+     [[-np.pi + 0.01, 1.0], [-np.pi - 0.05, 1.0]]),
 ])
 def test_an_angles_residual_over_a_base_against_hand_computations(v, offset, expected):
     pytest.importorskip("torch")

@@ -195,11 +195,17 @@ def base_residual(v: np.ndarray, offset: np.ndarray, angles: bd.Angles) -> np.nd
     :func:`kklcasadi.model.variants.bankdecoder.decoder_targets`, and the base's values), a measured angle's
     column (``angles.measured``) modulo ``2 pi`` on the branch of width ``2 pi`` about its circular mean (the
     decoder writes that angle modulo ``2 pi``; the branch keeps the residual continuous where the base's
-    deviation and the target's, wrapped to ``(-pi, pi]``, differ by turns)."""
+    deviation and the target's, wrapped to ``(-pi, pi]``, differ by turns), moved by whole turns so that the
+    deviation the decoder writes (``offset`` plus the residual) is within half a turn of 0 on average: the estimate
+    ``y_j + v_i`` then lies by its measurement, not turns away (a copy whose reference angle is ``pi`` has an offset
+    near ``-pi``, and its residual's circular mean near ``+-pi`` could land on either side)."""
     residual = v - offset
     for i, _ in angles.measured:
         centre = np.angle(np.mean(np.exp(1j * residual[:, i])))
         residual[:, i] = centre + np.angle(np.exp(1j * (residual[:, i] - centre)))
+        turns = np.round(np.mean(offset[:, i] + residual[:, i]) / (2 * np.pi))
+        if turns:                                        # none: the residual as before, bit for bit
+            residual[:, i] -= 2 * np.pi * turns
     return residual
 
 
