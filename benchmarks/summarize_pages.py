@@ -160,16 +160,22 @@ def _like(example: dict, folder: Path) -> str:
             + _like_copy(example, folder))
 
 
+def _scored(example: dict, path: Path) -> tuple[dict, provenance.Stamp, list, bool]:
+    """A scored record of ``examples/qube_hardware.py``: its cases, its stamp, each case's velocities against the EKF
+    (``"y = ...: theta_dot 0.99x"``) and whether all are within 1.2x."""
+    records = _records(path)
+    verdicts = [f"{example['CASES'][case][0]}: {state} {b / e:.2f}x" for case, record in records.items()
+                for state, b, e in zip(example["STATES"][2:], record["scored_mean"]["KKL (bank)"][2:],
+                                       record["scored_mean"]["EKF"][2:])]
+    return records, provenance.read(path), verdicts, all(float(v.rsplit(" ", 1)[1][:-1]) <= 1.2 for v in verdicts)
+
+
 def _like_copy(example: dict, folder: Path) -> str:
     """The section of the same command since a plant with angle states gets its noise copy (issue 45)."""
     path = folder / "hardware_like_copy.json"
     if not path.exists():
         return ""
-    records, stamp = _records(path), provenance.read(path)
-    verdicts = [f"{example['CASES'][case][0]}: {state} {b / e:.2f}x" for case, record in records.items()
-                for state, b, e in zip(example["STATES"][2:], record["scored_mean"]["KKL (bank)"][2:],
-                                       record["scored_mean"]["EKF"][2:])]
-    met = all(float(v.rsplit(" ", 1)[1][:-1]) <= 1.2 for v in verdicts)
+    records, stamp, verdicts, met = _scored(example, path)
     return ("\n### With the noise copy\n\nThe same command since a plant with angle states gets its noise copy "
             "and the decoders fit the residual over it (issue 45; `docs/notes/own-plant-and-rig.md`), from "
             f"`{path.relative_to(ROOT)}` (written by `{stamp.command}` at commit `{stamp.commit[:12]}`); y = alpha "
@@ -184,11 +190,7 @@ def _like_states(example: dict, folder: Path) -> str:
     path = folder / "hardware_like_states.json"
     if not path.exists():
         return ""
-    records, stamp = _records(path), provenance.read(path)
-    verdicts = [f"{example['CASES'][case][0]}: {state} {b / e:.2f}x" for case, record in records.items()
-                for state, b, e in zip(example["STATES"][2:], record["scored_mean"]["KKL (bank)"][2:],
-                                       record["scored_mean"]["EKF"][2:])]
-    met = all(float(v.rsplit(" ", 1)[1][:-1]) <= 1.2 for v in verdicts)
+    records, stamp, verdicts, met = _scored(example, path)
     seconds = ", ".join(f"{record['train_s']} s" for record in records.values())
     before = _records(folder / "hardware_like.json")
     moved = "; ".join(f"{state} {b0 / e0:.2f}x -> {b / e:.2f}x" for case, record in records.items()
