@@ -253,6 +253,30 @@ def test_the_torch_decoder_equals_the_casadi_one_and_follows_the_copys_angle(alp
     np.testing.assert_allclose(np.delete(moved, 1, axis=1), np.delete(ref, 1, axis=1), atol=1e-9)
 
 
+def test_the_domain_check_leaves_out_the_state_nothing_reads(alpha_dir):
+    """The box check of ``[xhat; z]`` tests the states the plant reads and the latents: an arm angle estimate
+    anywhere leaves the verdict as it is (numpy and the CasADi check alike), a read state out of its box does not."""
+    obs = kc.load_observer(alpha_dir, system=qube_alpha())
+    t, y, u = _qube_log(obs)
+    est = obs.simulate(t, y, u)
+    inside = np.flatnonzero(est.in_domain)[:6]                                # samples in the domain
+    assert inside.size >= 3
+    xhat, z = est.xhat[inside], est.z[inside]
+    w = np.concatenate([y[inside], u[inside]], axis=1)[:, :, None]
+    base = obs.in_domain(xhat, z, w)
+    assert base.all()
+    hi = obs._domain_bounds[1]
+    for theta in (-50.0, 7.0, 1e6):
+        moved = xhat.copy()
+        moved[:, 0] = theta
+        np.testing.assert_array_equal(obs.in_domain(moved, z, w), base)
+        np.testing.assert_array_equal([float(obs.domain_check(zk, wk, xk)) for zk, wk, xk in zip(z, w, moved)],
+                                      base.astype(float))
+    fast = xhat.copy()
+    fast[:, 3] = 10 * hi[3]
+    assert not obs.in_domain(fast, z, w).any()
+
+
 @needs_gcc
 @pytest.mark.parametrize("math, tol", [("libm", 0.0), ("vector", 1e-12)])
 def test_the_c_step_equals_the_casadi_step(alpha_dir, tmp_path, math, tol):

@@ -90,6 +90,32 @@ def _envelope(plant, seed=0):
                     ({"path": "simulated", "sha256": "-", "rows": log.t.size},)), log
 
 
+def test_a_state_nothing_reads_neither_keeps_a_like_run_from_starting_nor_cuts_it():
+    """An arm angle that neither xdot nor y reads (x0, an integrator of x2), logged far outside its box in the
+    first half of the log (the EKF's estimate of such a state drifts): like runs still start there, and are not
+    cut when it stays out (before, every start came from the second half); the states it reads still bound them."""
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)
+    arm = kc.System("arm", x, u, [x[2], x[2], -ca.sin(x[1]) - 0.3 * x[2] + u], x[1],
+                    [[-1.0, 1.0], [-1.5, 1.5], [-2.0, 2.0]], u_box=[[-1.0, 1.0]])
+    u_log = kc.signals.make("random", amplitude=0.5, hold=0.7, seed=0, horizon=40.0)
+    log = kc.simulate(arm, [0.0, 0.5, 0.0], u_log, T=40.0, dt=0.05, measurement_std=0.01, seed=0, method="rk")
+    states = log.x.copy()
+    states[:400, 0] += 10.0
+    envelope = Envelope(0.05, (log.u,), (states,), np.array([[log.y.min(), log.y.max()]]),
+                        np.array([[log.u.min(), log.u.max()]]), 0.01, np.array([0.0, 0.0, 0.1]),
+                        ({"path": "simulated", "sha256": "-", "rows": log.t.size},))
+    cfg = RolloutConfig(n_traj=16, T=4.0, kinds=("zero",), envelope=envelope, like_share=1.0, escape_scale=1.25)
+    runs = rollouts(arm, cfg, 1, dt=0.05, measurement_std=0.0, process_std=0.0)
+    assert len(runs) == 16 and np.all(np.isfinite(runs.x)) and runs.x.shape[1] == 80
+    far = np.abs(runs.x[:, :, 0]).min(axis=1) > 5.0                       # never inside its box, kept whole
+    assert 3 <= far.sum() <= 13
+    for x0 in runs.x[:, 0]:
+        assert np.any(np.all(states == x0, axis=1))                          # a state the log holds
+    read = kc.systems.get("duffing")                                         # every state read: the box as before
+    xs = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, -3.0]])
+    np.testing.assert_array_equal(rn._in_read_box(read, xs), rn.inside_box(xs, read.x0_box))
+
+
 def test_like_runs_replay_rescaled_log_segments_from_the_logged_states():
     plant = _oscillator()
     envelope, log = _envelope(plant)

@@ -41,7 +41,7 @@ import numpy as np
 import scipy.linalg
 
 from ...plant.rk4 import rk4_step
-from ...plant.systems import System
+from ...plant.systems import System, read_states
 from ...validation import Text, error
 
 __all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count", "read_states"]
@@ -57,13 +57,6 @@ def copy_count(arrays: Mapping[str, Any]) -> int:
     """Latents of the model copies in ``arrays`` (``m nk``; 0 where there are none)."""
     gains = arrays.get("copies/gains")
     return 0 if gains is None else int(np.prod(np.shape(gains)[:2]))
-
-
-def read_states(system: System) -> tuple[int, ...]:
-    """The states the plant's equations read: ``i`` such that ``xdot`` or ``y`` depends on ``x_i`` (the structural
-    nonzeros of the Jacobian of ``(f, h)`` with respect to ``x``), ascending."""
-    jac = ca.jacobian(ca.vertcat(system.xdot_expr, system.y_expr), system.x_sym)
-    return tuple(sorted(set(jac.sparsity().get_col())))
 
 
 def _jacobians(system: System, x: Any, states: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
