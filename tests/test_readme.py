@@ -357,7 +357,7 @@ def test_the_results_at_a_glance_follow_from_the_results(monkeypatch):
     velocity = [b / e for b, e in zip(copy["theta_alpha"]["scored_mean"]["KKL (bank)"][2:],
                                       copy["theta_alpha"]["scored_mean"]["EKF"][2:])]
     assert f"{span(velocity)} with both encoders and the noise copy" in text
-    states = json_payload(json.loads((ROOT / "results" / "real_rig" / "qube" / "hardware_like_states.json")
+    states = json_payload(json.loads((ROOT / "results" / "real_rig" / "qube" / "hardware_like_read.json")
                                      .read_text()))
     velocity = [b / e for b, e in zip(states["alpha"]["scored_mean"]["KKL (bank)"][2:],
                                       states["alpha"]["scored_mean"]["EKF"][2:])]
