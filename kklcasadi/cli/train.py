@@ -119,7 +119,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="bank: add one model copy of the plant per weight W to the latent, a constant-gain observer "
                    "xhat' = f(xhat, u) + L (y - h(xhat)) with the Kalman-Bucy gain of the plant linearised at its "
                    "box centre for process intensity W (1: the protocol EKF's noise ratio); the decoders read their "
-                   "states beside the filters (docs/design.md, 'Model copies'). Not for plants with angle states")
+                   "states beside the filters (docs/design.md, 'Model copies'); a state the plant's equations do not "
+                   "read is left out of the copies")
     t.add_argument("--skip-path", action="store_true",
                    help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
                    "slope where they level off past the fitted states (Duffing's shipped bank has it)")
@@ -286,7 +287,7 @@ def run(args: argparse.Namespace) -> int:
         print(envelope_text(envelope, plant), flush=True)
     config = training_config(plant, method, args, envelope)
     dt = 0.05 if args.dt is None else args.dt
-    if args.copies is not None:         # the plant must take them: no angle states, detectable at the box centre
+    if args.copies is not None:         # the plant must take them: detectable at the box centre
         from ..train.bank import design_copies
 
         flagged("--copies", design_copies, plant, config, dt)
