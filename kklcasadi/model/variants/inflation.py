@@ -31,12 +31,13 @@ in ``z_k``, ``b = exp(-pole dt)`` and ``a2 = 1 - exp(-dt / time_constant2)``,
     t_k    = t_{k-1} + dt                                (t_0 = 0)
     q_k    = sum_j s_k,j^2 / S_j / ny   if t_k > start - dt / 2,  else 1
     g_k    = (1 - a2) g_{k-1} + a2 q_k                   (g_0 = 1)
-    P'_k   = max(1, m_k, 1 + gain (g_k - threshold)) P_k
+    P'_k   = max(1, m_k) max(1, 1 + gain (g_k / m_k - threshold)) P_k
 
 ``S`` is the mean of ``s^2`` on in-distribution validation runs after ``start`` (so ``g`` averages 1 there);
 ``start`` leaves out the copies' own transient from the box centre, and ``threshold`` the average's own
-fluctuations in distribution. The state is then ``[m, s (ny), g, t]``
-(``3 + ny`` numbers, start ``[1, 0, ..., 0, 1, 0]``: :meth:`Inflation.initial_state`).
+fluctuations in distribution. ``g`` is read against ``m``: noisier measurements raise both by the same factor
+(twice the noise: about 4), which ``max(1, m)`` covers already; a wrong model raises ``g`` alone. The state is
+then ``[m, s (ny), g, t]`` (``3 + ny`` numbers, start ``[1, 0, ..., 0, 1, 0]``: :meth:`Inflation.initial_state`).
 
 :func:`inflation_numpy` is the reference; :func:`inflation_function` the same recursion in CasADi (what the
 observer's step and its C code compute).
@@ -85,7 +86,7 @@ class ModelTest:
     time_constant : float
         Of its exponential average, in seconds, > 0.
     gain : float
-        ``P' = max(1, m, 1 + gain (g - threshold)) P``, > 0.
+        ``P' = max(1, m) max(1, 1 + gain (g / m - threshold)) P``, > 0.
     threshold : float
         Of ``g``, >= 0 (1: none beyond the mean in distribution).
     start : float
@@ -264,7 +265,7 @@ def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarr
         t = t + dt
         q = np.mean(s ** 2 / np.asarray(test.S), axis=-1) if t > test.start - dt / 2 else 1.0
         g = (1 - a2) * g + a2 * q
-        factor[:, k] = np.maximum(factor[:, k], 1 + test.gain * (g - test.threshold))
+        factor[:, k] *= np.maximum(1.0, 1 + test.gain * (g / m[:, k] - test.threshold))
     return factor
 
 
@@ -297,7 +298,7 @@ def inflation_function(inflation: Inflation, system: System, dt: float, nz: int,
         t = m[2 + ny] + dt
         q = ca.if_else(t > test.start - dt / 2, ca.sum1(s ** 2 / ca.DM(list(test.S))) / ny, 1.0)
         g = (1 - a2) * m[1 + ny] + a2 * q
-        factor = ca.fmax(factor, 1 + test.gain * (g - test.threshold))
+        factor = factor * ca.fmax(1.0, 1 + test.gain * (g / m_next - test.threshold))
         state = ca.vertcat(m_next, s, g, t)
     return ca.Function("inflation", [m, y, x, P, z], [state, factor * P],
                        ["m", "y", "xhat", "P", "z"], ["m_next", "P_inflated"])
