@@ -130,10 +130,18 @@ def test_the_c_step_carries_the_inflations_state(pair, tmp_path, math, tol):
     step = ca.external("inf_step", str(library))
     assert step.n_in() == 6 and step.n_out() == 5
     rng = np.random.default_rng(5)
-    z, w, y = rng.normal(size=obs.nz), rng.normal(size=obs.step.size_in(1)), rng.normal(size=obs.ny)
-    m_c = m_vm = 1.0
+    m_vm = c_against_vm(obs, step, rng, rng.normal(size=obs.nz), 3.0, tol)
+    assert m_vm.item() > 1.0
+
+
+def c_against_vm(obs, step, rng, z, y_scale, tol):
+    """Feed the C ``step`` and the VM's ``step_covariance`` the same random samples (``y`` scaled by ``y_scale``) for 12
+    steps from ``z`` and ``m = obs.inflation_start``, each its own state fed back, and compare every output (bitwise
+    where ``tol`` is 0); the VM's last state ``m``."""
+    w, y = rng.normal(size=obs.step.size_in(1)), rng.normal(size=obs.ny)
+    m_c = m_vm = obs.inflation_start
     for k in range(12):
-        y_next, u_next = 3.0 * rng.normal(size=obs.ny), rng.normal(size=obs.nu)
+        y_next, u_next = y_scale * rng.normal(size=obs.ny), rng.normal(size=obs.nu)
         c_out = [np.array(v) for v in step(z, w, y, y_next, u_next, m_c)]
         vm_out = [np.array(v) for v in obs.step_covariance(z, w, y, y_next, u_next, m_vm)]
         for a, b in zip(c_out, vm_out):
@@ -142,7 +150,7 @@ def test_the_c_step_carries_the_inflations_state(pair, tmp_path, math, tol):
             else:
                 np.testing.assert_allclose(a, b, rtol=tol, atol=tol * np.max(np.abs(b)))
         z, w, y, m_c, m_vm = vm_out[0], vm_out[1], y_next, c_out[4], vm_out[4]
-    assert m_vm.item() > 1.0
+    return m_vm
 
 
 @needs_gcc
@@ -362,18 +370,7 @@ def test_the_c_step_carries_the_model_tests_state(tested, tmp_path, math, tol):
     subprocess.run([GCC, "-std=c99", "-O1", "-fPIC", "-shared", str(files[0]), "-o", str(library), "-lm"], check=True)
     step = ca.external("mt_step", str(library))
     rng = np.random.default_rng(6)
-    z, w, y = 0.3 * rng.normal(size=obs.nz), rng.normal(size=obs.step.size_in(1)), rng.normal(size=obs.ny)
-    m_c = m_vm = obs.inflation_start
-    for k in range(12):
-        y_next, u_next = rng.normal(size=obs.ny), rng.normal(size=obs.nu)
-        c_out = [np.array(v) for v in step(z, w, y, y_next, u_next, m_c)]
-        vm_out = [np.array(v) for v in obs.step_covariance(z, w, y, y_next, u_next, m_vm)]
-        for a, b in zip(c_out, vm_out):
-            if tol == 0:
-                assert np.array_equal(a, b), (k, np.max(np.abs(a - b)))
-            else:
-                np.testing.assert_allclose(a, b, rtol=tol, atol=tol * np.max(np.abs(b)))
-        z, w, y, m_c, m_vm = vm_out[0], vm_out[1], y_next, c_out[4], vm_out[4]
+    m_vm = c_against_vm(obs, step, rng, 0.3 * rng.normal(size=obs.nz), 1.0, tol)
     assert m_vm[3].item() == pytest.approx(12 * obs.dt) and m_vm[2].item() > 1.0
 
 
