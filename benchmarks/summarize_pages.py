@@ -360,9 +360,9 @@ def consistency() -> str:
               "(g / m - threshold))`, `g` the exponential average of a copy's low-passed innovation squared over `S`, "
               "which sees a plant whose parameters are not the model's (`architecture.inflation.model`, "
               "docs/model-format.md; chosen by `benchmarks/model_test.py` on validation trials of the robustness "
-              "cases, `training.covariance.model_test`; validation data, not scored):\n\n| system | copy | pole (rad/s) | S | "
-              "start (s) | time constant (s) | gain | threshold | exact model: 2-sigma coverage % | worst other case "
-              "% |\n|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(tests)
+              "cases, `training.covariance.model_test`; validation data, not scored):\n\n| system | copy | "
+              "pole (rad/s) | S | start (s) | time constant (s) | gain | threshold | exact model: 2-sigma coverage % | "
+              "worst other case % |\n|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(tests)
             + "\n\nOn the scored trials:\n\n" + "\n".join(verdicts) + "\n\n" + head + "\n"
             + "\n".join(lines) + "\n\nFrom " + (", ".join(sources) or "no run") + ".\n"
             + "\n## Off distribution\n\nThe target: 2-sigma coverage at least "
