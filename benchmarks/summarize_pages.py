@@ -323,7 +323,7 @@ def _tightening() -> str:
 
 def consistency() -> str:
     """The covariance heads of the shipped banks beside the EKF's own, on the protocol's noisy cells."""
-    lines, verdicts, fits, inflations = [], [], [], []
+    lines, verdicts, fits, inflations, tests = [], [], [], [], []
     for system in ("duffing", "vdp", "rossler", "fhn"):
         card = json.loads((ROOT / "models" / system / "bank" / "card.json").read_text())
         record = card["training"].get("covariance")
@@ -338,6 +338,14 @@ def consistency() -> str:
                 f"| {system} | {inflation['c']:.3f} | {inflation['time_constant']:g} | "
                 + " | ".join(f"{s['mean_inflation']:.2f}, {' / '.join(f'{100 * c:.1f}' for c in s['coverage_2sigma'])}"
                              for s in chosen["sets"]) + " |")
+        test = None if inflation is None else inflation.get("model")
+        if test is not None:
+            row = next(c for c in record["model_test"]["candidates"] if (c["time_constant"], c["gain"], c["threshold"])
+                       == (test["time_constant"], test["gain"], test["threshold"]))
+            tests.append(f"| {system} | {test['copy']} | {test['pole']:g} | {test['S'][0]:.3g} | {test['start']:g} | "
+                         f"{test['time_constant']:g} | {test['gain']:g} | {test['threshold']:g} | "
+                         f"{' / '.join(f'{c:.1f}' for c in row['coverage_2sigma']['exact'])} | "
+                         f"{row['worst_other']:.1f} |")
         v = record["validation"]
         dense = record.get("fit_dense_until", 0.0)
         fits.append(f"| {system} | {record['fit_trials_per_regime']} x 4 (seed {record['fit_seed']}), "
@@ -393,6 +401,13 @@ def consistency() -> str:
               "`training.covariance.inflation`; validation data, not "
               "scored):\n\n| system | c | time constant (s) | noise 0.1: mean factor, 2-sigma coverage % | noise 0.2: "
               "mean factor, 2-sigma coverage % |\n|---|---|---|---|---|\n" + "\n".join(inflations)
+            + "\n\nWhere the bank has model copies, the inflation's model test multiplies it by `max(1, 1 + gain "
+              "(g / m - threshold))`, `g` the exponential average of a copy's low-passed innovation squared over `S`, "
+              "which sees a plant whose parameters are not the model's (`architecture.inflation.model`, "
+              "docs/model-format.md; chosen by `benchmarks/model_test.py` on validation trials of the robustness "
+              "cases, `training.covariance.model_test`; validation data, not scored):\n\n| system | copy | "
+              "pole (rad/s) | S | start (s) | time constant (s) | gain | threshold | exact model: 2-sigma coverage % | "
+              "worst other case % |\n|---|---|---|---|---|---|---|---|---|---|\n" + "\n".join(tests)
             + "\n\nOn the scored trials:\n\n" + "\n".join(verdicts) + "\n\n" + head + "\n"
             + "\n".join(lines) + "\n\nFrom " + (", ".join(sources) or "no run") + ".\n"
             + "\n## Off distribution\n\nThe target: 2-sigma coverage at least "

@@ -60,8 +60,8 @@ class CompiledTrajectory:
         self._functions: dict[int, ca.Function] = {}
 
     def function(self, size: int) -> ca.Function:
-        """``(z (nz, 1), w, y (ny, size + 1), u (nu, size + 1)[, m (1, 1)]) -> (z (nz, size), w (rows, cols size),
-        xhat (nx, size)[, P (nx, nx size)][, m (1, size)][, spread (1, size)])``: the steps ``k -> k + 1`` for
+        """``(z (nz, 1), w, y (ny, size + 1), u (nu, size + 1)[, m (nm, 1)]) -> (z (nz, size), w (rows, cols size),
+        xhat (nx, size)[, P (nx, nx size)][, m (nm, size)][, spread (1, size)])``: the steps ``k -> k + 1`` for
         ``k < size`` (with the covariance head and its inflation's state ``m``, and the decoder ensemble's spread
         where the domain monitor tests it), compiled (cached on disk and here)."""
         if size not in self._functions:
@@ -69,7 +69,7 @@ class CompiledTrajectory:
             step = self._step()
             z, w = ca.MX.sym("z", obs.nz), ca.MX.sym("w", *obs.memory_shape)
             y, u = ca.MX.sym("y", obs.ny, size + 1), ca.MX.sym("u", obs.nu, size + 1)
-            carried = [ca.MX.sym("m")] if self.inflation else []
+            carried = [ca.MX.sym("m", obs.inflation_start.size)] if self.inflation else []
             out = fold(step, "chunk", size)(z, w, y[:, :size], y[:, 1:], u[:, 1:], *carried)
             outputs = list(out)
             names = ["z", "w", "xhat"] + (["P"] if self.covariance else []) + (["m"] if self.inflation else [])
@@ -135,7 +135,7 @@ class CompiledTrajectory:
         P = np.empty((m, n - 1, obs.nx, obs.nx)) if self.covariance else None
         spread = np.empty((m, n - 1)) if self.spread else None
         z_k, w_k = z0, w0
-        carried = [np.ones((1, m))] if self.inflation else []          # the inflation's state, 1 at the start
+        carried = [np.tile(obs.inflation_start[:, None], (1, m))] if self.inflation else []   # the inflation's start
         for k in range(0, n - 1, size):
             steps = min(size, n - 1 - k)                               # steps k -> k + 1 .. k + steps
             parts = []
@@ -153,7 +153,7 @@ class CompiledTrajectory:
             if spread is not None:
                 spread[:, k:k + steps] = out[-1].reshape(m, size)[:, :steps]
             if carried:
-                carried = [out[4].reshape(m, size)[:, steps - 1][None, :]]
+                carried = [out[4].reshape(-1, m, size)[:, :, steps - 1]]
             z_k = z[:, k + steps - 1].T
             w_k = w[:, k + steps - 1].transpose(1, 0, 2).reshape(rows, m * cols)
         return z, w, xhat, P, spread

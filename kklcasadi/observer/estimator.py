@@ -66,7 +66,7 @@ class Estimator:
         self._in_domain: Optional[bool] = None
         self._out_of_domain = 0
         self._cov: Optional[np.ndarray] = None
-        self._m = 1.0                                   # the covariance inflation's state (where the card has one)
+        self._m = self.observer.inflation_start        # the covariance inflation's state (where the card has one)
         self._fed: Optional[tuple[np.ndarray, np.ndarray]] = None
         self._status = 0
         self._held = 0
@@ -132,10 +132,10 @@ class Estimator:
             self._cov = np.asarray(obs.covariance(z, w, xhat))
             if obs.inflation is not None:       # the residual's inflation: m = 1 at a run's start, as simulate
                 if started:
-                    self._m = 1.0
+                    self._m = obs.inflation_start
                 else:
-                    m_next, P = obs.inflation(self._m, y, xhat, self._cov)
-                    self._m, self._cov = float(m_next), np.asarray(P)
+                    m_next, P = obs.inflation(self._m, y, xhat, self._cov, z)
+                    self._m, self._cov = np.asarray(m_next)[:, 0], np.asarray(P)
         self._out_of_domain += inside is not None and not inside
         return xhat
 

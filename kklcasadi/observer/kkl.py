@@ -162,10 +162,9 @@ class KKLObserver:
     step_covariance : casadi.Function or None
         ``step_covariance(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next, P_next)``: :attr:`step`
         with the covariance of ``xhat_next`` (its first three outputs are :attr:`step`'s, bit for bit);
-        None without a covariance head. The C function ``name_step`` of a model with a head.
-        With ``architecture.inflation`` (:attr:`inflation`, ``(m, y, xhat, P) -> (m_next, P_inflated)``, else None;
-        :mod:`kklcasadi.model.variants.inflation`) it carries ``m`` (a sixth input, 1 at the start, and a fifth
-        output ``m_next``) and inflates ``P_next``; the first estimate's covariance is not inflated.
+        None without a covariance head. The C function ``name_step`` of a model with a head. With
+        ``architecture.inflation`` (:attr:`inflation`, ``(m, y, xhat, P, z) -> (m_next, P_inflated)``) it carries ``m``
+        (a sixth input, :attr:`inflation_start` first, and a fifth output) and inflates ``P_next`` (not the first's).
     """
 
     def __init__(self, model: Model, system: System, *, discretization: Optional[str] = None,
@@ -213,6 +212,7 @@ class KKLObserver:
                                ["z", "y", "u", "w"], ["zdot"])
         self.covariance: Optional[ca.Function] = nets.covariance
         self.inflation: Optional[ca.Function] = nets.inflation
+        self.inflation_start = np.zeros(0) if nets.inflation_start is None else nets.inflation_start   # its m_0
         self.step, self.step_covariance = self._build_step()
         self.monitor = None if spec.monitor is None else FeatureMonitor.from_arrays(spec.monitor, model.arrays)
         features = self.nz + self.memory_shape[0] * self.memory_shape[1]
@@ -264,11 +264,11 @@ class KKLObserver:
         step = ca.Function("step", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next], *names)
         if self.covariance is None:
             return step, None
-        P_next, state = self.covariance(z_next, w_next, xhat_next), ca.MX.sym("m")
+        P_next, state = self.covariance(z_next, w_next, xhat_next), ca.MX.sym("m", self.inflation_start.size)
         if self.inflation is None:
             return step, ca.Function("step_covariance", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next, P_next],
                                      names[0], names[1] + ["P_next"])
-        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next)   # the inflation's state m, carried
+        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next, z_next)   # the inflation's state m, carried
         return step, ca.Function("step_covariance", [z, w, y, y_next, u_next, state], [z_next, w_next, xhat_next,
                                  P_next, m_next], names[0] + ["m"], names[1] + ["P_next", "m_next"])
 
@@ -483,13 +483,13 @@ class KKLObserver:
                 spread[:, 1:] = spread_steps
         elif n > 1:
             step = self.step if cov is None or self.step_covariance is None else self.step_covariance
-            trajectory, carried = fold(step, "trajectory", n - 1), [np.ones((1, m))] * (step.n_in() - 5)  # m_0 = 1
+            trajectory = fold(step, "trajectory", n - 1)
             if m > 1:
                 trajectory = trajectory.map(m, "thread", min(threads, m))
             columns = m * (n - 1)
-            z_out, w_out, xhat_out, *P_out = trajectory(                        # (and m_0 = 1 where it is carried)
+            z_out, w_out, xhat_out, *P_out = trajectory(                        # (and m_0 where it is carried)
                 z_start, w0_cols, ys[:, :-1].reshape(columns, self.ny).T, ys[:, 1:].reshape(columns, self.ny).T,
-                us[:, 1:].reshape(columns, nu).T, *carried)
+                us[:, 1:].reshape(columns, nu).T, *[np.tile(self.inflation_start[:, None], (1, m))][:step.n_in() - 5])
             if cov is not None:               # (nx, nx * columns): block j is the covariance of column j
                 cov[:, 1:] = _blocks(P_out[0], nx).reshape(m, n - 1, nx, nx)
             z[:, 1:] = np.asarray(z_out).T.reshape(m, n - 1, nz)

@@ -119,7 +119,7 @@ _OBSERVER_DECLS = ("static casadi_real z[__MACRO___NZ], z_next[__MACRO___NZ];",
                    "static casadi_real P[__MACRO___NX * __MACRO___NX];    /* the step's covariance output */",
                    "#endif",
                    "#ifdef __MACRO___HAS_INFLATION",
-                   "static casadi_real m = 1, m_next;                   /* the covariance inflation's state */",
+                   "static casadi_real m[__MACRO___NM] = __MACRO___M0, m_next[__MACRO___NM];  /* inflation's state */",
                    "#endif")
 _OBSERVER_INIT = ("  for (i = 0; i < __MACRO___NW; i++) win[i] = 0.3 * ((i % 7) - 3) / 3.0;",
                   "  for (i = 0; i < __MACRO___NY; i++) { y[i] = 0.2; y_next[i] = 0.25; }",
@@ -130,11 +130,11 @@ _OBSERVER_INIT = ("  for (i = 0; i < __MACRO___NW; i++) win[i] = 0.3 * ((i % 7) 
                   "  res[3] = P;",
                   "#endif",
                   "#ifdef __MACRO___HAS_INFLATION",
-                  "  arg[5] = &m; res[4] = &m_next;",
+                  "  arg[5] = m; res[4] = m_next;",
                   "#endif")
 _OBSERVER_FEEDBACK = ("      memcpy(z, z_next, sizeof z);", "      memcpy(win, win_next, sizeof win);",
                       "#ifdef __MACRO___HAS_INFLATION",
-                      "      m = m_next;",
+                      "      memcpy(m, m_next, sizeof m);",
                       "#endif")
 
 
@@ -391,8 +391,8 @@ def bench_observer_step(model_dir: str | os.PathLike, *, system: Optional[System
             (obs.nz, obs.memory_shape, obs.ny, obs.ny, obs.nu)]   # z, w, y, y_next, u_next
     dm_args = [ca.DM(a) for a in args]
     reference = [np.array(v) for v in obs.step.call(dm_args)]
-    if obs.step_covariance is not None and obs.step_covariance.n_in() == 6:   # the C step's inflation state, m = 1
-        c_args = [*dm_args, ca.DM(1.0)]
+    if obs.step_covariance is not None and obs.step_covariance.n_in() == 6:   # the C step's inflation state, m_0
+        c_args = [*dm_args, ca.DM(obs.inflation_start)]
     else:
         c_args = dm_args
     checks: dict[str, float] = {}

@@ -349,7 +349,7 @@ class CompiledRecord(CompiledEstimator):
         w0 = obs.memory_init(y[:, 0], u[:, 0])
         x0 = obs.decode(z0, w0)
         step = obs.step_covariance if obs.step_covariance is not None else obs.step
-        start = [ca.DM.ones(1)] if step.n_in() == 6 else []             # the covariance inflation's m_0 = 1
+        start = [ca.DM(obs.inflation_start)] if step.n_in() == 6 else []    # the covariance inflation's m_0
         out = fold(step, "trajectory", n - 1)(z0, w0, y[:, :n - 1], y[:, 1:], u[:, 1:], *start)
         rows = [ca.horzcat(x0, out[2]), ca.horzcat(z0, out[0])]
         if self.covariance:

@@ -58,7 +58,7 @@ from .copies import ModelCopies
 from .covariance import COVARIANCE, covariance_expression, n_entries
 from .covariance import array_shapes as covariance_shapes
 from .filterbank import FilterBank, latent_step
-from .inflation import INFLATION, Inflation, inflation_function
+from .inflation import INFLATION, MODEL, CopyLayout, Inflation, inflation_function
 
 __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
@@ -297,6 +297,10 @@ class Bank(Variant):
             inflation = Inflation.from_card(card["architecture"][INFLATION], where, sizes.ny)
         spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where, sizes), angles, head,
                         inflation)
+        if inflation is not None and inflation.model is not None and inflation.model.copy >= spec.n_copies:
+            raise field_error(where, f"architecture.{INFLATION}.{MODEL}.copy", f"one of the latent's {spec.n_copies} "
+                              "model copies (0-based)", inflation.model.copy,
+                              "The model test reads a model copy's innovation (architecture.bank.copies).")
         if spec.n_copies and spec.n_filters < 1:
             nk = spec.nx if spec.copy_states is None else len(spec.copy_states)
             raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x {nk} states = "
@@ -326,7 +330,11 @@ class Bank(Variant):
             P = covariance_expression(spec.covariance, arrays, features, xs, np.asarray(arrays[f"{DECODER}/out_std"]),
                                       np.asarray(arrays[ASINH_SCALE]))
             covariance = ca.Function("covariance", [z, w, xs], [P], ["z", "w", "xhat"], ["P"])
-        inflation = None if spec.inflation is None else inflation_function(spec.inflation, system, spec.dt)
+        inflation = None
+        if spec.inflation is not None:
+            layout = None if spec.inflation.model is None else CopyLayout(
+                n + spec.inflation.model.copy * spec.nx, tuple(float(v) for v in arrays["copies/reference"]))
+            inflation = inflation_function(spec.inflation, system, spec.dt, spec.nz, layout)
         bu, c = ca.DM(bank.Bu), ca.DM(bank.c)
 
         def input_term(zz: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
@@ -335,4 +343,5 @@ class Bank(Variant):
 
         return Networks(None, decoder, None, input_term, memory=memory,
                         exact_step=latent_step(bank, spec.dt, copies=copies), spread=spread, covariance=covariance,
-                        decoded=decoded, inflation=inflation)
+                        decoded=decoded, inflation=inflation,
+                        inflation_start=None if spec.inflation is None else spec.inflation.initial_state())

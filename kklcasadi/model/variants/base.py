@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Mapping, Optional
 
 import casadi as ca
+import numpy as np
 
 from ...nets.builders import mlp_function
 from ...nets.specs import DECODER, ENCODER, MLPSpec, field_error
@@ -148,8 +149,10 @@ class Networks:
         ``decoded(z, w) -> (xhat, s)``: ``decoder`` and ``spread`` from one evaluation of the ensemble's members
         (the same values); None without a spread.
     inflation : casadi.Function or None
-        ``inflation(m, y, xhat, P) -> (m_next, P_inflated)``: the covariance head's inflation by the measurement
+        ``inflation(m, y, xhat, P, z) -> (m_next, P_inflated)``: the covariance head's inflation by the measurement
         residual (:mod:`kklcasadi.model.variants.inflation`); None for a model without one.
+    inflation_start : numpy.ndarray or None
+        Its carried state ``m`` at a run's start (:meth:`kklcasadi.model.variants.inflation.Inflation.initial_state`).
     """
 
     encoder: Optional[ca.Function]
@@ -163,6 +166,7 @@ class Networks:
     covariance: Optional[ca.Function] = None
     decoded: Optional[ca.Function] = None
     inflation: Optional[ca.Function] = None
+    inflation_start: Optional[np.ndarray] = None
 
 
 class Variant:

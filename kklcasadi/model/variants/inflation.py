@@ -17,8 +17,27 @@ noise: 2-sigma coverage near 68 % instead of 95 %). The observer sees the noise 
 the noise is larger. ``R`` is the fitting runs' measurement noise variance (the residual's scale under the
 head's calibration); ``c`` and the time constant are chosen on validation runs
 (``benchmarks/covariance_heads.py``). The estimates do not depend on ``m``: they are bitwise those of the step
-without it. It is not a correction for a wrong model: a plant whose parameters differ from the model's is
-tracked in ``y`` while the unmeasured states drift, and the residual does not see that.
+without it.
+
+The residual does not see a wrong model: a plant whose parameters differ from the model's is tracked in ``y``
+while the unmeasured states drift. A bank with model copies (:mod:`kklcasadi.model.variants.copies`) has a
+model-based estimate in its latent that does see it: a copy of the nominal plant under mismatch has a biased,
+slowly varying innovation, where the exact model's is nearly white noise. The optional ``model`` entry
+(:class:`ModelTest`) low-passes copy ``i``'s innovation and averages its square: with ``xhat_i`` the copy's state
+in ``z_k``, ``b = exp(-pole dt)`` and ``a2 = 1 - exp(-dt / time_constant2)``,
+
+    nu_i,k = y_k - h(xhat_i,k)
+    s_k    = b s_{k-1} + (1 - b) nu_i,k                  (s_0 = 0)
+    t_k    = t_{k-1} + dt                                (t_0 = 0)
+    q_k    = sum_j s_k,j^2 / S_j / ny   if t_k > start - dt / 2,  else 1
+    g_k    = (1 - a2) g_{k-1} + a2 q_k                   (g_0 = 1)
+    P'_k   = max(1, m_k) max(1, 1 + gain (g_k / m_k - threshold)) P_k
+
+``S`` is the mean of ``s^2`` on in-distribution validation runs after ``start`` (so ``g`` averages 1 there);
+``start`` leaves out the copies' own transient from the box centre, and ``threshold`` the average's own
+fluctuations in distribution. ``g`` is read against ``m``: noisier measurements raise both by the same factor
+(twice the noise: about 4), which ``max(1, m)`` covers already; a wrong model raises ``g`` alone. The state is
+then ``[m, s (ny), g, t]`` (``3 + ny`` numbers, start ``[1, 0, ..., 0, 1, 0]``: :meth:`Inflation.initial_state`).
 
 :func:`inflation_numpy` is the reference; :func:`inflation_function` the same recursion in CasADi (what the
 observer's step and its C code compute).
@@ -28,7 +47,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Optional
 
 import casadi as ca
 import numpy as np
@@ -37,15 +56,89 @@ from ...nets.specs import field_error
 from ...plant.systems import System
 from ...validation import is_number
 
-__all__ = ["INFLATION", "Inflation", "residual_statistic", "inflation_numpy", "inflation_function", "fold"]
+__all__ = ["INFLATION", "Inflation", "ModelTest", "residual_statistic", "inflation_numpy", "inflation_function",
+           "fold"]
 
 #: The card's entry (``architecture.inflation``).
 INFLATION = "inflation"
 _KEYS = ("R", "c", "time_constant")
+#: The optional entry of the model test (:class:`ModelTest`), and its keys.
+MODEL = "model"
+_MODEL_KEYS = ("copy", "pole", "S", "time_constant", "gain", "threshold", "start")
 
 
 def _positive(value: Any) -> bool:
     return is_number(value) and math.isfinite(value) and value > 0
+
+
+@dataclass(frozen=True)
+class ModelTest:
+    """The model test's constants (``architecture.inflation.model``; the module docstring's second recursion).
+
+    Attributes
+    ----------
+    copy : int
+        Which model copy of the latent (0: the first, the slowest of the shipped banks).
+    pole : float
+        Of the innovation's first-order low-pass, in rad/s, > 0.
+    S : tuple of float
+        The mean of the low-passed innovation's square per output on in-distribution validation runs (ny), > 0.
+    time_constant : float
+        Of its exponential average, in seconds, > 0.
+    gain : float
+        ``P' = max(1, m) max(1, 1 + gain (g / m - threshold)) P``, > 0.
+    threshold : float
+        Of ``g``, >= 0 (1: none beyond the mean in distribution).
+    start : float
+        The statistic is fed from this time on (s), >= 0: the copies start at the box centre.
+    """
+
+    copy: int
+    pole: float
+    S: tuple[float, ...]
+    time_constant: float
+    gain: float
+    threshold: float
+    start: float
+
+    @classmethod
+    def from_card(cls, entry: Any, where: str, ny: int) -> ModelTest:
+        """The constants of ``architecture.inflation.model``, checked (one-line errors naming the field)."""
+        name = f"architecture.{INFLATION}.{MODEL}"
+        if not isinstance(entry, Mapping) or set(entry) != set(_MODEL_KEYS):
+            received = sorted(entry) if isinstance(entry, Mapping) else entry
+            raise field_error(where, name, f"an object with exactly the keys {list(_MODEL_KEYS)}", received,
+                              "docs/model-format.md.")
+        copy = entry["copy"]
+        if isinstance(copy, bool) or not isinstance(copy, int) or copy < 0:
+            raise field_error(where, f"{name}.copy", "an integer >= 0 (a model copy of the latent)", copy,
+                              "architecture.bank.copies lists the copies.")
+        S = entry["S"]
+        if not (isinstance(S, list) and len(S) == ny and all(_positive(v) for v in S)):
+            raise field_error(where, f"{name}.S", f"a list of ny = {ny} finite numbers > 0", S,
+                              "The low-passed innovation's mean square per output on validation runs.")
+        for key in ("pole", "time_constant", "gain"):
+            if not _positive(entry[key]):
+                raise field_error(where, f"{name}.{key}", "a finite number > 0", entry[key],
+                                  "Chosen on validation runs (docs/design.md).")
+        for key in ("threshold", "start"):
+            if not (is_number(entry[key]) and math.isfinite(entry[key]) and entry[key] >= 0):
+                raise field_error(where, f"{name}.{key}", "a finite number >= 0", entry[key],
+                                  "Chosen on validation runs (docs/design.md).")
+        return cls(copy, float(entry["pole"]), tuple(float(v) for v in S), float(entry["time_constant"]),
+                   float(entry["gain"]), float(entry["threshold"]), float(entry["start"]))
+
+    def to_card(self) -> dict:
+        return {"copy": self.copy, "pole": self.pole, "S": list(self.S), "time_constant": self.time_constant,
+                "gain": self.gain, "threshold": self.threshold, "start": self.start}
+
+
+@dataclass(frozen=True)
+class CopyLayout:
+    """Where the model test's copy lives in the latent: ``xhat_i = reference + z[offset:offset + nx]``."""
+
+    offset: int
+    reference: tuple[float, ...]
 
 
 @dataclass(frozen=True)
@@ -60,20 +153,24 @@ class Inflation:
         The mean of the residual statistic ``r`` on in-distribution validation runs, > 0.
     time_constant : float
         Of the statistic's exponential average, in seconds, > 0.
+    model : ModelTest or None
+        The model test of a bank with model copies (optional).
     """
 
     R: tuple[float, ...]
     c: float
     time_constant: float
+    model: Optional[ModelTest] = None
 
     @classmethod
     def from_card(cls, entry: Any, where: str, ny: int) -> Inflation:
         """The constants of a card's ``architecture.inflation`` (``{"R": [ny numbers > 0], "c": number > 0,
         "time_constant": number > 0}``), checked; a bad one raises the package's one-line error naming it."""
         name = f"architecture.{INFLATION}"
-        if not isinstance(entry, Mapping) or set(entry) != set(_KEYS):
+        if not isinstance(entry, Mapping) or not set(_KEYS) <= set(entry) <= {*_KEYS, MODEL}:
             received = sorted(entry) if isinstance(entry, Mapping) else entry
-            raise field_error(where, name, f"an object with exactly the keys {list(_KEYS)}", received,
+            raise field_error(where, name, f"an object with exactly the keys {list(_KEYS)} (and optionally "
+                              f"{MODEL!r})", received,
                               "docs/model-format.md (benchmarks/covariance_heads.py writes it).")
         R = entry["R"]
         if not (isinstance(R, list) and len(R) == ny and all(_positive(v) for v in R)):
@@ -83,10 +180,18 @@ class Inflation:
             if not _positive(entry[key]):
                 raise field_error(where, f"{name}.{key}", "a finite number > 0", entry[key],
                                   "Chosen on validation runs by benchmarks/covariance_heads.py.")
-        return cls(tuple(float(v) for v in R), float(entry["c"]), float(entry["time_constant"]))
+        model = ModelTest.from_card(entry[MODEL], where, ny) if MODEL in entry else None
+        return cls(tuple(float(v) for v in R), float(entry["c"]), float(entry["time_constant"]), model)
 
     def to_card(self) -> dict:
-        return {"R": list(self.R), "c": self.c, "time_constant": self.time_constant}
+        card = {"R": list(self.R), "c": self.c, "time_constant": self.time_constant}
+        return card if self.model is None else {**card, MODEL: self.model.to_card()}
+
+    def initial_state(self) -> np.ndarray:
+        """The carried state at a run's start: ``[1]``, or ``[1, 0 (ny), 1, 0]`` with the model test."""
+        if self.model is None:
+            return np.ones(1)
+        return np.concatenate([[1.0], np.zeros(len(self.R)), [1.0, 0.0]])
 
     def weight(self, dt: float) -> float:
         """The exponential average's weight of a new sample, ``a = 1 - exp(-dt / time_constant)``."""
@@ -101,10 +206,16 @@ def residual_statistic(y: np.ndarray, hx: np.ndarray, H: np.ndarray, P: np.ndarr
     return np.einsum("...i,...i->...", nu, np.linalg.solve(S, nu[..., None])[..., 0]) / nu.shape[-1]
 
 
+def _copy_state(layout: CopyLayout, z: Any, nx: int) -> Any:
+    """The model test's copy's state ``reference + z[offset:offset + nx]`` (numpy (..., nz) or CasADi (nz, 1))."""
+    if isinstance(z, np.ndarray):
+        return np.asarray(layout.reference) + z[..., layout.offset:layout.offset + nx]
+    return ca.DM(list(layout.reference)) + z[layout.offset:layout.offset + nx]
+
+
 def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarray, xhat: np.ndarray,
-                    P: np.ndarray) -> np.ndarray:
-    """The factors ``max(1, m_k)`` of runs (the module docstring's recursion; the reference of
-    :func:`inflation_function`).
+                    P: np.ndarray, z: Optional[np.ndarray] = None, layout: Optional[CopyLayout] = None) -> np.ndarray:
+    """The factors of runs (the module docstring's recursions; the reference of :func:`inflation_function`).
 
     Parameters
     ----------
@@ -117,6 +228,10 @@ def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarr
     xhat : numpy.ndarray, shape (M, N, nx)
     P : numpy.ndarray, shape (M, N, nx, nx)
         The head's covariances of the estimates.
+    z : numpy.ndarray, shape (M, N, nz), optional
+        The latents (with the model test).
+    layout : CopyLayout, optional
+        Where its copy is in ``z`` (with the model test).
 
     Returns
     -------
@@ -124,33 +239,69 @@ def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarr
         1 at the first sample of each run.
     """
     M, N, nx = xhat.shape
-    flat = np.asarray(xhat, dtype=float).reshape(-1, nx).T
-    hx = np.asarray(system.h.map(M * N)(flat)).T.reshape(M, N, system.ny)
-    H = np.asarray(system.h_jac.map(M * N)(flat)).reshape(system.ny, M * N, nx).transpose(1, 0, 2)
-    r = residual_statistic(y, hx, H.reshape(M, N, system.ny, nx), P, inflation.R) / inflation.c
+
+    def h(x: np.ndarray) -> np.ndarray:
+        return np.asarray(system.h.map(M * N)(x.reshape(-1, nx).T)).T.reshape(M, N, system.ny)
+
+    H = np.asarray(system.h_jac.map(M * N)(np.asarray(xhat, dtype=float).reshape(-1, nx).T))
+    H = H.reshape(system.ny, M * N, nx).transpose(1, 0, 2).reshape(M, N, system.ny, nx)
+    r = residual_statistic(y, h(np.asarray(xhat, dtype=float)), H, P, inflation.R) / inflation.c
     a = inflation.weight(dt)
     m = np.ones((M, N))
     for k in range(1, N):
         m[:, k] = (1 - a) * m[:, k - 1] + a * r[:, k]
-    return np.maximum(1.0, m)
+    factor = np.maximum(1.0, m)
+    test = inflation.model
+    if test is None:
+        return factor
+    if z is None or layout is None:
+        raise ValueError("z, layout: expected the latents and the copy's layout for an inflation with a model test, "
+                         "received None.")
+    nu = np.asarray(y, dtype=float) - h(_copy_state(layout, np.asarray(z, dtype=float), nx))
+    b, a2 = math.exp(-test.pole * dt), -math.expm1(-dt / test.time_constant)
+    s, g, t = np.zeros((M, system.ny)), np.ones(M), 0.0
+    for k in range(1, N):
+        s = b * s + (1 - b) * nu[:, k]
+        t = t + dt
+        q = np.mean(s ** 2 / np.asarray(test.S), axis=-1) if t > test.start - dt / 2 else 1.0
+        g = (1 - a2) * g + a2 * q
+        factor[:, k] *= np.maximum(1.0, 1 + test.gain * (g / m[:, k] - test.threshold))
+    return factor
 
 
-def inflation_function(inflation: Inflation, system: System, dt: float) -> ca.Function:
-    """``inflation(m, y, xhat, P) -> (m_next, P_inflated)``: one step of the recursion (module docstring) at the
-    sample whose measurement is ``y`` (ny, 1), estimate ``xhat`` (nx, 1) and head covariance ``P`` (nx, nx); ``m``
-    the state after the previous sample. Plain scalar expressions (the residual's small solve expanded), so that
-    its C equals the CasADi VM."""
+def inflation_function(inflation: Inflation, system: System, dt: float, nz: int,
+                       layout: Optional[CopyLayout] = None) -> ca.Function:
+    """``inflation(m, y, xhat, P, z) -> (m_next, P_inflated)``: one step of the recursions (module docstring) at the
+    sample whose measurement is ``y`` (ny, 1), estimate ``xhat`` (nx, 1), head covariance ``P`` (nx, nx) and latent
+    ``z`` (nz, 1); ``m`` the carried state after the previous sample (:meth:`Inflation.initial_state`'s size; the
+    latent is read only by the model test, which needs ``layout``). Plain scalar expressions (the residual's small
+    solve expanded), so that its C equals the CasADi VM."""
     nx, ny = system.nx, system.ny
-    m, y, x = ca.SX.sym("m"), ca.SX.sym("y", ny), ca.SX.sym("xhat", nx)
-    P = ca.SX.sym("P", nx, nx)
+    size = inflation.initial_state().size
+    m, y, x = ca.SX.sym("m", size), ca.SX.sym("y", ny), ca.SX.sym("xhat", nx)
+    P, z = ca.SX.sym("P", nx, nx), ca.SX.sym("z", nz)
     nu = y - system.h(x)
     H = system.h_jac(x)
     S = ca.mtimes(ca.mtimes(H, P), H.T) + ca.diag(ca.DM(list(inflation.R)))
     r = ca.dot(nu, ca.solve(S, nu)) / ny
     a = inflation.weight(dt)
-    m_next = (1 - a) * m + (a / inflation.c) * r
-    return ca.Function("inflation", [m, y, x, P], [m_next, ca.fmax(1.0, m_next) * P],
-                       ["m", "y", "xhat", "P"], ["m_next", "P_inflated"])
+    m_next = (1 - a) * m[0] + (a / inflation.c) * r
+    factor = ca.fmax(1.0, m_next)
+    test = inflation.model
+    if test is None:
+        state = m_next
+    else:
+        if layout is None:
+            raise ValueError("layout: expected where the model test's copy is in the latent, received None.")
+        b, a2 = math.exp(-test.pole * dt), -math.expm1(-dt / test.time_constant)
+        s = b * m[1:1 + ny] + (1 - b) * (y - system.h(_copy_state(layout, z, nx)))
+        t = m[2 + ny] + dt
+        q = ca.if_else(t > test.start - dt / 2, ca.sum1(s ** 2 / ca.DM(list(test.S))) / ny, 1.0)
+        g = (1 - a2) * m[1 + ny] + a2 * q
+        factor = factor * ca.fmax(1.0, 1 + test.gain * (g / m_next - test.threshold))
+        state = ca.vertcat(m_next, s, g, t)
+    return ca.Function("inflation", [m, y, x, P, z], [state, factor * P],
+                       ["m", "y", "xhat", "P", "z"], ["m_next", "P_inflated"])
 
 
 def fold(step: ca.Function, name: str, n: int) -> ca.Function:

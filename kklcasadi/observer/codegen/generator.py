@@ -218,14 +218,17 @@ def _header(observer: KKLObserver, name: str, casadi_header: str, sizes: dict[st
  *   (NX*NX), the covariance at the start (with z_0, w_0, xhat_0).""")
         if observer.inflation is not None:
             lines.append(f"#define {macro}_HAS_INFLATION 1")
+            start = observer.inflation_start
+            lines.append(f"#define {macro}_NM {start.size}")
+            lines.append(f"#define {macro}_M0 {{{', '.join(repr(float(v)) for v in start)}}}")
             covariance = (f"""
- *   arg[5] m       (1)                the covariance inflation's state m_k ({macro}_HAS_INFLATION is defined:
- *                                    the card's architecture.inflation): 1 at the start, then m_next
+ *   arg[5] m       (NM)               the covariance inflation's state m_k ({macro}_HAS_INFLATION is defined:
+ *                                    the card's architecture.inflation): {macro}_M0 at the start, then m_next
  *   res[3] P_next  (NX*NX)           the covariance of xhat_next's error, column-major (the card's
- *                                    covariance head, times max(1, m_next); a null res[3] skips it)
- *   res[4] m_next  (1)               the inflation's state after the step (feed it back as arg[5])
+ *                                    covariance head, times its inflation factor; a null res[3] skips it)
+ *   res[4] m_next  (NM)              the inflation's state after the step (feed it back as arg[5])
  * {name}_covariance(arg, res, iw, w, mem): arg[0] z (NZ), arg[1] w (NW), arg[2] xhat (NX) -> res[0] P
- *   (NX*NX), the covariance at the start (with z_0, w_0, xhat_0; not inflated, m_0 = 1).""")
+ *   (NX*NX), the covariance at the start (with z_0, w_0, xhat_0; not inflated).""")
     scheme = ("exact (matrix exponential, first-order hold)" if observer.discretization == "exact"
               else f"RK4 with {observer.substeps} substep(s)")
     memory = ("the input window, WINDOW x NU column-major: w[i + WINDOW*j] is input j at sample "
