@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from dataclasses import dataclass, field, replace
@@ -41,8 +42,8 @@ from .registry import register
 from .result import Trained
 
 __all__ = ["BankConfig", "train_bank", "design_bank", "bank_model", "bank_time_scale",
-           "process_stds", "design_copies", "with_envelope", "with_noise_copy", "latent_design", "ensemble_arrays",
-           "fit_members", "copy_base",
+           "process_stds", "copy_plan", "design_copies", "with_envelope", "with_noise_copy", "latent_design",
+           "ensemble_arrays", "fit_members", "copy_base",
            "SHIPPED", "SHIPPED_MEMBERS", "ROBUST", "robust_command", "NEW_PLANT_BANK", "PROCESS_ON"]
 
 #: The systems whose ``bank`` models ship, with their settings beyond the defaults: the poles as
@@ -148,6 +149,12 @@ class BankConfig:
         (:class:`kklcasadi.model.variants.copies.ModelCopies`: constant-gain observers whose states the
         decoder reads beside the filters; ``1.0`` is the protocol EKF's ratio of process to measurement
         noise, a tuple one intensity per state); empty: none. Not for plants with angle states.
+    corner_copies : tuple of float
+        Process intensities of model copies at the corners of the plant's parameter box (a plant with
+        ``params``): each intensity adds one copy per corner, ``2^n_params`` of them, copy ``i`` observing the
+        plant at that corner (its gain that plant's). They come before ``copies`` (which run the nominal plant)
+        in the latent; their innovations tell the decoder which plant of the family it is looking at (a
+        multiple-model estimator it learns to blend: docs/design.md, "Over a family"). Empty: none.
     copy_substeps : int or None
         RK4 steps per sample interval of the copies; None: the fewest with ``h rho <= 1`` (``rho``
         the largest spectral radius of the copies' linearised error dynamics ``F - L_i H``).
@@ -188,6 +195,7 @@ class BankConfig:
     decoder: DecoderConfig = field(default_factory=lambda: DecoderConfig(
         loop=LoopConfig(epochs=40, batch_size=1024, lr=1e-3, schedule="cosine", val_fraction=0.05)))
     copies: tuple = ()
+    corner_copies: tuple = ()
     copy_substeps: Optional[int] = None
     noise_copy: Optional[bool] = False
     members: int = 1
@@ -202,6 +210,10 @@ class BankConfig:
         if not isinstance(self.copies, (tuple, list)) or not all(_intensity(w) for w in self.copies):
             raise error("copies", "a tuple of process intensities > 0, or of tuples of one per state >= 0 (one model "
                         "copy each; () for none)", self.copies)
+        if not isinstance(self.corner_copies, (tuple, list)) or not all(
+                isinstance(w, (int, float)) and not isinstance(w, bool) and _intensity(w) for w in self.corner_copies):
+            raise error("corner_copies", "a tuple of process intensities > 0 (one model copy per corner of the "
+                        "parameter box each; () for none)", self.corner_copies)
         if self.copy_substeps is not None and not (isinstance(self.copy_substeps, int)
                                                     and not isinstance(self.copy_substeps, bool)
                                                     and self.copy_substeps >= 1):
@@ -343,12 +355,31 @@ def copy_base(system: System, bank: fb.FilterBank, copies: ModelCopies, angles: 
     return base
 
 
+def copy_plan(system: System, config: BankConfig) -> tuple[list, Optional[np.ndarray]]:
+    """The latent's model copies of ``config``: their process intensities, and their parameter values
+    (m, n_params) where ``corner_copies`` puts some at the corners of the parameter box (None otherwise: every
+    copy runs the nominal plant). The corner copies come first, intensity by intensity, the corners in
+    ``itertools.product`` order of ``(lo, hi)`` per parameter; then ``copies`` at the nominal values."""
+    if not config.corner_copies:
+        return list(config.copies), None
+    box, nominal = system.param_box, system.param_nominal
+    if box is None or nominal is None:
+        raise error("corner_copies", f"() for plant {system.name!r}, which declares no parameters",
+                    list(config.corner_copies), "Train over a family: kc.System(..., params=P, param_box=...) or "
+                    "--param-spread.")
+    corners = [list(c) for c in itertools.product(*box.tolist())]
+    weights = [w for w in config.corner_copies for _ in corners] + list(config.copies)
+    params = [c for _ in config.corner_copies for c in corners] + [nominal.tolist()] * len(config.copies)
+    return weights, np.array(params, dtype=float)
+
+
 def design_copies(system: System, config: BankConfig, dt: float) -> Optional[ModelCopies]:
-    """The latent's model copies of ``config`` for ``system`` at the sample time ``dt`` (None where
-    ``config.copies`` is empty)."""
-    if not config.copies:
+    """The latent's model copies of ``config`` for ``system`` at the sample time ``dt`` (:func:`copy_plan`; None
+    where there are none)."""
+    weights, params = copy_plan(system, config)
+    if not weights:
         return None
-    copies = ModelCopies.design(system, config.copies)
+    copies = ModelCopies.design(system, weights, params=params)
     if config.copy_substeps is not None:
         return replace(copies, substeps=config.copy_substeps)
     A, _ = copies.linear_part()
@@ -397,8 +428,9 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
         params["members"] = len(fits)
     if copies is not None:
         arrays.update(copies.arrays())
-        params["copies"] = {"weights": [float(w) if np.ndim(w) == 0 else [float(v) for v in w] for w in config.copies],
-                            "substeps": copies.substeps}
+        weights, values = copy_plan(system, config)
+        params["copies"] = {"weights": [float(w) if np.ndim(w) == 0 else [float(v) for v in w] for w in weights],
+                            "substeps": copies.substeps, **({} if values is None else {"params": values.tolist()})}
     A, B = latent_design(bank, copies)
     spec = BankSpec(fits[0].spec.mlp, A, B, dt, system.nu, params, fits[0].spec.angles)
     return arrays, spec, Domain.of(data.x, data.z)

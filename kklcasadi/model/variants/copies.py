@@ -19,15 +19,22 @@ instead of blowing up. The latent's linear part goes in the card's ``(A, B)`` (r
 ``f(r + z_i, u) - L_i h(r + z_i) - (F - L_i H) z_i`` is the observer's input term on those rows, so
 ``A z + B y + input_term`` is the copies' field.
 
+A copy may run the plant at parameter values of its own (a plant of a family, ``kc.System(..., params=P)``):
+copy ``i`` then observes the plant ``system.at(params_i)``, its gain and linear part that plant's at ``(r, u = 0)``.
+Copies of one observer at several points of the parameter box are a multiple-model estimator whose innovations
+tell the decoder which plant it is looking at (docs/design.md, "Over a family"). Without ``params`` every copy
+runs the plant's nominal ``f`` and ``h``.
+
 Arrays ``copies/gains`` (m, nx, ny), ``copies/reference`` (nx,) and ``copies/bound`` (nx,); the card's
-``architecture.bank.copies`` records the weights and the substeps (docs/model-format.md).
+``architecture.bank.copies`` records the weights and the substeps, and each copy's parameter values where they
+are their own (``params``, docs/model-format.md).
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
-from typing import Any, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Optional, Sequence
 
 import casadi as ca
 import numpy as np
@@ -37,7 +44,7 @@ from ...plant.rk4 import rk4_step
 from ...plant.systems import System
 from ...validation import Text, error
 
-__all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count"]
+__all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count", "copy_plants", "copies_plant"]
 
 #: Half-width of the clip box of a copy's state, in half-widths of the plant's X0 box (the escape box of
 #: the operational runs, :attr:`kklcasadi.plant.runs.RolloutConfig.escape_scale`).
@@ -50,6 +57,54 @@ def copy_count(arrays: Mapping[str, Any]) -> int:
     """Latents of the model copies in ``arrays`` (``m nx``; 0 where there are none)."""
     gains = arrays.get("copies/gains")
     return 0 if gains is None else int(np.prod(np.shape(gains)[:2]))
+
+
+def copy_plants(system: System, params: Any, m: int) -> list[System]:
+    """The plant each of ``m`` copies runs: ``system`` itself (``params`` None), or ``family.at(params[i])``, the
+    family ``system`` itself where it has parameters, else the one it was fixed from (:attr:`System.family`).
+
+    Raises
+    ------
+    ValueError
+        Where ``params`` is not ``m`` finite rows of the plant's ``n_params`` values, or the plant has none.
+    """
+    if params is None:
+        return [system] * m
+    family = system if system.n_params else system.family
+    if family is None:
+        raise error("params", f"None for plant {system.name!r}, which declares no parameters",
+                    Text("parameter values per model copy"), "Give the family: kc.System(..., params=P, "
+                    "param_box=...) or its .at(values) (load_observer(path, system=family) does so).")
+    p = np.asarray(params, dtype=float)
+    if p.shape != (m, family.n_params) or not np.all(np.isfinite(p)):
+        raise error("params", f"finite parameter values of shape (m = {m} copies, n_params = {family.n_params})",
+                    Text(f"shape {p.shape}") if p.size > 20 or p.shape != (m, family.n_params) else p.tolist())
+    return [family.at(row) for row in p]
+
+
+def copies_plant(card: Mapping[str, Any], where: Any) -> Optional[System]:
+    """The nominal plant, fixed from its family (:attr:`System.family`), of a card whose model copies run at
+    parameter values of their own (``architecture.bank.copies.params``); None where they do not. The family is the
+    shipped one of the card's ``system.name``, its box the one the card's runs drew from (``training.runs.params``).
+
+    Raises
+    ------
+    ValueError
+        Where kklcasadi ships no family of that name, or the card does not record the box (``where``: the card).
+    """
+    from ...plant import systems
+
+    if "params" not in card["architecture"].get("bank", {}).get("copies", {}):
+        return None
+    name, record = card["system"]["name"], card.get("training", {}).get("runs", {}).get("params")
+    if name not in systems.families() or not isinstance(record, Mapping):
+        raise ValueError(f"{where}: 'architecture.bank.copies.params': model copies at parameter values of "
+                         f"{name!r}'s family, which kklcasadi cannot rebuild (a shipped family, the box in the card's "
+                         "training.runs.params). Pass the family: load_observer(path, system=kc.System(..., "
+                         "params=P, param_box=...)).")
+    box, nominal = np.asarray(record["box"], dtype=float), np.asarray(record["nominal"], dtype=float)
+    family = systems.get(name, param_spread=float(np.max(0.5 * (box[:, 1] - box[:, 0]) / np.abs(nominal))))
+    return family.at(family.param_nominal)
 
 
 def _jacobians(system: System, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -76,6 +131,9 @@ class ModelCopies:
         Half-widths (> 0) of the box about ``r`` each copy's state is clipped to after each sample.
     substeps : int
         RK4 steps per sample interval.
+    params : array_like, shape (m, n_params), optional
+        Each copy's parameter values (a plant with ``params``): copy ``i`` runs ``system.at(params[i])``.
+        None: every copy runs the plant's nominal ``f`` and ``h``.
     """
 
     system: System
@@ -83,6 +141,8 @@ class ModelCopies:
     reference: np.ndarray
     bound: np.ndarray
     substeps: int = 2
+    params: Optional[np.ndarray] = None
+    _plants: list = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         nx, ny = self.system.nx, self.system.ny
@@ -100,11 +160,14 @@ class ModelCopies:
             raise error("substeps", "a positive integer (RK4 steps per sample)", self.substeps)
         object.__setattr__(self, "gains", gains)
         object.__setattr__(self, "substeps", int(self.substeps))
+        object.__setattr__(self, "_plants", copy_plants(self.system, self.params, gains.shape[0]))
+        if self.params is not None:
+            object.__setattr__(self, "params", np.array(self.params, dtype=float))
 
     @classmethod
     def design(cls, system: System, weights: Sequence[Any], *, substeps: int = 2,
-               bound_scale: float = BOUND_SCALE) -> ModelCopies:
-        """Copies with the Kalman-Bucy gains of ``system`` linearised at its box centre.
+               bound_scale: float = BOUND_SCALE, params: Any = None) -> ModelCopies:
+        """Copies with the Kalman-Bucy gains of ``system`` (at each copy's ``params``) linearised at its box centre.
 
         Parameters
         ----------
@@ -116,6 +179,8 @@ class ModelCopies:
             RK4 steps per sample interval.
         bound_scale : float
             The clip box: the X0 box scaled by this about its centre.
+        params : array_like, shape (m, n_params), optional
+            Each copy's parameter values (see the class); None: the nominal plant.
 
         Raises
         ------
@@ -136,9 +201,9 @@ class ModelCopies:
             raise error("bound_scale", "a finite number > 0", bound_scale)
         box = np.asarray(system.x0_box, dtype=float)
         r = box.mean(axis=1)
-        F, H = _jacobians(system, r)
         gains = []
-        for wi, Q in zip(weights, intensities):
+        for wi, Q, plant in zip(weights, intensities, copy_plants(system, params, len(weights))):
+            F, H = _jacobians(plant, r)
             wi = f"{float(wi):g}" if np.ndim(wi) == 0 else "(" + ", ".join(f"{float(v):g}" for v in wi) + ")"
             try:
                 P = scipy.linalg.solve_continuous_are(F.T, H.T, Q, np.eye(system.ny))
@@ -152,16 +217,17 @@ class ModelCopies:
                     f"{wi}, whose gain does not stabilise {system.name} linearised at its box centre"),
                     "Train without model copies.")
             gains.append(L)
-        return cls(system, np.stack(gains), r, 0.5 * (box[:, 1] - box[:, 0]) * bound_scale, substeps)
+        return cls(system, np.stack(gains), r, 0.5 * (box[:, 1] - box[:, 0]) * bound_scale, substeps, params)
 
     @classmethod
-    def from_arrays(cls, arrays: Mapping[str, Any], system: System, substeps: int) -> ModelCopies:
-        """The copies of a model's arrays (:meth:`arrays`) for ``system``."""
+    def from_arrays(cls, arrays: Mapping[str, Any], system: System, substeps: int,
+                    params: Any = None) -> ModelCopies:
+        """The copies of a model's arrays (:meth:`arrays`) for ``system``, each at ``params`` (the card's)."""
         missing = [k for k in COPY_ARRAYS if k not in arrays]
         if missing:
             raise error("arrays", f"the model copies' arrays {list(COPY_ARRAYS)}", f"none of {missing}")
         return cls(system, np.asarray(arrays["copies/gains"]), np.asarray(arrays["copies/reference"]),
-                   np.asarray(arrays["copies/bound"]), substeps)
+                   np.asarray(arrays["copies/bound"]), substeps, params)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """``copies/gains`` (m, nx, ny), ``copies/reference`` (nx,), ``copies/bound`` (nx,)."""
@@ -180,9 +246,12 @@ class ModelCopies:
 
     def linear_part(self) -> tuple[np.ndarray, np.ndarray]:
         """The latent's linear part on the copies' rows: ``A`` (nz, nz) block diagonal ``F - L_i H`` and
-        ``B`` (nz, ny) the stacked ``L_i`` (``F``, ``H`` the Jacobians at ``(r, u = 0)``)."""
-        F, H = _jacobians(self.system, self.reference)
-        A = scipy.linalg.block_diag(*[F - L @ H for L in self.gains])
+        ``B`` (nz, ny) the stacked ``L_i`` (``F``, ``H`` the Jacobians of copy ``i``'s plant at ``(r, u = 0)``)."""
+        blocks = []
+        for L, plant in zip(self.gains, self._plants):
+            F, H = _jacobians(plant, self.reference)
+            blocks.append(F - L @ H)
+        A = scipy.linalg.block_diag(*blocks)
         return A, np.vstack(list(self.gains))
 
     def _split(self, z: Any) -> list:
@@ -192,15 +261,15 @@ class ModelCopies:
     def field(self, z: Any, y: Any, u: Any) -> Any:
         """The copies' field ``f(r + z_i, u) + L_i (y - h(r + z_i))`` (nz, 1) at CasADi column vectors."""
         r = ca.DM(self.reference)
-        return ca.vertcat(*[self.system.f(r + zi, u) + ca.mtimes(ca.DM(L), y - self.system.h(r + zi))
-                            for zi, L in zip(self._split(z), self.gains)])
+        return ca.vertcat(*[plant.f(r + zi, u) + ca.mtimes(ca.DM(L), y - plant.h(r + zi))
+                            for zi, L, plant in zip(self._split(z), self.gains, self._plants)])
 
     def remainder(self, z: Any, u: Any) -> Any:
         """The field less its linear part, ``field - A z - B y`` (nz, 1): independent of ``y``."""
         A, _ = self.linear_part()
         r = ca.DM(self.reference)
-        return ca.vertcat(*[self.system.f(r + zi, u) - ca.mtimes(ca.DM(L), self.system.h(r + zi))
-                            for zi, L in zip(self._split(z), self.gains)]) - ca.mtimes(ca.DM(A), z)
+        return ca.vertcat(*[plant.f(r + zi, u) - ca.mtimes(ca.DM(L), plant.h(r + zi))
+                            for zi, L, plant in zip(self._split(z), self.gains, self._plants)]) - ca.mtimes(ca.DM(A), z)
 
     def step_function(self, dt: float, name: str = "copies_step") -> ca.Function:
         """CasADi ``(z, y, y_next, u) -> z_next`` (nz,): ``substeps`` RK4 steps of :meth:`field` over one
