@@ -425,3 +425,18 @@ def test_kklcasadi_train_refuses_corner_copies_without_a_family_before_training(
     assert code == 2 and not (tmp_path / "m").exists()
     assert "error: --corner-copies: expected () for plant 'duffing', which declares no parameters" \
         in capsys.readouterr().err
+
+
+def test_kklcasadi_train_over_a_family_with_corner_copies_ends_with_its_summary(tmp_path, capsys):
+    """The closing summary loads the model with the family's nominal plant (it refused the family's fingerprint)."""
+    pytest.importorskip("torch")
+    from kklcasadi.cli import main
+
+    out = tmp_path / "m"
+    code = main(["train", "--system", "duffing", "--param-spread", "0.3", "--corner-copies", "1", "--runs", "6",
+                 "--epochs", "1", "--members", "1", "--threads", "1", "--out", str(out), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    assert "RMSE" in capsys.readouterr().out
+    card = json.loads((out / "card.json").read_text())
+    assert card["architecture"]["bank"]["copies"]["params"][:4] == [[0.7, 0.7], [0.7, 1.3], [1.3, 0.7], [1.3, 1.3]]
+    assert card["system"]["fingerprint"] == kc.systems.get("duffing").fingerprint
