@@ -130,7 +130,10 @@ def test_the_shipped_robust_observers_are_their_recipe():
         assert training["config"] == {key: value for key, value in recipe.items() if key not in added}
         assert training["seed"] == args.seed == 11 and expected.members == 1
         runs = training["runs"]
-        assert runs["runs"] == expected.rollouts.n_traj == 1000
+        assert runs["runs"] == expected.rollouts.n_traj == {"duffing": 3000, "vdp": 1000}[system]
+        copies = card["architecture"]["bank"]["copies"]          # Duffing's: one copy per corner of its box first
+        corners = [[lo, hi] for lo in (0.7, 1.3) for hi in (0.7, 1.3)] if system == "duffing" else None
+        assert copies.get("params", [None] * 4)[:4] == (corners or [None] * 4)
         assert set(runs["noise_models"]) == set(args.noise_model) == {"gauss", "student-t:3"}
         assert min(runs["noise_models"].values()) > 0.4 * runs["runs"]          # one drawn per run, both drawn
         params = runs["params"]
@@ -141,7 +144,7 @@ def test_the_shipped_robust_observers_are_their_recipe():
         assert card["system"]["fingerprint"] == kc.systems.get(system).fingerprint      # the nominal plant
         obs = kc.load_observer(f"{system}/robust")
         assert obs.method == "bank" and obs.model.path == (ROOT / "models" / system / "robust").resolve()
-    assert "--param-spread" in ROBUST and "student-t:3" in ROBUST
+    assert all("--param-spread" in flags and "student-t:3" in flags for flags in ROBUST.values())
     with pytest.raises(ValueError, match=r"^system: expected a shipped system with a parameterised form"):
         robust_command("fhn")
 
