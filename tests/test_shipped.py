@@ -99,6 +99,7 @@ def test_the_shipped_robust_observers_are_their_recipe():
     """models/<system>/robust is ``kklcasadi train`` with the flags of :data:`kklcasadi.train.bank.ROBUST`
     (issue 46.6): the card's configuration, seed, parameter box and noise models are the recipe's, the card
     records the nominal plant, and the model loads by its shipped name."""
+    import itertools
     import json
     from dataclasses import asdict
 
@@ -130,10 +131,11 @@ def test_the_shipped_robust_observers_are_their_recipe():
         assert training["config"] == {key: value for key, value in recipe.items() if key not in added}
         assert training["seed"] == args.seed == 11 and expected.members == 1
         runs = training["runs"]
-        assert runs["runs"] == expected.rollouts.n_traj == {"duffing": 3000, "vdp": 1000}[system]
-        copies = card["architecture"]["bank"]["copies"]          # Duffing's: one copy per corner of its box first
-        corners = [[lo, hi] for lo in (0.7, 1.3) for hi in (0.7, 1.3)] if system == "duffing" else None
-        assert copies.get("params", [None] * 4)[:4] == (corners or [None] * 4)
+        assert runs["runs"] == expected.rollouts.n_traj == 3000
+        copies = card["architecture"]["bank"]["copies"]          # one copy per corner of the box first, then nominal
+        corners = [list(c) for c in itertools.product(*family.param_box.tolist())]
+        assert copies["params"] == corners + [family.param_nominal.tolist()] * 3
+        assert copies["weights"] == [1.0] * len(corners) + [1.0, 100.0, 1e4]
         assert set(runs["noise_models"]) == set(args.noise_model) == {"gauss", "student-t:3"}
         assert min(runs["noise_models"].values()) > 0.4 * runs["runs"]          # one drawn per run, both drawn
         params = runs["params"]
