@@ -25,6 +25,7 @@ and on the first trial of the noisy ``id`` sinusoid cell, over its first ``--mhe
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import subprocess
@@ -34,6 +35,8 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+
+from kklcasadi.writes import refuse_existing, write_file
 
 ROOT = Path(__file__).resolve().parents[1]
 SYSTEMS = ("duffing", "vdp", "rossler", "fhn")
@@ -70,8 +73,7 @@ def record(out: Path, systems: tuple[str, ...], n_trials: int, mhe_samples: int)
     from kklcasadi.evaluation.compiled import ekf_estimator, observer_estimator, pf_estimator
     from kklcasadi.evaluation.protocol import Protocol
 
-    if out.exists():
-        raise SystemExit(f"out: expected a new file, received {out} (it exists; no input file is overwritten)")
+    refuse_existing({out: "OUT.npz"})                             # before any run; written whole at the end
     store: dict[str, np.ndarray] = {}
     t0 = time.perf_counter()
     for name in systems:
@@ -129,11 +131,9 @@ def record(out: Path, systems: tuple[str, ...], n_trials: int, mhe_samples: int)
             "seeds": {"protocol": 2026, "particle_filter": 0, "nmpc_noise": 3}, "trials": n_trials,
             "systems": list(systems), "seconds": round(time.perf_counter() - t0, 1),
             "threads": os.environ.get("OMP_NUM_THREADS")}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(out.name + ".partial")
-    with open(partial, "xb") as f:
-        np.savez(f, meta=np.array(json.dumps(meta)), **store)
-    os.replace(partial, out)
+    archive = io.BytesIO()
+    np.savez(archive, meta=np.array(json.dumps(meta)), **store)
+    write_file(out, archive.getvalue(), argument="OUT.npz")          # whole, and never over a file written meanwhile
     print(f"wrote {out}: {len(store)} arrays, {meta['seconds']} s")
 
 

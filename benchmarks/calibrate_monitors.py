@@ -94,11 +94,11 @@ def calibration_source(script: str, fresh: bool) -> str:
 
 
 def recalibrate(directory: Path, model: Model, bank: FilterBank, data: OperationalData, arrays: dict, card: dict,
-                source: str, *, monitor: MonitorConfig | None = None) -> dict:
+                source: str, *, monitor: MonitorConfig | None = None, overwrite: bool = False) -> dict:
     """Save ``arrays`` and ``card`` (a bank model of ``data``) to ``directory`` with the monitor calibrated on
     ``data`` as ``monitor`` says (:func:`kklcasadi.model.operational.bank_monitor`; the spread threshold of an ensemble
     from ``monitor.spread_runs`` runs at the card's nominal noise) and the card's ``fit_families``; returns the
-    card written."""
+    card written. A model already in ``directory`` is replaced (in one step) only with ``overwrite``."""
     monitor = MonitorConfig() if monitor is None else monitor
     spec = parse_card(card, str(directory), require_sha=False).architecture
     spread = member_spread(arrays, bank, spec)
@@ -117,7 +117,7 @@ def recalibrate(directory: Path, model: Model, bank: FilterBank, data: Operation
     card["fit_families"] = {kind: {p: list(b) for p, b in ranges.items()}
                             for kind, ranges in fit_families(rollouts_of(model), noise_of(model)[2]).items()}
     arrays = {k: v for k, v in arrays.items() if not k.startswith("monitor/")}
-    save_model(directory, {**arrays, **calibrated.arrays()}, card, overwrite=True)
+    save_model(directory, {**arrays, **calibrated.arrays()}, card, overwrite=overwrite)
     return card
 
 
@@ -142,7 +142,8 @@ def main() -> None:
         model, bank, data = resimulate(directory, fresh=args.fresh)
         source = calibration_source("benchmarks/calibrate_monitors.py", args.fresh)
         monitor = MonitorConfig(args.quantile, args.spread_quantile, args.spread_runs)
-        card = recalibrate(directory, model, bank, data, dict(model.arrays), model.card, source, monitor=monitor)
+        card = recalibrate(directory, model, bank, data, dict(model.arrays), model.card, source, monitor=monitor,
+                           overwrite=True)                      # the model it read, saved again in one step
         print(f"{directory}: {data.record['runs']} runs re-simulated and checked, monitor threshold "
               f"{card['monitor']['threshold']:.4g} ({card['monitor']['prototypes']} prototypes), "
               f"{time.perf_counter() - t0:.0f} s; {json.dumps(card['fit_families'])}")

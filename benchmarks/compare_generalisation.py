@@ -8,6 +8,7 @@ The reports must hold the same cases on the same trials (the EKF's per-trial SMA
 mean SMAPE to the EKF's in a case, as ``kklcasadi generalise`` reports it. A model label that occurs in
 two reports is an error: pass ``--labels`` to ``kklcasadi generalise``, or here one label per report
 (each of them holding one model; for instance two reports of ``models/<system>/bank`` at two commits).
+``--out`` is refused before anything is read where it exists (a report among them, too), and written whole.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import sys
 from pathlib import Path
 
 from kklcasadi import provenance
+from kklcasadi.writes import refuse_existing, write_file
 
 
 def load(paths: list[Path], names: list[str] | None = None) -> tuple[list[tuple], dict[str, dict[tuple, float]]]:
@@ -69,10 +71,12 @@ def main() -> int:
     parser.add_argument("--labels", help="comma-separated column labels, one per report of one model")
     parser.add_argument("--out", type=Path, help="write the table there too")
     args = parser.parse_args()
+    if args.out:
+        refuse_existing({args.out: "--out"})
     text = table(*load(args.reports, args.labels.split(",") if args.labels else None))
     print(text)
     if args.out:
-        args.out.write_text(provenance.markdown(text + "\n", provenance.stamp()))
+        write_file(args.out, provenance.markdown(text + "\n", provenance.stamp()), argument="--out")
     return 0
 
 

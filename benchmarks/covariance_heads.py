@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import shutil
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -38,7 +37,7 @@ from kklcasadi import consistency as cs
 from kklcasadi import provenance
 from kklcasadi.evaluation.compiled import CompiledRecord
 from kklcasadi.evaluation.protocol import Protocol
-from kklcasadi.model.files import load_model, save_model
+from kklcasadi.model.files import MODEL_FILES, load_model, save_model
 from kklcasadi.model.shipped import resolve
 from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, decoder_features
 from kklcasadi.model.variants.covariance import COVARIANCE, SCALE, covariance_numpy
@@ -54,6 +53,7 @@ from kklcasadi.train.covariance import (
     fit_covariance,
     output_errors,
 )
+from kklcasadi.writes import refuse_existing
 
 
 def runs(obs, seed: int, trials: int, method: str = "rk", noise: float | None = None, measured: bool = False):
@@ -128,6 +128,7 @@ def main() -> None:
     if args.fit_seed in (Protocol.seed, args.val_seed) or args.val_seed == Protocol.seed:
         p.error(f"--fit-seed, --val-seed: expected two seeds other than each other and the scored seed "
                 f"{Protocol.seed}, received {args.fit_seed} and {args.val_seed}")
+    refuse_existing({args.out / name: "--out" for name in MODEL_FILES})         # before any fit, never over a model
     source = resolve(args.model)
     model = load_model(source)
     if model.method != "bank":
@@ -185,12 +186,10 @@ def main() -> None:
 
 
 def write(out: Path, source, obs, arrays, card, seed: int, start: float) -> None:
-    """Save the model with the head at ``out`` (MODEL's history copied), and check that its estimates are MODEL's
-    bit for bit on validation runs (stop otherwise)."""
-    out = save_model(out, arrays, card)
+    """Save the model with the head at ``out`` (MODEL's history with it, in the same step), and check that its
+    estimates are MODEL's bit for bit on validation runs (stop otherwise)."""
     history = Path(source) / "history.json"
-    if history.exists():
-        shutil.copyfile(history, out / "history.json")
+    out = save_model(out, arrays, card, extra={history.name: history.read_bytes()} if history.exists() else None)
 
     headed = load_observer(out)
     check = Protocol(n_trials=4, seed=seed, method="rk").trials(obs.system, "square")

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import copy
 import dataclasses
+import io
 import json
 import time
 from pathlib import Path
@@ -30,12 +31,14 @@ from pathlib import Path
 import numpy as np
 from calibrate_monitors import calibration_source, recalibrate, resimulate
 
+from kklcasadi.model.files import MODEL_FILES
 from kklcasadi.model.variants import bankdecoder as bd
 from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, member_prefixes
 from kklcasadi.nets.specs import DECODER
 from kklcasadi.train.bank import ensemble_arrays
 from kklcasadi.train.config import LoopConfig
 from kklcasadi.train.decoder import BankFit, DecoderConfig, fit_bank_decoder
+from kklcasadi.writes import refuse_existing, write_file
 
 
 def decoder_config(record: dict) -> DecoderConfig:
@@ -71,6 +74,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.members < 2:
         parser.error(f"--members: expected at least 2, received {args.members}")
+    refuse_existing({args.out / name: "--out" for name in MODEL_FILES})         # before any fit, never over a model
     t0 = time.perf_counter()
     model, bank, data = resimulate(args.model, fresh=args.fresh)
     have = model.spec.architecture.members
@@ -104,10 +108,11 @@ def main() -> None:
             fit = fit_bank_decoder(bank, data, config, angles=one.angles, seed=member_seed, progress=True)
             arrays = fit.arrays
             summaries.append({"seed": member_seed, **fit.fit.summary()})
-            if path is not None:
-                path.parent.mkdir(parents=True, exist_ok=True)
-                np.savez(path, **arrays)
-                path.with_suffix(".json").write_text(json.dumps(summaries[-1]))
+            if path is not None:                        # the summary, then the arrays whose file marks it done
+                archive = io.BytesIO()
+                np.savez(archive, **arrays)
+                write_file(path.with_suffix(".json"), json.dumps(summaries[-1]), overwrite=True, argument="--cache")
+                write_file(path, archive.getvalue(), overwrite=True, argument="--cache")
         fits.append(BankFit(arrays, one, None, len(data), 0.0, {}))
     arrays = {k: v for k, v in ensemble_arrays(fits).items() if not k.startswith(("bank/A", "bank/By"))}
     card["architecture"]["bank"]["members"] = args.members

@@ -11,8 +11,9 @@ card's noise level; the target is at most 5 %), and on the bad trials (SMAPE abo
 the trial; the target is at least half) of the ood and held-out cases at that noise and of the other
 noise levels. It picks the lowest quantile whose in-distribution share is within ``--budget`` (half
 the target by default, for the difference between validation and scored trials), and writes
-``results/generalisation/<system>/<system>_<seed>_monitor.{md,json}``. Apply it with
-``benchmarks/calibrate_monitors.py MODEL --spread-quantile Q``.
+``results/generalisation/<system>/<system>_<seed>_monitor.{md,json}`` (relative to the working directory: both
+rendered first, then written as one and exclusively; where one exists the script says so before any work). Apply
+it with ``benchmarks/calibrate_monitors.py MODEL --spread-quantile Q``.
 
 The monitor's other tests (the card's boxes, the nearest-prototype distance) are the model's own; the
 observer's estimates are the reference ones (:func:`kklcasadi.model.variants.bankdecoder.decode` on the
@@ -38,6 +39,7 @@ from kklcasadi.model.operational import MonitorConfig, nominal_runs
 from kklcasadi.model.variants import bankdecoder as bd
 from kklcasadi.model.variants import filterbank as fb
 from kklcasadi.observer.kkl import KKLObserver, load_observer
+from kklcasadi.writes import refuse_existing, write_dir
 
 GRID = (0.9, 0.93, 0.95, 0.97, 0.98, 0.99, 0.995)
 OUT = Path("results/generalisation")
@@ -69,6 +71,8 @@ def main() -> None:
     spec = model.spec.architecture
     if obs.spread is None or obs.monitor is None:
         raise SystemExit(f"{args.model}: expected a decoder ensemble with a domain monitor")
+    folder, stem = OUT / plant.name, f"{plant.name}_{args.seed}_monitor"
+    refuse_existing({folder / f"{stem}.{ext}": "--seed" for ext in ("md", "json")})    # the seed names the files
     plain = KKLObserver(replace(model, spec=replace(model.spec, monitor=replace(model.spec.monitor, spread=None))),
                         plant)                                  # the boxes and the prototypes, no spread test
     arrays = spec.filter_arrays(model.arrays)
@@ -135,13 +139,13 @@ def main() -> None:
         lines.append("| " + " | ".join(cells) + " |")
     table = "\n".join(lines)
     print(table)
-    (OUT / name).mkdir(parents=True, exist_ok=True)
-    stem = OUT / name / f"{name}_{args.seed}_monitor"
     stamp = provenance.stamp(seeds={"trials": args.seed})
-    stem.with_suffix(".md").write_text(provenance.markdown(table + "\n", stamp))
     record = {"system": name, "model": str(args.model), "seed": args.seed, "trials": args.trials, "budget": args.budget,
               "source": source, "chosen": chosen, "rows": rows, "cases": cases}
-    stem.with_suffix(".json").write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
+    write_dir(folder, {f"{stem}.md": provenance.markdown(table + "\n", stamp),          # the two as one, exclusively
+                       f"{stem}.json": json.dumps(provenance.json_record(record, stamp), indent=1) + "\n"},
+              argument="--seed")
+    print(f"wrote {folder / stem}.{{md,json}}")
 
 
 if __name__ == "__main__":

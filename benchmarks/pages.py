@@ -4,6 +4,10 @@ A page is markdown a script computes from the stored results; it carries its pro
 command, commit and time that wrote it: :mod:`kklcasadi.provenance`) as a first-line comment and a
 visible line naming the command and its sources. ``--check`` compares the page with a fresh
 generation (stamp aside) and exits 1 where it is stale; the tests run the same comparison.
+
+A page is the one output its command regenerates in place ("do not edit, rerun the command"), so it is
+replaced, not refused: atomically (:func:`kklcasadi.writes.write_file` with ``overwrite``), the page computed
+first, so a run that fails leaves the old page whole and no temporary file.
 """
 
 from __future__ import annotations
@@ -14,6 +18,7 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from kklcasadi import provenance
+from kklcasadi.writes import write_file
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs" / "results"
@@ -30,7 +35,7 @@ def publish(name: str, page: Callable[[], str], argv: Sequence[str] | None = Non
     """Write ``folder/name`` (default ``docs/results/<name>``) from ``page()`` (``--check``: compare only;
     ``--print``: print it)."""
     path = folder / name
-    shown = path.relative_to(ROOT)
+    shown = path.relative_to(ROOT) if ROOT in path.parents else path
     parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--check", action="store_true", help=f"exit 1 where {shown} is stale")
     parser.add_argument("--print", action="store_true", help="print the page instead of writing it")
@@ -45,7 +50,6 @@ def publish(name: str, page: Callable[[], str], argv: Sequence[str] | None = Non
             print(f"{shown} is stale: rerun the command that writes it", file=sys.stderr)
             return 1
         return 0
-    folder.mkdir(parents=True, exist_ok=True)
-    path.write_text(provenance.markdown(text, provenance.stamp()))
+    write_file(path, provenance.markdown(text, provenance.stamp()), overwrite=True, argument=name)
     print(f"wrote {shown}")
     return 0

@@ -8,7 +8,8 @@ For each roughening of a grid the script runs the filter on generalisation cases
 at a validation seed (not the scored seed 2026) for the four systems at noise 0.05 and 0.2, and prints
 the mean SMAPE over the trials of the filter over the EKF's on the same trials. The rule: the lowest
 roughening whose geometric mean over the cases is within 0.5 % of the grid's lowest.
-Writes ``results/generalisation/all/pf_roughening_<seed>.{md,json}``; the choice is
+Writes ``results/generalisation/all/pf_roughening_<seed>.{md,json}`` (``--out``; together, and refused before any
+run where one exists); the choice is
 :data:`kklcasadi.estimators.pf.ROUGHENING`.
 """
 
@@ -28,6 +29,7 @@ from kklcasadi.evaluation import generalisation as gen
 from kklcasadi.evaluation.compiled import Compiler, ekf_estimator, pf_estimator
 from kklcasadi.evaluation.trialcache import TrialCache, cache_root
 from kklcasadi.plant import systems
+from kklcasadi.writes import refuse_existing, write_dir
 
 SYSTEMS = ("duffing", "vdp", "fhn", "rossler")
 CASES = (("zero", "id"), ("square", "id"), ("square", "ood"), ("chirp", "held_out"))
@@ -46,6 +48,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.seed == 2026:
         parser.error("--seed: 2026 is the scored seed; choose on validation trials (e.g. 3030)")
+    out, stem = Path(args.out), f"pf_roughening_{args.seed}"
+    refuse_existing({out / f"{stem}.{ext}": "--out" for ext in ("md", "json")})
     settings = gen.Settings(n_trials=args.trials, seed=args.seed)
     cache, compiler = TrialCache(cache_root() / "trials"), Compiler()
     rows = []
@@ -77,14 +81,12 @@ def main() -> None:
     lines.append("| geometric mean | | | " + " | ".join(f"{g:.3f}" for g in geo) + " |")
     table = head + "\n".join(lines) + "\n"
     print(table)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    stem = out / f"pf_roughening_{args.seed}"
     stamp = provenance.stamp(seeds={"trials": args.seed, "particles": args.seed})
-    stem.with_suffix(".md").write_text(provenance.markdown(table, stamp))
     record = {"seed": args.seed, "trials": args.trials, "particles": args.particles, "grid": list(GRID),
               "geometric_mean": geo, "chosen": chosen, "rows": rows}
-    stem.with_suffix(".json").write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
+    write_dir(out, {f"{stem}.md": provenance.markdown(table, stamp),                     # the two as one
+                    f"{stem}.json": json.dumps(provenance.json_record(record, stamp), indent=1) + "\n"},
+              argument="--out")
 
 
 if __name__ == "__main__":

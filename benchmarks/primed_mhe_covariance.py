@@ -6,7 +6,8 @@ Both MHEs (:class:`kklcasadi.estimators.mhe.KKLPrimedMHE`, horizon ``--horizon``
 primed by the shipped ``SYSTEM/bank`` on the same noisy protocol trials (seed 2026): one with the error profile
 :func:`kklcasadi.estimators.mhe.kkl_error_profile` calibrated on 5 runs per regime of seed 2027 (what
 ``kklcasadi compare`` runs), the other with the observer's covariance head (``error_std=None``). Writes
-``DIR/SYSTEM_primed_mhe.md`` and ``.json`` (stamped): mean SMAPE and RMSE after 5 s per regime, and the observer's.
+``DIR/SYSTEM_primed_mhe.md`` and ``.json`` (stamped, written together; refused before any run where one exists):
+mean SMAPE and RMSE after 5 s per regime, and the observer's.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from kklcasadi.evaluation.compare import MHE_SUBSTEPS
 from kklcasadi.evaluation.protocol import Protocol
 from kklcasadi.observer.kkl import load_observer
 from kklcasadi.plant import signals as sig
+from kklcasadi.writes import refuse_existing, write_dir
 
 
 def main() -> None:
@@ -34,6 +36,8 @@ def main() -> None:
     p.add_argument("--kinds", nargs="+", default=list(sig.BENCHMARK_KINDS), choices=sig.BENCHMARK_KINDS)
     p.add_argument("--horizon", type=int, default=5)
     args = p.parse_args()
+    names = {ext: f"{args.system}_primed_mhe.{ext}" for ext in ("md", "json")}
+    refuse_existing({args.out / name: "--out" for name in names.values()})     # before any run, never over a file
     obs = load_observer(f"{args.system}/bank")
     protocol = Protocol(n_trials=args.trials, T=args.T)
     calibration = Protocol(n_trials=5, T=args.T, seed=protocol.seed + 1)
@@ -61,11 +65,10 @@ def main() -> None:
     text = "\n".join(lines)
     print(text)
     stamp = provenance.stamp(seeds={"trials": protocol.seed, "calibration": calibration.seed})
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{args.system}_primed_mhe.md").write_text(provenance.markdown(text + "\n", stamp))
-    (args.out / f"{args.system}_primed_mhe.json").write_text(
-        json.dumps(provenance.json_record({"settings": {k: str(v) for k, v in vars(args).items()}, "rows": rows},
-                                          stamp), indent=1) + "\n")
+    record = {"settings": {k: str(v) for k, v in vars(args).items()}, "rows": rows}
+    write_dir(args.out, {names["md"]: provenance.markdown(text + "\n", stamp),           # the two as one
+                         names["json"]: json.dumps(provenance.json_record(record, stamp), indent=1) + "\n"},
+              argument="--out")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ cubic feedforward,
 tracks a square-wave reference ``r(t)`` for ``x1`` using the observer's estimate ``xhat`` (from
 ``obs.estimator().make_step(y_k, u_k)``); the control computed from ``xhat_k`` is applied from the
 next sample on (one sample of computation delay). The script writes a PNG of the true and the
-estimated states, the reference and the input.
+estimated states, the reference and the input (stamped with the command; refused before any work where
+``--out`` exists, written whole or not at all).
 
     python examples/closed_loop.py --model models/duffing/inject --out closed_loop.png
 
@@ -20,6 +21,7 @@ model is written from an autonomous one with ``kklcasadi.observer.kkl.make_injec
 from __future__ import annotations
 
 import argparse
+import io
 from pathlib import Path
 
 import matplotlib
@@ -29,7 +31,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 import kklcasadi as kc  # noqa: E402
+from kklcasadi import provenance  # noqa: E402
 from kklcasadi.plant.simulate import step_function, time_grid  # noqa: E402
+from kklcasadi.writes import refuse_existing, write_file  # noqa: E402
 
 
 def run(observer: kc.KKLObserver, T: float, *, amplitude: float = 0.5, omega: float = 0.5,
@@ -65,8 +69,8 @@ def run(observer: kc.KKLObserver, T: float, *, amplitude: float = 0.5, omega: fl
     return {"t": t, "x": x, "xhat": xhat, "r": r, "u": u}
 
 
-def plot(result: dict[str, np.ndarray], title: str, out: Path) -> None:
-    """Write the true vs estimated states, the reference and the input to ``out`` (PNG)."""
+def plot(result: dict[str, np.ndarray], title: str, stamp: provenance.Stamp) -> bytes:
+    """The true vs estimated states, the reference and the input (a PNG with ``stamp`` in its metadata)."""
     t = result["t"]
     fig, axes = plt.subplots(3, 1, sharex=True, figsize=(8, 7))
     for i, ax in enumerate(axes[:2]):
@@ -81,9 +85,10 @@ def plot(result: dict[str, np.ndarray], title: str, out: Path) -> None:
         ax.legend(loc="upper right", fontsize=8)
     axes[0].set_title(title)
     fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=120)
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=120, metadata=provenance.png_metadata(stamp))
     plt.close(fig)
+    return png.getvalue()
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -96,6 +101,8 @@ def main(argv: list[str] | None = None) -> Path:
                         help="measurement noise standard deviation (default: %(default)s)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default: %(default)s)")
     args = parser.parse_args(argv)
+    out = Path(args.out)
+    refuse_existing({out: "--out"})
     try:
         observer = kc.load_observer(args.model)
     except ValueError as exc:
@@ -108,8 +115,8 @@ def main(argv: list[str] | None = None) -> Path:
     tracking = np.sqrt(np.mean((result["x"][:, 0] - result["r"]) ** 2))
     title = (f"Duffing, {observer.method} observer in the loop\nestimation RMSE x1 {error[0]:.3g}, "
              f"x2 {error[1]:.3g}; tracking RMSE {tracking:.3g}")
-    out = Path(args.out)
-    plot(result, title, out)
+    png = plot(result, title, provenance.stamp(seeds={"noise": args.seed}))
+    write_file(out, png, argument="--out")                    # whole or not at all, never over another file
     print(f"{title}\nwrote {out}")
     return out
 

@@ -27,11 +27,16 @@
 
 Run: ``python examples/emps_rig.py [--out DIR] [--results FILE] [--page FILE]``; ``--epochs``, ``--runs`` and
 ``--horizon`` shrink the recipe's budget (``tests/test_emps_rig.py`` runs it so, writing to temporary files).
+Nothing is overwritten: where one of its files exists (``OUT``'s development part, models and estimates, the
+record, the PNG beside it, the page) the script says so, naming the flag, before any work; the record, the PNG
+and the page are rendered first and then written exclusively (:func:`kklcasadi.writes.write_files`), so a run
+that fails leaves none of them half written. To refresh the stored record, move it and the page away first.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import time
 from pathlib import Path
@@ -68,9 +73,9 @@ def write_development_part(out: Path) -> Path:
     """The rows of the log before ``SPLIT``, as logged (the header and the numbers' text unchanged)."""
     lines = DATA.read_text().splitlines()
     keep = [lines[0]] + [line for line in lines[1:] if line and float(line.split(",", 1)[0]) < SPLIT]
-    path = out / "emps_dev.csv"
-    path.write_text("\n".join(keep) + "\n")
-    return path
+    from kklcasadi.writes import write_file
+
+    return write_file(out / "emps_dev.csv", "\n".join(keep) + "\n", argument="--out")
 
 
 def command(case: str, model: Path, dev: Path, plant: str = PLANT, seed: int = 0) -> list[str]:
@@ -98,7 +103,7 @@ def train(case: str, model: Path, dev: Path, *, epochs: Optional[int] = None, ru
     if runs is not None and runs < 100:                          # batches a tiny budget's few samples can fill
         config = with_field(config, "decoder", with_field(config.decoder, "batch_size", 64))
     return train_observer(plant, RECOMMENDED, Path(args.out), config=config, dt=args.dt, seed=args.seed,
-                          overwrite=True, epochs=epochs, threads=1, progress=False)
+                          epochs=epochs, threads=1, progress=False)
 
 
 def estimate(model: Path, out: Path, ekf: bool) -> np.ndarray:
@@ -180,7 +185,8 @@ def targets(table: dict) -> str:
             f"{1e3 * POSITION_TARGET:g} mm, on the scored part: " + "; ".join(cells) + ".")
 
 
-def plot(t: np.ndarray, estimates: dict, v: np.ndarray, path: Path, stamp: object) -> Path:
+def plot(t: np.ndarray, estimates: dict, v: np.ndarray, stamp: object) -> bytes:
+    """The velocity of the scored part against the reference, and the errors (a PNG with ``stamp``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -200,17 +206,29 @@ def plot(t: np.ndarray, estimates: dict, v: np.ndarray, path: Path, stamp: objec
     axes[0].legend(fontsize=7, ncol=2, loc="upper right")
     axes[0].set_title("EMPS positioning axis: velocity, scored part of the development run")
     fig.tight_layout()
-    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp))
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=110, metadata=provenance.png_metadata(stamp))
     plt.close(fig)
-    return path
+    return png.getvalue()
 
 
 def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None, horizon: Optional[float] = None,
          results: Optional[Path] = None, page_path: Optional[Path] = None, seed: int = 0) -> dict:
     """Train both observers, estimate the log, score, plot; write the record (``results``, default
-    ``results/real_rig/emps/emps.json``) and the page (``page_path``, default ``docs/results/emps.md``)."""
-    from kklcasadi import provenance
+    ``results/real_rig/emps/emps.json``) and the page (``page_path``, default ``docs/results/emps.md``).
 
+    Raises
+    ------
+    FileExistsError
+        Before any work, where one of the files it writes exists (the one line names the flag)."""
+    from kklcasadi import provenance
+    from kklcasadi.writes import refuse_existing, write_files
+
+    results = ROOT / "results" / "real_rig" / "emps" / "emps.json" if results is None else results
+    page_path = ROOT / "docs" / "results" / "emps.md" if page_path is None else page_path
+    png = results.parent / "emps_velocity.png"
+    refuse_existing({**{out / name: "--out" for name in ("emps_dev.csv", *CASES, *(f"est_{c}.csv" for c in CASES))},
+                     results: "--results", png: "--results", page_path: "--page"})
     out.mkdir(parents=True, exist_ok=True)
     stamp = provenance.stamp(seeds={"train": seed})
     dev = write_development_part(out)
@@ -238,14 +256,10 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
     estimates["backward difference"] = np.column_stack([q, np.concatenate([[0.0], np.diff(q) / DT])])
     record["scores"] = scores(t, estimates, q, v)
     print(markdown(record["scores"]))
-    results = ROOT / "results" / "real_rig" / "emps" / "emps.json" if results is None else results
-    page_path = ROOT / "docs" / "results" / "emps.md" if page_path is None else page_path
-    for path in (results, page_path):
-        path.parent.mkdir(parents=True, exist_ok=True)
-    print(f"plot {plot(t, estimates, v, results.parent / 'emps_velocity.png', stamp)}")
-    results.write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
-    page_path.write_text(provenance.markdown(page(record), stamp))
-    print(f"record {results}\npage {page_path}")
+    files = {results: json.dumps(provenance.json_record(record, stamp), indent=1) + "\n",
+             png: plot(t, estimates, v, stamp), page_path: provenance.markdown(page(record), stamp)}
+    write_files(files, argument="--results")                 # all rendered first: each whole, never over a file
+    print(f"plot {png}\nrecord {results}\npage {page_path}")
     return record["scores"]
 
 

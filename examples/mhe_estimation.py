@@ -8,7 +8,8 @@ Estimates one docs/protocol.md run (noise std 0.1 on ``xdot`` and ``y``) of a pl
 * the KKL-primed MHE (:class:`kklcasadi.estimators.kkl_mhe.KKLPrimedMHE`, ``N = 5``): the observer's estimate is
   the arrival prior (its error profile calibrated on other runs) and the warm start,
 
-prints SMAPE, time per sample and the solver statistics, and writes a PNG::
+prints SMAPE, time per sample and the solver statistics, and writes a PNG (refused before any work where
+``--out`` exists; written whole or not at all)::
 
     python examples/mhe_estimation.py --model models/duffing/inject --out mhe_estimation.png
 """
@@ -16,6 +17,7 @@ prints SMAPE, time per sample and the solver statistics, and writes a PNG::
 from __future__ import annotations
 
 import argparse
+import io
 import time
 from pathlib import Path
 
@@ -31,6 +33,7 @@ from kklcasadi.estimators.ekf import EKF  # noqa: E402
 from kklcasadi.estimators.kkl_mhe import KKLPrimedMHE, kkl_error_profile  # noqa: E402
 from kklcasadi.estimators.mhe import MHE  # noqa: E402
 from kklcasadi.evaluation.protocol import Protocol  # noqa: E402
+from kklcasadi.writes import refuse_existing, write_file  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -44,6 +47,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--out", default="mhe_estimation.png")
     args = parser.parse_args(argv)
+    out = Path(args.out)
+    refuse_existing({out: "--out"})
     obs = kc.load_observer(args.model)
     plant = obs.system
     run = Protocol(n_trials=1, T=args.T, seed=args.seed).trials(plant, args.kind)
@@ -59,9 +64,10 @@ def main(argv: list[str] | None = None) -> dict:
     results = {}
     for label, estimate in estimators.items():
         start = time.perf_counter()
-        out = estimate()
+        estimated = estimate()
         seconds = time.perf_counter() - start
-        xhat, stats = (out, None) if isinstance(out, np.ndarray) else (out.xhat, out.stats)
+        xhat, stats = ((estimated, None) if isinstance(estimated, np.ndarray)
+                       else (estimated.xhat, estimated.stats))
         results[label] = xhat
         print(f"{label:24s} SMAPE {kc.metrics.smape(x, xhat):6.2f} %   "
               f"{1e3 * seconds / t.size:7.3f} ms/sample" + (f"   {stats}" if stats else ""))
@@ -75,10 +81,11 @@ def main(argv: list[str] | None = None) -> dict:
     np.atleast_1d(axes)[-1].set_xlabel("t (s)")
     fig.suptitle(f"{plant.name}, {args.kind} input, noise std 0.1")
     fig.tight_layout()
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110, metadata=provenance.png_metadata(provenance.stamp(seeds={"trials": args.seed})))
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=110,
+                metadata=provenance.png_metadata(provenance.stamp(seeds={"trials": args.seed})))
     plt.close(fig)
+    write_file(out, png.getvalue(), argument="--out")          # whole or not at all, never over another file
     print(f"wrote {out}")
     return results
 

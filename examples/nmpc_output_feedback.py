@@ -11,7 +11,7 @@ The NMPC (:class:`kklcasadi.estimators.nmpc.NMPC`: Opti, multiple shooting with 
 
 with the plant simulated by CVODES under the docs/protocol.md noise (process std 0.1 on ``xdot`` held
 per interval, measurement std 0.1), the same noise for every feed. The script writes one table
-(markdown and JSON) and one PNG::
+(markdown and JSON) and one PNG, as one step and never over a file (refused before any run where one exists)::
 
     python examples/nmpc_output_feedback.py --out results/nmpc/all
 
@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 import kklcasadi as kc  # noqa: E402
 from kklcasadi import provenance  # noqa: E402
 from kklcasadi.estimators.nmpc import NMPC, ClosedLoop, EKFEstimator, TrueState, closed_loop, steady_state  # noqa: E402
-from kklcasadi.writes import write_dir  # noqa: E402
+from kklcasadi.writes import refuse_existing, write_dir  # noqa: E402
 
 #: Per system: set point magnitude r for x1 and the bound on |x2|.
 SCENARIOS = {"duffing": {"r": 0.8, "x2_max": 1.0}, "vdp": {"r": 1.0, "x2_max": 1.5}}
@@ -166,6 +166,9 @@ def main(argv: list[str] | None = None) -> dict:
                         "covariance head (a model with one, e.g. --method bank)")
     parser.add_argument("--out", default="results/nmpc/all", help="output directory")
     args = parser.parse_args(argv)
+    out = Path(args.out)
+    names = ("nmpc_table.md", "nmpc.json", "nmpc.png")
+    refuse_existing({out / name: "--out" for name in names})   # before any run: never written over
     rows, runs = [], {}
     for name in args.systems:
         model = Path(args.models_root) / name / args.method
@@ -173,14 +176,12 @@ def main(argv: list[str] | None = None) -> dict:
                                              n_trials=args.trials, period=args.period,
                                              seed=args.seed, settle=args.settle, tighten=args.tighten)
         rows += system_rows
-    out = Path(args.out)
     text = table(rows, settle=args.settle)
     stamp = provenance.stamp(seeds={"initial_states_and_noise": args.seed})    # names this command in every file
-    files = {"nmpc_table.md": provenance.markdown(text + "\n", stamp),
-             "nmpc.json": json.dumps(provenance.json_record({"settings": vars(args), "rows": rows}, stamp),
-                                     indent=1) + "\n",
-             "nmpc.png": plot(runs, stamp)}
-    write_dir(out, files, overwrite=True, argument="--out")      # the three files as one step, or none of them
+    contents = (provenance.markdown(text + "\n", stamp),
+                json.dumps(provenance.json_record({"settings": vars(args), "rows": rows}, stamp), indent=1) + "\n",
+                plot(runs, stamp))
+    write_dir(out, dict(zip(names, contents)), argument="--out")  # the three files as one step, or none of them
     png = out / "nmpc.png"
     print(text)
     print(f"wrote {out / 'nmpc_table.md'}, {out / 'nmpc.json'}, {png}")

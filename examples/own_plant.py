@@ -8,12 +8,15 @@ square wave that drives it out of its box. The same from the command line::
     kklcasadi train --plant examples/own_plant.py:make_plant --method inject --out models/pendulum/inject
     kklcasadi demo --plant examples/own_plant.py:make_plant --model models/pendulum/inject --input square
 
-Run: ``python examples/own_plant.py [--out DIR] [--epochs N]`` (writes ``DIR/own_plant.png``).
+Run: ``python examples/own_plant.py [--out DIR] [--epochs N]`` (writes the models ``DIR/autonomous`` and
+``DIR/inject`` and the plot ``DIR/own_plant.png``, refused before any work where one of them exists; the plot is
+rendered in memory and written whole or not at all).
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import time
 from pathlib import Path
 
@@ -42,13 +45,16 @@ def make_plant() -> kc.System:
 def main(out: Path, epochs: int | None = None, n_traj: int | None = None, T: float = 30.0) -> dict:
     """Train (Phase 1 + inject) into ``out`` and report the noise-free RMSE after 5 s per input."""
     from kklcasadi.train import default_config, train_observer
+    from kklcasadi.writes import refuse_existing, write_file
 
+    png = out / "own_plant.png"
+    refuse_existing({out / "autonomous": "--out", out / "inject": "--out", png: "--out"})
     plant = make_plant()
     overrides = {} if n_traj is None else {"n_traj": n_traj, "n_pde": 25 * n_traj}
     t0 = time.perf_counter()
-    train_observer(plant, "autonomous", out / "autonomous", overwrite=True, threads=1,
+    train_observer(plant, "autonomous", out / "autonomous", threads=1,
                    config=default_config(plant.name, "autonomous", epochs=epochs, **overrides))
-    obs_dir = train_observer(plant, "inject", out / "inject", overwrite=True)      # no training: the exact term
+    obs_dir = train_observer(plant, "inject", out / "inject")      # no training: the exact term
     print(f"trained Phase 1 + inject in {time.perf_counter() - t0:.0f} s")
 
     obs = kc.load_observer(obs_dir, system=plant)
@@ -64,16 +70,18 @@ def main(out: Path, epochs: int | None = None, n_traj: int | None = None, T: flo
         traces[label] = (tr, est)
         flag = "" if est.in_domain is None else f", {100 * np.mean(est.in_domain):.0f} % of estimates in the domain"
         print(f"{label:<30s} RMSE after 5 s {rmse:.4f}  (state {'in' if in_box else 'leaves'} the box{flag})")
-    _plot(traces, out / "own_plant.png")
-    print(f"plot {out / 'own_plant.png'}")
+    write_file(png, _plot(traces), argument="--out")
+    print(f"plot {png}")
     return results
 
 
-def _plot(traces: dict, path: Path) -> None:
+def _plot(traces: dict) -> bytes:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from kklcasadi import provenance
 
     fig, axes = plt.subplots(len(traces), 1, figsize=(9, 2.2 * len(traces)), sharex=True)
     for ax, (label, (tr, est)) in zip(axes, traces.items()):
@@ -88,8 +96,10 @@ def _plot(traces: dict, path: Path) -> None:
     axes[0].legend(fontsize=7, ncol=5, loc="upper right")
     axes[-1].set_xlabel("t [s]")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=110, metadata=provenance.png_metadata(provenance.stamp(seeds={"train": 0})))
     plt.close(fig)
+    return png.getvalue()
 
 
 if __name__ == "__main__":

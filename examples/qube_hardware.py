@@ -27,6 +27,10 @@
 4. **Plot** the angles and velocities of a scored run against the reference (``OUT/qube_<y>.png``),
    and write every score to ``OUT/qube_hardware.json`` (or ``--results FILE``).
 
+Nothing is overwritten: where a model, a plot or the scores' file it would write exists, the script says so
+before any work, naming the flag; the plots and the scores are rendered first and then written exclusively
+(:func:`kklcasadi.writes.write_files`), so a run that fails leaves none of them half written.
+
 Run: ``python examples/qube_hardware.py [--out DIR] [--results FILE] [--cases ...] [--recipe like|chosen]``;
 ``--epochs``, ``--runs`` and ``--horizon`` (in units of the plant's time scale) shrink the recipe's budget, as
 ``tests/test_qube_hardware.py`` does.
@@ -35,6 +39,7 @@ Run: ``python examples/qube_hardware.py [--out DIR] [--results FILE] [--cases ..
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
 import time
@@ -50,6 +55,7 @@ from kklcasadi.estimators.noise import rig_envelope
 from kklcasadi.evaluation.logged import estimate_log
 from kklcasadi.metrics import rmse
 from kklcasadi.plant.logs import Log, read_log, savgol_derivative
+from kklcasadi.writes import refuse_existing, write_files
 
 HERE = Path(__file__).resolve().parent / "qube"
 sys.path.insert(0, str(HERE))
@@ -138,7 +144,7 @@ def train(case: str, out: Path, *, epochs: Optional[int] = None, runs: Optional[
     if runs is not None and runs < 100:                          # batches a tiny budget's few samples can fill
         config = with_field(config, "decoder", with_field(config.decoder, "batch_size", 64))
     return train_observer(plant, RECOMMENDED, Path(args.out), config=config, dt=args.dt, seed=args.seed,
-                          overwrite=True, epochs=epochs, threads=1)
+                          epochs=epochs, threads=1)
 
 
 def score(case: str, model: Path) -> tuple[dict, dict]:
@@ -222,7 +228,8 @@ def summary(records: dict) -> str:
     return head + "\n".join(rows)
 
 
-def plot(traces: dict, path: Path) -> Path:
+def plot(traces: dict, stamp: provenance.Stamp) -> bytes:
+    """The angles and velocities of the traced run against the reference (a PNG with ``stamp``)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -241,9 +248,10 @@ def plot(traces: dict, path: Path) -> Path:
     axes[0].set_title(f"Qube Servo 2, free swing {traces['run']} (scored), {traces['label']}")
     axes[-1].set_xlabel("t [s]")
     fig.tight_layout()
-    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(provenance.stamp()))
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=110, metadata=provenance.png_metadata(stamp))
     plt.close(fig)
-    return path
+    return png.getvalue()
 
 
 def _json(values: list) -> list:
@@ -255,12 +263,20 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
          cases: tuple[str, ...] = tuple(CASES), results: Optional[Path] = None, seed: int = 0,
          recipe: str = "like") -> dict:
     """Train with ``recipe``, estimate, score and plot every case; writes the scores to ``results`` (default
-    ``OUT/qube_hardware.json``) and returns ``{case: (table, markdown)}``."""
+    ``OUT/qube_hardware.json``) and returns ``{case: (table, markdown)}``.
+
+    Raises
+    ------
+    FileExistsError
+        Before any work, where one of the files it writes exists (the one line names the flag)."""
+    results = out / "qube_hardware.json" if results is None else results
+    refuse_existing({**{path: "--out" for case in cases for path in (out / case, out / f"qube_{case}.png")},
+                     results: "--results"})
+    stamp = provenance.stamp(seeds={"training": seed})                # the command line, commit and versions
     out.mkdir(parents=True, exist_ok=True)
     print(f"encoder noise on runs {FIT_RUNS}: std {encoder_noise(FIT_RUNS):.2g} rad about a smoothing "
           f"(the quantisation)")
-    results = out / "qube_hardware.json" if results is None else results
-    record, done = {}, {}
+    record, done, plots = {}, {}, {}
     for case in cases:
         print("kklcasadi " + " ".join(command(case, out / case, seed=seed, recipe=recipe)), flush=True)
         t0 = time.perf_counter()
@@ -270,7 +286,7 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
         table, traces = score(case, model)
         text = markdown(case, table)
         print(text)
-        print(f"plot {plot(traces, out / f'qube_{case}.png')}")
+        plots[out / f"qube_{case}.png"] = plot(traces, stamp)
         done[case] = (table, text)
         shown = command(case, Path("DIR"), Path("examples/qube/qube_plant.py"), seed, recipe,
                         Path("examples/qube/data"))
@@ -279,10 +295,10 @@ def main(out: Path, *, epochs: Optional[int] = None, runs: Optional[int] = None,
                         "scored_runs": SCORED_RUNS, "states": STATES, "settle_s": SETTLE,
                         "runs": {str(k): {name: _json(v) for name, v in row.items()} for k, row in table.items()},
                         "scored_mean": {name: _json(v) for name, v in scored_mean(table).items()}}
-    results.parent.mkdir(parents=True, exist_ok=True)
-    stamp = provenance.stamp(seeds={"training": seed})                # the command line, commit and versions
-    results.write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
-    print(f"scores {results}")
+    # everything rendered first: each file whole, never over another one
+    write_files({**plots, results: json.dumps(provenance.json_record(record, stamp), indent=1) + "\n"},
+                argument="--results")
+    print("plots " + ", ".join(map(str, plots)) + f"\nscores {results}")
     return done
 
 

@@ -37,7 +37,8 @@ from typing import Iterator, Mapping, Union
 
 from .validation import error
 
-__all__ = ["write_file", "write_dir", "staged", "locked", "claim", "Data"]
+__all__ = ["write_file", "write_dir", "write_files", "staged", "locked", "claim", "refuse_existing", "place",
+           "Data"]
 
 Data = Union[bytes, str]
 
@@ -118,6 +119,27 @@ def claim(directory: Path, argument: str) -> Iterator[Path]:
         os.close(fd)
 
 
+def refuse_existing(targets: Mapping[Union[str, os.PathLike], str]) -> None:
+    """Refuse, before any work, a run that would write where something already is: a command without
+    ``--overwrite`` checks its outputs first (and writes them exclusively at the end), so a long run is not lost
+    on a path it may not write.
+
+    Parameters
+    ----------
+    targets : Mapping[path-like, str]
+        Each output path and the argument (the CLI flag) that names it, in the order checked.
+
+    Raises
+    ------
+    FileExistsError
+        A target exists (a file, a directory or a link); the one line names its argument.
+    """
+    for path, argument in targets.items():
+        if os.path.lexists(path):
+            raise FileExistsError(f"{argument}: {path} exists and this command does not overwrite; move it away, "
+                                  f"or choose another {argument}.")
+
+
 def write_file(path: Union[str, os.PathLike], data: Data, *, overwrite: bool = False,
                argument: str = "path") -> Path:
     """Write one file atomically: the old file or the new one is whole at every moment.
@@ -145,7 +167,20 @@ def write_file(path: Union[str, os.PathLike], data: Data, *, overwrite: bool = F
     if path.is_dir():
         raise error(argument, "a file path", str(path), "It is a directory; name a file inside it.")
     path.parent.mkdir(parents=True, exist_ok=True)
-    temp = _temp_file(path.parent, path.name, data)
+    place(_temp_file(path.parent, path.name, data), path, overwrite=overwrite, argument=argument)
+    return path
+
+
+def place(temp: Path, path: Path, *, overwrite: bool = False, argument: str = "path") -> None:
+    """Put a finished temporary file (written and synced in the folder of ``path``) at ``path`` in one step:
+    linked (an exclusive create) or, with ``overwrite``, renamed over it; the temporary file is gone afterwards
+    whatever happens, and the folder is synced.
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` exists and ``overwrite`` is False (``path`` is left as it was).
+    """
     try:
         if overwrite:
             os.replace(temp, path)
@@ -159,7 +194,6 @@ def write_file(path: Union[str, os.PathLike], data: Data, *, overwrite: bool = F
         if temp.exists():
             temp.unlink()
     _fsync_dir(path.parent)
-    return path
 
 
 def _exchange(a: Path, b: Path) -> bool:
@@ -239,6 +273,38 @@ def write_dir(directory: Union[str, os.PathLike], files: Mapping[str, Data], *, 
             shutil.rmtree(staging)
     _fsync_dir(target.parent)
     return target
+
+
+def write_files(files: Mapping[Union[str, os.PathLike], Data], *, argument: str = "files") -> list[Path]:
+    """Write the files of one result that lie in several directories (a record and its plot beside it, the page
+    in ``docs/``) exclusively: one :func:`write_dir` per directory, in the order the directories first appear.
+
+    Every file's content is given, so nothing is computed between the writes; a writer killed between two
+    directories leaves the first directory's files whole and the second's absent.
+
+    Parameters
+    ----------
+    files : Mapping[path-like, bytes or str]
+        Each file's path and content.
+    argument : str
+        Named in the errors.
+
+    Returns
+    -------
+    list of Path
+        The paths written, in the order given.
+
+    Raises
+    ------
+    FileExistsError
+        One of them exists (nothing of its directory is written; the directories before it are).
+    """
+    groups: dict[Path, dict[str, Data]] = {}
+    for path, data in files.items():
+        groups.setdefault(Path(path).resolve().parent, {})[Path(path).name] = data
+    for directory, group in groups.items():
+        write_dir(directory, group, argument=argument)
+    return [Path(path) for path in files]
 
 
 @contextmanager

@@ -470,3 +470,74 @@ def test_the_monitor_is_calibrated_again_without_torch(ensemble_dir, tmp_path, n
         run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), "--help"], capture_output=True,
                              text=True, env=no_torch_env, cwd=ROOT / "benchmarks")
         assert run.returncode == 0 and "usage" in run.stdout, (script, run.stderr)
+
+
+def test_monitor_quantiles_writes_its_table_and_record_as_one_and_never_over_them(ensemble_dir, tmp_path,
+                                                                                   monkeypatch, capsys):
+    """benchmarks/monitor_quantiles.py on six cases of one trial: the table and the record are written together,
+    a second run of the seed is refused before any work (one line naming --seed), a run that fails after the
+    table is printed writes neither file."""
+    import runpy
+
+    from kklcasadi import provenance
+    from kklcasadi.evaluation import generalisation as gen
+
+    script = ROOT / "benchmarks" / "monitor_quantiles.py"
+    monkeypatch.syspath_prepend(str(script.parent))                # its sibling calibrate_monitors.py
+    monkeypatch.chdir(tmp_path)                                   # it writes under ./results/generalisation
+    few = [case for case in gen.cases() if case.label.startswith(("zero id", "chirp"))]     # every group, 6 cases
+    monkeypatch.setattr(gen, "cases", lambda: few)
+
+    def run(*flags):
+        monkeypatch.setattr(sys, "argv", [str(script), str(ensemble_dir), "--trials", "1", "--spread-runs", "4",
+                                          *flags])
+        runpy.run_path(str(script), run_name="__main__")
+
+    run()
+    folder = tmp_path / "results" / "generalisation" / "duffing"
+    names = ["duffing_3030_monitor.json", "duffing_3030_monitor.md"]
+    assert sorted(p.name for p in folder.iterdir()) == names
+    assert provenance.read(folder / names[0]) == provenance.read(folder / names[1])
+    assert "| 0.97 |" in (folder / names[1]).read_text()
+    first = [(folder / name).read_bytes() for name in names]
+    assert "bank / EKF" in capsys.readouterr().out
+    with pytest.raises(FileExistsError, match="^--seed: .*duffing_3030_monitor.md exists and this command does not"):
+        run()
+    assert "bank / EKF" not in capsys.readouterr().out                   # refused before any case was run
+
+    def failing(*args, **kwargs):
+        raise OSError("disk")
+
+    monkeypatch.setattr(provenance, "json_record", failing)
+    with pytest.raises(OSError, match="disk"):
+        run("--seed", "3031")
+    assert "| 0.97 |" in capsys.readouterr().out                        # failed after the table was made
+    assert sorted(p.name for p in folder.iterdir()) == names and [(folder / n).read_bytes() for n in names] == first
+    assert [p for p in tmp_path.rglob(".*")] == []
+
+
+def test_growing_an_ensemble_writes_a_new_model_and_never_over_one(ensemble_dir, tmp_path, monkeypatch, capsys):
+    """benchmarks/ensemble_members.py end to end on the small ensemble: a third member fitted and cached (its
+    summary, then its arrays), the model written to --out with its monitor; a second run to the same --out is
+    refused before any fit, in one line naming --out, and the model it read is left alone."""
+    import runpy
+
+    script = ROOT / "benchmarks" / "ensemble_members.py"
+    monkeypatch.syspath_prepend(str(script.parent))
+    source = {p.name: p.read_bytes() for p in ensemble_dir.iterdir() if p.is_file()}
+
+    def grow(out):
+        monkeypatch.setattr(sys, "argv", [str(script), str(ensemble_dir), "--members", "3", "--out", str(out),
+                                          "--cache", str(tmp_path / "cache")])
+        runpy.run_path(str(script), run_name="__main__")
+
+    grow(tmp_path / "grown")
+    grown = load_model(tmp_path / "grown")
+    assert grown.spec.architecture.members == 3 and "decoder_2/W0" in grown.arrays
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == ["duffing_m7.json", "duffing_m7.npz"]
+    capsys.readouterr()
+    for out in (tmp_path / "grown", ensemble_dir):
+        with pytest.raises(FileExistsError, match=f"^--out: {out}/.* exists and this command does not overwrite"):
+            grow(out)
+    assert capsys.readouterr().out == ""
+    assert {p.name: p.read_bytes() for p in ensemble_dir.iterdir() if p.is_file()} == source

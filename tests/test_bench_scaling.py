@@ -115,3 +115,7 @@ def test_a_tiny_scaling_run(tmp_path):
     for name in ("scaling.md", "scaling.json", "scaling.png"):
         assert provenance.read(tmp_path / name).seeds == {"training_and_trials": 0}
     assert sc.ScalingRow(**saved["rows"][0]) == row and saved["settings"]["runs"] == 8
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    with pytest.raises(FileExistsError, match="^out: .*scaling.md exists and this command does not overwrite"):
+        sc.bench_scaling((1,), out=tmp_path)                        # refused before any training
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before

@@ -163,6 +163,11 @@ def test_certificate_command_prints_and_saves(tmp_path, capsys):
     record = provenance.json_payload(data)[0]
     assert record["model"] == str(model) and record["holds_sampled"] is True
     assert record["eps_pde"] < 1e-12 and len(record["domain"]) == 2
+    before = out.read_bytes()
+    assert main(["certificate", str(model), "--out", str(out)]) == 2         # refused before any certificate
+    assert capsys.readouterr() == ("", f"error: --out: {out} exists and this command does not overwrite; move it "
+                                       "away, or choose another --out.\n")
+    assert out.read_bytes() == before
 
 
 @pytest.mark.parametrize("method", ["obs_stream", "bank"])

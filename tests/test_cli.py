@@ -1,5 +1,6 @@
 """The command line on tiny random-weight models: every subcommand runs and reports clearly."""
 
+import os
 import shutil
 import subprocess
 import sys
@@ -180,6 +181,14 @@ def test_evaluate_prints_the_protocol_scores_and_writes_plots(model_dir_factory,
             assert record["smape_mean"] == pytest.approx(np.mean(expected), rel=1e-10)
             assert float(rows[f"duffing {obs.method}"][column]) == round(record["smape_mean"], 1)
     assert float(rows["duffing EKF"][0]) == round(scores[("EKF", "zero")]["smape_mean"], 1)
+    # the report is never written over: a second run to the same --out is refused in one line before any run
+    before = {name: (out / name).read_bytes() for name in written}
+    assert main(args) == 2
+    captured = capsys.readouterr()
+    assert captured.err.endswith(f"error: --out: {out / 'duffing_scores.json'} exists and this command does not "
+                                 "overwrite; move it away, or choose another --out.\n")
+    assert "evaluated in" not in captured.err and captured.out == ""
+    assert {name: (out / name).read_bytes() for name in written} == before
 
 
 def test_evaluate_scores_the_mhe_beside_the_models(model_dir_factory, tmp_path, capsys):
@@ -454,6 +463,26 @@ def test_demo_tells_shipped_models_from_yours(model_dir_factory, tmp_path, capsy
     assert f"model    your model {model}" in out and "measurement 0.02 (the EKF's too)" in out
     assert main(["demo", "--model", str(model), "--dt", "0.004"]) == 2
     assert "--dt 0.004: the model" in capsys.readouterr().err
+
+
+def test_demo_never_writes_over_a_file_and_writes_its_figure_whole(tmp_path, capsys, monkeypatch):
+    png = tmp_path / "a.png"
+    assert main(["demo", "--T", "2", "--out", str(png)]) == 0
+    first = png.read_bytes()
+    capsys.readouterr()
+    assert main(["demo", "--T", "2", "--out", str(png)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == (f"error: --out: {png} exists and this command does not overwrite; move it away, or "
+                            "choose another --out.\n") and captured.out == ""          # before any run
+    assert png.read_bytes() == first
+
+    def failing(fd):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "fsync", failing)
+    assert main(["demo", "--T", "2", "--out", str(tmp_path / "b.png")]) == 2
+    assert "error: disk full" in capsys.readouterr().err
+    assert [p.name for p in tmp_path.iterdir()] == ["a.png"]
 
 
 def test_train_without_a_method_trains_bank_at_the_given_dt_and_noise(tmp_path, capsys, monkeypatch):

@@ -530,3 +530,44 @@ def test_the_domain_monitor_is_an_optional_c_function(model_dir_factory, tmp_pat
     flags = [float(check(z, w, x)) for x, z in points]
     assert flags == [float(obs.domain_check(z, w, x)) for x, z in points]
     assert flags[-2:] == [1.0, 0.0] and 0 < sum(flags) < len(points) - 1
+
+
+@needs_gcc
+def test_float32_benchmark_writes_its_report_whole_and_never_over_a_file(model_dir_factory, tmp_path, monkeypatch,
+                                                                         capsys):
+    """benchmarks/float32_c.py on one trial per regime: the report (float32 within 1e-5 of a state's range), a
+    second run to the same --out refused before any work, a write that fails leaves no file, not even a part."""
+    import os
+    import runpy
+    import sys
+    from pathlib import Path
+
+    from kklcasadi import provenance
+
+    script = Path(__file__).resolve().parents[1] / "benchmarks" / "float32_c.py"
+    model = model_dir_factory("inject")
+
+    def run(out):
+        monkeypatch.setattr(sys, "argv", [str(script), str(model), "--trials", "1", "--out", str(out)])
+        runpy.run_path(str(script), run_name="__main__")
+
+    out = tmp_path / "f32.md"
+    run(out)
+    text = provenance.strip_markdown(out.read_text())
+    assert [line.split(" |")[0] for line in text.splitlines() if line.startswith("| ") and "regime" not in line] \
+        == ["| zero", "| constant", "| sinusoid", "| square"]
+    assert float(re.search(r"Largest difference over a state's range: (\S+)\.", text).group(1)) < 1e-5
+    assert provenance.read(out).seeds == {"protocol": 2026}
+    first = out.read_bytes()
+    capsys.readouterr()
+    with pytest.raises(FileExistsError, match="^--out: .*f32.md exists and this command does not overwrite"):
+        run(out)
+    assert capsys.readouterr().out == "" and out.read_bytes() == first          # refused before any trial
+
+    def failing(fd):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(os, "fsync", failing)
+    with pytest.raises(OSError, match="disk full"):
+        run(tmp_path / "again.md")
+    assert [p.name for p in tmp_path.iterdir()] == ["f32.md"]

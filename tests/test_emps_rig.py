@@ -28,11 +28,19 @@ def test_the_development_part_is_the_logs_rows_before_the_split_as_logged(exampl
     assert abs(len(lines) - 1 - 0.6 * (len(raw) - 1)) <= 1           # the first 60 % of the rows
 
 
-def test_example_runs_in_a_reduced_form(example, tmp_path, capsys):
+@pytest.fixture(scope="module")
+def reduced(example, tmp_path_factory):
+    """One run of the example on a tiny budget: (its folder, the scores it returned)."""
+    tmp_path = tmp_path_factory.mktemp("emps")
+    return tmp_path, example["main"](tmp_path, epochs=1, runs=12, horizon=4.0, results=tmp_path / "emps.json",
+                                     page_path=tmp_path / "emps.md")
+
+
+def test_example_runs_in_a_reduced_form(example, reduced):
     from kklcasadi import provenance
 
+    tmp_path, table = reduced
     results, page = tmp_path / "emps.json", tmp_path / "emps.md"
-    table = example["main"](tmp_path, epochs=1, runs=12, horizon=4.0, results=results, page_path=page)
     assert list(table) == list(example["ESTIMATORS"])
     for row in table.values():
         for part in ("development", "scored"):
@@ -53,7 +61,41 @@ def test_example_runs_in_a_reduced_form(example, tmp_path, capsys):
     assert card["domain"]["x_lo"] == [-0.01, -0.2] and card["training"]["runs"]["stabilised"] is True
     assert record["ekf_noise"] == card["noise"]
     assert (tmp_path / "emps_velocity.png").stat().st_size > 20000
-    assert "kklcasadi train --plant" in capsys.readouterr().out
+    assert provenance.read(tmp_path / "emps_velocity.png") == provenance.read(results)
+
+
+@pytest.mark.parametrize("taken, flag", [("emps_dev.csv", "--out"), ("like", "--out"), ("est_u_box.csv", "--out"),
+                                         ("emps.json", "--results"), ("emps_velocity.png", "--results"),
+                                         ("emps.md", "--page")])
+def test_example_refuses_any_file_it_would_write_before_any_work(example, tmp_path, taken, flag):
+    folder = tmp_path / {"--out": "out", "--results": "results", "--page": "docs"}[flag]
+    folder.mkdir()
+    (folder / taken).write_text("kept")
+    with pytest.raises(FileExistsError, match=f"^{flag}: .*{taken} exists and this command does not overwrite"):
+        example["main"](tmp_path / "out", results=tmp_path / "results" / "emps.json",
+                        page_path=tmp_path / "docs" / "emps.md")
+    assert [p for p in tmp_path.rglob("*") if p.is_file()] == [folder / taken]
+    assert (folder / taken).read_text() == "kept"
+
+
+def test_example_leaves_no_half_written_result_when_it_fails(example, reduced, tmp_path, monkeypatch):
+    """A plot that fails after the estimates: the record, the PNG and the page are not written, not even a part."""
+    import shutil
+
+    done, _ = reduced
+    monkeypatch.setitem(example["main"].__globals__, "train",        # the reduced run's models, not trained again
+                        lambda case, model, dev, **_: shutil.copytree(done / case, model))
+
+    def failing(*args):
+        raise OSError("disk")
+
+    monkeypatch.setitem(example["main"].__globals__, "plot", failing)
+    results = tmp_path / "results" / "emps.json"
+    with pytest.raises(OSError, match="disk"):
+        example["main"](tmp_path / "out", results=results, page_path=tmp_path / "docs" / "emps.md")
+    assert not (tmp_path / "results").exists() and not (tmp_path / "docs").exists()
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["emps_dev.csv", "est_like.csv", "est_u_box.csv",
+                                                                    "like", "u_box"]
 
 
 def test_the_page_is_the_stored_records():

@@ -86,6 +86,13 @@ def test_estimate_writes_the_estimates_flags_and_the_ekf(model, plant, tmp_path,
     np.testing.assert_array_equal(values[:, 6], 0)                       # no sample flagged by the guard
     np.testing.assert_array_equal(values[:, 7:], ekf)
     assert np.all(np.abs(log.y[:, 1] - np.pi) < 2.8)                     # alpha on the box's branch (hanging = pi)
+    # a second run to the same --out: refused in one line before the log is read, the estimates as they were
+    before = out.read_bytes()
+    assert main(args) == 2
+    captured = capsys.readouterr()
+    assert captured.err == (f"error: --out: {out} exists and this command does not overwrite; move it away, or "
+                            "choose another --out.\n") and captured.out == ""
+    assert out.read_bytes() == before
 
 
 def test_estimate_log_in_one_call_scores_with_wrapped_angles(model, plant):

@@ -1,6 +1,7 @@
 """The generalisation benchmark: cases, what a model was fit on, the monitored trajectory, the scores."""
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -168,6 +169,12 @@ def test_the_command(monitored_bank, tmp_path, capsys):
     for name in ("duffing_generalisation.md", "duffing_generalisation.json"):
         stamp = provenance.read(out / name)
         assert stamp.command.startswith("kklcasadi generalise ") and stamp.seeds == {"trials": 2026}
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert main(["generalise", str(path), "--families", "zero", "--noise-levels", "0.1", "--trials", "2",
+                 "--out", str(out)]) == 2                             # never over the report: refused before any run
+    assert capsys.readouterr().err == (f"error: --out: {out / 'duffing_generalisation.md'} exists and this command "
+                                       "does not overwrite; move it away, or choose another --out.\n")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert main(["generalise", str(path), "--families", "chirp", "--regimes", "id"]) == 2
     assert "error: --families, --regimes: no case" in capsys.readouterr().err
 
@@ -234,6 +241,26 @@ def test_compare_generalisation_prints_the_stored_lever_tables_and_refuses_other
     printed = printed_by(scored("vdp_generalisation_copies_5_substeps.json"), scored("vdp_generalisation.json"),
                          "--labels", "copies,sub2skip")          # ... and with two substeps and skip paths
     assert printed in strip_markdown(scored("vdp_generalisation_sub2skip_compare.md").read_text()) + "\n"
+    # --out: the table under a stamp, never over a file (an input report included), whole or not at all
+    inputs = [records(f"{n}.json") for n in tables["vdp_3030_pd_compare"]]
+    out = tmp_path / "compare.md"
+    assert printed_by(*inputs, "--out", out) in strip_markdown(out.read_text()) + "\n"
+    first = out.read_bytes()
+    for taken in (out, inputs[0]):
+        before = taken.read_bytes()
+        with pytest.raises(FileExistsError, match=f"^--out: .*{taken.name} exists and this command does not"):
+            printed_by(*inputs, "--out", taken)
+        assert taken.read_bytes() == before
+    assert out.read_bytes() == first
+
+    def failing(fd):
+        raise OSError("disk full")
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(os, "fsync", failing)
+        with pytest.raises(OSError, match="disk full"):
+            printed_by(*inputs, "--out", tmp_path / "again.md")
+    assert [p.name for p in tmp_path.iterdir()] == ["compare.md"]
     module = runpy.run_path(script)
     with pytest.raises(SystemExit, match=r"--labels: expected one label per report \(2\), received 1"):
         module["load"]([scored("vdp_generalisation_no_pd.json"), scored("vdp_generalisation.json")], ["a"])

@@ -463,8 +463,18 @@ def test_rejected_estimates_leave_the_old_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["est.csv"]
 
 
-@pytest.mark.parametrize("failing", ["replace", "fsync"])
-def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch, failing):
+def test_estimates_are_written_over_a_file_only_with_overwrite(tmp_path):
+    path, before = _old_file(tmp_path)
+    with pytest.raises(FileExistsError, match=r"^path: .*est.csv exists; pass overwrite to replace it"):
+        logs.write_estimates(path, [0.0, 0.1], [[5.0], [6.0]], state_names=("x",))
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["est.csv"]
+    logs.write_estimates(path, [0.0, 0.1], [[5.0], [6.0]], state_names=("x",), overwrite=True)
+    assert logs.read_log(path, time_col="time", y_cols=("x",), dt=0.1).y[:, 0].tolist() == [5.0, 6.0]
+
+
+@pytest.mark.parametrize("failing, overwrite", [("replace", True), ("fsync", True), ("link", False),
+                                                ("fsync", False)])
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypatch, failing, overwrite):
     path, before = _old_file(tmp_path)
 
     def boom(*args, **kwargs):
@@ -472,7 +482,8 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path, monkeypat
 
     monkeypatch.setattr(logs.os, failing, boom)
     with pytest.raises(OSError, match="disk full"):
-        logs.write_estimates(path, [0.0, 0.1, 0.2], [[5.0], [6.0], [7.0]], state_names=("x",))
+        logs.write_estimates(path if overwrite else tmp_path / "new.csv", [0.0, 0.1, 0.2], [[5.0], [6.0], [7.0]],
+                             state_names=("x",), overwrite=overwrite)
     monkeypatch.undo()
     assert path.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["est.csv"]

@@ -147,7 +147,7 @@ def test_bad_data_is_named():
         mhe.simulate(t, y, np.zeros((5, 1)))
 
 
-def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
+def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path, capsys):
     """``kklcasadi compare`` reduced: one trial, half a second, one regime, noise off."""
     import json
     import shutil
@@ -176,9 +176,23 @@ def test_compare_command_writes_json_and_table(model_dir_factory, tmp_path):
     table = provenance.strip_markdown((out / "table.md").read_text())
     assert table.strip() == markdown_table(comparison.scores, ("zero",), timing=True)
     assert "| duffing (1 trials) | MHE N=3 |" in table
+    # a system's comparison is never written over: refused in one line before any run
+    kept = (out / "duffing.json").read_bytes()
+    capsys.readouterr()
+    assert main(["compare", "--systems", "duffing", "--models-root", str(root), "--out", str(out)]) == 2
+    assert capsys.readouterr().err == (f"error: --out: {out / 'duffing.json'} exists and this command does not "
+                                       "overwrite; move it away, or choose another --out.\n")
+    # a saved comparison the table would gather that cannot be read: refused in one line before any run
+    for text, what in (("{", "JSONDecodeError"), ("{}", "KeyError: 'cells'")):
+        (out / "vdp.json").write_text(text)
+        assert main(["compare", "--systems", "duffing", "--models-root", str(root), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: --out: expected {out / 'vdp.json'} to be a comparison kklcasadi compare "
+                              f"wrote, received a file it cannot read ({what}") and err.count("\n") == 1
+        assert (out / "duffing.json").read_bytes() == kept
 
 
-def test_mhe_example_runs_reduced(model_dir_factory, tmp_path):
+def test_mhe_example_runs_reduced(model_dir_factory, tmp_path, monkeypatch):
     import importlib.util
     from pathlib import Path
 
@@ -194,6 +208,16 @@ def test_mhe_example_runs_reduced(model_dir_factory, tmp_path):
     assert list(results) == ["KKL (autonomous)", "EKF", "MHE N=3", "KKL-primed MHE N=2"]
     assert all(xhat.shape == (10, 2) and np.all(np.isfinite(xhat)) for xhat in results.values())
     assert png.stat().st_size > 0
+    first = png.read_bytes()
+    with pytest.raises(FileExistsError, match="^--out: .*mhe.png exists and this command does not overwrite"):
+        example.main(["--model", str(model), "--out", str(png)])            # refused before any work
+    assert png.read_bytes() == first
+    # a plot that fails leaves nothing at --out and nothing beside it
+    monkeypatch.setattr(example.plt.Figure, "savefig", lambda *a, **k: (_ for _ in ()).throw(OSError("disk")))
+    with pytest.raises(OSError, match="disk"):
+        example.main(["--model", str(model), "--T", "0.5", "--horizon", "3", "--primed-horizon", "2",
+                      "--calibration-trials", "1", "--out", str(tmp_path / "again.png")])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mhe.png"]
 
 
 def test_the_primed_mhe_takes_the_observers_covariance_as_its_arrival_cost(model_dir_factory):

@@ -113,15 +113,18 @@ def test_example_runs_reduced(model_dir_factory, tmp_path):
     assert "| duffing | KKL (inject) |" in (out / "nmpc_table.md").read_text()
     for row in result["rows"]:
         assert row["u_max"] <= 2.0 + 1e-9 and np.isfinite(row["cost"])
-    # the three files are one artefact: written again in one step, every one stamped, nothing left beside them
+    # the three files are one artefact: written in one step, every one stamped, nothing left beside them
     from kklcasadi import provenance
 
-    example.main(["--systems", "duffing", "--models-root", str(root), "--T", "0.3", "--horizon", "4",
-                  "--trials", "1", "--settle", "0.2", "--out", str(out)])
     assert sorted(p.name for p in out.iterdir()) == ["nmpc.json", "nmpc.png", "nmpc_table.md"]
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
     assert {provenance.read(out / name).seeds["initial_states_and_noise"] for name in
             ("nmpc.json", "nmpc.png", "nmpc_table.md")} == {0}
+    # never written over: a second run to the same --out is refused before any run
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(FileExistsError, match="^--out: .*nmpc_table.md exists and this command does not overwrite"):
+        example.main(["--systems", "duffing", "--models-root", str(root), "--out", str(out)])
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
 def test_example_tightens_the_bound_by_k_sigma_of_a_covariance_head(model_dir_factory, tmp_path):

@@ -17,6 +17,7 @@ from conftest import write_signed_card
 from scipy.linalg import expm, solve_sylvester
 
 import kklcasadi as kc
+from kklcasadi import provenance
 from kklcasadi.model import variants
 from kklcasadi.model.files import CARD_FILE, load_model, save_model
 from kklcasadi.nets import builders as casadi_nets
@@ -519,6 +520,19 @@ def test_closed_loop_example_writes_a_png(model_dir_factory, tmp_path, monkeypat
     runpy.run_path(str(ROOT / "examples" / "closed_loop.py"), run_name="__main__")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "inject observer in the loop" in capsys.readouterr().out
+    assert provenance.read(out).seeds == {"noise": 0}
+    first = out.read_bytes()
+    with pytest.raises(FileExistsError, match="^--out: .*closed_loop.png exists and this command does not overwrite"):
+        runpy.run_path(str(ROOT / "examples" / "closed_loop.py"), run_name="__main__")     # before any work
+    assert out.read_bytes() == first
+    # a plot that fails leaves nothing at --out and nothing beside it
+    import matplotlib.figure
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", lambda *a, **k: (_ for _ in ()).throw(OSError("disk")))
+    monkeypatch.setattr(sys, "argv", [*sys.argv[:4], str(tmp_path / "plots" / "again.png"), *sys.argv[5:]])
+    with pytest.raises(OSError, match="disk"):
+        runpy.run_path(str(ROOT / "examples" / "closed_loop.py"), run_name="__main__")
+    assert sorted(p.name for p in out.parent.iterdir()) == ["closed_loop.png"]
 
 
 # ----------------------------------------------------------------------------- domain monitor

@@ -9,6 +9,7 @@ import pytest
 
 pytest.importorskip("torch")
 
+from kklcasadi import provenance  # noqa: E402
 from kklcasadi.cli import main  # noqa: E402
 from kklcasadi.model.files import load_model  # noqa: E402
 
@@ -29,6 +30,21 @@ def test_example_runs_in_a_reduced_form(own_plant, tmp_path, capsys):
     assert model.spec.system.fingerprint == own_plant["make_plant"]().fingerprint
     assert model.spec.domain is not None
     assert "trained Phase 1 + inject" in capsys.readouterr().out
+    assert provenance.read(tmp_path / "own_plant.png").seeds == {"train": 0}
+    with pytest.raises(FileExistsError, match="^--out: .*autonomous exists and this command does not overwrite"):
+        own_plant["main"](tmp_path, epochs=2, n_traj=12, T=8.0)                 # refused before any training
+    assert load_model(tmp_path / "inject").card == model.card
+
+
+def test_example_leaves_no_half_written_plot_when_it_fails(own_plant, tmp_path, monkeypatch):
+    def failing(traces):
+        raise OSError("disk")
+
+    monkeypatch.setitem(own_plant["main"].__globals__, "_plot", failing)
+    with pytest.raises(OSError, match="disk"):
+        own_plant["main"](tmp_path, epochs=1, n_traj=6, T=6.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["autonomous", "inject"]      # each model whole, no plot
+    assert load_model(tmp_path / "inject").method == "inject"
 
 
 def test_cli_trains_and_runs_a_plant_from_a_file(tmp_path, capsys):

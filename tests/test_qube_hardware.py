@@ -47,7 +47,7 @@ def test_the_filtered_difference_of_a_ramp_is_its_slope_after_the_filter_settles
 
 
 @pytest.mark.parametrize("recipe", ["like", "chosen"])
-def test_example_runs_in_a_reduced_form(example, tmp_path, capsys, recipe):
+def test_example_runs_in_a_reduced_form(example, tmp_path, capsys, monkeypatch, recipe):
     results = example["main"](tmp_path, epochs=1, runs=12, horizon=2.0, cases=("theta_alpha",), recipe=recipe)
     table, text = results["theta_alpha"]
     assert sorted(table) == [1, 3, 5, 7, 9, 11]
@@ -82,3 +82,28 @@ def test_example_runs_in_a_reduced_form(example, tmp_path, capsys, recipe):
         assert all(5.0 < q < 30.0 for q in model.spec.process_std[2:])
         assert training["runs"]["escape_scale"] == 1.25 and "like" in training["runs"]["kinds"]
     assert "kklcasadi train --plant" in capsys.readouterr().out
+    from kklcasadi import provenance
+
+    assert provenance.read(tmp_path / "qube_theta_alpha.png") == provenance.read(tmp_path / "qube_hardware.json")
+    if recipe == "chosen":
+        # a run that fails in its second case after the first's plot: no plot and no scores written, not even a part
+        import shutil
+
+        def train(case, out, **_):
+            if case == "alpha":
+                raise OSError("disk")
+            return shutil.copytree(tmp_path / case, out / case)          # this run's model, not trained again
+
+        monkeypatch.setitem(example["main"].__globals__, "train", train)
+        with pytest.raises(OSError, match="disk"):
+            example["main"](tmp_path / "again", cases=("theta_alpha", "alpha"), recipe=recipe)
+        assert [p.name for p in (tmp_path / "again").iterdir()] == ["theta_alpha"]
+
+
+@pytest.mark.parametrize("taken, flag", [("alpha", "--out"), ("qube_alpha.png", "--out"),
+                                         ("scores.json", "--results")])
+def test_example_refuses_any_file_it_would_write_before_any_work(example, tmp_path, taken, flag):
+    (tmp_path / taken).write_text("kept")
+    with pytest.raises(FileExistsError, match=f"^{flag}: .*{taken} exists and this command does not overwrite"):
+        example["main"](tmp_path, results=tmp_path / "scores.json")
+    assert [p.name for p in tmp_path.iterdir()] == [taken] and (tmp_path / taken).read_text() == "kept"

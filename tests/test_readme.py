@@ -357,6 +357,11 @@ def test_the_results_at_a_glance_follow_from_the_results(monkeypatch):
     velocity = [b / e for b, e in zip(copy["theta_alpha"]["scored_mean"]["KKL (bank)"][2:],
                                       copy["theta_alpha"]["scored_mean"]["EKF"][2:])]
     assert f"{span(velocity)} with both encoders and the noise copy" in text
+    states = json_payload(json.loads((ROOT / "results" / "real_rig" / "qube" / "hardware_like_read.json")
+                                     .read_text()))
+    velocity = [b / e for b, e in zip(states["alpha"]["scored_mean"]["KKL (bank)"][2:],
+                                      states["alpha"]["scored_mean"]["EKF"][2:])]
+    assert f"{span(velocity)} with the pendulum encoder alone and its copy over the states the equations read" in text
     timing = provenance.strip_markdown((ROOT / "results" / "speed" / "duffing" / "protocol_duffing.md").read_text())
     warm = float(re.search(r"- warm caches \(.*?\): ([\d.]+) s wall", timing).group(1))
     assert f"about {round(warm / 30) / 2:g} minutes on 2 cores" in text

@@ -69,6 +69,31 @@ def test_the_check_flag_says_when_the_index_is_stale(monkeypatch, capsys):
     assert done.value.code == 0
 
 
+def test_a_page_is_replaced_whole_or_not_at_all(monkeypatch, tmp_path, capsys):
+    """benchmarks/pages.py: a page is regenerated in place (its command's one output), atomically: a page that
+    fails to compute or to write leaves the old one whole and nothing beside it."""
+    import os
+
+    monkeypatch.syspath_prepend(str(SCRIPT.parent))
+    publish = runpy.run_path(str(SCRIPT.parent / "pages.py"))["publish"]
+    assert publish("x.md", lambda: "# x\n", [], folder=tmp_path) == 0
+    assert provenance.strip_markdown((tmp_path / "x.md").read_text()) == "# x\n"
+    assert publish("x.md", lambda: "# y\n", [], folder=tmp_path) == 0
+    old = (tmp_path / "x.md").read_bytes()
+    assert provenance.strip_markdown(old.decode()) == "# y\n" and provenance.read(tmp_path / "x.md").command
+
+    def failing(*args):
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        publish("x.md", failing, [], folder=tmp_path)
+    monkeypatch.setattr(os, "fsync", failing)
+    with pytest.raises(OSError, match="disk full"):
+        publish("x.md", lambda: "# z\n", [], folder=tmp_path)
+    assert [p.name for p in tmp_path.iterdir()] == ["x.md"] and (tmp_path / "x.md").read_bytes() == old
+    assert publish("x.md", lambda: "# z\n", ["--check"], folder=tmp_path) == 1          # stale: says so
+
+
 STAMPED = [p for top in ("results", "docs", "models") for p in sorted((ROOT / top).rglob("*"))
            if p.is_file() and p.suffix in (".md", ".json", ".csv", ".png")] + [ROOT / "README.md"]
 

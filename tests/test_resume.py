@@ -76,6 +76,46 @@ def test_checkpoints_without_a_record_are_not_resumed(tmp_path, monkeypatch):
         train_observer("duffing", "autonomous", out, config=tiny(), progress=False, resume=True)
 
 
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory):
+    """A training stopped before its model was written (its checkpoints and their record in .train), made once."""
+    out = tmp_path_factory.mktemp("interrupted") / "m"
+    with pytest.MonkeyPatch.context() as patch:
+        _interrupted(out, monkeypatch=patch)
+    return out
+
+
+@pytest.mark.parametrize("text, received", [("{", "a parse error"), ("[1]", "a JSON list"),
+                                            ('{"seed": NaN}', r"a parse error \(non-standard JSON constant NaN\)")])
+def test_an_unreadable_run_record_is_one_line(interrupted, tmp_path, text, received):
+    out = shutil.copytree(interrupted, tmp_path / "m")
+    (out / ".train" / "run.json").write_text(text)
+    with pytest.raises(ValueError, match=f"^{out / '.train' / 'run.json'}: expected .*received {received}.*"
+                                         r"Train again without --resume\.$"):
+        train_observer("duffing", "autonomous", out, config=tiny(), progress=False, resume=True)
+    assert sorted(p.name for p in (out / ".train").iterdir()) == ["decoder.ckpt.npz", "encoder.ckpt.npz", "run.json"]
+
+
+@pytest.mark.parametrize("damage, received", [("garbage", "a file numpy cannot read"),
+                                             ("truncated", "a file numpy cannot read"),
+                                             ("without lr", "none named 'lr'")])
+def test_an_unreadable_checkpoint_is_one_line(interrupted, tmp_path, damage, received):
+    out = shutil.copytree(interrupted, tmp_path / "m")
+    path = out / ".train" / "encoder.ckpt.npz"
+    if damage == "garbage":
+        path.write_bytes(b"not an archive")
+    elif damage == "truncated":
+        path.write_bytes(path.read_bytes()[:200])
+    else:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in data.files if k != "lr"}
+        np.savez(path, **arrays)
+    with pytest.raises(ValueError, match=f"^checkpoint {path}: expected .*received {received}.*Delete it to start "
+                                         r"afresh\.$") as caught:
+        train_observer("duffing", "autonomous", out, config=tiny(), progress=False, resume=True)
+    assert "\n" not in str(caught.value)
+
+
 def test_resume_never_replaces_a_finished_model(tmp_path):
     out = tmp_path / "D"
     shutil.copytree(ROOT / "models" / "duffing" / "autonomous", out)       # a finished Duffing model

@@ -90,6 +90,32 @@ def _envelope(plant, seed=0):
                     ({"path": "simulated", "sha256": "-", "rows": log.t.size},)), log
 
 
+def test_a_state_nothing_reads_neither_keeps_a_like_run_from_starting_nor_cuts_it():
+    """An arm angle that neither xdot nor y reads (x0, an integrator of x2), logged far outside its box in the
+    first half of the log (the EKF's estimate of such a state drifts): like runs still start there, and are not
+    cut when it stays out (before, every start came from the second half); the states it reads still bound them."""
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)
+    arm = kc.System("arm", x, u, [x[2], x[2], -ca.sin(x[1]) - 0.3 * x[2] + u], x[1],
+                    [[-1.0, 1.0], [-1.5, 1.5], [-2.0, 2.0]], u_box=[[-1.0, 1.0]])
+    u_log = kc.signals.make("random", amplitude=0.5, hold=0.7, seed=0, horizon=40.0)
+    log = kc.simulate(arm, [0.0, 0.5, 0.0], u_log, T=40.0, dt=0.05, measurement_std=0.01, seed=0, method="rk")
+    states = log.x.copy()
+    states[:400, 0] += 10.0
+    envelope = Envelope(0.05, (log.u,), (states,), np.array([[log.y.min(), log.y.max()]]),
+                        np.array([[log.u.min(), log.u.max()]]), 0.01, np.array([0.0, 0.0, 0.1]),
+                        ({"path": "simulated", "sha256": "-", "rows": log.t.size},))
+    cfg = RolloutConfig(n_traj=16, T=4.0, kinds=("zero",), envelope=envelope, like_share=1.0, escape_scale=1.25)
+    runs = rollouts(arm, cfg, 1, dt=0.05, measurement_std=0.0, process_std=0.0)
+    assert len(runs) == 16 and np.all(np.isfinite(runs.x)) and runs.x.shape[1] == 80
+    far = np.abs(runs.x[:, :, 0]).min(axis=1) > 5.0                       # never inside its box, kept whole
+    assert 3 <= far.sum() <= 13
+    for x0 in runs.x[:, 0]:
+        assert np.any(np.all(states == x0, axis=1))                          # a state the log holds
+    read = kc.systems.get("duffing")                                         # every state read: the box as before
+    xs = np.array([[0.0, 0.0], [3.0, 0.0], [0.0, -3.0]])
+    np.testing.assert_array_equal(rn._in_read_box(read, xs), rn.inside_box(xs, read.x0_box))
+
+
 def test_like_runs_replay_rescaled_log_segments_from_the_logged_states():
     plant = _oscillator()
     envelope, log = _envelope(plant)
@@ -237,10 +263,14 @@ def test_the_noise_copy_goes_where_the_plant_declares_where_it_lives():
                          u_box=[[-1, 1]])
     added, what = with_noise_copy(pendulum, config)                   # angle states: a copy, corrected
     assert len(added.copies) == 1 and added.copy_residual and "residual over its estimate" in what
-    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)              # an arm's angle that y does not see: no copy, and why
+    x, u = ca.SX.sym("x", 3), ca.SX.sym("u", 1)     # an arm's angle that nothing reads: a copy over the other states
     arm = kc.System("arm", x, u, [x[2], x[2], -ca.sin(x[1]) + u], x[1], [[-3, 3], [-3, 3], [-2, 2]],
                     angle_states=(0, 1), angle_outputs=(0,), u_box=[[-1, 1]])
-    kept, why = with_noise_copy(arm, config)
+    added, what = with_noise_copy(arm, config)
+    assert len(added.copies) == 1 and added.copy_residual and "over the states its equations read [1, 2]" in what
+    x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)       # not detectable even over the read states: no copy, and why
+    blind = kc.System("blind", x, u, [x[1], x[1] + u], x[1] ** 3, [[-1, 1], [-1, 1]], u_box=[[-1, 1]])
+    kept, why = with_noise_copy(blind, config)
     assert kept.copies == () and kept.noise_copy is False and "stabilising Kalman-Bucy gain" in why
     assert with_noise_copy(_mass(), replace(config, noise_copy=False))[0].copies == ()
     x, u = ca.SX.sym("x", 2), ca.SX.sym("u", 1)      # an angle output of no angle state: a copy, corrected
@@ -363,6 +393,11 @@ def test_copy_base_picks_the_last_copys_latents():
      [[6.0 - 2 * np.pi, 0.5], [-6.0 + 2 * np.pi, 1.5], [-0.1, 2.5]]),
     # about pi: pi - 0.1 and pi + 0.1 (not -pi + 0.1), the second column as it is
     ([[np.pi - 0.1, 0.0], [-np.pi + 0.1, 7.0]], [[0.0, 0.0], [0.0, 0.0]], [[np.pi - 0.1, 0.0], [np.pi + 0.1, 7.0]]),
+    # a copy's deviation near pi (its reference angle -pi), the targets near 0: the residual's circular mean is
+    # pi - 0.02, its branch pi + 0.01, pi - 0.05, which would write every estimate a turn above its measurement
+    # (offset + residual near 2 pi); moved by a turn: -pi + 0.01, -pi - 0.05
+    ([[0.02, 1.0], [-0.02, 1.0]], [[np.pi + 0.01, 0.0], [np.pi + 0.03, 0.0]],
+     [[-np.pi + 0.01, 1.0], [-np.pi - 0.05, 1.0]]),
 ])
 def test_an_angles_residual_over_a_base_against_hand_computations(v, offset, expected):
     pytest.importorskip("torch")

@@ -73,6 +73,17 @@ def test_a_second_study_in_one_out_is_refused(tmp_path):
                                                                "'first'"), result.stderr
 
 
+@pytest.mark.parametrize("text, received", [("{", "a parse error"), ('["first"]', "a JSON list")])
+def test_an_unreadable_binding_is_one_line(tmp_path, text, received):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / tn.study.BINDING).write_text(text)
+    with pytest.raises(ArgumentError, match=f"^{out / tn.study.BINDING}: expected .*received {received}.* Restore "
+                                            r"it, or give the study another --out \(study.json binds"):
+        tn.tune(get("duffing"), "bank", out, n_trials=1, progress=False)
+    assert (out / tn.study.BINDING).read_text() == text and sorted(p.name for p in out.iterdir()) == ["study.json"]
+
+
 @pytest.mark.parametrize("url,match", [
     ("postgresql://user@host:notaport/db", r"--storage: expected an SQLAlchemy URL such as .*received postgresql://\.\.\."),
     ("postgresql://kkl@127.0.0.1:1/db", r"--storage: expected a storage Optuna can open and use, received "

@@ -29,6 +29,31 @@ def test_write_file_is_exclusive_unless_overwriting(tmp_path):
         writes.write_file(tmp_path, "x", argument="--out")
 
 
+def test_refuse_existing_names_the_argument_of_the_first_output_that_exists(tmp_path):
+    (tmp_path / "page.md").write_text("old")
+    (tmp_path / "models").mkdir()
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    writes.refuse_existing({tmp_path / "new.json": "--results", tmp_path / "sub" / "x": "--out"})   # nothing there
+    for path, flag in (("page.md", "--page"), ("models", "--out"), ("dangling", "--results")):
+        with pytest.raises(FileExistsError, match=f"^{flag}: .*{path} exists and this command does not overwrite; "
+                           f"move it away, or choose another {flag}.$"):
+            writes.refuse_existing({tmp_path / "new.json": "--results", tmp_path / path: flag})
+    assert (tmp_path / "page.md").read_text() == "old" and not (tmp_path / "sub").exists()
+
+
+def test_write_files_writes_one_directory_at_a_time_and_never_over_a_file(tmp_path):
+    files = {tmp_path / "results" / "r.json": "{}\n", tmp_path / "docs" / "r.md": "# r\n",
+             tmp_path / "results" / "r.png": b"\x89PNG"}
+    assert writes.write_files(files, argument="--results") == list(files)
+    assert [path.read_bytes() for path in files] == [b"{}\n", b"# r\n", b"\x89PNG"]
+    (tmp_path / "docs" / "r.md").write_text("kept")
+    again = {tmp_path / "results" / "s.json": "{}\n", tmp_path / "docs" / "r.md": "new"}
+    with pytest.raises(FileExistsError, match="^--page: .*r.md exists"):
+        writes.write_files(again, argument="--page")
+    assert (tmp_path / "docs" / "r.md").read_text() == "kept" and (tmp_path / "results" / "s.json").exists()
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["docs", "r.json", "r.md", "r.png", "results", "s.json"]
+
+
 def test_write_dir_publishes_a_new_directory_with_one_rename(tmp_path, monkeypatch):
     renames = []
     real = os.rename

@@ -10,6 +10,7 @@ Usage: ``python benchmarks/accuracy/cache_trials.py [--cache DIR] [--trials 100]
 from __future__ import annotations
 
 import argparse
+import io
 import time
 from pathlib import Path
 
@@ -20,6 +21,7 @@ import kklcasadi as kc
 from kklcasadi.estimators.ekf import EKF
 from kklcasadi.evaluation.protocol import Protocol
 from kklcasadi.plant.signals import BENCHMARK_KINDS
+from kklcasadi.writes import write_file
 
 
 def cache_system(name: str, cache: Path, n_trials: int, regime: str = "id") -> None:
@@ -43,7 +45,9 @@ def cache_system(name: str, cache: Path, n_trials: int, regime: str = "id") -> N
                            f"{kind}/ok": batch.ok, f"{kind}/ekf": ekf})
             print(f"{name} {label} {kind}: {time.time() - t0:.0f} s, ok {batch.ok.sum()}/{len(batch)}, "
                   f"EKF SMAPE {np.mean(kc.metrics.smape(batch.x[batch.ok], ekf[batch.ok])):.2f}", flush=True)
-        np.savez(path, **arrays)
+        archive = io.BytesIO()
+        np.savez(archive, **arrays)
+        write_file(path, archive.getvalue(), overwrite=True, argument="cache")      # whole: never a truncated cache
 
 
 def main() -> None:

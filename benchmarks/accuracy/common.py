@@ -7,6 +7,7 @@ operational rollouts (train ranges, seeds disjoint from the protocol's) are cach
 
 from __future__ import annotations
 
+import io
 from typing import Callable
 
 import numpy as np
@@ -15,6 +16,7 @@ import kklcasadi as kc
 from kklcasadi.evaluation.trialcache import cache_root
 from kklcasadi.plant.signals import BENCHMARK_KINDS
 from kklcasadi.plant.simulate import TrajectoryBatch
+from kklcasadi.writes import write_file
 
 #: The accuracy study's cached trials and rollouts, under kklcasadi's cache (``$KKLCASADI_CACHE``).
 CACHE = cache_root() / "accuracy"
@@ -43,7 +45,9 @@ def cached_rollouts(system: str, n_traj: int, seed: int, **overrides: object) ->
             return TrajectoryBatch(f["t"], f["x"], f["u"], f["y"], f["ok"])
     cfg = RolloutConfig(n_traj=n_traj, substeps=SUBSTEPS.get(system, 4), **overrides)
     batch = rollouts(kc.systems.get(system), cfg, seed)
-    np.savez(path, t=batch.t, x=batch.x, u=batch.u, y=batch.y, ok=batch.ok)
+    archive = io.BytesIO()
+    np.savez(archive, t=batch.t, x=batch.x, u=batch.u, y=batch.y, ok=batch.ok)
+    write_file(path, archive.getvalue(), overwrite=True, argument="cache")      # whole: never a truncated cache
     return batch
 
 

@@ -12,7 +12,8 @@ the layers. The trials are those of ``kklcasadi generalise`` (seed ``--trial-see
 from the trial cache), decoded through the bank's latent in numpy
 (:func:`kklcasadi.model.variants.bankdecoder.estimate`); the EKF is scored on the same trials. Writes
 ``OUT.json`` (every SMAPE) and ``OUT.md`` (mean SMAPE per case and variant over the seeds, its ratio to the
-EKF, and per seed the geometric mean over the cases of each variant / plain).
+EKF, and per seed the geometric mean over the cases of each variant / plain), together; refused before any fit
+where one of them exists.
 
 Variants: ``plain`` (the recipe), ``skip`` (a linear skip path,
 :attr:`kklcasadi.train.decoder.DecoderConfig.skip`), ``smape`` (the loss ``mse+smape`` with weight 0.5
@@ -42,6 +43,7 @@ from kklcasadi.model.operational import operational_data
 from kklcasadi.model.variants import bankdecoder as bd
 from kklcasadi.train.bank import BankConfig, bank_time_scale, design_bank, design_copies, process_stds
 from kklcasadi.train.decoder import DecoderConfig, fit_bank_decoder
+from kklcasadi.writes import refuse_existing, write_dir
 
 VARIANTS = {"plain": lambda d: d, "skip": lambda d: replace(d, skip=True),
             "smape": lambda d: replace(d, loss="mse+smape", smape_weight=0.5),
@@ -77,6 +79,8 @@ def main() -> None:
     args = p.parse_args()
     if args.variants[0] != "plain":
         p.error("--variants: the first must be plain (the ratios are to it)")
+    written = {ext: args.out.with_suffix(ext) for ext in (".json", ".md")}
+    refuse_existing({path: "--out" for path in written.values()})
     torch.set_num_threads(args.threads)
     system = kc.systems.get(args.system)
     config = BankConfig.for_system(args.system)
@@ -117,10 +121,8 @@ def main() -> None:
     ekf = {label: t[3] for label, t in trials.items()}
     record = {"system": args.system, "samples": len(runs[None]), "ekf": ekf, "smape": smape, "fit_seconds": seconds,
               "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     stamp = provenance.stamp(seeds={"trials": args.trial_seed, "runs": args.run_seed,
                                     **{f"decoder_{s}": s for s in args.seeds}})
-    args.out.with_suffix(".json").write_text(json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
     labels = list(trials)
     seeds = [str(s) for s in args.seeds]
     lines = [f"**{args.system}, paired decoders** ({args.n_traj} runs, {args.epochs} epochs, one decoder per variant "
@@ -144,7 +146,9 @@ def main() -> None:
         lines.append(f"| {variant} | " + " | ".join(
             f"{geometric_mean([smape[variant][s][lab] / smape['plain'][s][lab] for lab in labels]):.4f}"
             for s in seeds) + " |")
-    args.out.with_suffix(".md").write_text(provenance.markdown("\n".join(lines) + "\n", stamp))
+    files = {written[".json"].name: json.dumps(provenance.json_record(record, stamp), indent=1) + "\n",
+             written[".md"].name: provenance.markdown("\n".join(lines) + "\n", stamp)}
+    write_dir(args.out.parent, files, argument="--out")          # the two as one, after everything is computed
     print("\n".join(lines))
 
 

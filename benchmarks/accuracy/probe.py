@@ -10,12 +10,14 @@ Example::
         --u-poles 0.5,2 --clock 0.2 --n-traj 1000 --epochs 20
 
 ``--recipe`` starts from the final recipe of the system (``recipes.py``); other flags override it.
-``--save DIR`` writes the weights (``<system>_<tag>.npz``) and the record there.
+``--save DIR`` writes the weights (``<system>_<tag>.npz``) and the record there. Nothing is written over a file:
+the record (named by ``--tag``) and the saved files are refused before any fit where they exist.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import time
 from pathlib import Path
@@ -34,6 +36,7 @@ from kklcasadi.plant.runs import RolloutConfig
 from kklcasadi.plant.signals import BENCHMARK_KINDS
 from kklcasadi.train.config import LoopConfig
 from kklcasadi.train.decoder import DecoderConfig, config_record, fit_bank_decoder
+from kklcasadi.writes import refuse_existing, write_files
 
 OUT = Path("results/levers")
 
@@ -83,6 +86,11 @@ def parse() -> argparse.Namespace:
 def main() -> None:
     torch.set_num_threads(1)
     args = parse()
+    stem = f"{args.system}_{args.tag}"
+    paths = {"record": OUT / args.system / f"{stem}.json"}
+    if args.save is not None:
+        paths.update(npz=args.save / f"{stem}.npz", json=args.save / f"{stem}.json")
+    refuse_existing({path: "--tag" if key == "record" else "--save" for key, path in paths.items()})
     system = kc.systems.get(args.system)
     res = [tuple(float(a) for a in r.split(":")) for r in args.resonators.split(",") if r]
     bank = fb.FilterBank.design(system.ny, system.nu, floats(args.y_poles), floats(args.u_poles),
@@ -123,18 +131,16 @@ def main() -> None:
     for k in BENCHMARK_KINDS:
         print(f"  per-state {k}: ours {np.round(noisy[k]['ours_per_state'], 2).tolist()} "
               f"ekf {np.round(noisy[k]['ekf_per_state'], 2).tolist()}")
-    (OUT / args.system).mkdir(parents=True, exist_ok=True)
     record = {"system": args.system, "tag": args.tag, "args": {k: str(v) for k, v in vars(args).items()},
               "nz": bank.nz, "config": config_record(sampling, dec),
               "fit_seconds": result.seconds, "n_samples": result.n_samples, "best_epoch": result.fit.best_epoch,
               "history": result.fit.history, "domain": result.domain, "validation": val_scores,
               "noisy": noisy, "clean": clean, "arch": decoder.mlp.to_card()}
     text = json.dumps(provenance.json_record(record, provenance.stamp(seeds={"decoder": args.seed})), indent=1) + "\n"
-    (OUT / args.system / f"{args.system}_{args.tag}.json").write_text(text)
-    if args.save is not None:
-        args.save.mkdir(parents=True, exist_ok=True)
-        np.savez(args.save / f"{args.system}_{args.tag}.npz", **arrays)
-        (args.save / f"{args.system}_{args.tag}.json").write_text(text)
+    weights = io.BytesIO()
+    np.savez(weights, **arrays)
+    contents = {"record": text, "npz": weights.getvalue(), "json": text}
+    write_files({path: contents[key] for key, path in paths.items()}, argument="--tag")
 
 
 if __name__ == "__main__":

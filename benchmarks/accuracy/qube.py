@@ -17,7 +17,8 @@ Usage::
     PYTHONPATH=. python benchmarks/accuracy/qube.py --outputs both --process-std 8 --runs fit --tag q8
     PYTHONPATH=. python benchmarks/accuracy/qube.py --outputs alpha --model DIR/q8_alpha --runs report
 
-Writes ``results/real_rig/qube/<tag>_<outputs>_<runs>.json``.
+Writes ``results/real_rig/qube/<tag>_<outputs>_<runs>.json`` (refused before any work where it, or the model
+``--out`` would hold, exists).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ import kklcasadi as kc
 from kklcasadi import provenance
 from kklcasadi.metrics import rmse
 from kklcasadi.plant import logs
+from kklcasadi.writes import refuse_existing, write_file
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "examples" / "qube"))
@@ -86,7 +88,7 @@ def train(args: argparse.Namespace, plant: kc.System, out: Path) -> tuple[Path, 
     if args.skip is not None:
         config = replace(config, decoder=replace(config.decoder, skip=args.skip == "on"))
     t0 = time.perf_counter()
-    path = train_observer(plant, "bank", out, config=config, dt=DT, seed=args.seed, overwrite=True, progress=False)
+    path = train_observer(plant, "bank", out, config=config, dt=DT, seed=args.seed, progress=False)
     return path, time.perf_counter() - t0
 
 
@@ -114,6 +116,9 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, help="where the trained model goes (default: a new temporary folder)")
     args = p.parse_args()
+    record_path = OUT / f"{args.tag}_{args.outputs}_{args.runs}.json"
+    trained = {} if args.out is None or args.model is not None else {args.out / f"{args.tag}_{args.outputs}": "--out"}
+    refuse_existing({record_path: "--tag", **trained})
     plant = plant_of(args.outputs)
     wall = None
     model = args.model
@@ -144,10 +149,8 @@ def main() -> None:
     for n in (*RUNS[args.runs], "mean"):
         for name in ("bank", "ekf"):
             print(f"{name} {str(n):5s}" + "".join(f"{record[name][n][c]:12.4f}" for c in cols))
-    OUT.mkdir(parents=True, exist_ok=True)
     stamp = provenance.stamp(seeds={"training": args.seed} if args.model is None else {})
-    (OUT / f"{args.tag}_{args.outputs}_{args.runs}.json").write_text(
-        json.dumps(provenance.json_record(record, stamp), indent=1) + "\n")
+    write_file(record_path, json.dumps(provenance.json_record(record, stamp), indent=1) + "\n", argument="--tag")
 
 
 if __name__ == "__main__":

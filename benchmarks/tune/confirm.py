@@ -1,7 +1,8 @@
 """Score a study's best model and its baseline again on fresh validation trials (another seed than the
 study's, same families), beside the EKF: the check that the best trial's edge is not selection noise.
 
-Usage: python benchmarks/tune/confirm.py OUT --plant FILE.py:NAME [--seed S] [--trials N]   (writes OUT/confirm.md)
+Usage: python benchmarks/tune/confirm.py OUT --plant FILE.py:NAME [--seed S] [--trials N]   (writes OUT/confirm.md,
+refused before any work where it exists)
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from kklcasadi.evaluation import tune as tn
 from kklcasadi.evaluation.trialcache import TrialCache
 from kklcasadi.observer.kkl import load_observer
 from kklcasadi.plant.systems import load_plant
+from kklcasadi.writes import refuse_existing, write_file
 
 
 def main() -> None:
@@ -23,6 +25,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=tn.VALIDATION_SEED + 1000)
     parser.add_argument("--trials", type=int, default=50)
     args = parser.parse_args()
+    refuse_existing({args.out / "confirm.md": "OUT"})
     plant = load_plant(args.plant)
     models = {name: load_observer(args.out / name, system=plant) for name in (tn.BEST_DIR, tn.BASELINE_DIR)}
     search = models[tn.BEST_DIR].model.spec.search
@@ -40,7 +43,8 @@ def main() -> None:
     lines.append("| EKF | 1 | " + " | ".join(f"{validation.ekf[n]:.2f}" for n in names) + " |")
     text = "\n".join(lines) + "\n"
     print(text, end="")
-    (args.out / "confirm.md").write_text(provenance.markdown(text, provenance.stamp(seeds={"trials": args.seed})))
+    write_file(args.out / "confirm.md", provenance.markdown(text, provenance.stamp(seeds={"trials": args.seed})),
+               argument="OUT")
     print(f"wrote {args.out / 'confirm.md'}")
 
 

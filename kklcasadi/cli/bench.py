@@ -24,7 +24,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(the observer benchmark: the step figures of each model, microseconds per step of the C builds "
                    "and the CasADi VM and the default build's instructions, with its card's digest; the protocol "
                    "benchmark: what it prints; results/speed/SYSTEM/ is what docs/results/speed.md reads)")
-    b.add_argument("--overwrite", action="store_true", help="with --write: replace OUT_MD if it exists")
+    b.add_argument("--overwrite", action="store_true", help="with --write: replace OUT_MD if it exists; with "
+                   "scaling's --out: replace its files")
     b.add_argument("--models", nargs="+", help="protocol benchmark: model directories (default: the shipped ones)")
     b.add_argument("--trials", type=positive_int,
                    help="trials: simulation benchmark (default 32), protocol benchmark per cell (default 100), "
@@ -123,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         print("== the cost as the plant grows: chains of coupled oscillators ==")
         result = flagged("--sizes", bench_scaling, args.sizes, runs=args.runs, epochs=args.epochs,
                          trials=args.trials or 10, threads=args.threads or 1, out=args.out,
-                         stamp=stamp_of(args, training_and_trials=0))
+                         stamp=stamp_of(args, training_and_trials=0), overwrite=args.overwrite, argument="--out")
         print(result.table())
         return 0
     if args.what in ("all", "simulation"):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..writes import write_file
+from ..writes import refuse_existing, write_file
 from .flags import (
     add_kinds,
     add_plant,
@@ -33,7 +33,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--settle", type=nonnegative_float, default=10.0, help="settle time (s)")
     add_plant(c, "for models of a plant that kklcasadi does not ship")
     c.add_argument("--seed", type=int, default=0, help="seed of the domain sample and the runs (default 0)")
-    c.add_argument("--out", help="write the certificates to this JSON file")
+    c.add_argument("--out", help="write the certificates to this JSON file (refused where it exists)")
     c.set_defaults(func=run)
 
 
@@ -42,6 +42,8 @@ def run(args: argparse.Namespace) -> int:
     from ..evaluation.certificate import certificate
 
     out = out_path(args.out, "--out", directory=False)
+    if out is not None:
+        refuse_existing({out: "--out"})      # before any certificate is computed: never written over
     records, plant = [], plant_of(args)
     for model in args.models:
         cert = flagged("MODELS", certificate, load(model, plant, "MODELS"), kinds=tuple(args.kinds),
@@ -53,5 +55,5 @@ def run(args: argparse.Namespace) -> int:
         from ..provenance import json_record
 
         write_file(out, json.dumps(json_record(records, stamp_of(args, seed=args.seed)), indent=1) + "\n",
-                   overwrite=True, argument="--out")
+                   argument="--out")
     return 0

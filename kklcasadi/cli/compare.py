@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from ..plant import systems
-from ..writes import write_dir
+from ..writes import refuse_existing, write_dir
 from .flags import (
     NOISE,
     CommandError,
@@ -74,9 +74,19 @@ def _saved(out: Path, fresh: dict[str, str]) -> list:
     from ..evaluation.compare import SystemComparison
 
     names = [*SYSTEMS, *(n for n in systems.names() if n not in SYSTEMS)]
-    return [SystemComparison.from_json(json.loads(fresh[name] if name in fresh else
-                                                  (out / f"{name}.json").read_text()))
-            for name in names if name in fresh or (out / f"{name}.json").exists()]
+    saved = []
+    for name in names:
+        if name in fresh:
+            saved.append(SystemComparison.from_json(json.loads(fresh[name])))
+        elif (out / f"{name}.json").exists():
+            path = out / f"{name}.json"
+            try:
+                saved.append(SystemComparison.from_json(json.loads(path.read_text())))
+            except (ValueError, KeyError, TypeError) as exc:       # said in one line, naming the flag
+                raise CommandError(f"--out: expected {path} to be a comparison kklcasadi compare wrote, received a "
+                                   f"file it cannot read ({type(exc).__name__}: {exc}); move it away or choose "
+                                   "another --out") from None
+    return saved
 
 
 def run(args: argparse.Namespace) -> int:
@@ -88,7 +98,11 @@ def run(args: argparse.Namespace) -> int:
     from ..provenance import json_record, markdown
 
     out = out_path(args.out, "--out", directory=True)
+    if out is None:                          # the flag has a default: only a Namespace built by hand lacks it
+        raise CommandError("--out: expected a folder for the comparisons and their table, received none")
     out.mkdir(parents=True, exist_ok=True)
+    _saved(out, {})                          # the comparisons the table gathers, read before any run
+    refuse_existing({out / f"{name}.json": "--out" for name in args.systems})     # a comparison is never written over
     kinds = tuple(args.kinds)
     levels = {name: getattr(args, name) for name in ("process_std", "measurement_std")
               if getattr(args, name) is not None}
@@ -109,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         every = [s for saved in _saved(out, {name: record}) for s in saved.scores]
         # the table gathers every system's saved comparison: its stamp is this command's, the rows name their files;
         # the system's record and the table are written as one
-        write_dir(out, {f"{name}.json": record,
+        write_dir(out, {f"{name}.json": record,                  # the table is rebuilt from every saved one
                         "table.md": markdown(markdown_table(every, kinds, timing=True) + "\n", stamp)},
                   overwrite=True, argument="--out")
         print(markdown_table(comparison.scores, kinds, timing=True))

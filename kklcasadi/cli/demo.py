@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..plant import signals as sig
+from ..writes import refuse_existing
 from .flags import (
     CommandError,
     add_dt,
@@ -51,7 +52,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_dt(d, "the sample time; the model's (a model runs only at its own)")
     d.add_argument("--T", type=positive_float, default=50.0, help="horizon, seconds")
     d.add_argument("--seed", type=int, default=0, help="seed of the initial state and the noise (default 0)")
-    d.add_argument("--out", default="demo.png", help="the figure to write, PNG (default demo.png)")
+    d.add_argument("--out", default="demo.png", help="the figure to write, PNG (default demo.png; refused where it "
+                   "exists)")
     d.set_defaults(func=run)
 
 
@@ -66,6 +68,9 @@ def run(args: argparse.Namespace) -> int:
     if args.model is None and args.plant is not None:
         raise CommandError("--plant: give the model trained for it with --model DIR")
     out = out_path(args.out, "--out", directory=False)
+    if out is None:                          # the flag has a default: only a Namespace built by hand lacks it
+        raise CommandError("--out: expected a file path for the figure, received none")
+    refuse_existing({out: "--out"})          # the figure is written whole, never over a file
     model = Path(args.model) if args.model else shipped(args.system or "duffing", args.method)
     obs = load(model, plant_of(args))
     plant = obs.system

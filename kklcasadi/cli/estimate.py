@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from ..validation import ArgumentError
+from ..writes import refuse_existing
 from .flags import (
     CommandError,
     add_noise_levels,
@@ -124,7 +125,7 @@ def _inputs(args: argparse.Namespace) -> dict[str, Path]:
 
 
 def _check_out(args: argparse.Namespace) -> None:
-    """``--out`` is a file path that is none of the inputs and not inside the model."""
+    """``--out`` is a file path that is none of the inputs, not inside the model and not an existing file."""
     out = Path(args.out)
     if out.is_dir():
         raise CommandError(f"--out: expected a file path for the estimates, received {args.out!r}, a folder")
@@ -136,6 +137,7 @@ def _check_out(args: argparse.Namespace) -> None:
         if same:
             raise CommandError(f"--out: expected a file other than the command's inputs, received {args.out!r}, "
                                f"which is {flag}'s file; choose another --out")
+    refuse_existing({out: "--out"})          # the estimates are written whole, never over a file
 
 
 def run(args: argparse.Namespace) -> int:

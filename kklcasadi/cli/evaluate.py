@@ -21,6 +21,7 @@ from typing import Any
 
 from ..plant import signals as sig
 from ..plant.systems import System
+from ..writes import refuse_existing
 from .flags import (
     NOISE,
     CommandError,
@@ -64,7 +65,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="add the exact-model MHE with these horizons (one ipopt solve per sample: slow)")
     e.add_argument("--seed", type=int, default=2026, help="seed of the trials (docs/protocol.md's scored trials: "
                    "2026; choose on another)")
-    e.add_argument("--out", help="directory for the JSON scores, table and box plots")
+    e.add_argument("--out", help="directory for the JSON scores, table and box plots (refused where they exist)")
     e.add_argument("--consistency", action="store_true",
                    help="also score the covariances on the noisy cells (issue 49): the models' covariance heads "
                    "and, with --ekf and --pf, the EKF's and the particle filter's own, by mean NEES against the "
@@ -118,6 +119,11 @@ def run(args: argparse.Namespace) -> int:
         if not (args.ekf or args.pf or any(obs.covariance is not None for obs in observers)):
             raise CommandError("--consistency: expected a model with a covariance head (architecture.covariance), "
                                "--ekf or --pf, received none of them")
+    out = out_path(args.out, "--out", directory=True)
+    if out is not None:                      # the report's files, refused before any run: never written over
+        parts = ["scores.json", "table.md", *(f"smape_{'noisy' if n else 'clean'}.png" for n in noise),
+                 *(("consistency.md", "consistency.json") if args.consistency else ())]
+        refuse_existing({out / f"{observers[0].system.name}_{part}": "--out" for part in parts})
     kinds = tuple(args.kinds)
     root = Path(args.cache_dir) if args.cache_dir else cache_root()
     trials = TrialCache(None if args.no_cache else root / "trials")
@@ -175,13 +181,12 @@ def run(args: argparse.Namespace) -> int:
         uncertainty = score_uncertainty(estimators, plant, [protocol.cell(kind) for kind in kinds], trials=trials)
         print(f"covariances scored in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
         print("\n" + uncertainty_table(uncertainty))
-    if args.out:
+    if out is not None:
         from ..provenance import markdown
         from ..writes import staged
 
-        out = out_path(args.out, "--out", directory=True)
         stamp = stamp_of(args, trials=args.seed)
-        with staged(out, overwrite=True, argument="--out") as stage:     # the report's files as one
+        with staged(out, argument="--out") as stage:     # the report's files as one, exclusively
             save_scores(scores, stage / f"{plant.name}_scores.json", stamp=stamp)
             for noisy in noise:
                 smape_boxplot(scores, stage / f"{plant.name}_smape_{'noisy' if noisy else 'clean'}.png", noisy=noisy,

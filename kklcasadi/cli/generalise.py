@@ -12,7 +12,7 @@ import sys
 import time
 
 from ..plant import signals as sig
-from ..writes import write_dir
+from ..writes import refuse_existing, write_dir
 from .flags import (
     CommandError,
     add_cache,
@@ -49,7 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_roughening(g)
     add_plant(g, "for models of a plant that kklcasadi does not ship")
     g.add_argument("--seed", type=int, default=2026, help="seed of the trials (docs/protocol.md: 2026)")
-    g.add_argument("--out", help="directory for the JSON report and the markdown tables")
+    g.add_argument("--out", help="directory for the JSON report and the markdown tables (refused where they exist)")
     g.add_argument("--consistency", action="store_true",
                    help="also score the covariances (issue 49): the models' covariance heads and the EKF's own on "
                    "every case (mean NEES against the chi-square band, 1- and 2-sigma coverage per state, "
@@ -74,6 +74,12 @@ def run(args: argparse.Namespace) -> int:
     if args.consistency and not headed:
         raise CommandError("--consistency: expected a model with a covariance head (architecture.covariance), "
                            "received none")
+    out = out_path(args.out, "--out", directory=True)
+    if out is not None:                      # the report's files, refused before any run: never written over
+        system = observers[0][1].system.name
+        parts = ("", *(("_consistency",) if args.consistency else ()))
+        refuse_existing({out / f"{system}_generalisation{part}.{ext}": "--out"
+                         for part in parts for ext in ("md", "json")})
     settings = gen.Settings(n_trials=args.trials, seed=args.seed)
     t0 = time.perf_counter()
     report = gen.run(observers, case_list, settings, trials=trials, pf_particles=args.pf,
@@ -88,10 +94,9 @@ def run(args: argparse.Namespace) -> int:
         uncertainty = score_cases(headed, case_list, settings, trials=trials, compiler=compiler,
                                   n_threads=args.threads)
         print("\n" + uncertainty_table(uncertainty))
-    if args.out:
+    if out is not None:
         from ..provenance import json_record, markdown
 
-        out = out_path(args.out, "--out", directory=True)
         stamp = stamp_of(args, trials=args.seed)
         files = {f"{report.system}_generalisation.md": markdown(tables + "\n", stamp),
                  f"{report.system}_generalisation.json": json.dumps(json_record(report.to_json(), stamp),
@@ -103,6 +108,6 @@ def run(args: argparse.Namespace) -> int:
                                                                               stamp)
             files[f"{report.system}_generalisation_consistency.json"] = json.dumps(
                 json_record(uncertainty_record(uncertainty), stamp), indent=1) + "\n"
-        write_dir(out, files, overwrite=True, argument="--out")                    # the report's files as one
+        write_dir(out, files, argument="--out")                    # the report's files as one, exclusively
         print(f"wrote {out}/", file=sys.stderr)
     return 0

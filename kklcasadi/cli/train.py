@@ -121,7 +121,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="bank: add one model copy of the plant per weight W to the latent, a constant-gain observer "
                    "xhat' = f(xhat, u) + L (y - h(xhat)) with the Kalman-Bucy gain of the plant linearised at its "
                    "box centre for process intensity W (1: the protocol EKF's noise ratio); the decoders read their "
-                   "states beside the filters (docs/design.md, 'Model copies'). Not for plants with angle states")
+                   "states beside the filters (docs/design.md, 'Model copies'); a state the plant's equations do not "
+                   "read is left out of the copies")
     t.add_argument("--corner-copies", nargs="+", type=positive_float, metavar="W",
                    help="bank, over a family (--param-spread or a --plant with params=): add one model copy per "
                    "corner of the parameter box per weight W, each observing the plant at that corner with its "

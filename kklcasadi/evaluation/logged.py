@@ -87,10 +87,10 @@ class LogEstimate:
     settle: float
 
     def write(self, path: str | os.PathLike, *, state_names: Optional[Sequence[str]] = None,
-              stamp: Optional[Stamp] = None) -> Path:
+              stamp: Optional[Stamp] = None, overwrite: bool = False) -> Path:
         """Write ``time``, the estimates, ``in_domain`` (where recorded), ``status`` (the sample guard) and
-        ``ekf_<state>`` columns (with the EKF) as CSV under a provenance line, atomically
-        (:func:`kklcasadi.plant.logs.write_estimates`).
+        ``ekf_<state>`` columns (with the EKF) as CSV under a provenance line, atomically, over an existing file
+        only with ``overwrite`` (:func:`kklcasadi.plant.logs.write_estimates`).
 
         Parameters
         ----------
@@ -104,7 +104,7 @@ class LogEstimate:
         names = tuple(state_names) if state_names is not None else tuple(f"x{i + 1}" for i in range(nx))
         extra = None if self.ekf is None else {f"ekf_{name}": self.ekf[:, i] for i, name in enumerate(names)}
         return write_estimates(path, self.t, self.xhat, state_names=names, in_domain=self.in_domain,
-                               status=self.status, extra=extra, stamp=stamp)
+                               status=self.status, extra=extra, stamp=stamp, overwrite=overwrite)
 
     def table(self, state_names: Optional[Sequence[str]] = None) -> str:
         """The scores as a few lines of text (one per recorded state)."""

@@ -6,6 +6,7 @@ per cell), and one table, :func:`markdown_table`, serve ``kklcasadi evaluate`` a
 
 from __future__ import annotations
 
+import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +18,7 @@ from tqdm.auto import tqdm
 from .. import provenance
 from ..plant import signals as sig
 from ..plant.systems import System
+from ..writes import write_file
 from .protocol import BatchEstimator, CellResult, Profile, Protocol, evaluate_cells
 from .trialcache import TrialCache
 
@@ -133,11 +135,12 @@ def markdown_table(scores: Iterable[MethodScores], kinds: Sequence[str] = sig.BE
 
 
 def save_scores(scores: Iterable[MethodScores], path: str | Path, *,
-                stamp: Optional[provenance.Stamp] = None) -> None:
+                stamp: Optional[provenance.Stamp] = None, overwrite: bool = False) -> None:
     """Per-trial SMAPE and RMSE-after-settle of every cell, and the trials that escaped, as JSON
     (the summary statistics are null where every trial escaped): ``{"provenance": stamp, "records":
     [one per cell]}`` (:func:`kklcasadi.provenance.json_payload` gives the list back); ``stamp``
-    defaults to this process's."""
+    defaults to this process's. Written atomically, over an existing file only with ``overwrite``
+    (:func:`kklcasadi.writes.write_file`)."""
     out = []
     for s in scores:
         for (noisy, kind), r in s.results.items():
@@ -148,7 +151,8 @@ def save_scores(scores: Iterable[MethodScores], path: str | Path, *,
             out.append({"method": s.label, "system": s.system, "kind": kind, "noisy": noisy, **stats,
                         "rmse_after_mean": float(np.nanmean(r.rmse_after)) if len(r.rmse_after) else None,
                         "escaped": r.escaped, "smape": r.smape.tolist()})
-    Path(path).write_text(json.dumps(provenance.json_record(out, stamp or provenance.stamp()), indent=1) + "\n")
+    write_file(path, json.dumps(provenance.json_record(out, stamp or provenance.stamp()), indent=1) + "\n",
+               overwrite=overwrite)
 
 
 def _pyplot():
@@ -161,9 +165,10 @@ def _pyplot():
 
 
 def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bool = True,
-                  kinds: Sequence[str] = sig.BENCHMARK_KINDS, stamp: Optional[provenance.Stamp] = None) -> Path:
+                  kinds: Sequence[str] = sig.BENCHMARK_KINDS, stamp: Optional[provenance.Stamp] = None,
+                  overwrite: bool = False) -> Path:
     """Box plots of per-trial SMAPE, one group per input regime, one box per method (PNG, with ``stamp``,
-    default this process's, in its metadata).
+    default this process's, in its metadata; atomically, over an existing file only with ``overwrite``).
 
     A method without cells in this noise column (the particle filter's noise-free one) is left out.
     """
@@ -186,9 +191,18 @@ def smape_boxplot(scores: Sequence[MethodScores], path: str | Path, *, noisy: bo
     ax.set_title(f"{system}: {'with' if noisy else 'without'} noise")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
-    plt.close(fig)
-    return Path(path)
+    return _write_png(fig, path, stamp, overwrite)
+
+
+def _write_png(fig: Any, path: str | Path, stamp: Optional[provenance.Stamp], overwrite: bool) -> Path:
+    """``fig`` closed and written to ``path`` as a PNG with ``stamp`` (default this process's): atomically, over an
+    existing file only with ``overwrite`` (:func:`kklcasadi.writes.write_file`)."""
+    png = io.BytesIO()
+    try:
+        fig.savefig(png, format="png", dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
+    finally:
+        _pyplot().close(fig)
+    return write_file(path, png.getvalue(), overwrite=overwrite)
 
 
 #: Line styles of the states in the error panels.
@@ -197,13 +211,11 @@ STYLES = ("-", "--", ":", "-.")
 
 def estimates_plot(t: np.ndarray, x: np.ndarray, y: np.ndarray, estimates: dict, path: str | Path, *,
                    u: np.ndarray | None = None, in_domain: np.ndarray | None = None, title: str = "",
-                   stamp: Optional[provenance.Stamp] = None) -> Path:
-    """:func:`estimates_figure` written to ``path`` (PNG, ``stamp``, default this process's, in its metadata)."""
-    plt = _pyplot()
+                   stamp: Optional[provenance.Stamp] = None, overwrite: bool = False) -> Path:
+    """:func:`estimates_figure` written to ``path`` (PNG, ``stamp``, default this process's, in its metadata;
+    atomically, over an existing file only with ``overwrite``)."""
     fig = estimates_figure(t, x, y, estimates, u=u, in_domain=in_domain, title=title)
-    fig.savefig(path, dpi=110, metadata=provenance.png_metadata(stamp or provenance.stamp()))
-    plt.close(fig)
-    return Path(path)
+    return _write_png(fig, path, stamp, overwrite)
 
 
 def estimates_figure(t: np.ndarray, x: np.ndarray, y: np.ndarray, estimates: dict, *, u: np.ndarray | None = None,

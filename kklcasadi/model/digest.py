@@ -158,17 +158,17 @@ def json_depth(text: str) -> int:
     return deepest
 
 
-def read_card_json(path: Path, *, limit: Optional[int] = None) -> Any:
+def read_card_json(path: Path, *, limit: Optional[int] = None,
+                   fix: str = "Restore the file or save the model again.") -> Any:
     """``card.json``, checked before it is parsed: a regular file of at most :data:`MAX_CARD_BYTES` bytes (or
     ``limit``), UTF-8, nested at most :data:`MAX_CARD_DEPTH` levels, strict JSON (no NaN or Infinity).
 
     Raises
     ------
     ArgumentError
-        Naming the file, the bound or the parse error, and what to do.
+        Naming the file, the bound or the parse error, and what to do (``fix``).
     """
     limit = MAX_CARD_BYTES if limit is None else limit
-    fix = "Restore the file or save the model again."
     size = path.stat().st_size
     if size > limit:
         raise error(str(path), f"a card of at most {limit} bytes", Text(f"{size} bytes"), fix)
@@ -190,3 +190,18 @@ def read_card_json(path: Path, *, limit: Optional[int] = None) -> Any:
         return json.loads(text, parse_constant=reject_constant)
     except ValueError as exc:
         raise error(str(path), "strict JSON", Text(f"a parse error ({exc})"), fix) from None
+
+
+def read_json_object(path: Path, fix: str) -> dict:
+    """A JSON object the package wrote beside its files (a training's run record, a study's binding), read as
+    :func:`read_card_json` reads a card.
+
+    Raises
+    ------
+    ArgumentError
+        In one line naming the file and ``fix`` where it is not a readable JSON object.
+    """
+    data = read_card_json(path, fix=fix)
+    if not isinstance(data, dict):
+        raise error(str(path), "a JSON object", Text(f"a JSON {type(data).__name__}"), fix)
+    return data

@@ -11,10 +11,10 @@ from typing import Any, Optional
 import numpy as np
 
 from ..model.card import ModelSpec
-from ..plant.systems import System
+from ..plant.systems import System, read_states
 
-__all__ = ["DOMAIN_MARGIN", "DISCRETIZATIONS", "domain_bounds", "check_system", "check_discretization", "check_time",
-           "check_samples", "check_finite", "check_initial"]
+__all__ = ["DOMAIN_MARGIN", "DISCRETIZATIONS", "domain_bounds", "domain_rows", "box_rows", "check_system",
+           "check_discretization", "check_time", "check_samples", "check_finite", "check_initial"]
 
 #: Relative margin of the domain monitor: estimates up to this share of the trained range outside
 #: it still count as in the domain (a transient grazing the edge is not flagged).
@@ -29,6 +29,23 @@ def domain_bounds(domain: Any) -> tuple[np.ndarray, np.ndarray]:
     hi = np.concatenate([domain.x_hi, domain.z_hi])
     margin = DOMAIN_MARGIN * np.maximum(hi - lo, 1e-9)
     return lo - margin, hi + margin
+
+
+def domain_rows(system: System, size: int) -> Optional[np.ndarray]:
+    """The rows of ``[x; z]`` (``size`` of them) the domain's box check tests: every one but a state the plant's
+    equations do not read (:func:`~kklcasadi.plant.systems.read_states`: its estimate is not what the maps were
+    trained to bound, such as the Qube's arm angle under ``y = alpha``); None where the plant reads every state."""
+    read = read_states(system)
+    return None if len(read) == system.nx else np.array([i for i in range(size) if i >= system.nx or i in read])
+
+
+def box_rows(point: Any, bounds: tuple[np.ndarray, np.ndarray], rows: Optional[np.ndarray]) -> tuple[Any, Any, Any]:
+    """``point`` (``[x; z]``: numbers (..., n) or a CasADi column) and the ``bounds`` on :func:`domain_rows`' ``rows``
+    (None: all, as they are)."""
+    lo, hi = bounds
+    if rows is None:
+        return point, lo, hi
+    return (point[..., rows] if isinstance(point, np.ndarray) else point[rows.tolist()]), lo[rows], hi[rows]
 
 
 def check_system(spec: ModelSpec, system: System, where: str) -> None:

@@ -61,6 +61,7 @@ from ..validation import positive_int
 from .checks import (
     DISCRETIZATIONS,
     DOMAIN_MARGIN,
+    box_rows,
     check_discretization,
     check_finite,
     check_initial,
@@ -68,6 +69,7 @@ from .checks import (
     check_system,
     check_time,
     domain_bounds,
+    domain_rows,
 )
 from .estimator import Estimator
 
@@ -188,6 +190,7 @@ class KKLObserver:
         self.substeps = positive_int(substeps, "substeps")
         self.domain = spec.domain
         self._domain_bounds = None if self.domain is None else domain_bounds(self.domain)
+        self._domain_rows = None if self.domain is None else domain_rows(system, system.nx + self.domain.z_lo.size)
 
         nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
         exact = self.discretization == "exact"
@@ -277,9 +280,8 @@ class KKLObserver:
         z, w, xhat = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape), ca.MX.sym("xhat", self.nx)
         inside = ca.MX(1.0)
         if self._domain_bounds is not None:
-            lo, hi = (ca.DM(b) for b in self._domain_bounds)
-            point = ca.vertcat(xhat, z)
-            inside = ca.mmin(ca.vertcat(point - lo, hi - point)) >= 0
+            point, lo, hi = box_rows(ca.vertcat(xhat, z), self._domain_bounds, self._domain_rows)
+            inside = ca.mmin(ca.vertcat(point - ca.DM(lo), ca.DM(hi) - point)) >= 0
         if self.monitor is not None:
             inside = ca.logic_and(inside, self.monitor.expression(ca.vertcat(z, ca.vec(w))))
         names = ["z", "w", "xhat"], ["in_domain"]
@@ -320,8 +322,7 @@ class KKLObserver:
         xhat, z = np.asarray(xhat, dtype=float), np.asarray(z, dtype=float)
         inside = np.ones(xhat.shape[:-1], dtype=bool)
         if self._domain_bounds is not None:
-            point = np.concatenate([xhat, z], axis=-1)
-            lo, hi = self._domain_bounds
+            point, lo, hi = box_rows(np.concatenate([xhat, z], axis=-1), self._domain_bounds, self._domain_rows)
             inside &= np.all((point >= lo) & (point <= hi), axis=-1)
         if self.monitor is not None:
             if w is None:
@@ -393,8 +394,7 @@ class KKLObserver:
         y, y_next, u, w = ca.vertsplit(p, np.cumsum([0, self.ny, self.ny, self.nu, rows * cols]).tolist())
         y_t = y + t / self.dt * (y_next - y)
         ode = self.rhs(z, y_t, u, ca.reshape(w, rows, cols))
-        return ca.integrator(f"{self.method}_latent", solver, {"x": z, "p": p, "t": t, "ode": ode},
-                             0.0, self.dt, opts)
+        return ca.integrator(f"{self.method}_latent", solver, {"x": z, "p": p, "t": t, "ode": ode}, 0.0, self.dt, opts)
 
     def simulate(self, t: Any, y: Any, u: Any, *, z0: Any = None,
                  n_threads: Optional[int] = None, vm: Optional[bool] = None) -> Estimate:

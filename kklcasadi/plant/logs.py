@@ -31,9 +31,10 @@ number (:data:`NUMBER`: ASCII digits, an optional sign, point and exponent; ``1_
 or non-ASCII digits are refused) or ``nan``/``inf``, which are then refused as not finite.
 Every error is one line naming the file, row, line and column.
 
-:func:`write_estimates` writes estimates as CSV atomically (a temporary file in the same folder,
-then :func:`os.replace`), and :func:`savgol_derivative` is the zero-lag velocity reference that
-logs of angles are scored against (a Savitzky-Golay derivative on the uniform grid).
+:func:`write_estimates` writes estimates as CSV atomically and exclusively (a temporary file in the same
+folder, then linked into place; renamed over an existing file only with ``overwrite``), and
+:func:`savgol_derivative` is the zero-lag velocity reference that logs of angles are scored against (a
+Savitzky-Golay derivative on the uniform grid).
 
 Over 600 lines: one concept, a log in and estimates out; the strict CSV reader and its one-line errors are
 half of it, and the resampling onto the grid shares its checks. :func:`write_estimates` and
@@ -56,6 +57,7 @@ import numpy as np
 
 from .. import provenance
 from ..validation import Text, error, finite_number, is_int, nonnegative_number, positive_int, positive_number
+from ..writes import place
 
 __all__ = ["Log", "Resampling", "read_log", "write_estimates", "EstimatesWriter", "table_blocks", "savgol_derivative",
            "Y_METHOD", "U_HOLD", "U_MEAN", "RATE_TOLERANCE", "NUMBER", "FIELD_LIMIT"]
@@ -610,8 +612,9 @@ class EstimatesWriter:
     """:func:`write_estimates` a block of rows at a time: a record of any length in the memory of one block.
 
     :meth:`write` checks a block (rows in errors counted over the whole file) and appends it to a temporary file in
-    the folder of ``path``; :meth:`commit` then replaces ``path`` with it (:func:`os.replace`), :meth:`discard`
-    removes it. As a context manager it commits on success and discards on an exception. Every block has the
+    the folder of ``path``; :meth:`commit` then puts it at ``path`` in one step (:func:`kklcasadi.writes.place`: an
+    exclusive create, or with ``overwrite`` a rename over an existing file), :meth:`discard` removes it.
+    As a context manager it commits on success and discards on an exception. Every block has the
     columns of the first (the header).
 
     Parameters
@@ -621,11 +624,15 @@ class EstimatesWriter:
     state_names : sequence of str
     stamp : kklcasadi.provenance.Stamp, optional
         The file's provenance (default: this process's).
+    overwrite : bool
+        Replace an existing ``path``; without it an existing one is refused (before the first block is written)
+        and :meth:`commit` never writes over a file.
     """
 
     def __init__(self, path: str | os.PathLike, *, state_names: Sequence[str],
-                 stamp: Optional[provenance.Stamp] = None) -> None:
+                 stamp: Optional[provenance.Stamp] = None, overwrite: bool = False) -> None:
         self.path = Path(path)
+        self.overwrite = overwrite
         self.names = _names(state_names, "state_names", allow_empty=False)
         self.stamp = stamp
         self.rows = 0
@@ -656,6 +663,8 @@ class EstimatesWriter:
             raise error("path", "a file in an existing folder", str(path))
         if path.is_dir():
             raise error("path", "a file path", Text(f"{str(path)!r}, a folder"))
+        if not self.overwrite and os.path.lexists(path):
+            raise FileExistsError(f"path: {path} exists; pass overwrite to replace it, or choose another path.")
         text = io.StringIO(provenance.csv_comment(self.stamp or provenance.stamp()))
         text.seek(0, io.SEEK_END)
         csv.writer(text, lineterminator="\n").writerow(header)
@@ -665,14 +674,14 @@ class EstimatesWriter:
         self._stream.write(text.getvalue())
 
     def commit(self) -> Path:
-        """Replace ``path`` with the rows written; ``path``."""
+        """Put the rows written at ``path`` (over an existing file only with ``overwrite``); ``path``."""
         if self._stream is None or self._temp is None:
             raise error("blocks", "at least one block written", Text("none"))
         try:
             self._stream.flush()
             os.fsync(self._stream.fileno())
             self._stream.close()
-            os.replace(self._temp, self.path)
+            place(Path(self._temp), self.path, overwrite=self.overwrite)
         except BaseException:
             self.discard()
             raise
@@ -699,17 +708,17 @@ class EstimatesWriter:
 
 def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: Sequence[str],
                     in_domain: Any = None, status: Any = None, extra: Optional[Mapping[str, Any]] = None,
-                    stamp: Optional[provenance.Stamp] = None) -> Path:
-    """Write estimates as a CSV file, atomically.
+                    stamp: Optional[provenance.Stamp] = None, overwrite: bool = False) -> Path:
+    """Write estimates as a CSV file, atomically, over an existing file only with ``overwrite``.
 
     A first line ``# provenance {...}`` holds the stamp (:mod:`kklcasadi.provenance`; ``stamp``,
     default this process's), then the header row (:func:`read_log` skips the comment). Columns:
     ``time``, the ``state_names``, then ``in_domain`` (0/1) and ``status`` (an integer >= 0) if
     given, then the ``extra`` columns in their order. Numbers are written with :func:`repr`, so
     reading them back gives the same floats. Everything is validated before the file is touched; the
-    text goes, a block of rows at a time, to a temporary file in the same folder, which then replaces
-    ``path`` (:func:`os.replace`): a failure leaves an existing file as it was and no temporary file
-    behind.
+    text goes, a block of rows at a time, to a temporary file in the same folder, which is then linked
+    into place (with ``overwrite``, renamed over ``path``: :func:`kklcasadi.writes.place`): a failure leaves
+    an existing file as it was and no temporary file behind.
 
     Parameters
     ----------
@@ -725,6 +734,8 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
         The sample guard's flags (:func:`kklcasadi.observer.guard.guarded_simulate`).
     extra : mapping {name: array_like (N,)}, optional
         Further finite columns (e.g. reference velocities).
+    overwrite : bool
+        Replace an existing ``path``; without it an existing one is refused (:class:`FileExistsError`).
 
     Returns
     -------
@@ -733,7 +744,7 @@ def write_estimates(path: str | os.PathLike, t: Any, xhat: Any, *, state_names: 
     """
     names = _names(state_names, "state_names", allow_empty=False)
     header, body = _columns(t, xhat, names, in_domain, status, extra)
-    writer = EstimatesWriter(path, state_names=names, stamp=stamp)
+    writer = EstimatesWriter(path, state_names=names, stamp=stamp, overwrite=overwrite)
     try:
         writer._rows(header, body)
         return writer.commit()

@@ -36,7 +36,7 @@ from .design import time_scales
 from .envelope import LIKE_AMPLITUDE_FACTORS, LIKE_TIME_FACTORS, OUTPUT_MARGIN, Envelope
 from .noise import GAUSS, NoiseModel, noise_model
 from .simulate import TrajectoryBatch, simulate_batch, step_function, time_grid
-from .systems import System
+from .systems import System, read_states
 
 __all__ = ["RolloutConfig", "rollouts", "RK_STEP", "FAMILIES", "DEFAULT_KINDS", "PD_RANGES", "ROLLOUT_REGIMES",
            "fit_families", "input_factors", "loop_signs", "drifting_states", "input_range", "declares_envelope",
@@ -342,10 +342,21 @@ def inside_box(x: np.ndarray, box: np.ndarray, angles: Sequence[int] = (), *, sc
         return np.all(np.abs(dev) <= 0.5 * (hi - lo) * scale, axis=-1)
 
 
+def _in_read_box(system: System, x: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """:func:`inside_box` of the X0 box over the states the plant's equations read
+    (:func:`~kklcasadi.plant.systems.read_states`): a state nothing reads changes nothing a run does, so it neither
+    cuts a run nor keeps a start out (every state where all are read: the test as it always was)."""
+    read = read_states(system)
+    if len(read) == system.nx:
+        return inside_box(x, system.x0_box, system.angle_states, scale=scale)
+    angles = [k for k, i in enumerate(read) if i in system.angle_states]
+    return inside_box(x[..., list(read)], system.x0_box[list(read)], angles, scale=scale)
+
+
 def _escaped(system: System, x: np.ndarray, scale: float) -> np.ndarray:
     """First escaped sample of each run (M,), ``N`` where none: outside the X0 box scaled by ``scale``
-    about its centre (angle states compared on the circle), or not finite."""
-    bad = ~inside_box(x, system.x0_box, system.angle_states, scale=scale)
+    about its centre (angle states compared on the circle; the states the equations read), or not finite."""
+    bad = ~_in_read_box(system, x, scale)
     return np.where(bad.any(axis=1), bad.argmax(axis=1), x.shape[1])
 
 
@@ -583,10 +594,12 @@ def _draw_input(kind: str, rng: np.random.Generator, regime: str, system: System
 
 def _starts(envelope: Envelope, system: System) -> np.ndarray:
     """The samples ``(log, k)`` (S, 2) a run may start at: after the envelope's ``settle`` seconds (the EKF's
-    transient from its prior) and in the X0 box (angle states on the circle); all samples where none is."""
+    transient from its prior) and in the X0 box (angle states on the circle; the states the equations read: the
+    EKF's estimate of a state nothing reads drifts, and the rig's widest swings would be left out by it); all
+    samples where none is."""
     pairs = []
     for i, states in enumerate(envelope.states):
-        ok = inside_box(states, system.x0_box, system.angle_states)
+        ok = _in_read_box(system, states)
         ok[:int(np.ceil(envelope.settle / envelope.dt - 1e-9))] = False
         pairs.append(np.column_stack([np.full(int(ok.sum()), i), np.flatnonzero(ok)]))
     pairs = np.vstack(pairs)

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..validation import ArgumentError, Text, error, finite_array, finite_number, index_tuple, one_of, positive_int
 
-__all__ = ["System", "get", "names", "families", "register", "load_plant"]
+__all__ = ["System", "get", "names", "families", "register", "load_plant", "read_states"]
 
 
 def _column_symbol(value: object, arg: str) -> ca.SX:
@@ -375,6 +375,15 @@ def _latin(box: np.ndarray, n: int, seed: int | np.random.Generator | None, scal
 
 _REGISTRY: dict[str, Callable[..., System]] = {}
 _FAMILIES: set[str] = set()
+
+
+def read_states(system: System) -> tuple[int, ...]:
+    """The states the plant's equations read: ``i`` such that ``xdot`` or ``y`` depends on ``x_i`` (the structural
+    nonzeros of the Jacobian of ``(f, h)`` with respect to ``x``), ascending. A state outside it (an integrator
+    read by nothing, such as a rotary pendulum's arm angle measured by the pendulum encoder alone) changes nothing
+    the plant does: model copies leave it out, and training runs neither start nor stop by it."""
+    jac = ca.jacobian(ca.vertcat(system.xdot_expr, system.y_expr), system.x_sym)
+    return tuple(sorted(set(jac.sparsity().get_col())))
 
 
 def register(name: str, factory: Callable[..., System], *, family: bool = False) -> None:

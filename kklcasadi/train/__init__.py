@@ -25,6 +25,7 @@ except ImportError as exc:                              # a deploy-only install:
 from .. import provenance
 from ..model import variants
 from ..model.card import make_card
+from ..model.digest import read_json_object
 from ..model.files import derive_model, load_model, save_model
 from ..plant import systems
 from ..plant.design import Design
@@ -130,7 +131,7 @@ def _checkpoints_of(workdir: Path, record: dict, resume: bool) -> None:
     ours = json.loads(json.dumps(record))
     checkpoints = sorted(workdir.glob("*.ckpt.npz"))
     if resume and checkpoints:
-        stored = json.loads(path.read_text()) if path.is_file() else None
+        stored = read_json_object(path, "Train again without --resume.") if path.is_file() else None
         if stored is None:
             raise error("resume", f"checkpoints in {workdir} with the record of their training ({RUN_RECORD})",
                         Text("checkpoints without one (an older kklcasadi wrote them)"),

@@ -28,7 +28,7 @@ from ..model.operational import (
 from ..model.variants import BankSpec
 from ..model.variants import bankdecoder as bd
 from ..model.variants import filterbank as fb
-from ..model.variants.copies import ModelCopies
+from ..model.variants.copies import ModelCopies, read_states
 from ..nets.specs import DECODER
 from ..plant.design import Design, time_scales
 from ..plant.envelope import Envelope
@@ -152,7 +152,8 @@ class BankConfig:
         Process intensities of the latent's model copies of the plant, one copy each
         (:class:`kklcasadi.model.variants.copies.ModelCopies`: constant-gain observers whose states the
         decoder reads beside the filters; ``1.0`` is the protocol EKF's ratio of process to measurement
-        noise, a tuple one intensity per state); empty: none. Not for plants with angle states.
+        noise, a tuple one intensity per state); empty: none. A state the plant's equations do not read is left out
+        of the copies (:func:`kklcasadi.model.variants.copies.read_states`).
     corner_copies : tuple of float
         Process intensities of model copies at the corners of the plant's parameter box (a plant with
         ``params``): each intensity adds one copy per corner, ``2^n_params`` of them, copy ``i`` observing the
@@ -333,10 +334,12 @@ def with_noise_copy(system: System, config: BankConfig) -> tuple[BankConfig, str
             ModelCopies.design(system, [weights])
         except ValueError as exc:
             return replace(config, noise_copy=False), f"none: {exc}"
+    states = read_states(system)
+    over = "" if len(states) == system.nx else f", over the states its equations read {list(states)}"
     return (replace(config, copies=(*config.copies, weights), noise_copy=False, copy_residual=True,
                     decoder=replace(config.decoder, skip=True)),
-            f"one copy at the training noise's ratio, intensities {list(weights)}; the decoders fit the state's "
-            "residual over its estimate, folded into their linear skip path")
+            f"one copy at the training noise's ratio, intensities {list(weights)}{over}; the decoders fit the "
+            "state's residual over its estimate, folded into their linear skip path")
 
 
 def copy_base(system: System, bank: fb.FilterBank, copies: ModelCopies, angles: bd.Angles,
@@ -348,14 +351,15 @@ def copy_base(system: System, bank: fb.FilterBank, copies: ModelCopies, angles: 
     constant ``r_i``; for a measured angle ``i`` (output ``j``) that feature is ``xhat_i - r_i - y_j``, the copy's
     deviation from the measurement the decoder writes (its residual is wrapped, ``fit_bank_decoder``); a zero
     row for a state with an asinh scale (``scale`` (nx,) > 0) or a free angle state (written as a cosine and a
-    sine of it, not the state itself)."""
+    sine of it, not the state itself). A state the copies do not carry (:attr:`ModelCopies.states`) has a zero
+    row too: its decoder fits the whole state."""
     nx = system.nx
     nz = bank.A.shape[0] + copies.nz
     base = np.zeros((angles.n_outputs(nx), angles.n_features(nz, system.ny, system.nu)))
     free = {i for i, _ in angles.free}
-    for i in range(nx):
+    for k, i in enumerate(copies.states):
         if scale[i] == 0 and i not in free:
-            base[i, nz - nx + i] = 1.0
+            base[i, nz - copies.nk + k] = 1.0
     return base
 
 
@@ -434,7 +438,9 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
         arrays.update(copies.arrays())
         weights, values = copy_plan(system, config)
         params["copies"] = {"weights": [float(w) if np.ndim(w) == 0 else [float(v) for v in w] for w in weights],
-                            "substeps": copies.substeps, **({} if values is None else {"params": values.tolist()})}
+                            "substeps": copies.substeps,
+                            **({} if copies.carries_all else {"states": list(copies.states)}),
+                            **({} if values is None else {"params": values.tolist()})}
     A, B = latent_design(bank, copies)
     spec = BankSpec(fits[0].spec.mlp, A, B, dt, system.nu, params, fits[0].spec.angles)
     return arrays, spec, Domain.of(data.x, data.z)
@@ -442,11 +448,14 @@ def bank_model(system: System, bank: fb.FilterBank, config: BankConfig, rate: fl
 
 
 def fit_members(bank: fb.FilterBank, data: OperationalData, config: BankConfig, angles: bd.Angles, seed: int, *,
-                progress: bool, base: Optional[np.ndarray] = None) -> list[BankFit]:
+                progress: bool, base: Optional[np.ndarray] = None,
+                copies: Optional[ModelCopies] = None) -> list[BankFit]:
     """The decoder fits of the ensemble: ``config.members`` of them, seeds ``seed, seed + 1, ...`` (``base``: the
-    map of the features each corrects, :func:`copy_base`)."""
-    return [fit_bank_decoder(bank, data, config.decoder, angles=angles, seed=seed + j, progress=progress, base=base)
-            for j in range(config.members)]
+    map of the features each corrects, :func:`copy_base`; ``copies``: the latent's model copies, whose states the
+    gains of angle outputs follow)."""
+    states = None if copies is None or copies.carries_all else copies.states
+    return [fit_bank_decoder(bank, data, config.decoder, angles=angles, seed=seed + j, progress=progress, base=base,
+                             copy_states=states) for j in range(config.members)]
 
 
 
@@ -484,7 +493,7 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
         scale = np.zeros(system.nx) if config.decoder.asinh_scale is None else np.asarray(config.decoder.asinh_scale)
         corrected = copy_base(system, bank, copies, angles, scale)
     fits = fit_members(bank, data if teacher is None else replace(data, x=targets), config, angles, seed,
-                       progress=progress, base=corrected)
+                       progress=progress, base=corrected, copies=copies)
     fitted = fits[0]
     arrays, spec, domain = bank_model(system, bank, config, rate, fits, data, dt, copies=copies)
     if declares_envelope(system, config.rollouts.envelope):     # the domain is the box the user gave

@@ -156,7 +156,7 @@ def torch_decoder(spec: bd.DecoderSpec, arrays: Mapping[str, np.ndarray]) -> Cal
     def apply(z: Tensor, y: Tensor, u: Tensor) -> Tensor:
         if a:
             ya = y[..., a]
-            gains = torch.as_tensor(bd.latent_gains(filters, z.shape[-1], spec.nx, angles)[:, a])
+            gains = torch.as_tensor(bd.latent_gains(filters, z.shape[-1], spec.carried, angles)[:, a])
             f = torch.cat([z - ya @ gains.T, y[..., other], torch.sin(ya), torch.cos(ya), u], dim=-1)
         else:
             f = torch.cat([z, y, u], dim=-1)
@@ -195,17 +195,23 @@ def base_residual(v: np.ndarray, offset: np.ndarray, angles: bd.Angles) -> np.nd
     :func:`kklcasadi.model.variants.bankdecoder.decoder_targets`, and the base's values), a measured angle's
     column (``angles.measured``) modulo ``2 pi`` on the branch of width ``2 pi`` about its circular mean (the
     decoder writes that angle modulo ``2 pi``; the branch keeps the residual continuous where the base's
-    deviation and the target's, wrapped to ``(-pi, pi]``, differ by turns)."""
+    deviation and the target's, wrapped to ``(-pi, pi]``, differ by turns), moved by whole turns so that the
+    deviation the decoder writes (``offset`` plus the residual) is within half a turn of 0 on average: the estimate
+    ``y_j + v_i`` then lies by its measurement, not turns away (a copy whose reference angle is ``pi`` has an offset
+    near ``-pi``, and its residual's circular mean near ``+-pi`` could land on either side)."""
     residual = v - offset
     for i, _ in angles.measured:
         centre = np.angle(np.mean(np.exp(1j * residual[:, i])))
         residual[:, i] = centre + np.angle(np.exp(1j * (residual[:, i] - centre)))
+        turns = np.round(np.mean(offset[:, i] + residual[:, i]) / (2 * np.pi))
+        if turns:                                        # none: the residual as before, bit for bit
+            residual[:, i] -= 2 * np.pi * turns
     return residual
 
 
 def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: DecoderConfig, *,
                      angles: bd.Angles = bd.NO_ANGLES, seed: int = 0, progress: bool = False,
-                     base: np.ndarray | None = None) -> BankFit:
+                     base: np.ndarray | None = None, copy_states: tuple[int, ...] | None = None) -> BankFit:
     """Fit the decoder ``[z_k; y_k; u_k] -> x_k`` on operational samples of the bank observer.
 
     Parameters
@@ -227,6 +233,9 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
         ``base f`` plus the fitted correction (:func:`kklcasadi.train.bank.copy_base`: a model copy's estimate).
         A measured angle's residual (``angles.measured``) is taken modulo ``2 pi`` on the branch about its
         circular mean, so the estimate is the angle modulo ``2 pi``.
+    copy_states : tuple of int or None
+        The states each model copy in the latent carries
+        (:attr:`kklcasadi.model.variants.copies.ModelCopies.states`; None: all, or no copies).
 
     Returns
     -------
@@ -238,7 +247,8 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     if scale.shape != (nx,) or np.any(scale < 0):
         raise error("asinh_scale", f"nx = {nx} entries >= 0", config.asinh_scale)
     feats = bd.decoder_features(data.z, data.y, data.u, angles=angles,
-                                gains=bd.latent_gains(bank, data.z.shape[1], nx, angles))
+                                gains=bd.latent_gains(bank, data.z.shape[1], nx if copy_states is None else copy_states,
+                                                      angles))
     v = bd.decoder_targets(data.x, data.y, scale, angles)
     sizes = (feats.shape[1], *config.hidden, v.shape[1])
     if base is not None:
@@ -291,7 +301,8 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     arrays.update(fb.bank_arrays(bank))
     pct = np.percentile(data.x, [0.1, 50.0, 99.9], axis=0)
     domain = {"x_p0.1": pct[0].tolist(), "x_p50": pct[1].tolist(), "x_p99.9": pct[2].tolist()}
-    return BankFit(arrays, bd.DecoderSpec(mlp.spec, angles), result, int(len(v)), time.perf_counter() - t0, domain)
+    return BankFit(arrays, bd.DecoderSpec(mlp.spec, angles, copy_states=copy_states), result, int(len(v)),
+                   time.perf_counter() - t0, domain)
 
 
 def config_record(rollout: RolloutConfig, decoder: DecoderConfig) -> dict:

@@ -12,6 +12,7 @@ import math
 import os
 import tempfile
 import time
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Mapping, Protocol
@@ -130,12 +131,22 @@ def _save_checkpoint(path: Path, arrays: dict[str, np.ndarray]) -> None:
 
 def _load_checkpoint(path: Path, params: list[Tensor], opt: torch.optim.Optimizer, sched: object,
                      best: list[Tensor]) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
-        arrays = {k: data[k] for k in data.files}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:      # said in one line, naming the file
+        raise error(f"checkpoint {path}", "a checkpoint this training wrote (plain .npz)",
+                    Text(f"a file numpy cannot read ({type(exc).__name__}: {exc})"), "Delete it to start afresh.") \
+            from None
     n = sum(1 for k in arrays if k.startswith("param/"))
     if n != len(params):
         raise error(f"checkpoint {path}", f"{len(params)} parameter tensors (as this stage has)",
                     Text(f"{n} parameter tensors"), "Delete it to start afresh.")
+    missing = [k for k in ("lr", "sched", "meta/epoch", "meta/best_val", "meta/best_epoch",
+                           *(f"best/{i}" for i in range(n))) if k not in arrays]
+    if missing:
+        raise error(f"checkpoint {path}", "the arrays a checkpoint holds", Text(f"none named {missing[0]!r}"),
+                    "Delete it to start afresh.")
     with torch.no_grad():
         for i, p in enumerate(params):
             if tuple(arrays[f"param/{i}"].shape) != tuple(p.shape):

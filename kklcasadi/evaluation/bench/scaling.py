@@ -39,7 +39,7 @@ from ...plant import signals as sig
 from ...plant.simulate import simulate_batch
 from ...plant.systems import System
 from ...validation import error, positive_int
-from ...writes import staged
+from ...writes import refuse_existing, staged
 from .observer_step import _callgrind, _compile, _run_loop, loop_source
 
 __all__ = ["oscillator_chain", "ScalingRow", "ScalingResult", "bench_scaling", "EKF_FLAGS"]
@@ -285,7 +285,8 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
                   T: float = 50.0, trials: int = 10, mhe_steps: int = 40, mhe_horizon: int = 10,
                   repeat: int = 50, flags: Sequence[str] = DEFAULT_FLAGS, ekf_flags: Sequence[str] = EKF_FLAGS,
                   callgrind: Optional[bool] = None, threads: int = 1, seed: int = 0, out: Optional[Path] = None,
-                  progress: bool = True, stamp: Optional[provenance.Stamp] = None) -> ScalingResult:
+                  progress: bool = True, stamp: Optional[provenance.Stamp] = None, overwrite: bool = False,
+                  argument: str = "out") -> ScalingResult:
     """Measure the costs and the accuracy on chains of ``n`` oscillators for every ``n`` in ``sizes``.
 
     Parameters
@@ -310,11 +311,16 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
     threads : int
         Torch threads of the training.
     out : Path, optional
-        Write ``scaling.md``, ``scaling.json`` (the rows) and ``scaling.png`` there.
+        Write ``scaling.md``, ``scaling.json`` (the rows) and ``scaling.png`` there, as one; where one of them
+        exists it is refused before any work (:class:`FileExistsError` naming ``argument``), unless ``overwrite``.
     progress : bool
         Print each size's row as it is measured.
     stamp : kklcasadi.provenance.Stamp, optional
         The provenance of the files in ``out`` (default: this process's, with ``seed``).
+    overwrite : bool
+        Replace the files of an earlier run in ``out``.
+    argument : str
+        Named in the errors about ``out`` (the command line's ``--out``).
 
     Returns
     -------
@@ -330,6 +336,8 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
     if gcc is None:
         raise RuntimeError("bench scaling times C steps and needs gcc, which is not on PATH")
     valgrind = shutil.which("valgrind") if callgrind is not False else None
+    if out is not None and not overwrite:    # before any training: the files are never written over
+        refuse_existing({Path(out) / f"scaling.{ext}": argument for ext in ("md", "json", "png")})
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         # a first, untimed training: torch's and CasADi's one-off start-up costs stay out of the first size
@@ -370,7 +378,7 @@ def bench_scaling(sizes: Sequence[int] = (1, 2, 4, 8, 16, 32), *, runs: int = 20
                                   "mhe_horizon": mhe_horizon, "flags": list(flags), "ekf_flags": list(ekf_flags)})
     if out is not None:
         stamp = stamp or provenance.stamp(seeds={"training_and_trials": seed})
-        with staged(out, overwrite=True, argument="out") as stage:         # the table, the record and the plot as one
+        with staged(out, overwrite=overwrite, argument=argument) as stage:  # the table, the record and the plot as one
             (stage / "scaling.md").write_text(provenance.markdown(result.table() + "\n", stamp))
             (stage / "scaling.json").write_text(json.dumps(provenance.json_record(
                 {"settings": result.settings, "rows": [asdict(r) for r in rows]}, stamp), indent=1) + "\n")

@@ -15,7 +15,7 @@ from typing import Any, Optional, Union
 from ... import provenance
 from ...model import variants
 from ...model.card import Search
-from ...model.digest import DIGEST
+from ...model.digest import DIGEST, read_json_object
 from ...model.files import EXTRA_FILES, load_model, save_model
 from ...observer.kkl import load_observer
 from ...plant.systems import System
@@ -221,6 +221,7 @@ def tune(system: System, method: str, out_dir: PathLike, *, n_trials: int, study
 
 #: The file that binds a study's ``--out`` to it: ``{"study": name, "storage": URL, password hidden}``.
 BINDING = "study.json"
+_UNREADABLE_BINDING = f"Restore it, or give the study another --out ({BINDING} binds one study's trials to it)."
 
 
 def _check_binding(out: Path, binding: dict, moved_from: Optional[dict] = None) -> None:
@@ -229,7 +230,7 @@ def _check_binding(out: Path, binding: dict, moved_from: Optional[dict] = None) 
     path = out / BINDING
     if not path.is_file():
         return
-    stored = json.loads(path.read_text())
+    stored = read_json_object(path, _UNREADABLE_BINDING)
     if stored != binding and stored != moved_from:
         raise error("out_dir", f"the directory of the study {stored.get('study')!r} on {stored.get('storage')} "
                     f"({path})", Text(f"the study {binding['study']!r} on {binding['storage']}"),
@@ -249,7 +250,7 @@ def _check_new(out: Path, binding: dict) -> None:
 
 def _bind(out: Path, binding: dict, moved_from: Optional[dict] = None) -> None:
     path = out / BINDING
-    if moved_from is not None and path.is_file() and json.loads(path.read_text()) == moved_from:
+    if moved_from is not None and path.is_file() and read_json_object(path, _UNREADABLE_BINDING) == moved_from:
         write_file(path, json.dumps(binding, indent=1) + "\n", overwrite=True, argument="out_dir")  # it moved on
         return
     try:

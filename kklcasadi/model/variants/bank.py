@@ -101,14 +101,23 @@ class BankSpec:
         return len(self.params["copies"]["weights"]) if "copies" in self.params else 0
 
     @property
+    def copy_states(self) -> Optional[tuple[int, ...]]:
+        """The states each model copy carries (``architecture.bank.copies.states``; None where the card has none:
+        all ``nx``, or no copies)."""
+        states = self.params.get("copies", {}).get("states")
+        return None if states is None else tuple(int(i) for i in states)
+
+    @property
     def n_filters(self) -> int:
         """The filter bank's latents (the first ones; the model copies' follow)."""
-        return self.nz - self.n_copies * self.nx
+        states = self.copy_states
+        return self.nz - self.n_copies * (self.nx if states is None else len(states))
 
     @property
     def decoder_spec(self) -> DecoderSpec:
-        """The decoder's typed spec (network, angle layout, ensemble) for :mod:`kklcasadi.model.variants.filterbank`."""
-        return DecoderSpec(self.decoder, self.angles, self.members)
+        """The decoder's typed spec (network, angle layout, ensemble, the copies' states) for
+        :mod:`kklcasadi.model.variants.filterbank`."""
+        return DecoderSpec(self.decoder, self.angles, self.members, self.copy_states)
 
     def filter_bank(self, arrays: Mapping[str, Any]) -> FilterBank:
         """The filter bank of the latent's first :attr:`n_filters` rows (``A``, ``By`` of the card's ``design``,
@@ -127,7 +136,7 @@ class BankSpec:
         against the card's ``design``: its rows of the copies must be their linear part."""
         if not self.n_copies:
             return None
-        copies = ModelCopies.from_arrays(arrays, system, int(self.params["copies"]["substeps"]),
+        copies = ModelCopies.from_arrays(arrays, system, int(self.params["copies"]["substeps"]), self.copy_states,
                                          self.params["copies"].get("params"))
         A, B = copies.linear_part()
         n = self.n_filters
@@ -155,8 +164,8 @@ class BankSpec:
         shapes = {ASINH_SCALE: (self.nx,), "bank/Bu": (n, self.nu), "bank/c": (n,)}
         if self.n_copies:
             ny = self.By.shape[1]
-            shapes.update({"copies/gains": (self.n_copies, self.nx, ny), "copies/reference": (self.nx,),
-                           "copies/bound": (self.nx,)})
+            nk = self.nx if self.copy_states is None else len(self.copy_states)
+            shapes.update({"copies/gains": (self.n_copies, nk, ny), "copies/reference": (nk,), "copies/bound": (nk,)})
         for prefix in member_prefixes(self.members):
             shapes.update(self.decoder.array_shapes(prefix))
         if self.covariance is not None:
@@ -209,16 +218,24 @@ def _params(entry: Any, where: str, sizes: Sizes) -> dict:
                           entry["members"], fix)
     if "copies" in entry:
         copies = entry["copies"]
-        if not (isinstance(copies, Mapping) and set(copies) in ({"weights", "substeps"},
-                                                                 {"weights", "substeps", "params"})
+        if not (isinstance(copies, Mapping) and {"weights", "substeps"} <= set(copies) <= {"weights", "substeps",
+                                                                                          "states", "params"}
                 and isinstance(copies["weights"], list) and copies["weights"]
                 and all(_positive_numbers([w]) or _intensities(w) for w in copies["weights"])
                 and is_int(copies["substeps"]) and copies["substeps"] >= 1
                 and ("params" not in copies or _copy_params(copies["params"], len(copies["weights"])))):
             raise field_error(where, "architecture.bank.copies", '{"weights": [w > 0 or [w_1 >= 0, ...], ...], '
-                              '"substeps": n >= 1} and optionally "params": [[p_1, ...], ...] (the model copies\' '
-                              "process intensities, one or one per state, RK4 steps per sample, and each copy's "
-                              "parameter values: one list each, of the plant's n_params finite numbers)", copies, fix)
+                              '"substeps": n >= 1} (the model copies\' process intensities, one or one per state, '
+                              'and RK4 steps per sample; optionally "states": [i, ...], the states they carry, and '
+                              '"params": [[p_1, ...], ...], each copy\'s parameter values: one list each, of the '
+                              "plant's n_params finite numbers)", copies, fix)
+        states = copies.get("states")
+        if "states" in copies and not (isinstance(states, list) and states and all(is_int(i) for i in states)
+                                       and states == sorted(set(states)) and states[0] >= 0
+                                       and states[-1] < sizes.nx and len(states) < sizes.nx):
+            raise field_error(where, "architecture.bank.copies.states", f"ascending distinct state indices in [0, "
+                              f"nx = {sizes.nx}), fewer than nx (the states the model copies carry; absent where "
+                              "they carry every one)", states, fix)
     return {key: entry[key] for key in _BANK_KEYS + ("time_scale", "members", "copies") if key in entry}
 
 
@@ -291,8 +308,9 @@ class Bank(Variant):
         spec = BankSpec(decoder, A, By, float(card["dt"]), sizes.nu, _params(entry, where, sizes), angles, head,
                         inflation)
         if spec.n_copies and spec.n_filters < 1:
-            raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x nx = "
-                              f"{spec.n_copies * spec.nx} latents after at least one filter", entry["copies"],
+            nk = spec.nx if spec.copy_states is None else len(spec.copy_states)
+            raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x {nk} states = "
+                              f"{spec.n_copies * nk} latents after at least one filter", entry["copies"],
                               f"The latent has nz = {spec.nz}.")
         return spec
 
@@ -314,7 +332,7 @@ class Bank(Variant):
         covariance = None
         if spec.covariance is not None:
             xs = ca.MX.sym("xhat", spec.nx)
-            features = feature_expression(bank, z, y, u, angles=spec.angles, nx=spec.nx)
+            features = feature_expression(bank, z, y, u, angles=spec.angles, states=decoder_spec.carried)
             P = covariance_expression(spec.covariance, arrays, features, xs, np.asarray(arrays[f"{DECODER}/out_std"]),
                                       np.asarray(arrays[ASINH_SCALE]))
             covariance = ca.Function("covariance", [z, w, xs], [P], ["z", "w", "xhat"], ["P"])

@@ -21,7 +21,7 @@ same maps as CasADi Functions; :func:`decoder_expression`, :func:`spread_express
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import casadi as ca
 import numpy as np
@@ -138,27 +138,35 @@ def dc_gains(bank: FilterBank) -> np.ndarray:
     return -np.linalg.solve(bank.A, bank.By)
 
 
-def latent_gains(bank: FilterBank, nz: int, nx: int | None, angles: Angles) -> np.ndarray:
+def latent_gains(bank: FilterBank, nz: int, states: int | Sequence[int] | None, angles: Angles) -> np.ndarray:
     """The gains ``G`` (nz, ny) of the decoder's features ``z - G_a y_a``: the filters' :func:`dc_gains`, then
-    on the model copies' rows (``nz - bank.nz``, blocks of ``nx``; ``nx`` None: none) 1 where the copy's state
+    on the model copies' rows (``nz - bank.nz``, blocks of the states a copy carries) 1 where the copy's state
     is a measured angle (``angles.measured``) of that output, else 0: a copy's angle follows its measurement
     turn for turn (the plant's field is periodic in it), so ``z - G_a y_a`` does not change when ``y_a``
     moves by ``2 pi``.
 
+    ``states`` are the plant states each copy carries, in its latent order (an int ``nx``: all of them,
+    :attr:`kklcasadi.model.variants.copies.ModelCopies.states`; None: no copies).
+
     Raises
     ------
     ValueError
-        ``nz - bank.nz`` is not a whole number of copies of ``nx`` states.
+        ``nz - bank.nz`` is not a whole number of copies of ``states``.
     """
+    carried = None if states is None else tuple(range(states)) if isinstance(states, (int, np.integer)) \
+        else tuple(states)
+    width = 0 if carried is None else len(carried)
     extra = nz - bank.nz
-    if extra < 0 or (nx is None and extra) or (nx is not None and (nx < 1 or extra % nx)):
-        raise error("nz", f"the filters' {bank.nz} latents and whole model copies of nx = {nx} states", nz)
+    if extra < 0 or (not width and extra) or (width and extra % width) or (carried is not None and not width):
+        raise error("nz", f"the filters' {bank.nz} latents and whole model copies of "
+                    f"{'nx = ' + str(width) if carried == tuple(range(width)) else width} states", nz)
     gains = np.zeros((nz, bank.ny))
     gains[:bank.nz] = dc_gains(bank)
-    width = 1 if nx is None else nx                    # nx None: no copy rows (extra is 0)
-    for k in range(extra // width):
+    row = {i: k for k, i in enumerate(carried or ())}
+    for k in range(extra // width if width else 0):
         for i, j in angles.measured:
-            gains[bank.nz + k * width + i, j] = 1.0
+            if i in row:
+                gains[bank.nz + k * width + row[i], j] = 1.0
     return gains
 
 
@@ -262,11 +270,15 @@ class DecoderSpec:
         How angle outputs are read and angle states written.
     members : int
         Networks of the ensemble (their outputs averaged; prefixes :func:`member_prefixes`).
+    copy_states : tuple of int or None
+        The plant states each model copy in the latent carries (None: all ``nx``, or no copies), which the gains
+        of angle outputs follow (:func:`latent_gains`).
     """
 
     mlp: MLPSpec
     angles: Angles = NO_ANGLES
     members: int = 1
+    copy_states: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.mlp, MLPSpec):
@@ -283,6 +295,11 @@ class DecoderSpec:
     @property
     def nx(self) -> int:
         return self.mlp.n_out - len(self.angles.free)
+
+    @property
+    def carried(self) -> int | tuple[int, ...]:
+        """What :func:`latent_gains` takes of the copies: their :attr:`copy_states`, or ``nx`` (all)."""
+        return self.nx if self.copy_states is None else self.copy_states
 
     def check(self, arrays: Mapping[str, Any]) -> np.ndarray:
         """Check the decoder's arrays (every member's MLP and ``decoder/asinh_scale``); return the scales (nx,)."""
@@ -307,7 +324,8 @@ def _spread_scale(arrays: Mapping[str, Any]) -> np.ndarray:
 
 def _features(arrays: Mapping[str, Any], spec: DecoderSpec, z: Any, y: np.ndarray, u: Any) -> np.ndarray:
     z = np.asarray(z, dtype=float)
-    gains = latent_gains(bank_from_arrays(arrays), z.shape[-1], spec.nx, spec.angles) if spec.angles.outputs else None
+    gains = latent_gains(bank_from_arrays(arrays), z.shape[-1], spec.carried, spec.angles) if spec.angles.outputs \
+        else None
     f = decoder_features(z, y, np.asarray(u, dtype=float), angles=spec.angles, gains=gains)
     if f.shape[-1] != spec.mlp.n_in:
         raise ValueError(f"features must have {spec.mlp.n_in} entries along the last axis, got shape {f.shape}")
@@ -391,15 +409,15 @@ def decoder_function(spec: DecoderSpec, arrays: Mapping[str, Any], name: str = "
 
 
 def feature_expression(bank: FilterBank, z: ca.MX, y: ca.MX, u: ca.MX, *, angles: Angles = NO_ANGLES,
-                       nx: int | None = None) -> ca.MX:
+                       states: int | Sequence[int] | None = None) -> ca.MX:
     """:func:`decoder_features` at CasADi symbols: the decoder's input (nz + ny + len(angles.outputs) + nu, 1)
-    (``bank`` and the plant's ``nx`` give the gains of angle outputs, :func:`latent_gains`)."""
+    (``bank`` and the states the model copies carry give the gains of angle outputs, :func:`latent_gains`)."""
     if not angles.outputs:
         return ca.vertcat(z, y, u)
     a = list(angles.outputs)
     other = [j for j in range(bank.ny) if j not in angles.outputs]
     ya = ca.vertcat(*[y[j] for j in a])
-    gains = latent_gains(bank, z.size1(), nx, angles)[:, a]
+    gains = latent_gains(bank, z.size1(), states, angles)[:, a]
     return ca.vertcat(z - ca.mtimes(ca.DM(gains), ya), *[y[j] for j in other], ca.sin(ya),
                       ca.cos(ya), u)
 
@@ -407,7 +425,7 @@ def feature_expression(bank: FilterBank, z: ca.MX, y: ca.MX, u: ca.MX, *, angles
 def _member_expressions(spec: DecoderSpec, arrays: Mapping[str, Any], bank: FilterBank, z: ca.MX, y: ca.MX,
                         u: ca.MX, mlp_name: str) -> list:
     """Each member's network output ``v_j`` at the symbols."""
-    feats = feature_expression(bank, z, y, u, angles=spec.angles, nx=spec.nx)
+    feats = feature_expression(bank, z, y, u, angles=spec.angles, states=spec.carried)
     names = [mlp_name] + [f"{mlp_name}_{j}" for j in range(1, spec.members)]
     return [casadi_nets.mlp_function(spec.mlp, arrays, prefix, label)(feats)
             for prefix, label in zip(member_prefixes(spec.members), names)]
