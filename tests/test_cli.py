@@ -603,6 +603,14 @@ def test_train_kinds_sets_the_bank_runs_families_and_refuses_unknown_ones():
         training_config(plant_of(args), "autonomous", args)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["train", "--system", "duffing", "--copies", "-1", "--out", "x"])
+    # copies at the corners of a family's parameter box (BankConfig.corner_copies), refused where there is no family
+    args = build_parser().parse_args(["train", "--system", "duffing", "--param-spread", "0.3", "--corner-copies", "1",
+                                      "--out", "x"])
+    from kklcasadi.plant import systems
+
+    assert training_config(systems.get("duffing", param_spread=0.3), "bank", args).corner_copies == (1.0,)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["train", "--system", "duffing", "--corner-copies", "0", "--out", "x"])
 
 
 def test_the_closing_summary_scores_in_the_trained_box_and_names_the_runs_that_leave_it(model_dir_factory):

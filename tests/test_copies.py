@@ -283,3 +283,160 @@ def test_kklcasadi_train_refuses_copies_the_plant_cannot_take_before_training(pl
     code = main(["train", "--plant", f"{tmp_path / 'plants.py'}:{plant}", "--copies", "1", "--out",
                  str(tmp_path / "m"), "--quiet"])
     assert code == 2 and message in capsys.readouterr().err and not (tmp_path / "m").exists()
+
+
+# ---------------------------------------------------------------------- copies at parameter values of their own
+def test_a_copy_at_its_own_parameters_is_the_copy_of_that_plant():
+    family = kc.systems.get("duffing", param_spread=0.3)
+    values = np.array([[0.7, 1.3], [1.3, 0.7], family.param_nominal])
+    copies = ModelCopies.design(family, (1.0, 100.0, 1.0), params=values)
+    A, B = copies.linear_part()
+    for i, (w, p) in enumerate(zip((1.0, 100.0, 1.0), values)):
+        own = ModelCopies.design(kc.systems.get("duffing", param_spread=0.3).at(p), (w,))
+        np.testing.assert_array_equal(copies.gains[i], own.gains[0])
+        A_own, B_own = own.linear_part()
+        np.testing.assert_array_equal(A[2 * i:2 * i + 2, 2 * i:2 * i + 2], A_own)
+        np.testing.assert_array_equal(B[2 * i:2 * i + 2], B_own)
+    # the field: copy i is f(r + z_i, u; p_i) + L_i (y - h(r + z_i; p_i)), written out by hand (Duffing:
+    # x1' = x2, x2' = -alpha x1 - beta x1^3 + u, y = x1)
+    rng = np.random.default_rng(0)
+    z, y, u = rng.normal(size=6), rng.normal(size=1), rng.normal(size=1)
+    got = np.array(ca.Function("fld", [], [copies.field(ca.DM(z), ca.DM(y), ca.DM(u))])()["o0"]).ravel()
+    r = copies.reference
+    for i, (a, b) in enumerate(values):
+        x = r + z[2 * i:2 * i + 2]
+        want = np.array([x[1], -a * x[0] - b * x[0] ** 3 + u[0]]) + copies.gains[i] @ (y - x[:1])
+        np.testing.assert_allclose(got[2 * i:2 * i + 2], want, rtol=1e-13, atol=1e-13)
+    # the card's (A, B) and the input term add up to the field at the copies' own parameters
+    rest = np.array(ca.Function("rem", [], [copies.remainder(ca.DM(z), ca.DM(u))])()["o0"]).ravel()
+    np.testing.assert_allclose(A @ z + B @ y + rest, got, rtol=1e-12, atol=1e-12)
+
+
+def test_copies_at_the_nominal_values_step_bitwise_as_copies_without_parameters():
+    family = kc.systems.get("duffing", param_spread=0.3)
+    nominal = family.at(family.param_nominal)
+    plain = ModelCopies.design(nominal, (1.0, 1e4))
+    at = ModelCopies.design(family, (1.0, 1e4), params=[family.param_nominal] * 2)
+    np.testing.assert_array_equal(plain.gains, at.gains)
+    rng = np.random.default_rng(1)
+    y, u = rng.normal(size=(3, 40, 1)), rng.normal(size=(3, 40, 1))
+    np.testing.assert_array_equal(plain.run(y, u, 0.05), at.run(y, u, 0.05))
+    assert nominal.family is family and kc.systems.get("duffing").family is None
+
+
+def test_copies_at_parameters_need_the_family_and_one_row_per_copy():
+    family = kc.systems.get("duffing", param_spread=0.3)
+    with pytest.raises(ValueError, match=r"params: expected None for plant 'duffing', which declares no parameters"):
+        ModelCopies.design(kc.systems.get("duffing"), (1.0,), params=[[1.0, 1.0]])
+    with pytest.raises(ValueError, match=r"params: expected finite parameter values of shape \(m = 2 copies, "
+                                         r"n_params = 2\)"):
+        ModelCopies.design(family, (1.0, 2.0), params=[[1.0, 1.0]])
+    with pytest.raises(ValueError, match=r"params: expected finite parameter values"):
+        ModelCopies.design(family, (1.0,), params=[[1.0, np.nan]])
+    # a plant fixed from the family takes copies at other values (load_observer's nominal plant)
+    copies = ModelCopies.design(family.at(family.param_nominal), (1.0,), params=[[0.7, 0.7]])
+    np.testing.assert_array_equal(copies.gains, ModelCopies.design(family, (1.0,), params=[[0.7, 0.7]]).gains)
+
+
+def test_corner_copies_sit_at_the_corners_of_the_box_before_the_nominal_ones():
+    pytest.importorskip("torch")
+    from kklcasadi.train.bank import BankConfig, copy_plan, design_copies
+
+    family = kc.systems.get("vdp", param_spread=0.3)
+    weights, params = copy_plan(family, BankConfig(copies=(1.0, 1e4), corner_copies=(3.0,)))
+    assert weights == [3.0] * 8 + [1.0, 1e4]
+    box = family.param_box
+    np.testing.assert_array_equal(params[:8], [[a, b, k] for a in box[0] for b in box[1] for k in box[2]])
+    np.testing.assert_array_equal(params[8:], [family.param_nominal] * 2)
+    assert copy_plan(family, BankConfig(copies=(1.0,))) == ([1.0], None)
+    assert design_copies(family, BankConfig(corner_copies=(1.0,)), 0.05).m == 8
+    with pytest.raises(ValueError, match=r"corner_copies: expected \(\) for plant 'vdp', which declares no "
+                                         r"parameters"):
+        copy_plan(kc.systems.get("vdp"), BankConfig(corner_copies=(1.0,)))
+    for bad in ((0.0,), 1.0, ((1.0, 2.0),)):
+        with pytest.raises(ValueError, match="corner_copies: expected a tuple of process intensities > 0"):
+            BankConfig(corner_copies=bad)
+
+
+@pytest.fixture(scope="module")
+def corner_dir(tmp_path_factory):
+    pytest.importorskip("torch")
+    from kklcasadi.plant.runs import RolloutConfig
+    from kklcasadi.train import LoopConfig, default_config, train_observer
+    from kklcasadi.train.decoder import DecoderConfig
+
+    config = replace(default_config("duffing", "bank"), y_poles=(0.5, 2.0), u_poles=(1.0,), members=1,
+                     copies=(1.0,), corner_copies=(100.0,), rollouts=RolloutConfig(n_traj=8, T=6.0),
+                     decoder=DecoderConfig(hidden=(8, 8), loop=LoopConfig(epochs=2, batch_size=64)))
+    return train_observer(kc.systems.get("duffing", param_spread=0.3), "bank",
+                          tmp_path_factory.mktemp("corners") / "bank", config=config, seed=3, progress=False)
+
+
+def test_a_bank_with_corner_copies_records_them_and_equals_its_reference_and_c_code(corner_dir, tmp_path):
+    from kklcasadi.model.files import load_model
+    from kklcasadi.model.variants import bankdecoder as bd
+
+    model = load_model(corner_dir)
+    corners = [[0.7, 0.7], [0.7, 1.3], [1.3, 0.7], [1.3, 1.3]]
+    assert model.card["architecture"]["bank"]["copies"] == {"weights": [100.0] * 4 + [1.0], "substeps": 1,
+                                                           "params": corners + [[1.0, 1.0]]}
+    obs = kc.load_observer(corner_dir)          # the family rebuilt from the card's box, taken at its nominal values
+    assert obs.system.fingerprint == kc.systems.get("duffing").fingerprint and obs.system.family is not None
+    family = kc.systems.get("duffing", param_spread=0.3)
+    same = kc.load_observer(corner_dir, system=family)
+    tr = kc.simulate(family, [0.4, -0.6], kc.signals.make("square", amplitude=0.7, omega=1.0), T=5.0, dt=obs.dt,
+                     process_std=0.1, measurement_std=0.1, seed=4, params=[1.3, 0.7])
+    spec = model.spec.architecture
+    copies = spec.model_copies(model.arrays, family)
+    np.testing.assert_array_equal(copies.params, corners + [[1.0, 1.0]])
+    expected = bd.estimate(spec.decoder_spec, spec.filter_arrays(model.arrays), tr.y, tr.u, obs.dt, copies=copies)
+    est = obs.simulate(tr.t, tr.y, tr.u)
+    np.testing.assert_allclose(est.xhat, expected, rtol=1e-10, atol=1e-10)
+    np.testing.assert_array_equal(same.simulate(tr.t, tr.y, tr.u).xhat, est.xhat)
+    with pytest.raises(ValueError, match="params: expected None for plant 'duffing'"):
+        spec.model_copies(model.arrays, kc.systems.get("duffing"))
+    if shutil.which("gcc") is None:
+        return
+    np.testing.assert_array_equal(c_program_estimates(obs, tmp_path, "bank", tr.t, tr.y, tr.u), est.xhat)
+
+
+@pytest.mark.parametrize("params, match", [
+    ([[1.0, 1.0]], "architecture.bank.copies"),                             # one row for five copies
+    ([[0.7, 0.7], [0.7, 1.3], [1.3, 0.7], [1.3, 1.3], [1.0, "x"]], "architecture.bank.copies"),
+    ([[0.7], [0.7], [1.3], [1.3], [1.0]], "params: expected finite parameter values of shape"),   # n_params 1
+    ([[0.8, 0.7], [0.7, 1.3], [1.3, 0.7], [1.3, 1.3], [1.0, 1.0]], "design: expected the model copies' rows"),
+])
+def test_a_card_with_bad_copy_parameters_is_refused(corner_dir, tmp_path, params, match):
+    from kklcasadi.model.files import load_model, save_model
+
+    model = load_model(corner_dir)
+    card = json.loads(json.dumps(model.card))
+    card["architecture"]["bank"]["copies"]["params"] = params
+    with pytest.raises(ValueError, match=match):
+        save_model(tmp_path / "m", model.arrays, card, overwrite=True)
+        kc.load_observer(tmp_path / "m")
+
+
+def test_kklcasadi_train_refuses_corner_copies_without_a_family_before_training(tmp_path, capsys):
+    pytest.importorskip("torch")
+    from kklcasadi.cli import main
+
+    code = main(["train", "--system", "duffing", "--corner-copies", "1", "--out", str(tmp_path / "m"), "--quiet"])
+    assert code == 2 and not (tmp_path / "m").exists()
+    assert "error: --corner-copies: expected () for plant 'duffing', which declares no parameters" \
+        in capsys.readouterr().err
+
+
+def test_kklcasadi_train_over_a_family_with_corner_copies_ends_with_its_summary(tmp_path, capsys):
+    """The closing summary loads the model with the family's nominal plant (it refused the family's fingerprint)."""
+    pytest.importorskip("torch")
+    from kklcasadi.cli import main
+
+    out = tmp_path / "m"
+    code = main(["train", "--system", "duffing", "--param-spread", "0.3", "--corner-copies", "1", "--runs", "6",
+                 "--epochs", "1", "--members", "1", "--threads", "1", "--out", str(out), "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    assert "RMSE" in capsys.readouterr().out
+    card = json.loads((out / "card.json").read_text())
+    assert card["architecture"]["bank"]["copies"]["params"][:4] == [[0.7, 0.7], [0.7, 1.3], [1.3, 0.7], [1.3, 1.3]]
+    assert card["system"]["fingerprint"] == kc.systems.get("duffing").fingerprint

@@ -99,6 +99,7 @@ def test_the_shipped_robust_observers_are_their_recipe():
     """models/<system>/robust is ``kklcasadi train`` with the flags of :data:`kklcasadi.train.bank.ROBUST`
     (issue 46.6): the card's configuration, seed, parameter box and noise models are the recipe's, the card
     records the nominal plant, and the model loads by its shipped name."""
+    import itertools
     import json
     from dataclasses import asdict
 
@@ -130,7 +131,11 @@ def test_the_shipped_robust_observers_are_their_recipe():
         assert training["config"] == {key: value for key, value in recipe.items() if key not in added}
         assert training["seed"] == args.seed == 11 and expected.members == 1
         runs = training["runs"]
-        assert runs["runs"] == expected.rollouts.n_traj == 1000
+        assert runs["runs"] == expected.rollouts.n_traj == 3000
+        copies = card["architecture"]["bank"]["copies"]          # one copy per corner of the box first, then nominal
+        corners = [list(c) for c in itertools.product(*family.param_box.tolist())]
+        assert copies["params"] == corners + [family.param_nominal.tolist()] * 3
+        assert copies["weights"] == [1.0] * len(corners) + [1.0, 100.0, 1e4]
         assert set(runs["noise_models"]) == set(args.noise_model) == {"gauss", "student-t:3"}
         assert min(runs["noise_models"].values()) > 0.4 * runs["runs"]          # one drawn per run, both drawn
         params = runs["params"]
@@ -141,7 +146,7 @@ def test_the_shipped_robust_observers_are_their_recipe():
         assert card["system"]["fingerprint"] == kc.systems.get(system).fingerprint      # the nominal plant
         obs = kc.load_observer(f"{system}/robust")
         assert obs.method == "bank" and obs.model.path == (ROOT / "models" / system / "robust").resolve()
-    assert "--param-spread" in ROBUST and "student-t:3" in ROBUST
+    assert all("--param-spread" in flags and "student-t:3" in flags for flags in ROBUST.values())
     with pytest.raises(ValueError, match=r"^system: expected a shipped system with a parameterised form"):
         robust_command("fhn")
 

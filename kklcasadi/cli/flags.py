@@ -143,8 +143,9 @@ def plant_of(args: argparse.Namespace) -> Optional[System]:
 def load(model: str | Path, plant: Optional[System], flag: str = "--model") -> Any:
     """The observer of a model directory, errors naming ``flag`` (and ``--plant`` for a model of a plant
     kklcasadi does not ship, given without it)."""
-    from ..model.files import load_model
+    from ..model.files import CARD_FILE, load_model
     from ..model.shipped import resolve
+    from ..model.variants.copies import copies_plant
     from ..observer.kkl import KKLObserver
 
     loaded = flagged(flag, load_model, flagged(flag, resolve, model))
@@ -153,7 +154,9 @@ def load(model: str | Path, plant: Optional[System], flag: str = "--model") -> A
         if name not in systems.names():
             raise CommandError(f"--plant: expected the plant of the model {flag} {model} (its card names the system "
                                f"{name!r}, which kklcasadi does not ship), received none; pass --plant FILE.py:NAME")
-        plant = systems.get(name)
+        plant = flagged(flag, copies_plant, loaded.card, loaded.path / CARD_FILE) or systems.get(name)
+    elif plant.n_params:            # a family: the observer runs with its nominal plant (as load_observer)
+        plant = plant.at(plant.param_nominal)
     return flagged(flag, KKLObserver, loaded, plant)
 
 

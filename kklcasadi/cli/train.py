@@ -63,6 +63,8 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--width": ("width", lambda a: a.width),
                  "--members": ("members", lambda a: a.members),
                  "--copies": ("copies", lambda a: None if a.copies is None else tuple(a.copies)),
+                 "--corner-copies": ("corner_copies", lambda a: None if a.corner_copies is None
+                                     else tuple(a.corner_copies)),
                  "--skip-path": ("skip", lambda a: True if a.skip_path else None),
                  "--teacher": ("teacher", lambda a: a.teacher),
                  "--input-scale": ("input_scale", lambda a: None if a.input_scale is None else
@@ -121,6 +123,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "box centre for process intensity W (1: the protocol EKF's noise ratio); the decoders read their "
                    "states beside the filters (docs/design.md, 'Model copies'); a state the plant's equations do not "
                    "read is left out of the copies")
+    t.add_argument("--corner-copies", nargs="+", type=positive_float, metavar="W",
+                   help="bank, over a family (--param-spread or a --plant with params=): add one model copy per "
+                   "corner of the parameter box per weight W, each observing the plant at that corner with its "
+                   "Kalman-Bucy gain for process intensity W; the card records their parameters (docs/design.md, "
+                   "'Over a family')")
     t.add_argument("--skip-path", action="store_true",
                    help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
                    "slope where they level off past the fitted states (Duffing's shipped bank has it)")
@@ -287,10 +294,10 @@ def run(args: argparse.Namespace) -> int:
         print(envelope_text(envelope, plant), flush=True)
     config = training_config(plant, method, args, envelope)
     dt = 0.05 if args.dt is None else args.dt
-    if args.copies is not None:         # the plant must take them: detectable at the box centre
+    if args.copies is not None or args.corner_copies is not None:   # the plant must take them (see design_copies)
         from ..train.bank import design_copies
 
-        flagged("--copies", design_copies, plant, config, dt)
+        flagged("--copies" if args.corner_copies is None else "--corner-copies", design_copies, plant, config, dt)
     t0 = time.perf_counter()
     path = flagged_by({"resume": "--resume", "out_dir": "--out", "base": "--base"}, "--" + method, train_observer,
                       plant, method, out, config=config, base=args.base, dt=dt, seed=args.seed, device=args.device,

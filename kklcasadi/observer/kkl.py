@@ -572,7 +572,7 @@ def load_observer(path: PathLike, *, system: Optional[System] = None,
             raise ValueError(f"{model.path / CARD_FILE}: 'system.name': {name!r} is not a "
                              f"registered system (known: {', '.join(systems.names())}). Pass the "
                              "plant: load_observer(path, system=kc.System(...)).")
-        system = systems.get(name)
+        system = variants.copies.copies_plant(model.card, model.path / CARD_FILE) or systems.get(name)
     elif isinstance(system, System) and system.n_params:
         system = system.at(system.param_nominal)
     return KKLObserver(model, system, discretization=discretization, substeps=substeps)

@@ -135,6 +135,10 @@ class System:
         The sorted indices given (empty tuples by default).
     u_box : numpy.ndarray, shape (nu, 2), or None
         The input range given (read-only).
+    family : System or None
+        The plant with parameters this one was fixed from (:meth:`at`); None otherwise. Not in the fingerprint;
+        model copies at parameter values of their own take their plants from it
+        (:class:`kklcasadi.model.variants.copies.ModelCopies`).
 
     Examples
     --------
@@ -172,6 +176,7 @@ class System:
             raise error("params", "a casadi.SX symbol of the parameters that param_box and param_nominal describe",
                         None)
         self.p_sym = p
+        self.family: System | None = None
         self.n_params = 0 if p is None else p.size1()
         self.param_box = None if p is None else _box(param_box, self.n_params, "param_box", "n_params")
         self.param_nominal = None if p is None else _nominal(param_nominal, self.param_box)
@@ -305,13 +310,16 @@ class System:
     def at(self, params: object) -> System:
         """The plant with its parameters fixed at ``params`` (n_params,): a :class:`System` without parameters.
 
-        ``system.at(system.param_nominal)`` computes bitwise what :attr:`f` and :attr:`h` compute.
+        ``system.at(system.param_nominal)`` computes bitwise what :attr:`f` and :attr:`h` compute. The result's
+        :attr:`family` is this plant.
         """
         p = self.param_rows(params, 1)[0]
         xdot, y = ca.substitute([self.xdot_param_expr, self.y_param_expr], [self.p_sym], [ca.DM(p)])
-        return System(self.name, self.x_sym, self.u_sym, xdot, y, self.x0_box, description=self.description,
-                      paper_design=self.paper_design, angle_states=self.angle_states,
-                      angle_outputs=self.angle_outputs, u_box=self.u_box)
+        plant = System(self.name, self.x_sym, self.u_sym, xdot, y, self.x0_box, description=self.description,
+                       paper_design=self.paper_design, angle_states=self.angle_states,
+                       angle_outputs=self.angle_outputs, u_box=self.u_box)
+        plant.family = self
+        return plant
 
     def sample_params(self, n: int, seed: int | np.random.Generator | None = 0, *,
                       scale: float = 1.0) -> np.ndarray:

@@ -136,7 +136,8 @@ class BankSpec:
         against the card's ``design``: its rows of the copies must be their linear part."""
         if not self.n_copies:
             return None
-        copies = ModelCopies.from_arrays(arrays, system, int(self.params["copies"]["substeps"]), self.copy_states)
+        copies = ModelCopies.from_arrays(arrays, system, int(self.params["copies"]["substeps"]), self.copy_states,
+                                         self.params["copies"].get("params"))
         A, B = copies.linear_part()
         n = self.n_filters
         if not (np.allclose(self.A[n:, n:], A, rtol=1e-9, atol=1e-12) and np.allclose(self.By[n:], B, rtol=1e-9,
@@ -182,6 +183,13 @@ def _intensities(value: Any) -> bool:
             and any(v > 0 for v in value))
 
 
+def _copy_params(value: Any, m: int) -> bool:
+    """The model copies' parameter values: ``m`` lists of one length >= 1 of finite numbers."""
+    return (isinstance(value, list) and len(value) == m
+            and all(isinstance(row, list) and row and len(row) == len(value[0])
+                    and all(is_number(v) and math.isfinite(v) for v in row) for row in value))
+
+
 def _params(entry: Any, where: str, sizes: Sizes) -> dict:
     fix = ('Write "bank" as {"y_poles": [p, ...], "u_poles": [p, ...], "y_resonators": [[zeta, omega], ...], '
            '"clock": rate or null} (optionally "time_scale": rate, "angles": {...} and "members": K, the decoder '
@@ -211,14 +219,16 @@ def _params(entry: Any, where: str, sizes: Sizes) -> dict:
     if "copies" in entry:
         copies = entry["copies"]
         if not (isinstance(copies, Mapping) and {"weights", "substeps"} <= set(copies) <= {"weights", "substeps",
-                                                                                          "states"}
+                                                                                          "states", "params"}
                 and isinstance(copies["weights"], list) and copies["weights"]
                 and all(_positive_numbers([w]) or _intensities(w) for w in copies["weights"])
-                and is_int(copies["substeps"]) and copies["substeps"] >= 1):
+                and is_int(copies["substeps"]) and copies["substeps"] >= 1
+                and ("params" not in copies or _copy_params(copies["params"], len(copies["weights"])))):
             raise field_error(where, "architecture.bank.copies", '{"weights": [w > 0 or [w_1 >= 0, ...], ...], '
                               '"substeps": n >= 1} (the model copies\' process intensities, one or one per state, '
-                              'and RK4 steps per sample; optionally "states": [i, ...], the states they carry)',
-                              copies, fix)
+                              'and RK4 steps per sample; optionally "states": [i, ...], the states they carry, and '
+                              '"params": [[p_1, ...], ...], each copy\'s parameter values: one list each, of the '
+                              "plant's n_params finite numbers)", copies, fix)
         states = copies.get("states")
         if "states" in copies and not (isinstance(states, list) and states and all(is_int(i) for i in states)
                                        and states == sorted(set(states)) and states[0] >= 0

@@ -28,12 +28,19 @@ that reduced linearisation; where it carries every state it is the copy above, b
 Arrays ``copies/gains`` (m, nk, ny), ``copies/reference`` (nk,) and ``copies/bound`` (nk,) (``nk = nx`` where a copy
 carries every state); the card's ``architecture.bank.copies`` records the weights, the substeps and, where a copy
 carries fewer than ``nx``, the ``states`` it carries (docs/model-format.md).
+
+A copy may run the plant at parameter values of its own (a plant of a family, ``kc.System(..., params=P)``):
+copy ``i`` then observes the plant ``system.at(params_i)``, its gain and linear part that plant's at ``(r, u = 0)``.
+Copies of one observer at several points of the parameter box are a multiple-model estimator whose innovations
+tell the decoder which plant it is looking at (docs/design.md, "Over a family"). Without ``params`` every copy
+runs the plant's nominal ``f`` and ``h``; the card records each copy's parameter values where they are their own
+(``params``, docs/model-format.md).
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Optional, Sequence
 
 import casadi as ca
@@ -44,7 +51,7 @@ from ...plant.rk4 import rk4_step
 from ...plant.systems import System, read_states
 from ...validation import Text, error
 
-__all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count", "read_states"]
+__all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count", "read_states", "copy_plants", "copies_plant"]
 
 #: Half-width of the clip box of a copy's state, in half-widths of the plant's X0 box (the escape box of
 #: the operational runs, :attr:`kklcasadi.plant.runs.RolloutConfig.escape_scale`).
@@ -57,6 +64,54 @@ def copy_count(arrays: Mapping[str, Any]) -> int:
     """Latents of the model copies in ``arrays`` (``m nk``; 0 where there are none)."""
     gains = arrays.get("copies/gains")
     return 0 if gains is None else int(np.prod(np.shape(gains)[:2]))
+
+
+def copy_plants(system: System, params: Any, m: int) -> list[System]:
+    """The plant each of ``m`` copies runs: ``system`` itself (``params`` None), or ``family.at(params[i])``, the
+    family ``system`` itself where it has parameters, else the one it was fixed from (:attr:`System.family`).
+
+    Raises
+    ------
+    ValueError
+        Where ``params`` is not ``m`` finite rows of the plant's ``n_params`` values, or the plant has none.
+    """
+    if params is None:
+        return [system] * m
+    family = system if system.n_params else system.family
+    if family is None:
+        raise error("params", f"None for plant {system.name!r}, which declares no parameters",
+                    Text("parameter values per model copy"), "Give the family: kc.System(..., params=P, "
+                    "param_box=...) or its .at(values) (load_observer(path, system=family) does so).")
+    p = np.asarray(params, dtype=float)
+    if p.shape != (m, family.n_params) or not np.all(np.isfinite(p)):
+        raise error("params", f"finite parameter values of shape (m = {m} copies, n_params = {family.n_params})",
+                    Text(f"shape {p.shape}") if p.size > 20 or p.shape != (m, family.n_params) else p.tolist())
+    return [family.at(row) for row in p]
+
+
+def copies_plant(card: Mapping[str, Any], where: Any) -> Optional[System]:
+    """The nominal plant, fixed from its family (:attr:`System.family`), of a card whose model copies run at
+    parameter values of their own (``architecture.bank.copies.params``); None where they do not. The family is the
+    shipped one of the card's ``system.name``, its box the one the card's runs drew from (``training.runs.params``).
+
+    Raises
+    ------
+    ValueError
+        Where kklcasadi ships no family of that name, or the card does not record the box (``where``: the card).
+    """
+    from ...plant import systems
+
+    if "params" not in card["architecture"].get("bank", {}).get("copies", {}):
+        return None
+    name, record = card["system"]["name"], card.get("training", {}).get("runs", {}).get("params")
+    if name not in systems.families() or not isinstance(record, Mapping):
+        raise ValueError(f"{where}: 'architecture.bank.copies.params': model copies at parameter values of "
+                         f"{name!r}'s family, which kklcasadi cannot rebuild (a shipped family, the box in the card's "
+                         "training.runs.params). Pass the family: load_observer(path, system=kc.System(..., "
+                         "params=P, param_box=...)).")
+    box, nominal = np.asarray(record["box"], dtype=float), np.asarray(record["nominal"], dtype=float)
+    family = systems.get(name, param_spread=float(np.max(0.5 * (box[:, 1] - box[:, 0]) / np.abs(nominal))))
+    return family.at(family.param_nominal)
 
 
 def _jacobians(system: System, x: Any, states: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -106,6 +161,9 @@ class ModelCopies:
     states : sequence of int or None
         The ``nk`` states a copy carries, ascending (None: all ``nx``); every other state must be one the plant's
         equations do not read (:func:`read_states`). The others are held at 0.
+    params : array_like, shape (m, n_params), optional
+        Each copy's parameter values (a plant with ``params``): copy ``i`` runs ``system.at(params[i])``.
+        None: every copy runs the plant's nominal ``f`` and ``h``.
     """
 
     system: System
@@ -114,6 +172,8 @@ class ModelCopies:
     bound: np.ndarray
     substeps: int = 2
     states: tuple[int, ...] = None  # type: ignore[assignment]     # None: all nx (set in __post_init__)
+    params: Optional[np.ndarray] = None
+    _plants: list = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         nx, ny = self.system.nx, self.system.ny
@@ -147,10 +207,13 @@ class ModelCopies:
             raise error("substeps", "a positive integer (RK4 steps per sample)", self.substeps)
         object.__setattr__(self, "gains", gains)
         object.__setattr__(self, "substeps", int(self.substeps))
+        object.__setattr__(self, "_plants", copy_plants(self.system, self.params, gains.shape[0]))
+        if self.params is not None:
+            object.__setattr__(self, "params", np.array(self.params, dtype=float))
 
     @classmethod
     def design(cls, system: System, weights: Sequence[Any], *, substeps: int = 2,
-               bound_scale: float = BOUND_SCALE) -> ModelCopies:
+               bound_scale: float = BOUND_SCALE, params: Any = None) -> ModelCopies:
         """Copies with the Kalman-Bucy gains of ``system`` linearised at its box centre, over the states its
         equations read (:func:`read_states`; the others are left out of the copies).
 
@@ -164,6 +227,8 @@ class ModelCopies:
             RK4 steps per sample interval.
         bound_scale : float
             The clip box: the X0 box scaled by this about its centre.
+        params : array_like, shape (m, n_params), optional
+            Each copy's parameter values (see the class); None: the nominal plant.
 
         Raises
         ------
@@ -185,9 +250,9 @@ class ModelCopies:
         states = read_states(system)
         box = np.asarray(system.x0_box, dtype=float)[list(states)]
         r = box.mean(axis=1)
-        F, H = _jacobians(system, _held(system, r, states), states)
         gains = []
-        for wi, Q in zip(weights, intensities):
+        for wi, Q, plant in zip(weights, intensities, copy_plants(system, params, len(weights))):
+            F, H = _jacobians(plant, _held(system, r, states), states)
             Q = Q[np.ix_(states, states)]
             wi = f"{float(wi):g}" if np.ndim(wi) == 0 else "(" + ", ".join(f"{float(v):g}" for v in wi) + ")"
             try:
@@ -204,18 +269,20 @@ class ModelCopies:
                     f"{_over(system, states)}"),
                     "Train without model copies.")
             gains.append(L)
-        return cls(system, np.stack(gains), r, 0.5 * (box[:, 1] - box[:, 0]) * bound_scale, substeps, states)
+        return cls(system, np.stack(gains), r, 0.5 * (box[:, 1] - box[:, 0]) * bound_scale, substeps, states,
+                   params)
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, Any], system: System, substeps: int,
-                    states: Optional[Sequence[int]] = None) -> ModelCopies:
-        """The copies of a model's arrays (:meth:`arrays`) for ``system``, carrying ``states`` (None: all)."""
+                    states: Optional[Sequence[int]] = None, params: Any = None) -> ModelCopies:
+        """The copies of a model's arrays (:meth:`arrays`) for ``system``, carrying ``states`` (None: all), each at
+        ``params`` (the card's; None: the nominal plant)."""
         missing = [k for k in COPY_ARRAYS if k not in arrays]
         if missing:
             raise error("arrays", f"the model copies' arrays {list(COPY_ARRAYS)}", f"none of {missing}")
         return cls(system, np.asarray(arrays["copies/gains"]), np.asarray(arrays["copies/reference"]),
                    np.asarray(arrays["copies/bound"]), substeps,
-                   tuple(range(system.nx)) if states is None else tuple(states))
+                   tuple(range(system.nx)) if states is None else tuple(states), params)
 
     @property
     def carries_all(self) -> bool:
@@ -245,29 +312,32 @@ class ModelCopies:
     def linear_part(self) -> tuple[np.ndarray, np.ndarray]:
         """The latent's linear part on the copies' rows: ``A`` (nz, nz) block diagonal ``F - L_i H`` and
         ``B`` (nz, ny) the stacked ``L_i`` (``F``, ``H`` the Jacobians of the carried states' field and of ``h``
-        with respect to them, at ``(r, u = 0)``)."""
-        F, H = _jacobians(self.system, _held(self.system, self.reference, self.states), self.states)
-        A = scipy.linalg.block_diag(*[F - L @ H for L in self.gains])
+        with respect to them, at ``(r, u = 0)``, of copy ``i``'s plant)."""
+        blocks = []
+        for L, plant in zip(self.gains, self._plants):
+            F, H = _jacobians(plant, _held(self.system, self.reference, self.states), self.states)
+            blocks.append(F - L @ H)
+        A = scipy.linalg.block_diag(*blocks)
         return A, np.vstack(list(self.gains))
 
     def _split(self, z: Any) -> list:
         nk = self.nk
         return [z[i * nk:(i + 1) * nk] for i in range(self.m)]
 
-    def _plant(self, zi: Any, u: Any) -> tuple[Any, Any]:
-        """The carried states' field and the output, ``(f_K(x, u), h(x))``, at the plant state ``x`` of a copy's
-        latents ``zi`` (``x_K = r + zi``, the other states held at 0)."""
+    def _plant(self, zi: Any, u: Any, plant: System) -> tuple[Any, Any]:
+        """The carried states' field and the output, ``(f_K(x, u), h(x))`` of the copy's ``plant``, at the plant
+        state ``x`` of a copy's latents ``zi`` (``x_K = r + zi``, the other states held at 0)."""
         r = ca.DM(self.reference)                       # r + zi twice: the graph of a full copy as it always was
-        f = self.system.f(_held(self.system, r + zi, self.states), u)
+        f = plant.f(_held(self.system, r + zi, self.states), u)
         return ((f if self.carries_all else ca.vertcat(*[f[i] for i in self.states])),
-                self.system.h(_held(self.system, r + zi, self.states)))
+                plant.h(_held(self.system, r + zi, self.states)))
 
     def field(self, z: Any, y: Any, u: Any) -> Any:
         """The copies' field ``f_K(x_i, u) + L_i (y - h(x_i))`` (nz, 1) at CasADi column vectors, ``x_i`` the plant
         state with ``x_K = r + z_i`` (:attr:`states` ``K``; the others held at 0)."""
         parts = []
-        for zi, L in zip(self._split(z), self.gains):
-            f, h = self._plant(zi, u)
+        for zi, L, plant in zip(self._split(z), self.gains, self._plants):
+            f, h = self._plant(zi, u, plant)
             parts.append(f + ca.mtimes(ca.DM(L), y - h))
         return ca.vertcat(*parts)
 
@@ -275,8 +345,8 @@ class ModelCopies:
         """The field less its linear part, ``field - A z - B y`` (nz, 1): independent of ``y``."""
         A, _ = self.linear_part()
         parts = []
-        for zi, L in zip(self._split(z), self.gains):
-            f, h = self._plant(zi, u)
+        for zi, L, plant in zip(self._split(z), self.gains, self._plants):
+            f, h = self._plant(zi, u, plant)
             parts.append(f - ca.mtimes(ca.DM(L), h))
         return ca.vertcat(*parts) - ca.mtimes(ca.DM(A), z)
 
