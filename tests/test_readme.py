@@ -394,6 +394,11 @@ def test_the_robust_observers_section_follows_from_the_results():
         in text
     assert f"({span(ratio['augmented', 'corner'])} `robust`'s error at the corners)" in text
     assert "[docs/results/robustness.md](docs/results/robustness.md)" in text
+    rows = {s: _step_rows(ROOT / "results" / "speed" / s / f"observer_step_{s}.md") for s in ("duffing", "vdp")}
+    (d_us, d_n), (v_us, v_n) = rows["duffing"]["duffing/robust"], rows["vdp"]["vdp/robust"]
+    (db_us, db_n), (vb_us, vb_n) = rows["duffing"]["duffing/bank"], rows["vdp"]["vdp/bank"]
+    assert (f"Its C step (default build) costs {d_us} us and {d_n} instructions on Duffing and {v_us} us and {v_n} on "
+            f"Van der Pol, against `bank`'s {db_us} us / {db_n} and {vb_us} us / {vb_n}") in text
 
 
 def test_the_first_observers_training_time_is_its_cards():
