@@ -306,6 +306,14 @@ def test_out_equal_to_data_leaves_the_log_whole(demo_run, tmp_path, capsys):
     assert message.endswith("which is --data's file; choose another --out") and data.read_bytes() == before
 
 
+def test_a_missing_log_names_data_not_out(tmp_path, capsys):
+    """A --data file that does not exist is refused naming --data (the streamed run named --out: its reader's and
+    its writer's errors share the argument name 'path'), before any model is loaded; nothing is written."""
+    missing, out = tmp_path / "nowhere.csv", tmp_path / "e.csv"
+    message = _refused(capsys, "estimate", DUFFING, "--data", missing, "--y-cols", "y", "--u-cols", "u", "--out", out)
+    assert message == f"--data: expected an existing CSV file, received {str(missing)!r}" and not out.exists()
+
+
 def test_a_1khz_log_is_averaged_onto_the_models_grid(demo_run, tmp_path, capsys):
     """The README's Duffing run logged at 1 kHz (t, u, y in that order) for the 50 ms bank: the estimate is the
     observer run on u averaged over each 50 ms and y sampled every 50 ms, computed here by hand."""

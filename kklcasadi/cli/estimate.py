@@ -125,7 +125,10 @@ def _inputs(args: argparse.Namespace) -> dict[str, Path]:
 
 
 def _check_out(args: argparse.Namespace) -> None:
-    """``--out`` is a file path that is none of the inputs, not inside the model and not an existing file."""
+    """``--data`` is an existing file; ``--out`` a file path that is none of the inputs, not inside the model and not
+    an existing file."""
+    if not Path(args.data).is_file():       # before the streamed run, whose writer's "path" errors name --out
+        raise CommandError(f"--data: expected an existing CSV file, received {args.data!r}")
     out = Path(args.out)
     if out.is_dir():
         raise CommandError(f"--out: expected a file path for the estimates, received {args.out!r}, a folder")
