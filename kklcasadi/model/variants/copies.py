@@ -91,7 +91,8 @@ def copy_plants(system: System, params: Any, m: int) -> list[System]:
 
 def copies_plant(card: Mapping[str, Any], where: Any) -> Optional[System]:
     """The nominal plant, fixed from its family (:attr:`System.family`), of a card whose model copies run at
-    parameter values of their own (``architecture.bank.copies.params``); None where they do not. The family is the
+    parameter values of their own (``architecture.bank.copies.params``) or whose latent holds the augmented EKF
+    block (``architecture.bank.ekf``); None where neither. The family is the
     shipped one of the card's ``system.name``, its box the one the card's runs drew from (``training.runs.params``).
 
     Raises
@@ -101,14 +102,18 @@ def copies_plant(card: Mapping[str, Any], where: Any) -> Optional[System]:
     """
     from ...plant import systems
 
-    if "params" not in card["architecture"].get("bank", {}).get("copies", {}):
+    bank = card["architecture"].get("bank", {})
+    if "params" in bank.get("copies", {}):
+        field, what = "architecture.bank.copies.params", "model copies at parameter values"
+    elif "ekf" in bank:
+        field, what = "architecture.bank.ekf", "the augmented EKF block over the parameters"
+    else:
         return None
     name, record = card["system"]["name"], card.get("training", {}).get("runs", {}).get("params")
     if name not in systems.families() or not isinstance(record, Mapping):
-        raise ValueError(f"{where}: 'architecture.bank.copies.params': model copies at parameter values of "
-                         f"{name!r}'s family, which kklcasadi cannot rebuild (a shipped family, the box in the card's "
-                         "training.runs.params). Pass the family: load_observer(path, system=kc.System(..., "
-                         "params=P, param_box=...)).")
+        raise ValueError(f"{where}: '{field}': {what} of {name!r}'s family, which kklcasadi cannot rebuild (a shipped "
+                         "family, the box in the card's training.runs.params). Pass the family: load_observer(path, "
+                         "system=kc.System(..., params=P, param_box=...)).")
     box, nominal = np.asarray(record["box"], dtype=float), np.asarray(record["nominal"], dtype=float)
     family = systems.get(name, param_spread=float(np.max(0.5 * (box[:, 1] - box[:, 0]) / np.abs(nominal))))
     return family.at(family.param_nominal)
