@@ -196,3 +196,38 @@ def test_kklcasadi_train_refuses_the_block_without_a_family_before_training(tmp_
     code = main(["train", "--system", "duffing", "--ekf-block", "--out", str(tmp_path / "m"), "--quiet"])
     assert code == 2 and not (tmp_path / "m").exists()
     assert "error: --ekf-block: expected a plant with parameters" in capsys.readouterr().err
+
+
+def test_the_c_step_with_the_vector_kernels_is_within_their_tolerance(block_dir, capsys):
+    import re
+
+    from kklcasadi.evaluation.bench.observer_step import bench_observer_step
+    from kklcasadi.observer.codegen import VECTOR_MATH_TOLERANCE
+
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc")
+    bench_observer_step(block_dir, n_calls=2, repeat=1, callgrind=False)
+    checks = dict(re.findall(r"^(.+?) +max \|difference\| from the CasADi VM: (\S+)$", capsys.readouterr().out, re.M))
+    assert float(checks["C default (ca.external)"]) <= VECTOR_MATH_TOLERANCE
+
+
+@pytest.mark.parametrize("name", ["duffing/robust", "vdp/robust"])
+def test_a_card_without_the_block_steps_as_its_filters_and_copies_bit_for_bit(name):
+    """The shipped robust observers (no block): the observer's latent step is the filter bank's exact step and the
+    model copies' step, stacked, as before the block existed."""
+    from kklcasadi.model.files import load_model
+
+    obs = kc.load_observer(name)
+    model = load_model(obs.model.path)
+    spec = model.spec.architecture
+    assert spec.n_ekf == 0 and not obs.exact_only
+    family = obs.system.family
+    bank, copies = spec.filter_bank(model.arrays), spec.model_copies(model.arrays, family)
+    rng = np.random.default_rng(1)
+    z, w = rng.normal(size=obs.nz) * 0.3, rng.normal(size=obs.memory_shape)
+    y, y_next, u_next = rng.normal(size=obs.ny), rng.normal(size=obs.ny), rng.normal(size=obs.nu)
+    z_next = np.asarray(obs.step(z, w, y, y_next, u_next)[0]).ravel()
+    u = w.ravel()[obs.ny:]                                   # the memory [y_k; u_k]: the input held over the step
+    n = bank.nz
+    np.testing.assert_array_equal(z_next[:n], np.asarray(bank.step_function(obs.dt)(z[:n], y, y_next, u)).ravel())
+    np.testing.assert_array_equal(z_next[n:], np.asarray(copies.step_function(obs.dt)(z[n:], y, y_next, u)).ravel())
