@@ -28,7 +28,6 @@ and keep ``A`` Hurwitz; checked on load). The card records its settings in ``arc
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
@@ -38,6 +37,7 @@ import numpy as np
 from ...nets.specs import field_error
 from ...plant.systems import System
 from ...validation import Text, error, is_int, is_number
+from .copies import fold_step
 
 __all__ = ["EKFBlock", "EKF_BLOCK", "EKF_KEYS", "register_filter"]
 
@@ -214,18 +214,7 @@ class EKFBlock:
         -------
         numpy.ndarray, shape (M, N, nz)
         """
-        M, N = y.shape[:2]
-        ny = self.system.ny
-        z = np.zeros((M, N, self.nz))
-        if N < 2:
-            return z
-        step = self.step_function()
-        zs, p = ca.MX.sym("z", self.nz), ca.MX.sym("p", 2 * ny + self.system.nu)     # p = [y_k; y_k+1; u_k]
-        packed = ca.Function("ekf_block_packed", [zs, p], [step(zs, p[:ny], p[ny:2 * ny], p[2 * ny:])])
-        runs = packed.mapaccum("ekf_block_run", N - 1).map(M, "thread", min(os.cpu_count() or 1, M))
-        params = np.concatenate([y[:, :-1], y[:, 1:], u[:, :-1]], axis=2).reshape(M * (N - 1), -1)
-        z[:, 1:] = np.asarray(runs(np.zeros((self.nz, M)), params.T)).T.reshape(M, N - 1, self.nz)
-        return z
+        return fold_step(self.step_function(), y, u)
 
     def state_rows(self) -> Sequence[int]:
         """The block's latents that hold the plant states' estimate ``xhat`` (nx), relative to the block."""
