@@ -98,7 +98,7 @@ def test_the_card_records_the_block_and_its_design_rows(block_dir):
 
     model = load_model(block_dir)
     entry = model.card["architecture"]["bank"]["ekf"]
-    assert entry == {"process_std": [0.1, 0.1], "measurement_std": 0.1, "param_walk": 0.003, "q_scale": 1.0,
+    assert entry == {"process_std": [0.1, 0.1], "measurement_std": 0.1, "param_walk": 0.001, "q_scale": 1.0,
                      "r_scale": 1.0, "substeps": 1}
     spec = model.spec.architecture
     assert spec.n_ekf == 4 + 16 + 1 and spec.n_filters == 2 + 1 + 1 and spec.n_copy_latents == 5 * 2
@@ -118,7 +118,7 @@ def test_the_decoder_corrects_the_blocks_estimate(block_dir):
     obs = kc.load_observer(block_dir)
     t, y, u = _runs(family, [0.7, 1.3], n_trials=1, T=10.0)
     est = obs.simulate(t, y[0], u[0]).xhat
-    aug = AugmentedEKF(family, 0.05, process_std=0.1, measurement_std=0.1, param_walk=0.003).simulate(t, y[0], u[0])
+    aug = AugmentedEKF(family, 0.05, process_std=0.1, measurement_std=0.1, param_walk=0.001).simulate(t, y[0], u[0])
     gap = np.abs(est[40:] - aug.xhat[40:, :2]).mean(axis=0)
     assert np.all(gap < 0.5 * np.abs(aug.xhat[40:, :2]).mean(axis=0))
 
