@@ -211,18 +211,18 @@ def test_the_c_step_with_the_vector_kernels_is_within_their_tolerance(block_dir,
     assert float(checks["C default (ca.external)"]) <= VECTOR_MATH_TOLERANCE
 
 
-@pytest.mark.parametrize("name", ["duffing/robust", "vdp/robust"])
+@pytest.mark.parametrize("name", ["duffing/bank", "vdp/bank"])
 def test_a_card_without_the_block_steps_as_its_filters_and_copies_bit_for_bit(name):
-    """The shipped robust observers (no block): the observer's latent step is the filter bank's exact step and the
-    model copies' step, stacked, as before the block existed."""
+    """Shipped observers with model copies and no block: the observer's latent step is the filter bank's exact step
+    and the model copies' step, stacked, as before the block existed."""
     from kklcasadi.model.files import load_model
 
     obs = kc.load_observer(name)
     model = load_model(obs.model.path)
     spec = model.spec.architecture
     assert spec.n_ekf == 0 and not obs.exact_only
-    family = obs.system.family
-    bank, copies = spec.filter_bank(model.arrays), spec.model_copies(model.arrays, family)
+    bank, copies = spec.filter_bank(model.arrays), spec.model_copies(model.arrays, obs.system)
+    assert copies is not None
     rng = np.random.default_rng(1)
     z, w = rng.normal(size=obs.nz) * 0.3, rng.normal(size=obs.memory_shape)
     y, y_next, u_next = rng.normal(size=obs.ny), rng.normal(size=obs.ny), rng.normal(size=obs.nu)
