@@ -166,11 +166,15 @@ def _entry(name: str, params: str, args: str, dispatch: bool, guard: str = "") -
 
 def _versions(code: Callable[[str], str], dispatch: bool, fused: bool) -> str:
     """``code(version)``'s KKLCV_ functions as the portable kklc_c_ and, under KKLC_DISPATCH, as
-    the AVX2 kklc_avx2_ functions (with fused multiply-adds where ``fused``)."""
+    the AVX2 kklc_avx2_ functions (where ``fused``, the mat-vec kernels' and the exp/tanh polynomials'
+    multiply-adds fused: ``KKLC_MADD(a, b, c)``, ``a * b + c`` elsewhere, as C99's ``fma``)."""
     portable = code("c").replace("KKLCV_", "kklc_c_")
     if not dispatch:
         return portable
-    avx2 = (code("fma" if fused else "avx2").replace("KKLCV_", "kklc_avx2_")
+    avx2 = code("fma" if fused else "avx2")
+    if fused:
+        avx2 = avx2.replace("KKLC_MADD(", "fma(")
+    avx2 = (avx2.replace("KKLCV_", "kklc_avx2_")
             .replace("\nstatic ", "\nKKLC_AVX2 static "))
     return f"{portable}\n#ifdef KKLC_DISPATCH\n{avx2}#endif\n"
 
