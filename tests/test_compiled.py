@@ -419,3 +419,53 @@ def test_the_fused_exp_and_tanh_keep_their_ulp_bounds(tmp_path):
             assert np.array_equal(got[~finite & ~np.isnan(want)], want[~finite & ~np.isnan(want)])
             scale = np.spacing(np.maximum(np.abs(want[finite]), np.finfo(float).tiny))
             assert np.max(np.abs(got[finite] - want[finite]) / scale) <= ulps
+
+
+@needs_gcc
+@pytest.mark.parametrize("variant", ["obs", "inject", "bank"])
+def test_a_warm_library_cache_skips_building_the_trajectory(model_dir_factory, tmp_path, monkeypatch, variant):
+    """A second estimator of the same observer finds its library through the index without building the trajectory
+    (what a warm kklcasadi evaluate's compile phase spent its seconds on), bitwise the first's estimates; another
+    observer, other options, other package code or a vanished library build their own."""
+    from kklcasadi.evaluation.compiled import estimators as module
+    from kklcasadi.observer.codegen import fast_kernels
+
+    method, options = VARIANTS[variant]
+    path = model_dir_factory(method, **options)
+    compiler = Compiler(cache_dir=tmp_path, postprocess=fast_kernels)
+    t, y, u = _trials(load_observer(path).system)
+    first = observer_estimator(load_observer(path), compiler=compiler)
+    expected = first(t, y, u)
+    assert len(list((tmp_path / "index").iterdir())) == 1
+
+    def refuse(self, n, group=1):
+        raise AssertionError("the trajectory was built although its library is cached")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(module.CompiledObserver, "trajectory", refuse)
+        again = observer_estimator(load_observer(path), compiler=compiler)
+        np.testing.assert_array_equal(again(t, y, u), expected)
+        precompile([observer_estimator(load_observer(path), compiler=compiler)], t.size)   # precompile too
+        for other in (observer_estimator(load_observer(path), compiler=compiler, shortcuts=False),
+                      observer_estimator(load_observer(model_dir_factory(method, seed=1, **options)),
+                                         compiler=compiler)):
+            with pytest.raises(AssertionError, match="was built"):
+                other(t, y, u)
+        patch.setattr(module, "code_digest", lambda: "another package")
+        with pytest.raises(AssertionError, match="was built"):
+            observer_estimator(load_observer(path), compiler=compiler)(t, y, u)
+    for library in tmp_path.glob("*.so"):
+        library.unlink()                                       # the index names a library that is gone
+    np.testing.assert_array_equal(observer_estimator(load_observer(path), compiler=compiler)(t, y, u), expected)
+
+
+@needs_gcc
+def test_no_index_for_a_hook_that_no_name_identifies(model_dir_factory, tmp_path):
+    """A lambda as postprocess (two lambdas share a name): every estimator builds from the source, no index."""
+    from kklcasadi.observer.codegen import fast_kernels
+
+    obs = load_observer(model_dir_factory("inject", base=True))
+    t, y, u = _trials(obs.system)
+    compiler = Compiler(cache_dir=tmp_path, postprocess=lambda source: fast_kernels(source))
+    observer_estimator(obs, compiler=compiler)(t, y, u)
+    assert not (tmp_path / "index").exists() and len(list(tmp_path.glob("*.so"))) == 1
