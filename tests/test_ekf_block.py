@@ -231,3 +231,28 @@ def test_a_card_without_the_block_steps_as_its_filters_and_copies_bit_for_bit(na
     n = bank.nz
     np.testing.assert_array_equal(z_next[:n], np.asarray(bank.step_function(obs.dt)(z[:n], y, y_next, u)).ravel())
     np.testing.assert_array_equal(z_next[n:], np.asarray(copies.step_function(obs.dt)(z[n:], y, y_next, u)).ravel())
+
+
+def test_training_refuses_a_block_that_diverged_on_a_run(monkeypatch, tmp_path):
+    """An augmented EKF that diverges on a training run (Van der Pol's, on one of 3000 runs with Student-t noise at
+    twice the nominal level) is a one-line error naming the block, not a NaN in the decoder's normalisation."""
+    pytest.importorskip("torch")
+    from kklcasadi.plant.runs import RolloutConfig
+    from kklcasadi.train import LoopConfig, bank, default_config, train_observer
+    from kklcasadi.train.decoder import DecoderConfig
+
+    real = bank.operational_data
+
+    def diverged(*args, **kwargs):
+        data = real(*args, **kwargs)
+        data.z[data.run == 1, -1] = np.inf
+        return data
+
+    monkeypatch.setattr(bank, "operational_data", diverged)
+    config = replace(default_config("duffing", "bank"), y_poles=(0.5,), u_poles=(1.0,), members=1,
+                     rollouts=RolloutConfig(n_traj=3, T=3.0), ekf_block=True,
+                     decoder=DecoderConfig(hidden=(4,), loop=LoopConfig(epochs=1, batch_size=64)))
+    with pytest.raises(ValueError, match=r"^ekf_block: expected an augmented EKF that stays finite on every training "
+                       r"run, received one that diverged on 1 of 3 runs \(the first, run 1\)"):
+        train_observer(kc.systems.get("duffing", param_spread=0.3), "bank", tmp_path / "m", config=config, seed=3,
+                       progress=False)

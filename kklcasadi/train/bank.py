@@ -547,6 +547,11 @@ def train_bank(system: System, design: Design, base: Model | None, config: BankC
     if len(data) == 0:
         raise ValueError(f"rollouts: every one of the {config.rollouts.n_traj} runs escaped at once (no samples); "
                          "lower the inputs or box_scale, or raise escape_scale.")
+    if ekf is not None and not np.all(np.isfinite(data.z[:, -ekf.nz:])):
+        runs = np.unique(data.run[~np.all(np.isfinite(data.z[:, -ekf.nz:]), axis=1)])
+        raise error("ekf_block", "an augmented EKF that stays finite on every training run", Text(
+            f"one that diverged on {runs.size} of {config.rollouts.n_traj} runs (the first, run {int(runs[0])})"),
+            "Train without --ekf-block, or with a larger ekf_scales or a narrower noise_range.")
     teacher = None
     if config.teacher is not None:
         targets, teacher = teacher_estimates(
