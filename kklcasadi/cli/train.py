@@ -66,6 +66,7 @@ _CONFIG_FLAGS = {"--measurement-std": ("measurement_std", lambda a: a.measuremen
                  "--corner-copies": ("corner_copies", lambda a: None if a.corner_copies is None
                                      else tuple(a.corner_copies)),
                  "--skip-path": ("skip", lambda a: True if a.skip_path else None),
+                 "--ekf-block": ("ekf_block", lambda a: True if a.ekf_block else None),
                  "--teacher": ("teacher", lambda a: a.teacher),
                  "--input-scale": ("input_scale", lambda a: None if a.input_scale is None else
                                    a.input_scale[0] if len(a.input_scale) == 1 else tuple(a.input_scale)),
@@ -128,6 +129,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "corner of the parameter box per weight W, each observing the plant at that corner with its "
                    "Kalman-Bucy gain for process intensity W; the card records their parameters (docs/design.md, "
                    "'Over a family')")
+    t.add_argument("--ekf-block", action="store_true",
+                   help="bank, over a family (--param-spread or a --plant with params=): end the latent with the "
+                   "augmented EKF (the states and the parameters as random-walk states, at the runs' noise), stepped "
+                   "once per sample by the augmented EKF's own step; the decoders read its estimates and covariance "
+                   "and fit the state's residual over its estimate (docs/design.md, 'Over a family'); the card "
+                   "records its settings")
     t.add_argument("--skip-path", action="store_true",
                    help="bank: give each decoder network a linear path beside its tanh layers, which keeps its "
                    "slope where they level off past the fitted states (Duffing's shipped bank has it)")
@@ -298,6 +305,10 @@ def run(args: argparse.Namespace) -> int:
         from ..train.bank import design_copies
 
         flagged("--copies" if args.corner_copies is None else "--corner-copies", design_copies, plant, config, dt)
+    if args.ekf_block:                                              # the plant must be a family (see design_ekf_block)
+        from ..train.bank import design_ekf_block
+
+        flagged("--ekf-block", design_ekf_block, plant, config, dt)
     t0 = time.perf_counter()
     path = flagged_by({"resume": "--resume", "out_dir": "--out", "base": "--base"}, "--" + method, train_observer,
                       plant, method, out, config=config, base=args.base, dt=dt, seed=args.seed, device=args.device,

@@ -24,6 +24,7 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from ..model.variants.ekfblock import register_filter
 from ..plant.augment import augmented
 from ..plant.systems import System
 from ..validation import Text, error, nonnegative_number, positive_number, state_stds
@@ -268,3 +269,6 @@ class ParameterPF(_Split, ParticleFilter):  # type: ignore[misc]
         theta = X[:, nx:]
         a = np.sqrt(1.0 - self.shrinkage ** 2)
         theta[:] = a * theta + (1.0 - a) * theta.mean(axis=0) + self.shrinkage * theta.std(axis=0) * draws[:, nx:]
+
+
+register_filter(AugmentedEKF)        # the bank latent's augmented EKF block runs this filter's step

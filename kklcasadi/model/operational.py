@@ -30,6 +30,7 @@ from .variants import BankSpec
 from .variants import bankdecoder as bd
 from .variants import filterbank as fb
 from .variants.copies import ModelCopies
+from .variants.ekfblock import EKFBlock
 
 __all__ = ["OperationalData", "operational_data", "MonitorConfig", "bank_monitor", "member_spread", "nominal_runs",
            "SPREAD_SEED_OFFSET"]
@@ -107,12 +108,12 @@ class OperationalData:
 
     @classmethod
     def from_runs(cls, bank: fb.FilterBank, runs: TrajectoryBatch, config: RolloutConfig, *,
-                  copies: ModelCopies | None = None) -> OperationalData:
+                  copies: ModelCopies | None = None, ekf: EKFBlock | None = None) -> OperationalData:
         """The samples of given runs (all of each run valid), kept at ``config``'s sample times; ``copies``
-        (the latent's model copies, if any) follow the filters in ``z``."""
+        (the latent's model copies, if any) follow the filters in ``z``, then ``ekf`` (its augmented EKF block)."""
         dt = float(runs.t[1] - runs.t[0])
         keep = _keep(runs.t.size, dt, config)
-        z = fb.latent_run(bank, runs.y, runs.u, dt, copies=copies)[:, keep]
+        z = fb.latent_run(bank, runs.y, runs.u, dt, copies=copies, ekf=ekf)[:, keep]
         nz, ny, nu, nx = z.shape[2], runs.y.shape[2], runs.u.shape[2], runs.x.shape[2]
         record = {"runs": len(runs), "cut": 0, "failed": 0, "samples": int(keep.sum() * len(runs)),
                   "simulated_s": float(len(runs) * runs.t.size * dt)}
@@ -124,7 +125,8 @@ class OperationalData:
 
 def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig, seed: int, *, dt: float,
                      measurement_std: float, process_std: float | Sequence[float] = 0.0, time_scale: float = 1.0,
-                     copies: ModelCopies | None = None, progress: bool = False) -> OperationalData:
+                     copies: ModelCopies | None = None, ekf: EKFBlock | None = None,
+                     progress: bool = False) -> OperationalData:
     """Simulate the operational runs and keep the decoder's samples of them.
 
     Parameters
@@ -147,6 +149,8 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
     copies : ModelCopies or None
         The latent's model copies of the plant (:mod:`kklcasadi.model.variants.copies`), run over each run
         after the filters (their latents follow the bank's in ``z``).
+    ekf : EKFBlock or None
+        The latent's augmented EKF block (:mod:`kklcasadi.model.variants.ekfblock`), last in ``z``.
     progress : bool
         A progress bar over the runs.
 
@@ -184,7 +188,7 @@ def operational_data(system: System, bank: fb.FilterBank, config: RolloutConfig,
         valid = np.arange(n)[None, :] < escape[:, None]
         y = np.where(valid[..., None], batch.y, 0.0)          # after an escape: ignored, kept finite
         u = np.where(valid[..., None], batch.u, 0.0)
-        z = fb.latent_run(bank, y, u, dt, copies=copies)
+        z = fb.latent_run(bank, y, u, dt, copies=copies, ekf=ekf)
         mask = valid & keep[None, :]
         runs = np.broadcast_to(np.arange(first, first + len(escape))[:, None], mask.shape)
         first += len(escape)
@@ -260,7 +264,8 @@ def bank_monitor(data: OperationalData, seed: int, *, source: str = "the decoder
 
 def nominal_runs(system: System, bank: fb.FilterBank, rollouts: RolloutConfig, n_runs: int, seed: int, *, dt: float,
                  measurement_std: float, process_std: np.ndarray, time_scale: float,
-                 copies: Optional[ModelCopies] = None, progress: bool = False) -> tuple[OperationalData, str]:
+                 copies: Optional[ModelCopies] = None, ekf: Optional[EKFBlock] = None,
+                 progress: bool = False) -> tuple[OperationalData, str]:
     """The runs that set a ``bank``'s spread threshold: ``n_runs`` runs of the recipe ``rollouts`` at the
     nominal noise levels (factors 1), seeded ``seed + SPREAD_SEED_OFFSET``, and their description for the card.
 
@@ -269,7 +274,8 @@ def nominal_runs(system: System, bank: fb.FilterBank, rollouts: RolloutConfig, n
     """
     nominal = replace(rollouts, n_traj=positive_int(n_runs, "n_runs"), noise_range=(1.0, 1.0))
     data = operational_data(system, bank, nominal, seed + SPREAD_SEED_OFFSET, dt=dt, measurement_std=measurement_std,
-                            process_std=process_std, time_scale=time_scale, copies=copies, progress=progress)
+                            process_std=process_std, time_scale=time_scale, copies=copies, ekf=ekf,
+                            progress=progress)
     return data, (f"{n_runs} runs of the fitting recipe at the nominal noise (factor 1), seed "
                   f"{seed + SPREAD_SEED_OFFSET}")
 

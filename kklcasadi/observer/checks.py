@@ -13,8 +13,8 @@ import numpy as np
 from ..model.card import ModelSpec
 from ..plant.systems import System, read_states
 
-__all__ = ["DOMAIN_MARGIN", "DISCRETIZATIONS", "domain_bounds", "domain_rows", "box_rows", "check_system",
-           "check_discretization", "check_time", "check_samples", "check_finite", "check_initial"]
+__all__ = ["DOMAIN_MARGIN", "DISCRETIZATIONS", "domain_bounds", "domain_rows", "box_rows", "check_exact_only",
+           "check_system", "check_discretization", "check_time", "check_samples", "check_finite", "check_initial"]
 
 #: Relative margin of the domain monitor: estimates up to this share of the trained range outside
 #: it still count as in the domain (a transient grazing the edge is not flagged).
@@ -76,6 +76,18 @@ def check_discretization(discretization: Optional[str], linear: bool, method: st
         raise ValueError(f"discretization: 'exact' needs linear latent dynamics; method {method!r}"
                          " has an input term that depends on z. Use 'rk4' (the default).")
     return discretization
+
+
+def check_exact_only(exact_only: bool, argument: str, received: str, path: Any) -> bool:
+    """Refuse the RK4 step (``argument`` ``"discretization"``) or the integrator (``"integrator"``) of the model at
+    ``path`` whose latent runs only by its exact step (``exact_only``: the augmented EKF block, a discrete step with
+    no continuous-time field); returns ``exact_only``."""
+    if exact_only and (argument != "discretization" or received != "exact"):
+        expected = "'exact' (or None)" if argument == "discretization" else "a model whose latent has a field"
+        raise ValueError(f"{argument}: expected {expected} for {path}, whose latent holds the augmented EKF's block "
+                         f"(a discrete step with no continuous-time field), received {received!r}. Use the exact "
+                         "step (step, simulate).")
+    return exact_only
 
 
 def check_time(t: Any, dt: float) -> np.ndarray:

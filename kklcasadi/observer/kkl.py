@@ -63,6 +63,7 @@ from .checks import (
     DOMAIN_MARGIN,
     box_rows,
     check_discretization,
+    check_exact_only,
     check_finite,
     check_initial,
     check_samples,
@@ -192,16 +193,15 @@ class KKLObserver:
         self._domain_rows = None if self.domain is None else domain_rows(system, system.nx + self.domain.z_lo.size)
 
         nets = self.variant.networks(spec.architecture, model.arrays, system, self.window)
+        self.exact_only = check_exact_only(nets.exact_only, "discretization", self.discretization, model.path)
         exact = self.discretization == "exact"
         self._exact_step = nets.exact_step if exact else None
-        self.foh_matrices = (foh_matrices(self.A, self.B, self.dt)
-                             if exact and nets.exact_step is None else None)
+        self.foh_matrices = foh_matrices(self.A, self.B, self.dt) if exact and nets.exact_step is None else None
         self.memory = nets.memory if nets.memory is not None else variants.window_memory(self.window, self.nu, self.ny)
         self.memory_shape: tuple[int, int] = self.memory.shape
         self.memory_init: ca.Function = self.memory.init
-        self.encoder = nets.encoder
+        self.encoder, self.model_injection = nets.encoder, nets.model_injection
         self._context, self._input_term = nets.context, nets.input_term
-        self.model_injection = nets.model_injection
         self.model_based_injection = nets.model_injection is not None
         self._A, self._B = ca.sparsify(ca.DM(self.A)), ca.sparsify(ca.DM(self.B))
 
@@ -388,12 +388,12 @@ class KKLObserver:
         """
         if solver not in INTEGRATOR_SOLVERS:
             raise ValueError(f"solver: expected one of {list(INTEGRATOR_SOLVERS)}, received {solver!r}.")
+        check_exact_only(self.exact_only, "integrator", solver, self.model.path)
         z, t = ca.MX.sym("z", self.nz), ca.MX.sym("t")
         rows, cols = self.memory_shape
         p = ca.MX.sym("p", 2 * self.ny + self.nu + rows * cols)
         y, y_next, u, w = ca.vertsplit(p, np.cumsum([0, self.ny, self.ny, self.nu, rows * cols]).tolist())
-        y_t = y + t / self.dt * (y_next - y)
-        ode = self.rhs(z, y_t, u, ca.reshape(w, rows, cols))
+        ode = self.rhs(z, y + t / self.dt * (y_next - y), u, ca.reshape(w, rows, cols))   # y first-order hold
         return ca.integrator(f"{self.method}_latent", solver, {"x": z, "p": p, "t": t, "ode": ode}, 0.0, self.dt, opts)
 
     def simulate(self, t: Any, y: Any, u: Any, *, z0: Any = None,

@@ -246,9 +246,9 @@ def fit_bank_decoder(bank: fb.FilterBank, data: OperationalData, config: Decoder
     scale = np.zeros(nx) if config.asinh_scale is None else np.asarray(config.asinh_scale, dtype=float)
     if scale.shape != (nx,) or np.any(scale < 0):
         raise error("asinh_scale", f"nx = {nx} entries >= 0", config.asinh_scale)
-    feats = bd.decoder_features(data.z, data.y, data.u, angles=angles,
-                                gains=bd.latent_gains(bank, data.z.shape[1], nx if copy_states is None else copy_states,
-                                                      angles))
+    gains = None if not angles.outputs else bd.latent_gains(bank, data.z.shape[1],
+                                                            nx if copy_states is None else copy_states, angles)
+    feats = bd.decoder_features(data.z, data.y, data.u, angles=angles, gains=gains)
     v = bd.decoder_targets(data.x, data.y, scale, angles)
     sizes = (feats.shape[1], *config.hidden, v.shape[1])
     if base is not None:

@@ -43,7 +43,7 @@ import numpy as np
 
 from ...nets.specs import DECODER, MLPSpec, field_error
 from ...plant.systems import System
-from ...validation import is_int, is_number
+from ...validation import Text, is_int, is_number
 from .bankdecoder import (
     ASINH_SCALE,
     Angles,
@@ -57,6 +57,7 @@ from .base import Memory, Networks, Sizes, Variant
 from .copies import ModelCopies
 from .covariance import COVARIANCE, covariance_expression, n_entries
 from .covariance import array_shapes as covariance_shapes
+from .ekfblock import EKF_BLOCK, EKFBlock
 from .filterbank import FilterBank, latent_step
 from .inflation import INFLATION, MODEL, CopyLayout, Inflation, inflation_function
 
@@ -64,8 +65,8 @@ __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
 _BANK_KEYS = ("y_poles", "u_poles", "y_resonators", "clock")
 #: Keys of ``architecture.bank`` that cards written before them lack (``copies`` only where the latent has model
-#: copies).
-_OPTIONAL_KEYS = ("time_scale", "angles", "members", "copies")
+#: copies, ``ekf`` only where it has the augmented EKF's block).
+_OPTIONAL_KEYS = ("time_scale", "angles", "members", "copies", EKF_BLOCK)
 
 
 @dataclass(frozen=True, eq=False)
@@ -108,10 +109,26 @@ class BankSpec:
         return None if states is None else tuple(int(i) for i in states)
 
     @property
-    def n_filters(self) -> int:
-        """The filter bank's latents (the first ones; the model copies' follow)."""
+    def n_copy_latents(self) -> int:
+        """The model copies' latents (after the filters')."""
         states = self.copy_states
-        return self.nz - self.n_copies * (self.nx if states is None else len(states))
+        return self.n_copies * (self.nx if states is None else len(states))
+
+    @property
+    def n_ekf(self) -> int:
+        """The augmented EKF block's latents (the last ones; 0 where the card has no ``architecture.bank.ekf``): the
+        latent less the filters the card's design parameters give and the copies'."""
+        if EKF_BLOCK not in self.params:
+            return 0
+        p, ny = self.params, self.By.shape[1]
+        filters = (ny * len(p["y_poles"]) + 2 * ny * len(p["y_resonators"]) + self.nu * len(p["u_poles"])
+                   + (p["clock"] is not None))
+        return self.nz - filters - self.n_copy_latents
+
+    @property
+    def n_filters(self) -> int:
+        """The filter bank's latents (the first ones; the model copies' follow, then the EKF block's)."""
+        return self.nz - self.n_copy_latents - self.n_ekf
 
     @property
     def decoder_spec(self) -> DecoderSpec:
@@ -139,14 +156,31 @@ class BankSpec:
         copies = ModelCopies.from_arrays(arrays, system, int(self.params["copies"]["substeps"]), self.copy_states,
                                          self.params["copies"].get("params"))
         A, B = copies.linear_part()
-        n = self.n_filters
-        if not (np.allclose(self.A[n:, n:], A, rtol=1e-9, atol=1e-12) and np.allclose(self.By[n:], B, rtol=1e-9,
-                                                                                         atol=1e-12)
-                and not np.any(self.A[:n, n:]) and not np.any(self.A[n:, :n])):
+        n, c = self.n_filters, self.n_filters + copies.nz
+        if not (np.allclose(self.A[n:c, n:c], A, rtol=1e-9, atol=1e-12) and np.allclose(self.By[n:c], B, rtol=1e-9,
+                                                                                           atol=1e-12)
+                and not np.any(self.A[:n, n:c]) and not np.any(self.A[n:c, :n])):
             raise ValueError(f"design: expected the model copies' rows of A and B to be their linear part at "
                              f"{system.name}'s box centre (F - L H, L; docs/model-format.md), received others. The "
                              "card was written for another plant or edited; retrain it.")
         return copies
+
+    def ekf_block(self, system: System) -> Optional[EKFBlock]:
+        """The latent's augmented EKF block for ``system`` from the card's ``architecture.bank.ekf`` (None where the
+        card has none), checked against the card's ``design``: its rows of ``A`` and ``B`` must be ``-I / dt`` and 0
+        and its size ``na + na^2 + 1``, ``na = nx + n_params``."""
+        if not self.n_ekf:
+            return None
+        block = EKFBlock.from_card(self.params[EKF_BLOCK], system, self.dt)
+        c = self.nz - self.n_ekf
+        A, B = block.linear_part()
+        if block.nz != self.n_ekf or not (np.array_equal(self.A[c:, c:], A) and not np.any(self.By[c:])
+                                          and not np.any(self.A[:c, c:]) and not np.any(self.A[c:, :c])):
+            raise ValueError(f"design: expected the EKF block's last {block.nz} rows of A and B to be -I / dt and 0 "
+                             f"({system.name}'s augmented EKF: nx + n_params = {block.na} states and their covariance, "
+                             f"and a start flag; docs/model-format.md), received {self.n_ekf} rows or others. The "
+                             "card was written for another plant or edited; retrain it.")
+        return block
 
     def to_card(self) -> dict:
         bank = dict(self.params)
@@ -236,7 +270,9 @@ def _params(entry: Any, where: str, sizes: Sizes) -> dict:
             raise field_error(where, "architecture.bank.copies.states", f"ascending distinct state indices in [0, "
                               f"nx = {sizes.nx}), fewer than nx (the states the model copies carry; absent where "
                               "they carry every one)", states, fix)
-    return {key: entry[key] for key in _BANK_KEYS + ("time_scale", "members", "copies") if key in entry}
+    if EKF_BLOCK in entry:
+        EKFBlock.check_card(entry[EKF_BLOCK], where, sizes.nx)
+    return {key: entry[key] for key in _BANK_KEYS + ("time_scale", "members", "copies", EKF_BLOCK) if key in entry}
 
 
 def _angles(entry: Mapping[str, Any], where: str, sizes: Sizes) -> Angles:
@@ -311,6 +347,14 @@ class Bank(Variant):
             raise field_error(where, f"architecture.{INFLATION}.{MODEL}.copy", f"one of the latent's {spec.n_copies} "
                               "model copies (0-based)", inflation.model.copy,
                               "The model test reads a model copy's innovation (architecture.bank.copies).")
+        if EKF_BLOCK in spec.params:
+            na = (math.isqrt(max(4 * spec.n_ekf - 3, 0)) - 1) // 2          # n_ekf = na + na^2 + 1
+            if na <= sizes.nx or na + na * na + 1 != spec.n_ekf or spec.angles:
+                raise field_error(where, "architecture.bank.ekf", "the block of the augmented EKF on a plant with "
+                                  f"parameters and without angles: na + na^2 + 1 latents after the filters and "
+                                  f"the copies, na = nx + n_params > nx = {sizes.nx}",
+                                  Text(f"{spec.n_ekf} latents{' and angles' if spec.angles else ''}"),
+                                  "The card was written for another plant or edited; retrain it.")
         if spec.n_copies and spec.n_filters < 1:
             nk = spec.nx if spec.copy_states is None else len(spec.copy_states)
             raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x {nk} states = "
@@ -322,6 +366,7 @@ class Bank(Variant):
         n = spec.n_filters
         bank = spec.filter_bank(arrays)
         copies = spec.model_copies(arrays, system)
+        ekf = spec.ekf_block(system)
         memory = feedthrough_memory(system.ny, system.nu)
         z, w = ca.MX.sym("z", spec.nz), ca.MX.sym("w", *memory.shape)
         decoder_spec, y, u = spec.decoder_spec, w[:system.ny], w[system.ny:]
@@ -349,9 +394,11 @@ class Bank(Variant):
 
         def input_term(zz: ca.MX, u: ca.MX, context: Optional[ca.MX]) -> ca.MX:
             filters = ca.mtimes(bu, u) + c
-            return filters if copies is None else ca.vertcat(filters, copies.remainder(zz[n:], u))
+            parts = [filters] + ([] if copies is None else [copies.remainder(zz[n:n + copies.nz], u)])
+            return ca.vertcat(*parts, *([] if ekf is None else [ca.MX.zeros(ekf.nz)]))   # the block: exact step only
 
         return Networks(None, decoder, None, input_term, memory=memory,
-                        exact_step=latent_step(bank, spec.dt, copies=copies), spread=spread, covariance=covariance,
+                        exact_step=latent_step(bank, spec.dt, copies=copies, ekf=ekf), exact_only=ekf is not None,
+                        spread=spread, covariance=covariance,
                         decoded=decoded, inflation=inflation,
                         inflation_start=None if spec.inflation is None else spec.inflation.initial_state())

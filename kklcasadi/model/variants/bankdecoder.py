@@ -32,6 +32,7 @@ from ...nets.specs import DECODER, MLPSpec, check_arrays
 from ...plant.systems import System
 from ...validation import error
 from .copies import ModelCopies
+from .ekfblock import EKFBlock
 from .filterbank import FilterBank, as_trials, bank_from_arrays, check_copies, latent_run, latent_size, latent_step
 
 __all__ = ["Angles", "NO_ANGLES", "DecoderSpec", "dc_gains", "latent_gains", "decoder_features", "decoder_targets",
@@ -380,7 +381,8 @@ def spread(spec: DecoderSpec, arrays: Mapping[str, Any], z: Any, y: Any, u: Any)
     return np.sqrt((d ** 2).sum(axis=-1).mean(axis=0))
 
 
-def decoder_function(spec: DecoderSpec, arrays: Mapping[str, Any], name: str = "bank_decoder") -> ca.Function:
+def decoder_function(spec: DecoderSpec, arrays: Mapping[str, Any], name: str = "bank_decoder", *,
+                     ekf: EKFBlock | None = None) -> ca.Function:
     """CasADi ``(z, y, u) -> xhat``: the decoder MLP with its input and output maps (see :func:`decode`).
 
     Parameters
@@ -391,6 +393,8 @@ def decoder_function(spec: DecoderSpec, arrays: Mapping[str, Any], name: str = "
         ``decoder/asinh_scale`` (nx,); checked.
     name : str
         Function name.
+    ekf : EKFBlock or None
+        The latent's augmented EKF block, if any (it has no arrays; it sizes ``z``).
 
     Returns
     -------
@@ -399,7 +403,7 @@ def decoder_function(spec: DecoderSpec, arrays: Mapping[str, Any], name: str = "
     """
     spec.check(arrays)
     bank = bank_from_arrays(arrays)
-    nz = latent_size(arrays)
+    nz = latent_size(arrays, ekf)
     if spec.mlp.n_in != spec.angles.n_features(nz, bank.ny, bank.nu):
         raise ValueError(f"decoder input size {spec.mlp.n_in} != nz + ny + len(angle outputs) + nu = "
                          f"{spec.angles.n_features(nz, bank.ny, bank.nu)}")
@@ -478,7 +482,7 @@ def spread_expression(spec: DecoderSpec, arrays: Mapping[str, Any], bank: Filter
 
 
 def observer_step(spec: DecoderSpec, arrays: Mapping[str, Any], dt: float, name: str = "step", *,
-                  copies: ModelCopies | None = None) -> ca.Function:
+                  copies: ModelCopies | None = None, ekf: EKFBlock | None = None) -> ca.Function:
     """The whole observer step in the signature of :attr:`kklcasadi.observer.kkl.KKLObserver.step` (window 1).
 
     ``(z, w, y, y_next, u_next) -> (z_next, w_next, xhat_next)`` with ``w = u_k`` (1, nu), the input
@@ -495,12 +499,14 @@ def observer_step(spec: DecoderSpec, arrays: Mapping[str, Any], dt: float, name:
         Function name.
     copies : ModelCopies or None
         The latent's model copies (required where ``arrays`` has ``copies/*``).
+    ekf : EKFBlock or None
+        The latent's augmented EKF block, if any.
     """
     check_copies(arrays, copies)
     bank = bank_from_arrays(arrays)
-    latent = latent_step(bank, dt, copies=copies)
-    dec = decoder_function(spec, arrays)
-    z, w = ca.MX.sym("z", latent_size(arrays)), ca.MX.sym("w", 1, bank.nu)
+    latent = latent_step(bank, dt, copies=copies, ekf=ekf)
+    dec = decoder_function(spec, arrays, ekf=ekf)
+    z, w = ca.MX.sym("z", latent_size(arrays, ekf)), ca.MX.sym("w", 1, bank.nu)
     y, y_next, u_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny), ca.MX.sym("u_next", bank.nu)
     z_next = latent(z, y, y_next, w.T)
     return ca.Function(name, [z, w, y, y_next, u_next], [z_next, u_next.T, dec(z_next, y_next, u_next)],
@@ -508,7 +514,7 @@ def observer_step(spec: DecoderSpec, arrays: Mapping[str, Any], dt: float, name:
 
 
 def estimate(spec: DecoderSpec, arrays: Mapping[str, Any], y: Any, u: Any, dt: float, *,
-             copies: ModelCopies | None = None) -> np.ndarray:
+             copies: ModelCopies | None = None, ekf: EKFBlock | None = None) -> np.ndarray:
     """Reference implementation of the ``bank`` estimator: ``xhat_k = D(z_k, y_k, u_k)``, ``z_0 = 0``.
 
     Parameters
@@ -525,6 +531,8 @@ def estimate(spec: DecoderSpec, arrays: Mapping[str, Any], y: Any, u: Any, dt: f
         Sample period.
     copies : ModelCopies or None
         The latent's model copies (required where ``arrays`` has ``copies/*``).
+    ekf : EKFBlock or None
+        The latent's augmented EKF block, if any.
 
     Returns
     -------
@@ -533,5 +541,5 @@ def estimate(spec: DecoderSpec, arrays: Mapping[str, Any], y: Any, u: Any, dt: f
     check_copies(arrays, copies)
     bank = bank_from_arrays(arrays)
     y, u, single = as_trials(y, u, bank.ny, bank.nu)
-    xhat = decode(spec, arrays, latent_run(bank, y, u, dt, copies=copies), y, u)
+    xhat = decode(spec, arrays, latent_run(bank, y, u, dt, copies=copies, ekf=ekf), y, u)
     return xhat[0] if single else xhat

@@ -153,6 +153,10 @@ class Networks:
         residual (:mod:`kklcasadi.model.variants.inflation`); None for a model without one.
     inflation_start : numpy.ndarray or None
         Its carried state ``m`` at a run's start (:meth:`kklcasadi.model.variants.inflation.Inflation.initial_state`).
+    exact_only : bool
+        Whether only :attr:`exact_step` runs the latent: part of it is a discrete filter with no continuous-time
+        field (the augmented EKF block of :mod:`kklcasadi.model.variants.ekfblock`), so ``A z + B y + input_term``
+        is not its field there and the RK4 step and the integrator are refused.
     """
 
     encoder: Optional[ca.Function]
@@ -167,6 +171,7 @@ class Networks:
     decoded: Optional[ca.Function] = None
     inflation: Optional[ca.Function] = None
     inflation_start: Optional[np.ndarray] = None
+    exact_only: bool = False
 
 
 class Variant:

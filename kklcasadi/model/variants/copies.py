@@ -51,7 +51,8 @@ from ...plant.rk4 import rk4_step
 from ...plant.systems import System, read_states
 from ...validation import Text, error
 
-__all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count", "read_states", "copy_plants", "copies_plant"]
+__all__ = ["ModelCopies", "BOUND_SCALE", "COPY_ARRAYS", "copy_count", "read_states", "copy_plants", "copies_plant",
+           "fold_step"]
 
 #: Half-width of the clip box of a copy's state, in half-widths of the plant's X0 box (the escape box of
 #: the operational runs, :attr:`kklcasadi.plant.runs.RolloutConfig.escape_scale`).
@@ -64,6 +65,32 @@ def copy_count(arrays: Mapping[str, Any]) -> int:
     """Latents of the model copies in ``arrays`` (``m nk``; 0 where there are none)."""
     gains = arrays.get("copies/gains")
     return 0 if gains is None else int(np.prod(np.shape(gains)[:2]))
+
+
+def fold_step(step: ca.Function, y: np.ndarray, u: np.ndarray, sym: Any = ca.MX) -> np.ndarray:
+    """A latent block's trajectories from ``z_0 = 0`` for many trials: its step ``(z, y, y_next, u) -> z_next`` folded
+    over the samples (``mapaccum``) and mapped over the trials on threads (``sym``: the symbols it is packed with).
+
+    Parameters
+    ----------
+    step : casadi.Function
+    y : numpy.ndarray, shape (M, N, ny)
+    u : numpy.ndarray, shape (M, N, nu)
+
+    Returns
+    -------
+    numpy.ndarray, shape (M, N, nz)
+    """
+    (M, N, ny), nz = y.shape, step.size1_in(0)
+    z = np.zeros((M, N, nz))
+    if N < 2:
+        return z
+    zs, p = sym.sym("z", nz), sym.sym("p", 2 * ny + u.shape[2])                    # p = [y_k; y_k+1; u_k]
+    packed = ca.Function(f"{step.name()}_packed", [zs, p], [step(zs, p[:ny], p[ny:2 * ny], p[2 * ny:])])
+    runs = packed.mapaccum(f"{step.name()}_run", N - 1).map(M, "thread", min(os.cpu_count() or 1, M))
+    params = np.concatenate([y[:, :-1], y[:, 1:], u[:, :-1]], axis=2).reshape(M * (N - 1), -1)
+    z[:, 1:] = np.asarray(runs(np.zeros((nz, M)), params.T)).T.reshape(M, N - 1, nz)
+    return z
 
 
 def copy_plants(system: System, params: Any, m: int) -> list[System]:
@@ -91,7 +118,8 @@ def copy_plants(system: System, params: Any, m: int) -> list[System]:
 
 def copies_plant(card: Mapping[str, Any], where: Any) -> Optional[System]:
     """The nominal plant, fixed from its family (:attr:`System.family`), of a card whose model copies run at
-    parameter values of their own (``architecture.bank.copies.params``); None where they do not. The family is the
+    parameter values of their own (``architecture.bank.copies.params``) or whose latent holds the augmented EKF
+    block (``architecture.bank.ekf``); None where neither. The family is the
     shipped one of the card's ``system.name``, its box the one the card's runs drew from (``training.runs.params``).
 
     Raises
@@ -101,14 +129,18 @@ def copies_plant(card: Mapping[str, Any], where: Any) -> Optional[System]:
     """
     from ...plant import systems
 
-    if "params" not in card["architecture"].get("bank", {}).get("copies", {}):
+    bank = card["architecture"].get("bank", {})
+    if "params" in bank.get("copies", {}):
+        field, what = "architecture.bank.copies.params", "model copies at parameter values"
+    elif "ekf" in bank:
+        field, what = "architecture.bank.ekf", "the augmented EKF block over the parameters"
+    else:
         return None
     name, record = card["system"]["name"], card.get("training", {}).get("runs", {}).get("params")
     if name not in systems.families() or not isinstance(record, Mapping):
-        raise ValueError(f"{where}: 'architecture.bank.copies.params': model copies at parameter values of "
-                         f"{name!r}'s family, which kklcasadi cannot rebuild (a shipped family, the box in the card's "
-                         "training.runs.params). Pass the family: load_observer(path, system=kc.System(..., "
-                         "params=P, param_box=...)).")
+        raise ValueError(f"{where}: '{field}': {what} of {name!r}'s family, which kklcasadi cannot rebuild (a shipped "
+                         "family, the box in the card's training.runs.params). Pass the family: load_observer(path, "
+                         "system=kc.System(..., params=P, param_box=...)).")
     box, nominal = np.asarray(record["box"], dtype=float), np.asarray(record["nominal"], dtype=float)
     family = systems.get(name, param_spread=float(np.max(0.5 * (box[:, 1] - box[:, 0]) / np.abs(nominal))))
     return family.at(family.param_nominal)
@@ -374,16 +406,5 @@ class ModelCopies:
         -------
         numpy.ndarray, shape (M, N, nz)
         """
-        M, N = y.shape[:2]
-        ny = self.system.ny
-        z = np.zeros((M, N, self.nz))
-        if N < 2:
-            return z
-        step = self.step_function(dt)
-        zs, p = ca.SX.sym("z", self.nz), ca.SX.sym("p", 2 * ny + self.system.nu)     # p = [y_k; y_k+1; u_k]
-        packed = ca.Function("copies_packed", [zs, p], [step(zs, p[:ny], p[ny:2 * ny], p[2 * ny:])])
-        runs = packed.mapaccum("copies_run", N - 1).map(M, "thread", min(os.cpu_count() or 1, M))
-        params = np.concatenate([y[:, :-1], y[:, 1:], u[:, :-1]], axis=2).reshape(M * (N - 1), -1)
-        z[:, 1:] = np.asarray(runs(np.zeros((self.nz, M)), params.T)).T.reshape(M, N - 1, self.nz)
-        return z
+        return fold_step(self.step_function(dt), y, u, ca.SX)
 

@@ -20,7 +20,9 @@ tells the decoder how long the observer has run (the latent starts at 0, as the 
 
 The latent may end in model copies of the plant (:class:`kklcasadi.model.variants.copies.ModelCopies`,
 arrays ``copies/*``): their latents follow the filters' in ``z`` (:func:`latent_size`, :func:`latent_run`,
-:func:`latent_step`). The decoder that reads the latent is :mod:`kklcasadi.model.variants.bankdecoder`.
+:func:`latent_step`); then, optionally, the augmented EKF's block
+(:class:`kklcasadi.model.variants.ekfblock.EKFBlock`). The decoder that reads the latent is
+:mod:`kklcasadi.model.variants.bankdecoder`.
 """
 
 from __future__ import annotations
@@ -32,7 +34,9 @@ import casadi as ca
 import numpy as np
 
 from ...nets.hold import FOHMatrices, foh_matrices
+from ...validation import error
 from .copies import ModelCopies, copy_count
+from .ekfblock import EKFBlock
 
 __all__ = ["FilterBank", "bank_arrays", "bank_from_arrays", "latent_size", "latent_run", "latent_step", "as_trials",
            "check_copies"]
@@ -237,16 +241,22 @@ def as_trials(y: Any, u: Any, ny: int, nu: int) -> tuple[np.ndarray, np.ndarray,
 
 
 def latent_step(bank: FilterBank, dt: float, name: str = "latent_step", *,
-                copies: ModelCopies | None = None) -> ca.Function:
-    """CasADi ``(z, y, y_next, u) -> z_next`` (nz,): the filter bank's exact step (:meth:`FilterBank.step_function`)
-    and the model copies' (:meth:`ModelCopies.step_function`), what :func:`latent_run` takes per sample."""
+                copies: ModelCopies | None = None, ekf: EKFBlock | None = None) -> ca.Function:
+    """CasADi ``(z, y, y_next, u) -> z_next`` (nz,): the filter bank's exact step (:meth:`FilterBank.step_function`),
+    the model copies' (:meth:`ModelCopies.step_function`) and the augmented EKF block's
+    (:meth:`EKFBlock.step_function`), what :func:`latent_run` takes per sample."""
     filters = bank.step_function(dt)
-    if copies is None:
+    if copies is None and ekf is None:
         return filters
-    z, u = ca.MX.sym("z", bank.nz + copies.nz), ca.MX.sym("u", bank.nu)
+    parts = [(bank.nz, filters)] + ([] if copies is None else [(copies.nz, copies.step_function(dt))]) \
+        + ([] if ekf is None else [(ekf.nz, ekf.step_function())])
+    z, u = ca.MX.sym("z", sum(n for n, _ in parts)), ca.MX.sym("u", bank.nu)
     y, y_next = ca.MX.sym("y", bank.ny), ca.MX.sym("y_next", bank.ny)
-    z_next = ca.vertcat(filters(z[:bank.nz], y, y_next, u), copies.step_function(dt)(z[bank.nz:], y, y_next, u))
-    return ca.Function(name, [z, y, y_next, u], [z_next], ["z", "y", "y_next", "u"], ["z_next"])
+    out, i = [], 0
+    for n, step in parts:
+        out.append(step(z[i:i + n], y, y_next, u))
+        i += n
+    return ca.Function(name, [z, y, y_next, u], [ca.vertcat(*out)], ["z", "y", "y_next", "u"], ["z_next"])
 
 
 def bank_arrays(bank: FilterBank) -> dict[str, np.ndarray]:
@@ -263,9 +273,10 @@ def bank_from_arrays(arrays: Mapping[str, Any]) -> FilterBank:
     return FilterBank(arrays["bank/A"], arrays["bank/By"], arrays["bank/Bu"], arrays["bank/c"])
 
 
-def latent_size(arrays: Mapping[str, Any]) -> int:
-    """The latent's size: the filter bank's latents and the model copies' (``copies/gains``), if any."""
-    return bank_from_arrays(arrays).nz + copy_count(arrays)
+def latent_size(arrays: Mapping[str, Any], ekf: EKFBlock | None = None) -> int:
+    """The latent's size: the filter bank's latents, the model copies' (``copies/gains``), if any, and the
+    augmented EKF block's (``ekf``; it has no arrays)."""
+    return bank_from_arrays(arrays).nz + copy_count(arrays) + (0 if ekf is None else ekf.nz)
 
 
 def check_copies(arrays: Mapping[str, Any], copies: ModelCopies | None) -> None:
@@ -279,8 +290,9 @@ def check_copies(arrays: Mapping[str, Any], copies: ModelCopies | None) -> None:
 
 
 def latent_run(bank: FilterBank, y: np.ndarray, u: np.ndarray, dt: float, *,
-               copies: ModelCopies | None = None) -> np.ndarray:
-    """The latent from ``z_0 = 0`` for many trials: the filter bank's, then the model copies'.
+               copies: ModelCopies | None = None, ekf: EKFBlock | None = None) -> np.ndarray:
+    """The latent from ``z_0 = 0`` for many trials: the filter bank's, then the model copies', then the augmented
+    EKF block's.
 
     Parameters
     ----------
@@ -290,10 +302,16 @@ def latent_run(bank: FilterBank, y: np.ndarray, u: np.ndarray, dt: float, *,
     dt : float
     copies : ModelCopies or None
         The latent's model copies, if any (a model's: :meth:`kklcasadi.model.variants.bank.BankSpec.model_copies`).
+    ekf : EKFBlock or None
+        The latent's augmented EKF block, if any (a model's: :meth:`kklcasadi.model.variants.bank.BankSpec.ekf_block`;
+        its sample period is ``dt``).
 
     Returns
     -------
     numpy.ndarray, shape (M, N, nz)
     """
-    z = bank.run(y, u, dt)
-    return z if copies is None else np.concatenate([z, copies.run(y, u, dt)], axis=-1)
+    if ekf is not None and ekf.dt != dt:
+        raise error("dt", f"the EKF block's sample period {ekf.dt}", dt)
+    parts = [bank.run(y, u, dt)] + ([] if copies is None else [copies.run(y, u, dt)]) \
+        + ([] if ekf is None else [ekf.run(y, u)])
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=-1)
