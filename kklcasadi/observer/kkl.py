@@ -213,6 +213,7 @@ class KKLObserver:
         self.covariance: Optional[ca.Function] = nets.covariance
         self.inflation: Optional[ca.Function] = nets.inflation
         self.inflation_start = np.zeros(0) if nets.inflation_start is None else nets.inflation_start   # its m_0
+        self.decoded: Optional[ca.Function] = nets.decoded
         self.step, self.step_covariance = self._build_step()
         self.monitor = None if spec.monitor is None else FeatureMonitor.from_arrays(spec.monitor, model.arrays)
         features = self.nz + self.memory_shape[0] * self.memory_shape[1]
@@ -225,7 +226,6 @@ class KKLObserver:
             raise ValueError(f"{model.path / CARD_FILE}: 'monitor.spread': expected a decoder ensemble (a 'bank' with "
                              "architecture.bank.members >= 2) for the spread test, received a single decoder. Remove "
                              "'monitor.spread' or add the members' networks.")
-        self.decoded: Optional[ca.Function] = nets.decoded
         self.domain_check, self.domain_check_of_spread = self._build_domain_check()
         self._trajectories: Optional[Any] = None                  # simulate's compiled trajectories, when first run
 
@@ -264,11 +264,15 @@ class KKLObserver:
         step = ca.Function("step", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next], *names)
         if self.covariance is None:
             return step, None
+        spread = []              # the inflation's spread test: the estimate and the spread from one members' run
+        if self.inflation is not None and self.inflation.n_in() == 6 and self.decoded is not None:
+            xhat_next, s = self.decoded(z_next, w_next)
+            spread = [s]
         P_next, state = self.covariance(z_next, w_next, xhat_next), ca.MX.sym("m", self.inflation_start.size)
         if self.inflation is None:
             return step, ca.Function("step_covariance", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next, P_next],
                                      names[0], names[1] + ["P_next"])
-        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next, z_next)   # the inflation's state m, carried
+        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next, z_next, *spread)   # its state m, carried
         return step, ca.Function("step_covariance", [z, w, y, y_next, u_next, state], [z_next, w_next, xhat_next,
                                  P_next, m_next], names[0] + ["m"], names[1] + ["P_next", "m_next"])
 
