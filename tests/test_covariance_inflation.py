@@ -394,3 +394,115 @@ def test_the_card_refuses_a_bad_model_test_in_one_line(tested, tmp_path, entry, 
     with pytest.raises(ValueError, match=f"{field}.*{expected}") as raised:
         load_model(path)
     assert "\n" not in str(raised.value)
+
+
+# ----------------------------------------------------------------------------- the spread test
+
+SPREAD_TEST = {"S": 1e-5, "time_constant": 0.5, "gain": 0.3, "threshold": 2.0}
+
+
+@pytest.fixture(scope="module")
+def spread_tested(tmp_path_factory):
+    """FitzHugh-Nagumo's shipped bank (a decoder ensemble, a head, its inflation) with a spread test that fires on
+    these runs (``S`` far below the members' squared spread), and the same bank without the inflation (the head
+    alone)."""
+    root = tmp_path_factory.mktemp("spread_test")
+    model = load_model(resolve("fhn/bank"))
+    card = json.loads(json.dumps(model.card))
+    card["architecture"][INFLATION]["spread"] = SPREAD_TEST
+    path = save_model(root / "tested", dict(model.arrays), card)
+    del card["architecture"][INFLATION]
+    return load_observer(path), load_observer(save_model(root / "head", dict(model.arrays), card))
+
+
+def test_the_spread_test_step_against_a_hand_computation(spread_tested):
+    """One step with the carried state ``[m, h]`` written out: ``m``'s residual average (``h = x1``), the spread's
+    average ``h = (1 - a3) h + a3 d^2 / S`` and the factor ``max(1, m) max(1, 1 + gain (h - threshold))``, below and
+    above the threshold."""
+    obs = spread_tested[0]
+    rng = np.random.default_rng(9)
+    z, xhat, A = rng.normal(size=obs.nz), rng.normal(size=2), rng.normal(size=(2, 2))
+    P, y = A @ A.T + 0.1 * np.eye(2), np.array([0.7])
+    inf = obs.model.spec.architecture.inflation
+    a = -np.expm1(-obs.dt / inf.time_constant)
+    a3 = -np.expm1(-obs.dt / SPREAD_TEST["time_constant"])
+    m1 = (1 - a) * 1.3 + a / inf.c * (0.7 - xhat[0]) ** 2 / (P[0, 0] + inf.R[0])
+    for d, fires in ((1e-4, False), (2e-2, True)):
+        m_next, P_out = (np.asarray(v) for v in obs.inflation([1.3, 2.0], y, xhat, P, z, d))
+        h = (1 - a3) * 2.0 + a3 * d ** 2 / SPREAD_TEST["S"]
+        np.testing.assert_allclose(m_next.ravel(), [m1, h], rtol=1e-13)
+        widen = max(1.0, 1 + SPREAD_TEST["gain"] * (h - SPREAD_TEST["threshold"]))
+        assert (widen > 1) == fires
+        np.testing.assert_allclose(P_out, max(1.0, m1) * widen * P, rtol=1e-13)
+    assert obs.inflation_start.tolist() == [1.0, 1.0]
+
+
+def test_the_spread_test_in_simulate_the_record_and_the_estimator_equals_the_reference(spread_tested):
+    obs, head = spread_tested
+    assert obs.step_covariance.size1_in(5) == 2 and obs.step_covariance.size1_out(4) == 2
+    t, y, u = runs(obs, m=3, n=60)
+    a, b = head.simulate(t, y, u, vm=True), obs.simulate(t, y, u, vm=False)
+    shipped = load_observer(resolve("fhn/bank")).simulate(t, y, u, vm=True)
+    np.testing.assert_array_equal(shipped.xhat, b.xhat)             # the estimates: bitwise unchanged
+    np.testing.assert_array_equal(shipped.z, b.z)
+    inf = obs.model.spec.architecture.inflation
+    spread = obs.spread_of(a.z, np.concatenate([y, u], axis=-1)[..., None])   # the bank's memory: [y_k; u_k]
+    lam = inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov, spread=spread)
+    without = inflation_numpy(Inflation(inf.R, inf.c, inf.time_constant), obs.system, obs.dt, y, a.xhat, a.cov)
+    assert np.all(lam[:, 0] == 1) and np.all(lam >= without) and np.mean(lam > without) > 0.5   # the test fires
+    np.testing.assert_allclose(b.cov, lam[..., None, None] * a.cov, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(obs.simulate(t, y, u, vm=True).cov, b.cov)
+    np.testing.assert_array_equal(CompiledRecord(obs).record(t, y, u)[2], b.cov)
+    stepper = obs.estimator()
+    for k in range(t.size):
+        stepper.make_step(y[1, k], u[1, k])
+        np.testing.assert_allclose(stepper.cov, b.cov[1, k], rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match=r"^spread: expected the decoder ensemble's spread"):
+        inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov)
+
+
+@needs_gcc
+@pytest.mark.parametrize("math, tol", [("libm", 0.0), ("vector", 1e-12)])
+def test_the_c_step_carries_the_spread_tests_state(spread_tested, tmp_path, math, tol):
+    """C equals the CasADi VM with the state ``[m, h]`` fed back over 12 steps (bitwise with the C library's math)."""
+    obs = spread_tested[0]
+    files = generate_c(obs, tmp_path, "st", math=math)
+    header = files[1].read_text()
+    assert "#define ST_NM 2" in header and "#define ST_M0 {1.0, 1.0}" in header
+    library = tmp_path / "libst.so"
+    subprocess.run([GCC, "-std=c99", "-O1", "-fPIC", "-shared", str(files[0]), "-o", str(library), "-lm"], check=True)
+    step = ca.external("st_step", str(library))
+    rng = np.random.default_rng(7)
+    m_vm = c_against_vm(obs, step, rng, 0.3 * rng.normal(size=obs.nz), 1.0, tol)
+    assert m_vm[1].item() > 1.0
+
+
+@pytest.mark.parametrize("entry, field, expected", [
+    ({**SPREAD_TEST, "S": 0.0}, r"architecture\.inflation\.spread\.S", r"a finite number > 0"),
+    ({**SPREAD_TEST, "time_constant": 0.0}, r"architecture\.inflation\.spread\.time_constant",
+     r"a finite number > 0"),
+    ({**SPREAD_TEST, "gain": "2"}, r"architecture\.inflation\.spread\.gain", r"a finite number > 0"),
+    ({**SPREAD_TEST, "threshold": -0.5}, r"architecture\.inflation\.spread\.threshold", r"a finite number >= 0"),
+    ({"S": 1e-5, "gain": 1.0}, r"architecture\.inflation\.spread", r"exactly the keys \['S', 'time_constant'"),
+    ([1e-5], r"architecture\.inflation\.spread", r"exactly the keys"),
+])
+def test_the_card_refuses_a_bad_spread_test_in_one_line(spread_tested, tmp_path, entry, field, expected):
+    path = tmp_path / "bad"
+    shutil.copytree(spread_tested[0].model.path, path)
+    card = json.loads(json.dumps(load_model(path).card))
+    card["architecture"][INFLATION]["spread"] = entry
+    write_signed_card(path, card)
+    with pytest.raises(ValueError, match=f"{field}.*{expected}") as raised:
+        load_model(path)
+    assert "\n" not in str(raised.value)
+
+
+def test_a_spread_test_without_a_decoder_ensemble_is_refused(pair):
+    path = pair[1].model.path
+    card = json.loads(json.dumps(load_model(path).card))
+    assert card["architecture"]["bank"].get("members", 1) == 1
+    card["architecture"][INFLATION]["spread"] = SPREAD_TEST
+    write_signed_card(path, card)
+    with pytest.raises(ValueError, match=r"architecture\.inflation\.spread.*a decoder ensemble") as raised:
+        load_model(path)
+    assert "\n" not in str(raised.value)
