@@ -305,10 +305,15 @@ def tested(tmp_path_factory):
     """Duffing's shipped bank (model copies, a head, its inflation) with a model test that fires on these runs
     (``S`` far below the innovations' low-passed square, ``start`` 0.5 s), and the same bank without the inflation
     (the head alone)."""
-    root = tmp_path_factory.mktemp("model_test")
-    model = load_model(resolve("duffing/bank"))
+    return shipped_with(tmp_path_factory.mktemp("model_test"), "duffing", "model", MODEL_TEST)
+
+
+def shipped_with(root, system, key, entry):
+    """``system``'s shipped bank with ``architecture.inflation[key] = entry``, and the same bank without the inflation
+    (the head alone), saved under ``root`` and loaded."""
+    model = load_model(resolve(f"{system}/bank"))
     card = json.loads(json.dumps(model.card))
-    card["architecture"][INFLATION]["model"] = MODEL_TEST
+    card["architecture"][INFLATION][key] = entry
     path = save_model(root / "tested", dict(model.arrays), card)
     del card["architecture"][INFLATION]
     return load_observer(path), load_observer(save_model(root / "head", dict(model.arrays), card))
@@ -358,17 +363,22 @@ def test_the_model_test_in_simulate_the_record_and_the_estimator_equals_the_refe
         np.testing.assert_allclose(stepper.cov, b.cov[1, k], rtol=1e-12, atol=0)
 
 
+def c_step_of_state(obs, tmp_path, name, math, start):
+    """The generated C step of ``obs`` as a CasADi external, its header checked for the carried state ``start``."""
+    files = generate_c(obs, tmp_path, name, math=math)
+    header, macro = files[1].read_text(), name.upper()
+    assert f"#define {macro}_NM {len(start)}" in header and f"#define {macro}_M0 {{{', '.join(start)}}}" in header
+    library = tmp_path / f"lib{name}.so"
+    subprocess.run([GCC, "-std=c99", "-O1", "-fPIC", "-shared", str(files[0]), "-o", str(library), "-lm"], check=True)
+    return ca.external(f"{name}_step", str(library))
+
+
 @needs_gcc
 @pytest.mark.parametrize("math, tol", [("libm", 0.0), ("vector", 1e-12)])
 def test_the_c_step_carries_the_model_tests_state(tested, tmp_path, math, tol):
     """C equals the CasADi VM with the 4-number state fed back over 12 steps (bitwise with the C library's math)."""
     obs = tested[0]
-    files = generate_c(obs, tmp_path, "mt", math=math)
-    header = files[1].read_text()
-    assert "#define MT_NM 4" in header and "#define MT_M0 {1.0, 0.0, 1.0, 0.0}" in header
-    library = tmp_path / "libmt.so"
-    subprocess.run([GCC, "-std=c99", "-O1", "-fPIC", "-shared", str(files[0]), "-o", str(library), "-lm"], check=True)
-    step = ca.external("mt_step", str(library))
+    step = c_step_of_state(obs, tmp_path, "mt", math, ["1.0", "0.0", "1.0", "0.0"])
     rng = np.random.default_rng(6)
     m_vm = c_against_vm(obs, step, rng, 0.3 * rng.normal(size=obs.nz), 1.0, tol)
     assert m_vm[3].item() == pytest.approx(12 * obs.dt) and m_vm[2].item() > 1.0
@@ -406,13 +416,7 @@ def spread_tested(tmp_path_factory):
     """FitzHugh-Nagumo's shipped bank (a decoder ensemble, a head, its inflation) with a spread test that fires on
     these runs (``S`` far below the members' squared spread), and the same bank without the inflation (the head
     alone)."""
-    root = tmp_path_factory.mktemp("spread_test")
-    model = load_model(resolve("fhn/bank"))
-    card = json.loads(json.dumps(model.card))
-    card["architecture"][INFLATION]["spread"] = SPREAD_TEST
-    path = save_model(root / "tested", dict(model.arrays), card)
-    del card["architecture"][INFLATION]
-    return load_observer(path), load_observer(save_model(root / "head", dict(model.arrays), card))
+    return shipped_with(tmp_path_factory.mktemp("spread_test"), "fhn", "spread", SPREAD_TEST)
 
 
 def test_the_spread_test_step_against_a_hand_computation(spread_tested):
@@ -466,12 +470,7 @@ def test_the_spread_test_in_simulate_the_record_and_the_estimator_equals_the_ref
 def test_the_c_step_carries_the_spread_tests_state(spread_tested, tmp_path, math, tol):
     """C equals the CasADi VM with the state ``[m, h]`` fed back over 12 steps (bitwise with the C library's math)."""
     obs = spread_tested[0]
-    files = generate_c(obs, tmp_path, "st", math=math)
-    header = files[1].read_text()
-    assert "#define ST_NM 2" in header and "#define ST_M0 {1.0, 1.0}" in header
-    library = tmp_path / "libst.so"
-    subprocess.run([GCC, "-std=c99", "-O1", "-fPIC", "-shared", str(files[0]), "-o", str(library), "-lm"], check=True)
-    step = ca.external("st_step", str(library))
+    step = c_step_of_state(obs, tmp_path, "st", math, ["1.0", "1.0"])
     rng = np.random.default_rng(7)
     m_vm = c_against_vm(obs, step, rng, 0.3 * rng.normal(size=obs.nz), 1.0, tol)
     assert m_vm[1].item() > 1.0
