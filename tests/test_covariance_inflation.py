@@ -20,7 +20,14 @@ from kklcasadi.evaluation.compiled import CompiledRecord
 from kklcasadi.model.files import load_model, save_model
 from kklcasadi.model.shipped import resolve
 from kklcasadi.model.variants.covariance import COVARIANCE, SCALE, array_shapes
-from kklcasadi.model.variants.inflation import INFLATION, CopyLayout, Inflation, inflation_numpy, residual_statistic
+from kklcasadi.model.variants.inflation import (
+    INFLATION,
+    CopyLayout,
+    Inflation,
+    inflation_numpy,
+    residual_statistic,
+    spread_factor,
+)
 from kklcasadi.nets.specs import MLPSpec
 from kklcasadi.observer.codegen import generate_c
 from kklcasadi.observer.kkl import load_observer
@@ -252,7 +259,9 @@ def test_the_shipped_inflation_is_near_1_in_distribution_and_detects_doubled_noi
     seed 12: 1.04-1.09), at twice the noise (process and measurement) at least 3 (the errors' variance is about 4x).
     Where the card has the model test (Duffing's and Van der Pol's banks), the whole factor is the residual's times
     the test's, which is 1 on most samples at the protocol's noise (median at most 1.05) and reads the doubled noise
-    in ``m``, not again (mean at most 6)."""
+    in ``m``, not again (mean at most 6). Where it has the spread test (FitzHugh-Nagumo's bank), the factor is the
+    residual's times the test's (the reference with the members' spread), which is 1 on most samples at both noise
+    levels (the test reads inputs beyond the head's fit, not the noise: median 1)."""
     from kklcasadi.evaluation.protocol import Protocol
     from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, decoder_features
     from kklcasadi.model.variants.covariance import covariance_numpy
@@ -273,6 +282,10 @@ def test_the_shipped_inflation_is_near_1_in_distribution_and_detects_doubled_noi
         inf = model.spec.architecture.inflation
         residual = inflation_numpy(Inflation(inf.R, inf.c, inf.time_constant), obs.system, obs.dt, y, est.xhat, P)
         assert low <= residual.mean() <= high, (system, noise, residual.mean())
+        if inf.spread is not None:
+            widen = spread_factor(inf.spread, obs.dt, obs.spread_of(est.z, np.concatenate([y, u], axis=-1)[..., None]))
+            assert np.median(widen) == 1.0, (system, noise, np.mean(widen))
+            residual = residual * widen
         if inf.model is None:
             np.testing.assert_allclose(lam, residual, rtol=1e-9)
         else:
