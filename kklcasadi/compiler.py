@@ -17,6 +17,7 @@ keeps compilers from fusing multiply-adds on targets that have FMA).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import shutil
@@ -31,7 +32,8 @@ import casadi as ca
 
 from .cache import cache_root
 
-__all__ = ["Compiler", "CompilerWarning", "Build", "compile_function", "DEFAULT_FLAGS", "children_cpu", "c_name"]
+__all__ = ["Compiler", "CompilerWarning", "Build", "compile_function", "DEFAULT_FLAGS", "children_cpu", "c_name",
+           "code_digest"]
 
 #: Portable optimisation flags; ``-fPIC -shared`` are always added.
 DEFAULT_FLAGS = ("-O3", "-ffp-contract=off")
@@ -174,6 +176,50 @@ class Compiler:
         key = hashlib.sha256("\0".join((text, self.command, *self.flags)).encode()).hexdigest()
         return Build(f.name(), self.directory / f"{f.name()}_{key[:24]}.so", text, (compiler, *self.flags))
 
+    def build_known(self, identity: Optional[str], make: Callable[[], ca.Function]) -> Build:
+        """The :class:`Build` of ``make()``, without calling ``make`` where a library built for ``identity`` is cached.
+
+        ``identity`` must determine the Function ``make()`` returns completely (its caller's inputs to it and the
+        code that builds it: :func:`code_digest`); building some Functions (a long trajectory's sparsity, its C
+        source) takes seconds, and this skips both on a warm cache. The index (``index/`` of the cache directory,
+        one small file per identity, compiler, flags and :attr:`postprocess`) names the library the source-keyed
+        :meth:`build` chose; an index whose library is gone, or ``identity`` None, or a :attr:`postprocess` without
+        a module-level name (a lambda or closure, which no name identifies), builds as :meth:`build` does.
+
+        Parameters
+        ----------
+        identity : str or None
+        make : callable ``() -> casadi.Function``
+
+        Raises
+        ------
+        FileNotFoundError
+            The compiler is not on ``PATH``.
+        """
+        index = self._index(identity)
+        if index is not None and index.is_file():
+            name, _, library = index.read_text().partition("\n")
+            path = self.directory / library.strip()
+            if name.isidentifier() and path.parent == self.directory and path.is_file():
+                return Build(name, path, "", (self.command, *self.flags))
+        build = self.build(make())
+        if index is not None:
+            index.parent.mkdir(parents=True, exist_ok=True)
+            with tempfile.NamedTemporaryFile("w", dir=index.parent, prefix=".index-", delete=False) as temp:
+                temp.write(f"{build.name}\n{build.library.name}\n")
+            os.replace(temp.name, index)
+        return build
+
+    def _index(self, identity: Optional[str]) -> Optional[Path]:
+        """The index file of ``identity`` under this compiler's settings, or None where none can be trusted."""
+        hook = self.postprocess
+        named = hook is None or ("<" not in hook.__qualname__ and "." not in hook.__qualname__)
+        if identity is None or not named:
+            return None
+        hook_name = "" if hook is None else f"{hook.__module__}.{hook.__qualname__}"
+        key = hashlib.sha256("\0".join((identity, ca.CasadiMeta.version(), self.command, *self.flags, hook_name)).encode())
+        return self.directory / "index" / key.hexdigest()[:32]
+
     def library(self, f: ca.Function) -> Path:
         """Compile ``f`` (or find it in the cache); the path of its shared library.
 
@@ -230,6 +276,18 @@ def compile_function(f: ca.Function, *, command: str = "gcc", flags: tuple = DEF
         The compiled Function (``ca.external``), or ``f`` when the compiler is missing.
     """
     return Compiler(command, flags, cache_dir, postprocess).compile(f)
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """SHA-256 of kklcasadi's own code (every ``.py`` and ``.c`` file of the package, by relative path): part of
+    an identity for :meth:`Compiler.build_known`, so that a changed package never reuses a library it built
+    before (computed once per process)."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".c") and "__pycache__" not in p.parts):
+        digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
 
 
 def children_cpu(before: os.times_result) -> float:

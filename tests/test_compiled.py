@@ -343,3 +343,129 @@ def test_bench_protocol_times_each_method_cold_and_warm_against_the_plain_step_a
         bench_protocol("duffing", n_trials=2, vm_trials=3)
     with pytest.raises(ValueError, match="plain_trials: expected an int in"):
         bench_protocol("duffing", n_trials=2, vm_trials=1, plain_trials=3)
+
+
+def _has_avx2_fma() -> bool:
+    try:
+        flags = open("/proc/cpuinfo").read()
+    except OSError:
+        return False
+    return " avx2" in flags and " fma" in flags
+
+
+@needs_gcc
+@pytest.mark.skipif(not _has_avx2_fma(), reason="the fused kernels run where the CPU has AVX2 and FMA")
+@pytest.mark.parametrize("shape", [(32, 9), (20, 150), (7, 5)])
+def test_the_fused_kernels_round_each_multiply_add_once(tmp_path, shape):
+    """fast_kernels' mat-vec, against an exact rational reference: each vector row is summed over k in
+    ascending order, ``v = round(v + x_jk y_k)`` (one rounding per multiply-add, FMA); the rows that a block
+    leaves to scalars (7 rows: 4 in a vector, 3 scalars) as ``round(v + round(x_jk y_k))``; the bitwise kernels
+    (axpy_matvec) as the VM."""
+    from fractions import Fraction
+
+    from kklcasadi.observer.codegen import axpy_matvec, fast_kernels
+
+    nrow, ncol = shape
+    rng = np.random.default_rng(7)
+    W, b = rng.normal(size=(nrow, ncol)), rng.normal(size=nrow)
+    y = ca.MX.sym("y", ncol)
+    f = ca.Function("mv", [y], [ca.mtimes(ca.DM(W), y) + ca.DM(b)])
+    yv = rng.normal(size=ncol)
+    vm = np.asarray(f(yv)).ravel()
+    fused = np.asarray(Compiler(cache_dir=tmp_path, postprocess=fast_kernels).compile(f)(yv)).ravel()
+    plain = np.asarray(Compiler(cache_dir=tmp_path, postprocess=axpy_matvec).compile(f)(yv)).ravel()
+    np.testing.assert_array_equal(plain, vm)
+    block = min(16, nrow)                                    # the kernels' register blocks of outputs
+    full, tail = (nrow // block) * block, nrow % block
+    expected = np.empty(nrow)
+    for j in range(nrow):
+        in_vector = j % block < block // 4 * 4 if j < full else j - full < tail // 4 * 4
+        v = 0.0
+        for k in range(ncol):
+            if in_vector:
+                v = float(Fraction(v) + Fraction(W[j, k]) * Fraction(yv[k]))
+            else:
+                v = v + W[j, k] * yv[k]
+        expected[j] = v + b[j]
+    np.testing.assert_array_equal(fused, expected)
+    assert np.max(np.abs(fused - vm) / (1 + np.abs(vm))) <= 1e-14
+    if ncol > 50:
+        assert np.any(fused != vm)       # the fused kernel ran: long sums round differently
+
+
+@needs_gcc
+@pytest.mark.skipif(not _has_avx2_fma(), reason="the fused kernels run where the CPU has AVX2 and FMA")
+def test_the_fused_exp_and_tanh_keep_their_ulp_bounds(tmp_path):
+    """fast_kernels' exp and tanh, whose polynomials fuse their multiply-adds in the AVX2 version: within 1 ulp
+    (exp) and 3 ulp (tanh) of numpy, NaN and infinities as the C library (the unfused bounds, docs/design.md)."""
+    from kklcasadi.observer.codegen import fast_kernels
+
+    x = ca.MX.sym("x", 64)
+    f = ca.Function("vmath", [x], [ca.vertcat(ca.exp(x), ca.tanh(x))])
+    compiler = Compiler(cache_dir=tmp_path, postprocess=fast_kernels)
+    assert "fma(q, r, " in compiler.source(f)
+    rng = np.random.default_rng(0)
+    special = [0.0, -0.0, np.inf, -np.inf, np.nan, 709.78, 709.79, 710.0, -707.0, -708.5, -745.0,
+               -745.2, -746.0, 5e-324, 1e-300, -1e-300, 19.06, 19.1, 20.0, -20.0, 0.3465, -0.3466]
+    points = np.concatenate([rng.uniform(-1, 1, 6000), rng.uniform(-30, 30, 6000), rng.uniform(-750, 750, 6000),
+                             rng.choice([-1, 1], 1960) * 10.0 ** rng.uniform(-320, 0, 1960), special, [0.5] * 50])
+    X = points.reshape(-1, 64).T
+    out = np.asarray(compiler.compile(f.map(X.shape[1]))(X))
+    got_exp, got_tanh = out[:64].T.ravel(), out[64:].T.ravel()
+    with np.errstate(over="ignore"):
+        for got, want, ulps in ((got_exp, np.exp(points), 1), (got_tanh, np.tanh(points), 3)):
+            finite = np.isfinite(want)
+            assert np.array_equal(np.isnan(got), np.isnan(want))
+            assert np.array_equal(got[~finite & ~np.isnan(want)], want[~finite & ~np.isnan(want)])
+            scale = np.spacing(np.maximum(np.abs(want[finite]), np.finfo(float).tiny))
+            assert np.max(np.abs(got[finite] - want[finite]) / scale) <= ulps
+
+
+@needs_gcc
+@pytest.mark.parametrize("variant", ["obs", "inject", "bank"])
+def test_a_warm_library_cache_skips_building_the_trajectory(model_dir_factory, tmp_path, monkeypatch, variant):
+    """A second estimator of the same observer finds its library through the index without building the trajectory
+    (what a warm kklcasadi evaluate's compile phase spent its seconds on), bitwise the first's estimates; another
+    observer, other options, other package code or a vanished library build their own."""
+    from kklcasadi.evaluation.compiled import estimators as module
+    from kklcasadi.observer.codegen import fast_kernels
+
+    method, options = VARIANTS[variant]
+    path = model_dir_factory(method, **options)
+    compiler = Compiler(cache_dir=tmp_path, postprocess=fast_kernels)
+    t, y, u = _trials(load_observer(path).system)
+    first = observer_estimator(load_observer(path), compiler=compiler)
+    expected = first(t, y, u)
+    assert len(list((tmp_path / "index").iterdir())) == 1
+
+    def refuse(self, n, group=1):
+        raise AssertionError("the trajectory was built although its library is cached")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(module.CompiledObserver, "trajectory", refuse)
+        again = observer_estimator(load_observer(path), compiler=compiler)
+        np.testing.assert_array_equal(again(t, y, u), expected)
+        precompile([observer_estimator(load_observer(path), compiler=compiler)], t.size)   # precompile too
+        for other in (observer_estimator(load_observer(path), compiler=compiler, shortcuts=False),
+                      observer_estimator(load_observer(model_dir_factory(method, seed=1, **options)),
+                                         compiler=compiler)):
+            with pytest.raises(AssertionError, match="was built"):
+                other(t, y, u)
+        patch.setattr(module, "code_digest", lambda: "another package")
+        with pytest.raises(AssertionError, match="was built"):
+            observer_estimator(load_observer(path), compiler=compiler)(t, y, u)
+    for library in tmp_path.glob("*.so"):
+        library.unlink()                                       # the index names a library that is gone
+    np.testing.assert_array_equal(observer_estimator(load_observer(path), compiler=compiler)(t, y, u), expected)
+
+
+@needs_gcc
+def test_no_index_for_a_hook_that_no_name_identifies(model_dir_factory, tmp_path):
+    """A lambda as postprocess (two lambdas share a name): every estimator builds from the source, no index."""
+    from kklcasadi.observer.codegen import fast_kernels
+
+    obs = load_observer(model_dir_factory("inject", base=True))
+    t, y, u = _trials(obs.system)
+    compiler = Compiler(cache_dir=tmp_path, postprocess=lambda source: fast_kernels(source))
+    observer_estimator(obs, compiler=compiler)(t, y, u)
+    assert not (tmp_path / "index").exists() and len(list(tmp_path.glob("*.so"))) == 1

@@ -3,7 +3,8 @@ docs/protocol.md cells.
 
 Trials come from the on-disk trial cache (simulated once per cell, while the C compiler builds the
 estimators); observers, the EKF and the particle filter run as compiled code mapped over the trials
-on threads, with the vectorised exp/tanh (within 1e-14 of the VM; ``--math libm``: bitwise the VM;
+on threads, with the vectorised exp/tanh and, where the CPU has FMA, mat-vecs summed with fused
+multiply-adds (within 1e-14 of the VM; ``--math libm``: bitwise the VM;
 ``--vm``: the CasADi VM itself). An observer sees the noise-free and noisy cells of a regime in one
 call, so that the work its inputs alone decide is done once for both (the same scores).
 ``--profile`` prints where the time went.
@@ -75,8 +76,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--vm", action="store_true", help="run the observers in the CasADi VM instead of compiled C "
                    "(the reference path; same values, slower)")
     e.add_argument("--math", default="vector", choices=("vector", "libm"),
-                   help="exp/tanh of the compiled observers: vectorised, within 1e-14 of the VM (default), or the C "
-                   "library's, bitwise the VM")
+                   help="arithmetic of the compiled observers: vectorised exp/tanh and fused multiply-adds in the "
+                   "mat-vecs, within 1e-14 of the VM (default), or the C library's exp/tanh and unfused sums, "
+                   "bitwise the VM")
     e.add_argument("--threads", type=positive_int, help="worker threads over trials and C compilers at a time "
                    "(default: the CPU count)")
     e.add_argument("--profile", action="store_true", help="print where the time went (compile, simulate or read "

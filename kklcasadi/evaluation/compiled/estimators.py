@@ -10,6 +10,7 @@ each is bitwise its reference path (``obs.simulate``, ``ekf.simulate``).
 
 from __future__ import annotations
 
+import hashlib
 import os
 import time
 from abc import ABC, abstractmethod
@@ -19,7 +20,7 @@ from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence
 import casadi as ca
 import numpy as np
 
-from ...compiler import Compiler, c_name, children_cpu
+from ...compiler import Compiler, c_name, children_cpu, code_digest
 from ...model.variants.inflation import fold
 from ..protocol import Profile, phase
 from .shortcuts import reuse_decoded, skip_at_zero_input, split_step
@@ -94,13 +95,22 @@ class CompiledEstimator(ABC):
     def initial_state(self) -> np.ndarray:
         """The ``s0`` (ns,) every trial starts from."""
 
+    def identity(self, n: int, group: int = 1) -> Optional[str]:
+        """A string that determines :meth:`trajectory` ``(n, group)`` completely, with which a warm library cache
+        skips building it (:meth:`Compiler.build_known`); None (this default): build it every time."""
+        return None
+
     def function(self, n: int, group: int = 1) -> ca.Function:
         """:meth:`trajectory` as it runs: compiled (cached per ``n`` and ``group``), or the VM Function."""
         if (n, group) not in self._functions:
             children = os.times()
             with phase(self.profile, "compile"):
-                f = self.trajectory(n, group)
-                self._functions[n, group] = f if self.compiler is None else self.compiler.compile(f)
+                if self.compiler is None or not self.compiler.available():
+                    f = self.trajectory(n, group)       # the VM (a missing compiler says so)
+                    self._functions[n, group] = f if self.compiler is None else self.compiler.compile(f)
+                else:
+                    self._functions[n, group] = self.compiler.build_known(
+                        self.identity(n, group), lambda: self.trajectory(n, group)).load()
             if self.profile is not None:
                 self.profile.add("compile", 0.0, children_cpu(children))
         return self._functions[n, group]
@@ -239,6 +249,16 @@ class CompiledObserver(CompiledEstimator):
             xhat = steps(ca.repmat(z0, 1, group), w0, key0, s0, *carried, y[:, :group * (n - 1)], y[:, group:],
                          u[:, 1:])[4]
         return ca.Function(name, [y, u, z0], [ca.horzcat(first, xhat)], ["y", "u", "s0"], ["xhat"])
+
+    def identity(self, n: int, group: int = 1) -> str:
+        """The package's code, the options and ``n``, ``group``, and the observer's Functions serialised (its
+        step, memory, decoder and model-based injection: what :meth:`trajectory` and the shortcuts are built from)."""
+        obs = self.observer
+        digest = hashlib.sha256("\0".join((code_digest(), type(self).__name__, obs.system.name, obs.method, str(n),
+                                           str(group), str(self.shortcuts))).encode())
+        for f in (obs.step, obs.memory_init, obs.decode, obs.model_injection):
+            digest.update(b"\0" + (b"none" if f is None else f.serialize().encode()))
+        return digest.hexdigest()
 
     def _group_step(self, group: int) -> ca.Function:
         """One sample of ``group`` trials with the same inputs, the shared part memoised.
@@ -488,7 +508,7 @@ def precompile(estimators: Sequence[CompiledEstimator], n: int, *, groups: Seque
                 est.function(n, size)                              # the VM, with the compiler's warning
                 continue
             wall, cpu = time.perf_counter(), time.process_time()
-            build = est.compiler.build(est.trajectory(n, size))
+            build = est.compiler.build_known(est.identity(n, size), lambda: est.trajectory(n, size))
             pending.append((est, size, build, time.perf_counter() - wall, time.process_time() - cpu))
     children = os.times()
     with ThreadPoolExecutor(max(1, jobs or os.cpu_count() or 1)) as pool:

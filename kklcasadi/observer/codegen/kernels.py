@@ -96,11 +96,13 @@ def vector_math_c(functions: Sequence[str] = ("exp", "tanh")) -> str:
     return template("math_constants") + code.replace("KKLCV_", "kklc_")
 
 
-def _block_code(rows: int, ncol: int, nrow: int, width: int, indent: str) -> list[str]:
+def _block_code(rows: int, ncol: int, nrow: int, width: int, indent: str, fused: bool = False) -> list[str]:
     """``z[j..j+rows-1] += x[j.., :] y``, with ``rows // width`` vector accumulators of
     ``width`` doubles (``kklc_v4``, when ``width`` is 4) and scalars for the rest (``j``,
     ``x``, ``y``, ``z``, ``xk``, ``k`` in scope). Every sum runs over ``k`` in ascending order
-    from ``z``'s value, as casadi_mtimes_dense's does: the same results bit for bit."""
+    from ``z``'s value, as casadi_mtimes_dense's does: the same results bit for bit, unless
+    ``fused``, where the vector accumulators take each product and sum in one fused
+    multiply-add (one rounding instead of two: within :data:`VECTOR_MATH_TOLERANCE`, not bitwise)."""
     vectors, scalars = _accumulators(rows, width)
     lines = [f"{indent}memcpy(&v{r}, z + j + {r * width}, sizeof yv);" for r in range(vectors)]
     lines += [f"{indent}a{r} = z[j + {r}];" for r in scalars]
@@ -110,7 +112,7 @@ def _block_code(rows: int, ncol: int, nrow: int, width: int, indent: str) -> lis
         lines.append(f"{indent}  yv = (kklc_v4) {{yk, yk, yk, yk}};")
     for r in range(vectors):
         lines += [f"{indent}  memcpy(&w{r}, xk + {r * width}, sizeof yv);",
-                  f"{indent}  v{r} += w{r} * yv;"]
+                  f"{indent}  v{r} = kklc_fma4(w{r}, yv, v{r});" if fused else f"{indent}  v{r} += w{r} * yv;"]
     lines += [f"{indent}  a{r} += xk[{r}] * yk;" for r in scalars]
     lines.append(f"{indent}}}")
     lines += [f"{indent}memcpy(z + j + {r * width}, &v{r}, sizeof yv);" for r in range(vectors)]
@@ -123,8 +125,10 @@ def _matvec_kernel(name: str, nrow: int, ncol: int, ncol_y: int, version: str) -
     ``x`` (column-major), exactly as ``casadi_mtimes_dense(x, nrow, ncol, y, ncol_y, z, 0)``
     when ``z`` overlaps neither ``x`` nor ``y``. A block of outputs is summed in registers:
     scalars that compilers pair into SSE2 vectors in the portable version (``"c"``), explicit
-    AVX2 vectors (gcc vector extensions) in the ``"avx2"`` version."""
-    width = 4 if version == "avx2" else 1
+    AVX2 vectors (gcc vector extensions) in the ``"avx2"`` version, and the same with fused
+    multiply-adds in the ``"fma"`` version (not bitwise: see :func:`_block_code`)."""
+    width = 1 if version == "c" else 4
+    fused = version == "fma"
     block = min(_BLOCK, nrow)
     tail = nrow % block
     n_vectors, scalars = _accumulators(block, width)
@@ -144,10 +148,10 @@ def _matvec_kernel(name: str, nrow: int, ncol: int, ncol_y: int, version: str) -
              *declarations,
              f"  for (i = 0; i < {ncol_y}; ++i, y += {ncol}, z += {nrow}) {{",
              f"    for (j = 0; j + {block} <= {nrow}; j += {block}) {{",
-             *_block_code(block, ncol, nrow, width, "      "),
+             *_block_code(block, ncol, nrow, width, "      ", fused),
              "    }"]
     if tail:
-        lines += [f"    j = {nrow - tail};", *_block_code(tail, ncol, nrow, width, "    ")]
+        lines += [f"    j = {nrow - tail};", *_block_code(tail, ncol, nrow, width, "    ", fused)]
     lines += ["  }", "}"]
     return "\n".join(lines) + "\n"
 
@@ -160,21 +164,27 @@ def _entry(name: str, params: str, args: str, dispatch: bool, guard: str = "") -
             f"  kklc_c_{name}({args});\n}}\n")
 
 
-def _versions(code: Callable[[str], str], dispatch: bool) -> str:
+def _versions(code: Callable[[str], str], dispatch: bool, fused: bool) -> str:
     """``code(version)``'s KKLCV_ functions as the portable kklc_c_ and, under KKLC_DISPATCH, as
-    the AVX2 kklc_avx2_ functions."""
+    the AVX2 kklc_avx2_ functions (where ``fused``, the mat-vec kernels' and the exp/tanh polynomials'
+    multiply-adds fused: ``KKLC_MADD(a, b, c)``, ``a * b + c`` elsewhere, as C99's ``fma``)."""
     portable = code("c").replace("KKLCV_", "kklc_c_")
     if not dispatch:
         return portable
-    avx2 = (code("avx2").replace("KKLCV_", "kklc_avx2_")
+    avx2 = code("fma" if fused else "avx2")
+    if fused:
+        avx2 = avx2.replace("KKLC_MADD(", "fma(")
+    avx2 = (avx2.replace("KKLCV_", "kklc_avx2_")
             .replace("\nstatic ", "\nKKLC_AVX2 static "))
     return f"{portable}\n#ifdef KKLC_DISPATCH\n{avx2}#endif\n"
 
 
-def rewrite(source: str, matvec: bool, math: bool, dispatch: bool) -> str:
+def rewrite(source: str, matvec: bool, math: bool, dispatch: bool, *, fused: bool = False) -> str:
     """Replace the dense mat-vec calls by axpy kernels (``matvec``, bitwise equal) and the C
     library's exp and tanh by vectorisable ones (``math``, within 3 ulp); ``dispatch`` adds the
-    AVX2 versions. Returns ``source`` unchanged when there is nothing to replace."""
+    AVX2 versions, ``fused`` (with ``dispatch``) makes their mat-vec kernels sum with fused
+    multiply-adds, used where the CPU has AVX2 and FMA (within :data:`VECTOR_MATH_TOLERANCE`, not
+    bitwise). Returns ``source`` unchanged when there is nothing to replace."""
     shapes: dict[tuple[int, int, int], str] = {}
     used: set[str] = set()
     scalar: set[str] = set()
@@ -229,8 +239,9 @@ def rewrite(source: str, matvec: bool, math: bool, dispatch: bool) -> str:
         return math_code + "".join("\n" + _matvec_kernel(name, *shape, version)
                                    for shape, name in sorted(shapes.items()))
 
-    helpers = ((template("dispatch") if dispatch else "") + (template("overlap") if shapes else "")
-               + (template("math_constants") if used else "") + _versions(code, dispatch) + entries)
+    fuse = "#define KKLC_FUSED 1\n" if fused and dispatch else ""
+    helpers = (fuse + (template("dispatch") if dispatch else "") + (template("overlap") if shapes else "")
+               + (template("math_constants") if used else "") + _versions(code, dispatch, fused) + entries)
     source = source[:anchor.end()] + helpers + source[anchor.end():]
     return source.replace(_MATH_INCLUDE, _MATH_INCLUDE + "#include <stdint.h>\n"
                           "#include <string.h>\n", 1)
@@ -273,13 +284,16 @@ def axpy_matvec(source: str) -> str:
 
 
 def fast_kernels(source: str) -> str:
-    """``source`` with the axpy mat-vec kernels, the vectorisable exp/tanh and their AVX2 versions.
+    """``source`` with the axpy mat-vec kernels, the vectorisable exp/tanh and their AVX2 versions, whose
+    mat-vec kernels sum with fused multiply-adds where the CPU has FMA.
 
-    As :func:`generate_c`'s defaults: within :data:`VECTOR_MATH_TOLERANCE` of CasADi's values
-    (the exp/tanh within 3 ulp) rather than bitwise; the default of ``kklcasadi evaluate``
-    (``--math libm`` keeps it bitwise).
+    The compiled evaluation path's default (``kklcasadi evaluate``, ``estimate``'s long logs, the protocol
+    benchmark): within :data:`VECTOR_MATH_TOLERANCE` of CasADi's values (the exp/tanh within 3 ulp, each
+    fused multiply-add rounded once) rather than bitwise; ``--math libm`` keeps it bitwise. Unlike
+    :func:`generate_c`'s defaults, whose AVX2 kernels sum as the portable ones do, the fused kernels
+    run the 150-wide mat-vecs of the protocol's observers at about twice the multiply-adds per cycle.
     """
-    return rewrite(_source(source), matvec=True, math=True, dispatch=True)
+    return rewrite(_source(source), matvec=True, math=True, dispatch=True, fused=True)
 
 
 

@@ -8,3 +8,5 @@
 #define KKLC_LOG2E 1.4426950408889634
 #define KKLC_LN2HI 6.93147180369123816490e-01   /* ln 2 = LN2HI + LN2LO, k LN2HI exact */
 #define KKLC_LN2LO 1.90821492927058770002e-10
+/* a * b + c, two roundings; the AVX2 version of the evaluation path's kernels writes fma(a, b, c) instead */
+#define KKLC_MADD(a, b, c) ((a) * (b) + (c))
