@@ -217,7 +217,8 @@ class Compiler:
         if identity is None or not named:
             return None
         hook_name = "" if hook is None else f"{hook.__module__}.{hook.__qualname__}"
-        key = hashlib.sha256("\0".join((identity, ca.CasadiMeta.version(), self.command, *self.flags, hook_name)).encode())
+        key = hashlib.sha256("\0".join((identity, ca.CasadiMeta.version(), self.command, *self.flags,
+                                         hook_name)).encode())
         return self.directory / "index" / key.hexdigest()[:32]
 
     def library(self, f: ca.Function) -> Path:

@@ -20,7 +20,14 @@ from kklcasadi.evaluation.compiled import CompiledRecord
 from kklcasadi.model.files import load_model, save_model
 from kklcasadi.model.shipped import resolve
 from kklcasadi.model.variants.covariance import COVARIANCE, SCALE, array_shapes
-from kklcasadi.model.variants.inflation import INFLATION, CopyLayout, Inflation, inflation_numpy, residual_statistic
+from kklcasadi.model.variants.inflation import (
+    INFLATION,
+    CopyLayout,
+    Inflation,
+    inflation_numpy,
+    residual_statistic,
+    spread_factor,
+)
 from kklcasadi.nets.specs import MLPSpec
 from kklcasadi.observer.codegen import generate_c
 from kklcasadi.observer.kkl import load_observer
@@ -252,7 +259,9 @@ def test_the_shipped_inflation_is_near_1_in_distribution_and_detects_doubled_noi
     seed 12: 1.04-1.09), at twice the noise (process and measurement) at least 3 (the errors' variance is about 4x).
     Where the card has the model test (Duffing's and Van der Pol's banks), the whole factor is the residual's times
     the test's, which is 1 on most samples at the protocol's noise (median at most 1.05) and reads the doubled noise
-    in ``m``, not again (mean at most 6)."""
+    in ``m``, not again (mean at most 6). Where it has the spread test (FitzHugh-Nagumo's bank), the factor is the
+    residual's times the test's (the reference with the members' spread), which is 1 on most samples at both noise
+    levels (the test reads inputs beyond the head's fit, not the noise: median 1)."""
     from kklcasadi.evaluation.protocol import Protocol
     from kklcasadi.model.variants.bankdecoder import ASINH_SCALE, decoder_features
     from kklcasadi.model.variants.covariance import covariance_numpy
@@ -273,6 +282,10 @@ def test_the_shipped_inflation_is_near_1_in_distribution_and_detects_doubled_noi
         inf = model.spec.architecture.inflation
         residual = inflation_numpy(Inflation(inf.R, inf.c, inf.time_constant), obs.system, obs.dt, y, est.xhat, P)
         assert low <= residual.mean() <= high, (system, noise, residual.mean())
+        if inf.spread is not None:
+            widen = spread_factor(inf.spread, obs.dt, obs.spread_of(est.z, np.concatenate([y, u], axis=-1)[..., None]))
+            assert np.median(widen) == 1.0, (system, noise, np.mean(widen))
+            residual = residual * widen
         if inf.model is None:
             np.testing.assert_allclose(lam, residual, rtol=1e-9)
         else:
@@ -305,10 +318,15 @@ def tested(tmp_path_factory):
     """Duffing's shipped bank (model copies, a head, its inflation) with a model test that fires on these runs
     (``S`` far below the innovations' low-passed square, ``start`` 0.5 s), and the same bank without the inflation
     (the head alone)."""
-    root = tmp_path_factory.mktemp("model_test")
-    model = load_model(resolve("duffing/bank"))
+    return shipped_with(tmp_path_factory.mktemp("model_test"), "duffing", "model", MODEL_TEST)
+
+
+def shipped_with(root, system, key, entry):
+    """``system``'s shipped bank with ``architecture.inflation[key] = entry``, and the same bank without the inflation
+    (the head alone), saved under ``root`` and loaded."""
+    model = load_model(resolve(f"{system}/bank"))
     card = json.loads(json.dumps(model.card))
-    card["architecture"][INFLATION]["model"] = MODEL_TEST
+    card["architecture"][INFLATION][key] = entry
     path = save_model(root / "tested", dict(model.arrays), card)
     del card["architecture"][INFLATION]
     return load_observer(path), load_observer(save_model(root / "head", dict(model.arrays), card))
@@ -358,17 +376,22 @@ def test_the_model_test_in_simulate_the_record_and_the_estimator_equals_the_refe
         np.testing.assert_allclose(stepper.cov, b.cov[1, k], rtol=1e-12, atol=0)
 
 
+def c_step_of_state(obs, tmp_path, name, math, start):
+    """The generated C step of ``obs`` as a CasADi external, its header checked for the carried state ``start``."""
+    files = generate_c(obs, tmp_path, name, math=math)
+    header, macro = files[1].read_text(), name.upper()
+    assert f"#define {macro}_NM {len(start)}" in header and f"#define {macro}_M0 {{{', '.join(start)}}}" in header
+    library = tmp_path / f"lib{name}.so"
+    subprocess.run([GCC, "-std=c99", "-O1", "-fPIC", "-shared", str(files[0]), "-o", str(library), "-lm"], check=True)
+    return ca.external(f"{name}_step", str(library))
+
+
 @needs_gcc
 @pytest.mark.parametrize("math, tol", [("libm", 0.0), ("vector", 1e-12)])
 def test_the_c_step_carries_the_model_tests_state(tested, tmp_path, math, tol):
     """C equals the CasADi VM with the 4-number state fed back over 12 steps (bitwise with the C library's math)."""
     obs = tested[0]
-    files = generate_c(obs, tmp_path, "mt", math=math)
-    header = files[1].read_text()
-    assert "#define MT_NM 4" in header and "#define MT_M0 {1.0, 0.0, 1.0, 0.0}" in header
-    library = tmp_path / "libmt.so"
-    subprocess.run([GCC, "-std=c99", "-O1", "-fPIC", "-shared", str(files[0]), "-o", str(library), "-lm"], check=True)
-    step = ca.external("mt_step", str(library))
+    step = c_step_of_state(obs, tmp_path, "mt", math, ["1.0", "0.0", "1.0", "0.0"])
     rng = np.random.default_rng(6)
     m_vm = c_against_vm(obs, step, rng, 0.3 * rng.normal(size=obs.nz), 1.0, tol)
     assert m_vm[3].item() == pytest.approx(12 * obs.dt) and m_vm[2].item() > 1.0
@@ -392,5 +415,106 @@ def test_the_card_refuses_a_bad_model_test_in_one_line(tested, tmp_path, entry, 
     card["architecture"][INFLATION]["model"] = entry
     write_signed_card(path, card)
     with pytest.raises(ValueError, match=f"{field}.*{expected}") as raised:
+        load_model(path)
+    assert "\n" not in str(raised.value)
+
+
+# ----------------------------------------------------------------------------- the spread test
+
+SPREAD_TEST = {"S": 1e-5, "time_constant": 0.5, "gain": 0.3, "threshold": 2.0}
+
+
+@pytest.fixture(scope="module")
+def spread_tested(tmp_path_factory):
+    """FitzHugh-Nagumo's shipped bank (a decoder ensemble, a head, its inflation) with a spread test that fires on
+    these runs (``S`` far below the members' squared spread), and the same bank without the inflation (the head
+    alone)."""
+    return shipped_with(tmp_path_factory.mktemp("spread_test"), "fhn", "spread", SPREAD_TEST)
+
+
+def test_the_spread_test_step_against_a_hand_computation(spread_tested):
+    """One step with the carried state ``[m, h]`` written out: ``m``'s residual average (``h = x1``), the spread's
+    average ``h = (1 - a3) h + a3 d^2 / S`` and the factor ``max(1, m) max(1, 1 + gain (h - threshold))``, below and
+    above the threshold."""
+    obs = spread_tested[0]
+    rng = np.random.default_rng(9)
+    z, xhat, A = rng.normal(size=obs.nz), rng.normal(size=2), rng.normal(size=(2, 2))
+    P, y = A @ A.T + 0.1 * np.eye(2), np.array([0.7])
+    inf = obs.model.spec.architecture.inflation
+    a = -np.expm1(-obs.dt / inf.time_constant)
+    a3 = -np.expm1(-obs.dt / SPREAD_TEST["time_constant"])
+    m1 = (1 - a) * 1.3 + a / inf.c * (0.7 - xhat[0]) ** 2 / (P[0, 0] + inf.R[0])
+    for d, fires in ((1e-4, False), (2e-2, True)):
+        m_next, P_out = (np.asarray(v) for v in obs.inflation([1.3, 2.0], y, xhat, P, z, d))
+        h = (1 - a3) * 2.0 + a3 * d ** 2 / SPREAD_TEST["S"]
+        np.testing.assert_allclose(m_next.ravel(), [m1, h], rtol=1e-13)
+        widen = max(1.0, 1 + SPREAD_TEST["gain"] * (h - SPREAD_TEST["threshold"]))
+        assert (widen > 1) == fires
+        np.testing.assert_allclose(P_out, max(1.0, m1) * widen * P, rtol=1e-13)
+    assert obs.inflation_start.tolist() == [1.0, 1.0]
+
+
+def test_the_spread_test_in_simulate_the_record_and_the_estimator_equals_the_reference(spread_tested):
+    obs, head = spread_tested
+    assert obs.step_covariance.size1_in(5) == 2 and obs.step_covariance.size1_out(4) == 2
+    t, y, u = runs(obs, m=3, n=60)
+    a, b = head.simulate(t, y, u, vm=True), obs.simulate(t, y, u, vm=False)
+    shipped = load_observer(resolve("fhn/bank")).simulate(t, y, u, vm=True)
+    np.testing.assert_array_equal(shipped.xhat, b.xhat)             # the estimates: bitwise unchanged
+    np.testing.assert_array_equal(shipped.z, b.z)
+    inf = obs.model.spec.architecture.inflation
+    spread = obs.spread_of(a.z, np.concatenate([y, u], axis=-1)[..., None])   # the bank's memory: [y_k; u_k]
+    lam = inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov, spread=spread)
+    without = inflation_numpy(Inflation(inf.R, inf.c, inf.time_constant), obs.system, obs.dt, y, a.xhat, a.cov)
+    assert np.all(lam[:, 0] == 1) and np.all(lam >= without) and np.mean(lam > without) > 0.5   # the test fires
+    np.testing.assert_allclose(b.cov, lam[..., None, None] * a.cov, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(obs.simulate(t, y, u, vm=True).cov, b.cov)
+    np.testing.assert_array_equal(CompiledRecord(obs).record(t, y, u)[2], b.cov)
+    stepper = obs.estimator()
+    for k in range(t.size):
+        stepper.make_step(y[1, k], u[1, k])
+        np.testing.assert_allclose(stepper.cov, b.cov[1, k], rtol=1e-12, atol=0)
+    with pytest.raises(ValueError, match=r"^spread: expected the decoder ensemble's spread"):
+        inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov)
+
+
+@needs_gcc
+@pytest.mark.parametrize("math, tol", [("libm", 0.0), ("vector", 1e-12)])
+def test_the_c_step_carries_the_spread_tests_state(spread_tested, tmp_path, math, tol):
+    """C equals the CasADi VM with the state ``[m, h]`` fed back over 12 steps (bitwise with the C library's math)."""
+    obs = spread_tested[0]
+    step = c_step_of_state(obs, tmp_path, "st", math, ["1.0", "1.0"])
+    rng = np.random.default_rng(7)
+    m_vm = c_against_vm(obs, step, rng, 0.3 * rng.normal(size=obs.nz), 1.0, tol)
+    assert m_vm[1].item() > 1.0
+
+
+@pytest.mark.parametrize("entry, field, expected", [
+    ({**SPREAD_TEST, "S": 0.0}, r"architecture\.inflation\.spread\.S", r"a finite number > 0"),
+    ({**SPREAD_TEST, "time_constant": 0.0}, r"architecture\.inflation\.spread\.time_constant",
+     r"a finite number > 0"),
+    ({**SPREAD_TEST, "gain": "2"}, r"architecture\.inflation\.spread\.gain", r"a finite number > 0"),
+    ({**SPREAD_TEST, "threshold": -0.5}, r"architecture\.inflation\.spread\.threshold", r"a finite number >= 0"),
+    ({"S": 1e-5, "gain": 1.0}, r"architecture\.inflation\.spread", r"exactly the keys \['S', 'time_constant'"),
+    ([1e-5], r"architecture\.inflation\.spread", r"exactly the keys"),
+])
+def test_the_card_refuses_a_bad_spread_test_in_one_line(spread_tested, tmp_path, entry, field, expected):
+    path = tmp_path / "bad"
+    shutil.copytree(spread_tested[0].model.path, path)
+    card = json.loads(json.dumps(load_model(path).card))
+    card["architecture"][INFLATION]["spread"] = entry
+    write_signed_card(path, card)
+    with pytest.raises(ValueError, match=f"{field}.*{expected}") as raised:
+        load_model(path)
+    assert "\n" not in str(raised.value)
+
+
+def test_a_spread_test_without_a_decoder_ensemble_is_refused(pair):
+    path = pair[1].model.path
+    card = json.loads(json.dumps(load_model(path).card))
+    assert card["architecture"]["bank"].get("members", 1) == 1
+    card["architecture"][INFLATION]["spread"] = SPREAD_TEST
+    write_signed_card(path, card)
+    with pytest.raises(ValueError, match=r"architecture\.inflation\.spread.*a decoder ensemble") as raised:
         load_model(path)
     assert "\n" not in str(raised.value)

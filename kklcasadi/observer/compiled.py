@@ -91,6 +91,8 @@ class CompiledTrajectory:
         step = obs.step_covariance if self.covariance else obs.step
         if not self.spread or obs.decoded is None:
             return step
+        if self.covariance and obs.step_covariance_spread is not None:     # the inflation's spread test has it
+            return obs.step_covariance_spread
         args = [ca.MX.sym(name, step.sparsity_in(i)) for i, name in enumerate(step.name_in())]
         z_next, w_next, own, *covariance = step.call(args, True)
         xhat, spread = obs.decoded(z_next, w_next)

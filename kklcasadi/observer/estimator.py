@@ -134,7 +134,8 @@ class Estimator:
                 if started:
                     self._m = obs.inflation_start
                 else:
-                    m_next, P = obs.inflation(self._m, y, xhat, self._cov, z)
+                    spread = [obs.spread(z, w)] if obs.inflation.n_in() == 6 else []   # its spread test's input
+                    m_next, P = obs.inflation(self._m, y, xhat, self._cov, z, *spread)
                     self._m, self._cov = np.asarray(m_next)[:, 0], np.asarray(P)
         self._out_of_domain += inside is not None and not inside
         return xhat

@@ -27,6 +27,9 @@ autonomous one); with the defaults (the exact step for linear latents, RK4 for `
 (FitzHugh-Nagumo) and 2.9e-3 (Roessler) on the shipped autonomous vs inject models, 20 zero-input
 protocol trials.
 
+Over 600 lines: one object's construction ties the step, its covariance and inflation, the domain check and the
+runs (simulate, the integrator, the estimator) to the same Functions, so that they agree bitwise.
+
 The observer state is ``(z_k, w_k)`` and the last measurement ``y_k``: over ``[t_k, t_k+1]`` the
 latent ODE sees ``y`` interpolated linearly from ``y_k`` to ``y_k+1`` (first-order hold) and the
 input held at ``u_k`` (``docs/protocol.md`` "Observer"). ``w_k`` is the observer's input memory
@@ -166,6 +169,9 @@ class KKLObserver:
         None without a covariance head. The C function ``name_step`` of a model with a head. With
         ``architecture.inflation`` (:attr:`inflation`, ``(m, y, xhat, P, z) -> (m_next, P_inflated)``) it carries ``m``
         (a sixth input, :attr:`inflation_start` first, and a fifth output) and inflates ``P_next`` (not the first's).
+    step_covariance_spread : casadi.Function or None
+        :attr:`step_covariance` and the ensemble's spread (a sixth output) where ``architecture.inflation.spread``
+        reads it (estimate and spread from one run of the members, :attr:`decoded`); None otherwise.
     """
 
     def __init__(self, model: Model, system: System, *, discretization: Optional[str] = None,
@@ -213,7 +219,8 @@ class KKLObserver:
         self.covariance: Optional[ca.Function] = nets.covariance
         self.inflation: Optional[ca.Function] = nets.inflation
         self.inflation_start = np.zeros(0) if nets.inflation_start is None else nets.inflation_start   # its m_0
-        self.step, self.step_covariance = self._build_step()
+        self.decoded: Optional[ca.Function] = nets.decoded
+        self.step, self.step_covariance, self.step_covariance_spread = self._build_step()
         self.monitor = None if spec.monitor is None else FeatureMonitor.from_arrays(spec.monitor, model.arrays)
         features = self.nz + self.memory_shape[0] * self.memory_shape[1]
         if self.monitor is not None and self.monitor.features != features:
@@ -225,7 +232,6 @@ class KKLObserver:
             raise ValueError(f"{model.path / CARD_FILE}: 'monitor.spread': expected a decoder ensemble (a 'bank' with "
                              "architecture.bank.members >= 2) for the spread test, received a single decoder. Remove "
                              "'monitor.spread' or add the members' networks.")
-        self.decoded: Optional[ca.Function] = nets.decoded
         self.domain_check, self.domain_check_of_spread = self._build_domain_check()
         self._trajectories: Optional[Any] = None                  # simulate's compiled trajectories, when first run
 
@@ -241,9 +247,8 @@ class KKLObserver:
             zdot = zdot + self._input_term(z, u, context)
         return zdot
 
-    def _build_step(self) -> tuple[ca.Function, Optional[ca.Function]]:
-        """The step, and the step with the covariance of its estimate (the same expressions; None without a
-        covariance head)."""
+    def _build_step(self) -> tuple[ca.Function, Optional[ca.Function], Optional[ca.Function]]:
+        """:attr:`step`, :attr:`step_covariance` and :attr:`step_covariance_spread` (the same expressions)."""
         z, w = ca.MX.sym("z", self.nz), ca.MX.sym("w", *self.memory_shape)
         y, y_next = ca.MX.sym("y", self.ny), ca.MX.sym("y_next", self.ny)
         u_next = ca.MX.sym("u_next", self.nu)
@@ -263,14 +268,20 @@ class KKLObserver:
         names = ["z", "w", "y", "y_next", "u_next"], ["z_next", "w_next", "xhat_next"]
         step = ca.Function("step", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next], *names)
         if self.covariance is None:
-            return step, None
+            return step, None, None
+        spread = []              # the inflation's spread test: the estimate and the spread from one members' run
+        if self.inflation is not None and self.inflation.n_in() == 6 and self.decoded is not None:
+            xhat_next, *spread = self.decoded(z_next, w_next)
         P_next, state = self.covariance(z_next, w_next, xhat_next), ca.MX.sym("m", self.inflation_start.size)
         if self.inflation is None:
             return step, ca.Function("step_covariance", [z, w, y, y_next, u_next], [z_next, w_next, xhat_next, P_next],
-                                     names[0], names[1] + ["P_next"])
-        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next, z_next)   # the inflation's state m, carried
-        return step, ca.Function("step_covariance", [z, w, y, y_next, u_next, state], [z_next, w_next, xhat_next,
-                                 P_next, m_next], names[0] + ["m"], names[1] + ["P_next", "m_next"])
+                                     names[0], names[1] + ["P_next"]), None
+        m_next, P_next = self.inflation(state, y_next, xhat_next, P_next, z_next, *spread)   # its state m, carried
+        inputs, outputs = [z, w, y, y_next, u_next, state], [z_next, w_next, xhat_next, P_next, m_next]
+        names = names[0] + ["m"], names[1] + ["P_next", "m_next"]
+        return (step, ca.Function("step_covariance", inputs, outputs, *names),
+                ca.Function("step_covariance_spread", inputs, outputs + spread, names[0], names[1] + ["spread"])
+                if spread else None)
 
     def _build_domain_check(self) -> tuple[Optional[ca.Function], Optional[ca.Function]]:
         """:attr:`domain_check`, and where it tests the ensemble's spread the same check of a spread given

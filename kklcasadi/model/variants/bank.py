@@ -59,7 +59,7 @@ from .covariance import COVARIANCE, covariance_expression, n_entries
 from .covariance import array_shapes as covariance_shapes
 from .ekfblock import EKF_BLOCK, EKFBlock
 from .filterbank import FilterBank, latent_step
-from .inflation import INFLATION, MODEL, CopyLayout, Inflation, inflation_function
+from .inflation import INFLATION, MODEL, SPREAD, CopyLayout, Inflation, inflation_function
 
 __all__ = ["Bank", "BankSpec", "ASINH_SCALE", "feedthrough_memory"]
 
@@ -355,6 +355,10 @@ class Bank(Variant):
                                   f"the copies, na = nx + n_params > nx = {sizes.nx}",
                                   Text(f"{spec.n_ekf} latents{' and angles' if spec.angles else ''}"),
                                   "The card was written for another plant or edited; retrain it.")
+        if inflation is not None and inflation.spread is not None and spec.members < 2:
+            raise field_error(where, f"architecture.{INFLATION}.{SPREAD}", "an entry of a bank with a decoder ensemble "
+                              "(architecture.bank.members >= 2)", inflation.spread.to_card(),
+                              "The spread test reads the members' disagreement; remove it for a single decoder.")
         if spec.n_copies and spec.n_filters < 1:
             nk = spec.nx if spec.copy_states is None else len(spec.copy_states)
             raise field_error(where, "architecture.bank.copies", f"model copies of {spec.n_copies} x {nk} states = "

@@ -39,6 +39,20 @@ fluctuations in distribution. ``g`` is read against ``m``: noisier measurements 
 (twice the noise: about 4), which ``max(1, m)`` covers already; a wrong model raises ``g`` alone. The state is
 then ``[m, s (ny), g, t]`` (``3 + ny`` numbers, start ``[1, 0, ..., 0, 1, 0]``: :meth:`Inflation.initial_state`).
 
+Neither sees inputs that drive the plant where the head was not fit (its fitting runs' input ranges): there the
+noise is the head's own and the residual stays noise, while the errors grow. A bank with a decoder ensemble sees it
+in the members' disagreement (:func:`kklcasadi.model.variants.bankdecoder.spread`, the domain monitor's second
+test), which the step computes with the estimate from the same evaluation. The optional ``spread`` entry
+(:class:`SpreadTest`) averages its square: with ``d_k`` the spread at sample ``k`` and ``a3 = 1 - exp(-dt /
+time_constant3)``,
+
+    h_k    = (1 - a3) h_{k-1} + a3 d_k^2 / S             (h_0 = 1)
+    P'_k   = (the factors above) max(1, 1 + gain3 (h_k - threshold3)) P_k
+
+``S`` is the mean of ``d^2`` on in-distribution validation runs at the head's noise (so ``h`` averages 1 there);
+``threshold3`` leaves the spread's growth with the noise alone (about 2 at twice the noise). ``h`` is the carried
+state's last number (start 1).
+
 :func:`inflation_numpy` is the reference; :func:`inflation_function` the same recursion in CasADi (what the
 observer's step and its C code compute).
 """
@@ -56,8 +70,8 @@ from ...nets.specs import field_error
 from ...plant.systems import System
 from ...validation import is_number
 
-__all__ = ["INFLATION", "Inflation", "ModelTest", "residual_statistic", "inflation_numpy", "inflation_function",
-           "fold"]
+__all__ = ["INFLATION", "Inflation", "ModelTest", "SpreadTest", "spread_factor", "residual_statistic",
+           "inflation_numpy", "inflation_function", "fold"]
 
 #: The card's entry (``architecture.inflation``).
 INFLATION = "inflation"
@@ -65,6 +79,9 @@ _KEYS = ("R", "c", "time_constant")
 #: The optional entry of the model test (:class:`ModelTest`), and its keys.
 MODEL = "model"
 _MODEL_KEYS = ("copy", "pole", "S", "time_constant", "gain", "threshold", "start")
+#: The optional entry of the spread test (:class:`SpreadTest`), and its keys.
+SPREAD = "spread"
+_SPREAD_KEYS = ("S", "time_constant", "gain", "threshold")
 
 
 def _positive(value: Any) -> bool:
@@ -134,6 +151,52 @@ class ModelTest:
 
 
 @dataclass(frozen=True)
+class SpreadTest:
+    """The spread test's constants (``architecture.inflation.spread``; the module docstring's third recursion).
+
+    Attributes
+    ----------
+    S : float
+        The mean of the decoder ensemble's squared spread on in-distribution validation runs, > 0.
+    time_constant : float
+        Of its exponential average, in seconds, > 0.
+    gain : float
+        ``max(1, 1 + gain (h - threshold))``, > 0.
+    threshold : float
+        Of ``h``, >= 0.
+    """
+
+    S: float
+    time_constant: float
+    gain: float
+    threshold: float
+
+    @classmethod
+    def from_card(cls, entry: Any, where: str) -> SpreadTest:
+        """The constants of ``architecture.inflation.spread``, checked (one-line errors naming the field)."""
+        name = f"architecture.{INFLATION}.{SPREAD}"
+        if not isinstance(entry, Mapping) or set(entry) != set(_SPREAD_KEYS):
+            received = sorted(entry) if isinstance(entry, Mapping) else entry
+            raise field_error(where, name, f"an object with exactly the keys {list(_SPREAD_KEYS)}", received,
+                              "docs/model-format.md.")
+        for key in ("S", "time_constant", "gain"):
+            if not _positive(entry[key]):
+                raise field_error(where, f"{name}.{key}", "a finite number > 0", entry[key],
+                                  "Chosen on validation runs (benchmarks/spread_test.py).")
+        if not (is_number(entry["threshold"]) and math.isfinite(entry["threshold"]) and entry["threshold"] >= 0):
+            raise field_error(where, f"{name}.threshold", "a finite number >= 0", entry["threshold"],
+                              "Chosen on validation runs (benchmarks/spread_test.py).")
+        return cls(float(entry["S"]), float(entry["time_constant"]), float(entry["gain"]), float(entry["threshold"]))
+
+    def to_card(self) -> dict:
+        return {"S": self.S, "time_constant": self.time_constant, "gain": self.gain, "threshold": self.threshold}
+
+    def weight(self, dt: float) -> float:
+        """The exponential average's weight of a new sample, ``a3 = 1 - exp(-dt / time_constant)``."""
+        return -math.expm1(-dt / self.time_constant)
+
+
+@dataclass(frozen=True)
 class CopyLayout:
     """Where the model test's copy lives in the latent: ``xhat_i = reference + z[offset:offset + nx]``."""
 
@@ -155,22 +218,25 @@ class Inflation:
         Of the statistic's exponential average, in seconds, > 0.
     model : ModelTest or None
         The model test of a bank with model copies (optional).
+    spread : SpreadTest or None
+        The spread test of a bank with a decoder ensemble (optional).
     """
 
     R: tuple[float, ...]
     c: float
     time_constant: float
     model: Optional[ModelTest] = None
+    spread: Optional[SpreadTest] = None
 
     @classmethod
     def from_card(cls, entry: Any, where: str, ny: int) -> Inflation:
         """The constants of a card's ``architecture.inflation`` (``{"R": [ny numbers > 0], "c": number > 0,
         "time_constant": number > 0}``), checked; a bad one raises the package's one-line error naming it."""
         name = f"architecture.{INFLATION}"
-        if not isinstance(entry, Mapping) or not set(_KEYS) <= set(entry) <= {*_KEYS, MODEL}:
+        if not isinstance(entry, Mapping) or not set(_KEYS) <= set(entry) <= {*_KEYS, MODEL, SPREAD}:
             received = sorted(entry) if isinstance(entry, Mapping) else entry
             raise field_error(where, name, f"an object with exactly the keys {list(_KEYS)} (and optionally "
-                              f"{MODEL!r})", received,
+                              f"{MODEL!r} and {SPREAD!r})", received,
                               "docs/model-format.md (benchmarks/covariance_heads.py writes it).")
         R = entry["R"]
         if not (isinstance(R, list) and len(R) == ny and all(_positive(v) for v in R)):
@@ -181,17 +247,22 @@ class Inflation:
                 raise field_error(where, f"{name}.{key}", "a finite number > 0", entry[key],
                                   "Chosen on validation runs by benchmarks/covariance_heads.py.")
         model = ModelTest.from_card(entry[MODEL], where, ny) if MODEL in entry else None
-        return cls(tuple(float(v) for v in R), float(entry["c"]), float(entry["time_constant"]), model)
+        spread = SpreadTest.from_card(entry[SPREAD], where) if SPREAD in entry else None
+        return cls(tuple(float(v) for v in R), float(entry["c"]), float(entry["time_constant"]), model, spread)
 
     def to_card(self) -> dict:
-        card = {"R": list(self.R), "c": self.c, "time_constant": self.time_constant}
-        return card if self.model is None else {**card, MODEL: self.model.to_card()}
+        card: dict = {"R": list(self.R), "c": self.c, "time_constant": self.time_constant}
+        if self.model is not None:
+            card[MODEL] = self.model.to_card()
+        if self.spread is not None:
+            card[SPREAD] = self.spread.to_card()
+        return card
 
     def initial_state(self) -> np.ndarray:
-        """The carried state at a run's start: ``[1]``, or ``[1, 0 (ny), 1, 0]`` with the model test."""
-        if self.model is None:
-            return np.ones(1)
-        return np.concatenate([[1.0], np.zeros(len(self.R)), [1.0, 0.0]])
+        """The carried state at a run's start: ``[1]``, with the model test ``[1, 0 (ny), 1, 0]``, and with the
+        spread test one more ``1`` (``h_0``) at the end."""
+        state = [1.0] if self.model is None else [1.0, *[0.0] * len(self.R), 1.0, 0.0]
+        return np.asarray(state + ([1.0] if self.spread is not None else []))
 
     def weight(self, dt: float) -> float:
         """The exponential average's weight of a new sample, ``a = 1 - exp(-dt / time_constant)``."""
@@ -214,7 +285,8 @@ def _copy_state(layout: CopyLayout, z: Any, nx: int) -> Any:
 
 
 def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarray, xhat: np.ndarray,
-                    P: np.ndarray, z: Optional[np.ndarray] = None, layout: Optional[CopyLayout] = None) -> np.ndarray:
+                    P: np.ndarray, z: Optional[np.ndarray] = None, layout: Optional[CopyLayout] = None,
+                    spread: Optional[np.ndarray] = None) -> np.ndarray:
     """The factors of runs (the module docstring's recursions; the reference of :func:`inflation_function`).
 
     Parameters
@@ -232,6 +304,8 @@ def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarr
         The latents (with the model test).
     layout : CopyLayout, optional
         Where its copy is in ``z`` (with the model test).
+    spread : numpy.ndarray, shape (M, N), optional
+        The decoder ensemble's spread at each sample (with the spread test).
 
     Returns
     -------
@@ -251,9 +325,14 @@ def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarr
     for k in range(1, N):
         m[:, k] = (1 - a) * m[:, k - 1] + a * r[:, k]
     factor = np.maximum(1.0, m)
+    if inflation.spread is not None and spread is None:
+        raise ValueError("spread: expected the decoder ensemble's spread (M, N) for an inflation with a spread test, "
+                         "received None.")
+    widen = (1.0 if inflation.spread is None or spread is None
+             else spread_factor(inflation.spread, dt, np.asarray(spread, dtype=float)))
     test = inflation.model
     if test is None:
-        return factor
+        return factor * widen
     if z is None or layout is None:
         raise ValueError("z, layout: expected the latents and the copy's layout for an inflation with a model test, "
                          "received None.")
@@ -266,7 +345,19 @@ def inflation_numpy(inflation: Inflation, system: System, dt: float, y: np.ndarr
         q = np.mean(s ** 2 / np.asarray(test.S), axis=-1) if t > test.start - dt / 2 else 1.0
         g = (1 - a2) * g + a2 * q
         factor[:, k] *= np.maximum(1.0, 1 + test.gain * (g / m[:, k] - test.threshold))
-    return factor
+    return factor * widen
+
+
+def spread_factor(test: SpreadTest, dt: float, spread: np.ndarray) -> np.ndarray:
+    """``max(1, 1 + gain (h_k - threshold))`` of runs' spreads (M, N) -> (M, N) (``h_0 = 1``: 1 at the first
+    sample, as the other factors)."""
+    a3 = test.weight(dt)
+    h = np.ones(spread.shape)
+    for k in range(1, spread.shape[1]):
+        h[:, k] = (1 - a3) * h[:, k - 1] + (a3 / test.S) * spread[:, k] ** 2
+    out = np.maximum(1.0, 1 + test.gain * (h - test.threshold))
+    out[:, 0] = 1.0
+    return out
 
 
 def inflation_function(inflation: Inflation, system: System, dt: float, nz: int,
@@ -274,8 +365,9 @@ def inflation_function(inflation: Inflation, system: System, dt: float, nz: int,
     """``inflation(m, y, xhat, P, z) -> (m_next, P_inflated)``: one step of the recursions (module docstring) at the
     sample whose measurement is ``y`` (ny, 1), estimate ``xhat`` (nx, 1), head covariance ``P`` (nx, nx) and latent
     ``z`` (nz, 1); ``m`` the carried state after the previous sample (:meth:`Inflation.initial_state`'s size; the
-    latent is read only by the model test, which needs ``layout``). Plain scalar expressions (the residual's small
-    solve expanded), so that its C equals the CasADi VM."""
+    latent is read only by the model test, which needs ``layout``). With the spread test a sixth input, ``spread``
+    (the decoder ensemble's spread at the sample). Plain scalar expressions (the residual's small solve expanded), so
+    that its C equals the CasADi VM."""
     nx, ny = system.nx, system.ny
     size = inflation.initial_state().size
     m, y, x = ca.SX.sym("m", size), ca.SX.sym("y", ny), ca.SX.sym("xhat", nx)
@@ -300,8 +392,13 @@ def inflation_function(inflation: Inflation, system: System, dt: float, nz: int,
         g = (1 - a2) * m[1 + ny] + a2 * q
         factor = factor * ca.fmax(1.0, 1 + test.gain * (g / m_next - test.threshold))
         state = ca.vertcat(m_next, s, g, t)
-    return ca.Function("inflation", [m, y, x, P, z], [state, factor * P],
-                       ["m", "y", "xhat", "P", "z"], ["m_next", "P_inflated"])
+    inputs, names = [m, y, x, P, z], ["m", "y", "xhat", "P", "z"]
+    if inflation.spread is not None:
+        spread, a3 = ca.SX.sym("spread"), inflation.spread.weight(dt)
+        h = (1 - a3) * m[size - 1] + (a3 / inflation.spread.S) * spread ** 2
+        factor = factor * ca.fmax(1.0, 1 + inflation.spread.gain * (h - inflation.spread.threshold))
+        state, inputs, names = ca.vertcat(state, h), [*inputs, spread], [*names, "spread"]
+    return ca.Function("inflation", inputs, [state, factor * P], names, ["m_next", "P_inflated"])
 
 
 def fold(step: ca.Function, name: str, n: int) -> ca.Function:
