@@ -14,7 +14,8 @@ and written a block of samples at a time (:mod:`kklcasadi.evaluation.streamed`: 
 length, with a progress bar), or read whole where it must be (a log faster than the model, a sample the
 guard acts on: :func:`kklcasadi.evaluation.logged.estimate_log`); the observer and the EKF run their compiled
 steps a chunk of samples per call (:mod:`kklcasadi.evaluation.chunked`), with the vectorised
-exp/tanh (within 1e-14 per step of the VM; ``--math libm``: bitwise :meth:`KKLObserver.simulate`);
+exp/tanh and fused multiply-adds (within 1e-12 per step of the VM; ``--math libm``: bitwise
+:meth:`KKLObserver.simulate`);
 ``--vm`` (or no C compiler) runs the CasADi VM the same way.
 """
 
@@ -74,8 +75,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--vm", action="store_true", help="run the CasADi VM instead of the compiled steps (the reference "
                    "path; same values as --math libm, slower)")
     e.add_argument("--math", default="vector", choices=("vector", "libm"),
-                   help="exp/tanh of the compiled steps: vectorised, within 1e-14 per step of the VM (default), or the "
-                   "C library's, bitwise the VM")
+                   help="arithmetic of the compiled steps: vectorised exp/tanh and fused multiply-adds, within 1e-12 "
+                   "per step of the VM (default), or the C library's exp/tanh and unfused sums, bitwise the VM")
     e.set_defaults(func=run)
 
 

@@ -4,7 +4,7 @@ docs/protocol.md cells.
 Trials come from the on-disk trial cache (simulated once per cell, while the C compiler builds the
 estimators); observers, the EKF and the particle filter run as compiled code mapped over the trials
 on threads, with the vectorised exp/tanh and, where the CPU has FMA, mat-vecs summed with fused
-multiply-adds (within 1e-14 of the VM; ``--math libm``: bitwise the VM;
+multiply-adds (within 1e-12 (1 + |VM|) of the VM, ``FUSED_TOLERANCE``; ``--math libm``: bitwise the VM;
 ``--vm``: the CasADi VM itself). An observer sees the noise-free and noisy cells of a regime in one
 call, so that the work its inputs alone decide is done once for both (the same scores).
 ``--profile`` prints where the time went.
@@ -77,7 +77,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    "(the reference path; same values, slower)")
     e.add_argument("--math", default="vector", choices=("vector", "libm"),
                    help="arithmetic of the compiled observers: vectorised exp/tanh and fused multiply-adds in the "
-                   "mat-vecs, within 1e-14 of the VM (default), or the C library's exp/tanh and unfused sums, "
+                   "mat-vecs, within 1e-12 of the VM (default), or the C library's exp/tanh and unfused sums, "
                    "bitwise the VM")
     e.add_argument("--threads", type=positive_int, help="worker threads over trials and C compilers at a time "
                    "(default: the CPU count)")

@@ -15,7 +15,7 @@ flags).
 With :data:`BITWISE` the estimates are bitwise :meth:`KKLObserver.simulate`'s and
 :meth:`EKF.simulate`'s (the same operations on the same values: the observer's step with the
 evaluation path's shortcuts, which are bitwise the plain step, and the C library's exp/tanh); with
-:data:`FAST` (the default) the vectorised exp/tanh keep each step within 1e-14 of the VM's, as
+`FAST` (the default) the vectorised exp/tanh and fused multiply-adds keep each step within 1e-12 of the VM's, as
 ``kklcasadi evaluate``'s default. The domain monitor's flags are the observer's ``domain_check``,
 compiled with the step.
 """
@@ -39,8 +39,9 @@ if TYPE_CHECKING:
 
 __all__ = ["ChunkedObserver", "ChunkedEKF", "CHUNK", "FAST", "BITWISE"]
 
-#: The default compiler of the chunks: the axpy mat-vec kernels and the vectorised exp/tanh (within
-#: 1e-14 relative of the VM per step, as ``kklcasadi evaluate``'s default).
+#: The default compiler of the chunks: the axpy mat-vec kernels (fused multiply-adds where the CPU has FMA) and the
+#: vectorised exp/tanh (within FUSED_TOLERANCE, 1e-12 relative, of the VM per step, as ``kklcasadi evaluate``'s
+#: default).
 FAST = Compiler(postprocess=fast_kernels)
 
 
@@ -161,7 +162,7 @@ class ChunkedObserver(_Chunked):
     ----------
     observer : KKLObserver
     compiler : Compiler or None
-        How the chunk is compiled: :data:`FAST` (default, within 1e-14 per step of the VM) or
+        How the chunk is compiled: :data:`FAST` (default, within 1e-12 per step of the VM) or
         :data:`BITWISE`; None: the CasADi VM.
     chunk : int
         Steps per call (:data:`CHUNK`).

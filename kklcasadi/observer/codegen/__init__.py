@@ -14,8 +14,8 @@ from .generator import (
     generate_c,
     renamed,
 )
-from .kernels import VECTOR_MATH_TOLERANCE, axpy_matvec, fast_kernels, vector_math_c
+from .kernels import FUSED_TOLERANCE, VECTOR_MATH_TOLERANCE, axpy_matvec, fast_kernels, vector_math_c
 
 __all__ = ["generate_c", "c_targets", "casadi_source", "renamed", "check_c_name", "check_flags", "axpy_matvec",
            "fast_kernels", "vector_math_c", "C_FLAGS", "DEFAULT_FLAGS", "NATIVE_FLAGS", "MATVECS", "MATHS",
-           "VECTOR_MATH_TOLERANCE"]
+           "VECTOR_MATH_TOLERANCE", "FUSED_TOLERANCE"]
