@@ -152,6 +152,17 @@ def monitored_bank(model_dir_factory):
     return path, monitor
 
 
+def assert_exp_tanh_ulps(x, got_exp, got_tanh):
+    """kklcasadi's vector exp and tanh of ``x`` within 1 and 3 ulp of numpy's, NaN and infinities as the C library."""
+    with np.errstate(over="ignore"):
+        for got, want, ulps in ((got_exp, np.exp(x), 1), (got_tanh, np.tanh(x), 3)):
+            finite = np.isfinite(want)
+            assert np.array_equal(np.isnan(got), np.isnan(want))
+            assert np.array_equal(got[~finite & ~np.isnan(want)], want[~finite & ~np.isnan(want)])
+            scale = np.spacing(np.maximum(np.abs(want[finite]), np.finfo(float).tiny))
+            assert np.max(np.abs(got[finite] - want[finite]) / scale) <= ulps
+
+
 def c_program_estimates(obs, folder, name, t, y, u):
     """The estimates of ``obs``'s C program (``generate_c`` with the C library's math, built by gcc) fed the log
     ``time, y1.., u1..`` on stdin: (N, nx); every sample fed (no guard flag)."""
