@@ -196,6 +196,11 @@ class Compiler:
         FileNotFoundError
             The compiler is not on ``PATH``.
         """
+        if identity is not None and not isinstance(identity, str):
+            raise TypeError(f"identity: expected a str that determines the Function, or None, received "
+                            f"{type(identity).__name__}.")
+        if not callable(make):
+            raise TypeError(f"make: expected a callable () -> casadi.Function, received {type(make).__name__}.")
         index = self._index(identity)
         if index is not None and index.is_file():
             name, _, library = index.read_text().partition("\n")

@@ -465,6 +465,10 @@ def test_no_index_for_a_hook_that_no_name_identifies(model_dir_factory, tmp_path
     compiler = Compiler(cache_dir=tmp_path, postprocess=lambda source: fast_kernels(source))
     observer_estimator(obs, compiler=compiler)(t, y, u)
     assert not (tmp_path / "index").exists() and len(list(tmp_path.glob("*.so"))) == 1
+    with pytest.raises(TypeError, match="identity: expected a str"):
+        compiler.build_known(42, lambda: obs.step)
+    with pytest.raises(TypeError, match="make: expected a callable"):
+        compiler.build_known("x", obs.step.name())
 
 
 @needs_gcc

@@ -355,16 +355,19 @@ def test_the_model_test_step_against_a_hand_computation(tested):
     assert obs.inflation_start.tolist() == [1.0, 0.0, 1.0, 0.0]
 
 
-def test_the_model_test_in_simulate_the_record_and_the_estimator_equals_the_reference(tested):
-    obs, head = tested
-    assert obs.step_covariance.size1_in(5) == 4 and obs.step_covariance.size1_out(4) == 4
+def simulate_record_and_estimator_equal_the_reference(obs, head, shipped, n_state, reference):
+    """``obs`` (a shipped bank with an inflation test) against ``head`` (the same bank, the head alone) on 3 runs:
+    its estimates bitwise ``shipped``'s, the carried state ``n_state`` numbers, its covariance the head's times the
+    factor ``reference(inf, y, a)`` computes (a: the head's Estimate) in simulate (compiled and VM), the evaluation's
+    record and the stepwise estimator, the test firing on more than half the samples. Returns (inf, y, a)."""
+    assert obs.step_covariance.size1_in(5) == n_state and obs.step_covariance.size1_out(4) == n_state
     t, y, u = runs(obs, m=3, n=60)
     a, b = head.simulate(t, y, u, vm=True), obs.simulate(t, y, u, vm=False)
-    shipped = load_observer(resolve("duffing/bank")).simulate(t, y, u, vm=True)
-    np.testing.assert_array_equal(shipped.xhat, b.xhat)             # the estimates: bitwise unchanged
-    np.testing.assert_array_equal(shipped.z, b.z)
+    original = load_observer(resolve(shipped)).simulate(t, y, u, vm=True)
+    np.testing.assert_array_equal(original.xhat, b.xhat)            # the estimates: bitwise unchanged
+    np.testing.assert_array_equal(original.z, b.z)
     inf = obs.model.spec.architecture.inflation
-    lam = inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov, a.z, CopyLayout(14, (0.0, 0.0)))
+    lam = reference(inf, y, u, a)
     without = inflation_numpy(Inflation(inf.R, inf.c, inf.time_constant), obs.system, obs.dt, y, a.xhat, a.cov)
     assert np.all(lam[:, 0] == 1) and np.all(lam >= without) and np.mean(lam > without) > 0.5   # the test fires
     np.testing.assert_allclose(b.cov, lam[..., None, None] * a.cov, rtol=1e-12, atol=0)
@@ -374,6 +377,14 @@ def test_the_model_test_in_simulate_the_record_and_the_estimator_equals_the_refe
     for k in range(t.size):
         stepper.make_step(y[1, k], u[1, k])
         np.testing.assert_allclose(stepper.cov, b.cov[1, k], rtol=1e-12, atol=0)
+    return inf, y, a
+
+
+def test_the_model_test_in_simulate_the_record_and_the_estimator_equals_the_reference(tested):
+    obs, head = tested
+    simulate_record_and_estimator_equal_the_reference(
+        obs, head, "duffing/bank", 4, lambda inf, y, u, a: inflation_numpy(
+            inf, obs.system, obs.dt, y, a.xhat, a.cov, a.z, CopyLayout(14, (0.0, 0.0))))
 
 
 def c_step_of_state(obs, tmp_path, name, math, start):
@@ -397,6 +408,18 @@ def test_the_c_step_carries_the_model_tests_state(tested, tmp_path, math, tol):
     assert m_vm[3].item() == pytest.approx(12 * obs.dt) and m_vm[2].item() > 1.0
 
 
+def refused_in_one_line(obs, tmp_path, key, entry, pattern):
+    """A copy of ``obs``'s model with ``architecture.inflation[key] = entry`` is refused on load in one line."""
+    path = tmp_path / "bad"
+    shutil.copytree(obs.model.path, path)
+    card = json.loads(json.dumps(load_model(path).card))
+    card["architecture"][INFLATION][key] = entry
+    write_signed_card(path, card)
+    with pytest.raises(ValueError, match=pattern) as raised:
+        load_model(path)
+    assert "\n" not in str(raised.value)
+
+
 @pytest.mark.parametrize("entry, field, expected", [
     ({**MODEL_TEST, "copy": 3}, r"architecture\.inflation\.model\.copy", r"one of the latent's 3 model copies"),
     ({**MODEL_TEST, "copy": -1}, r"architecture\.inflation\.model\.copy", r"an integer >= 0"),
@@ -409,14 +432,7 @@ def test_the_c_step_carries_the_model_tests_state(tested, tmp_path, math, tol):
     ({"copy": 0, "pole": 1.0}, r"architecture\.inflation\.model", r"exactly the keys \['copy', 'pole', 'S'"),
 ])
 def test_the_card_refuses_a_bad_model_test_in_one_line(tested, tmp_path, entry, field, expected):
-    path = tmp_path / "bad"
-    shutil.copytree(tested[0].model.path, path)
-    card = json.loads(json.dumps(load_model(path).card))
-    card["architecture"][INFLATION]["model"] = entry
-    write_signed_card(path, card)
-    with pytest.raises(ValueError, match=f"{field}.*{expected}") as raised:
-        load_model(path)
-    assert "\n" not in str(raised.value)
+    refused_in_one_line(tested[0], tmp_path, "model", entry, f"{field}.*{expected}")
 
 
 # ----------------------------------------------------------------------------- the spread test
@@ -456,24 +472,12 @@ def test_the_spread_test_step_against_a_hand_computation(spread_tested):
 
 def test_the_spread_test_in_simulate_the_record_and_the_estimator_equals_the_reference(spread_tested):
     obs, head = spread_tested
-    assert obs.step_covariance.size1_in(5) == 2 and obs.step_covariance.size1_out(4) == 2
-    t, y, u = runs(obs, m=3, n=60)
-    a, b = head.simulate(t, y, u, vm=True), obs.simulate(t, y, u, vm=False)
-    shipped = load_observer(resolve("fhn/bank")).simulate(t, y, u, vm=True)
-    np.testing.assert_array_equal(shipped.xhat, b.xhat)             # the estimates: bitwise unchanged
-    np.testing.assert_array_equal(shipped.z, b.z)
-    inf = obs.model.spec.architecture.inflation
-    spread = obs.spread_of(a.z, np.concatenate([y, u], axis=-1)[..., None])   # the bank's memory: [y_k; u_k]
-    lam = inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov, spread=spread)
-    without = inflation_numpy(Inflation(inf.R, inf.c, inf.time_constant), obs.system, obs.dt, y, a.xhat, a.cov)
-    assert np.all(lam[:, 0] == 1) and np.all(lam >= without) and np.mean(lam > without) > 0.5   # the test fires
-    np.testing.assert_allclose(b.cov, lam[..., None, None] * a.cov, rtol=1e-12, atol=0)
-    np.testing.assert_array_equal(obs.simulate(t, y, u, vm=True).cov, b.cov)
-    np.testing.assert_array_equal(CompiledRecord(obs).record(t, y, u)[2], b.cov)
-    stepper = obs.estimator()
-    for k in range(t.size):
-        stepper.make_step(y[1, k], u[1, k])
-        np.testing.assert_allclose(stepper.cov, b.cov[1, k], rtol=1e-12, atol=0)
+
+    def reference(inf, y, u, a):
+        spread = obs.spread_of(a.z, np.concatenate([y, u], axis=-1)[..., None])   # the bank's memory: [y_k; u_k]
+        return inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov, spread=spread)
+
+    inf, y, a = simulate_record_and_estimator_equal_the_reference(obs, head, "fhn/bank", 2, reference)
     with pytest.raises(ValueError, match=r"^spread: expected the decoder ensemble's spread"):
         inflation_numpy(inf, obs.system, obs.dt, y, a.xhat, a.cov)
 
@@ -499,14 +503,7 @@ def test_the_c_step_carries_the_spread_tests_state(spread_tested, tmp_path, math
     ([1e-5], r"architecture\.inflation\.spread", r"exactly the keys"),
 ])
 def test_the_card_refuses_a_bad_spread_test_in_one_line(spread_tested, tmp_path, entry, field, expected):
-    path = tmp_path / "bad"
-    shutil.copytree(spread_tested[0].model.path, path)
-    card = json.loads(json.dumps(load_model(path).card))
-    card["architecture"][INFLATION]["spread"] = entry
-    write_signed_card(path, card)
-    with pytest.raises(ValueError, match=f"{field}.*{expected}") as raised:
-        load_model(path)
-    assert "\n" not in str(raised.value)
+    refused_in_one_line(spread_tested[0], tmp_path, "spread", entry, f"{field}.*{expected}")
 
 
 def test_a_spread_test_without_a_decoder_ensemble_is_refused(pair):
